@@ -1,0 +1,74 @@
+//! `umgen layout`: the frame layout of a config.
+
+use crate::cli::LayoutArgs;
+use anyhow::Context;
+use std::io::Write;
+use umgen::UmgenConfig;
+use umgen::modality::FrameLayout;
+
+/// Loads the config, builds its registry and prints the layout.
+pub fn run(args: &LayoutArgs) -> anyhow::Result<()> {
+    let path = &args.config.config;
+    let config = UmgenConfig::load(path, &args.config.set)?;
+    let registry = config.registry(&umgen::builtin_catalog()?)?;
+    let layout = registry.layout()?;
+    let mut out = std::io::stdout().lock();
+    if args.json {
+        writeln!(out, "{}", serde_json::to_string_pretty(&json(layout))?)?;
+    } else {
+        write_table(&mut out, &path.display().to_string(), layout)?;
+    }
+    out.flush().context("writing to stdout")
+}
+
+fn json(layout: &FrameLayout) -> serde_json::Value {
+    serde_json::json!({
+        "tokens_per_frame": layout.len(),
+        "boundary_tokens": layout.boundary_tokens(),
+        "fingerprint": layout.fingerprint(),
+        "segments": layout.segments(),
+    })
+}
+
+fn write_table(out: &mut impl Write, source: &str, layout: &FrameLayout) -> std::io::Result<()> {
+    writeln!(out, "config       {source}")?;
+    writeln!(out, "fingerprint  {}", layout.fingerprint())?;
+    writeln!(out)?;
+    writeln!(
+        out,
+        "{:<12} {:<8} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>7} {:>7}  grid",
+        "modality", "kind", "start", "offset", "tokens", "end", "vocab", "embed", "start_id", "end_id"
+    )?;
+    let dash = |p: Option<usize>| p.map_or_else(|| "-".to_string(), |p| p.to_string());
+    for s in layout.segments() {
+        let grid = s
+            .grid
+            .map_or_else(|| "-".to_string(), |g| format!("{}x{}", g.rows, g.cols));
+        writeln!(
+            out,
+            "{:<12} {:<8} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>7} {:>7}  {grid}",
+            s.modality,
+            s.kind,
+            dash(s.start_pos),
+            s.offset,
+            s.tokens,
+            dash(s.end_pos),
+            s.vocab_size,
+            s.embed_vocab,
+            s.start_id,
+            s.end_id,
+        )?;
+    }
+    writeln!(out)?;
+    let boundary = if layout.boundary_tokens() {
+        "with"
+    } else {
+        "without"
+    };
+    writeln!(
+        out,
+        "N = {} tokens per frame ({} modalities, {boundary} start/end tokens)",
+        layout.len(),
+        layout.segments().len()
+    )
+}

@@ -1,0 +1,23 @@
+//! Entry point of the `umgen` binary: parse the command line, set up logging, run the command, and turn
+//! errors into a message on stderr and a non-zero exit code.
+
+mod cli;
+mod commands;
+mod logging;
+
+use clap::Parser;
+use std::io::Write;
+use std::process::ExitCode;
+
+fn main() -> ExitCode {
+    let args = cli::Cli::parse();
+    logging::init(args.verbose);
+    match commands::run(args.command) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            // The whole cause chain on one line; nothing else to do if stderr is gone.
+            let _ = writeln!(std::io::stderr(), "error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,152 @@
+//! The `umgen` binary end to end: output, exit codes and error messages.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn config(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../configs")
+        .join(name)
+}
+
+fn umgen(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(args)
+        .env_remove("UMGEN_LOG")
+        .output()
+        .unwrap()
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+/// Runs a command that must fail cleanly and returns its stderr.
+fn failure(args: &[&str], envs: &[(&str, &str)]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(args)
+        .envs(envs.iter().copied())
+        .output()
+        .unwrap();
+    let err = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "stderr: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(err.starts_with("error: "), "{err}");
+    err
+}
+
+#[test]
+fn layout_of_the_paper_config() {
+    let out = umgen(&["layout", "--config", config("paper.toml").to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let table = text(&out.stdout);
+    assert!(table.contains("N = 2251 tokens per frame"), "{table}");
+    // modality, kind, start, offset, tokens, end, vocab
+    let rows: Vec<Vec<String>> = table
+        .lines()
+        .filter(|l| {
+            ["ego ", "map ", "agent ", "image "]
+                .iter()
+                .any(|m| l.starts_with(m))
+        })
+        .map(|l| l.split_whitespace().map(String::from).collect())
+        .collect();
+    let expect = [
+        ["ego", "ego", "0", "1", "3", "4", "1024"],
+        ["map", "map", "5", "6", "1024", "1030", "8192"],
+        ["agent", "agent", "1031", "1032", "704", "1736", "1028"],
+        ["image", "image", "1737", "1738", "512", "2250", "8192"],
+    ];
+    assert_eq!(rows.len(), 4, "{table}");
+    for (row, want) in rows.iter().zip(expect) {
+        assert_eq!(&row[..7], &want[..], "{table}");
+    }
+}
+
+#[test]
+fn layout_as_json_with_overrides() {
+    let path = config("paper.toml");
+    let args = [
+        "layout",
+        "--json",
+        "--config",
+        path.to_str().unwrap(),
+        "--set",
+        "layout.boundary_tokens=false",
+        "--set",
+        "modality.agent.max_agents=60",
+    ];
+    let out = umgen(&args);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    // The PyTorch reference's layout: 3 + 1024 + 660 + 512.
+    assert_eq!(v["tokens_per_frame"], 2199);
+    assert_eq!(v["segments"][2]["offset"], 1027);
+    assert_eq!(v["segments"][2]["tokens"], 660);
+    assert_eq!(v["fingerprint"].as_str().unwrap().len(), 64);
+}
+
+#[test]
+fn config_errors_name_the_key_and_fail() {
+    let paper = config("paper.toml");
+    let p = paper.to_str().unwrap();
+    let err = failure(
+        &["layout", "--config", p, "--set", "modality.agent.max_agent=3"],
+        &[],
+    );
+    assert!(
+        err.contains("`modality.agent.max_agent`") && err.contains("unknown field"),
+        "{err}"
+    );
+    let err = failure(
+        &["layout", "--config", p, "--set", "layout.boundary_tokens=maybe"],
+        &[],
+    );
+    assert!(
+        err.contains("`layout.boundary_tokens`") && err.contains("expected a boolean"),
+        "{err}"
+    );
+    let err = failure(&["layout", "--config", p, "--set", "modality.map.grid=[32]"], &[]);
+    assert!(err.contains("`modality.map.grid`"), "{err}");
+    let err = failure(&["layout", "--config", p], &[("UMGEN__LAYOUT__ORDER", "ego")]);
+    assert!(
+        err.contains("`layout.order`") && err.contains("UMGEN__LAYOUT__ORDER"),
+        "{err}"
+    );
+    let err = failure(
+        &[
+            "layout",
+            "--config",
+            p,
+            "--set",
+            "layout.order=[\"ego\", \"map\", \"agent\", \"image\", \"map\"]",
+        ],
+        &[],
+    );
+    assert!(err.contains("duplicate modality name `map`"), "{err}");
+    let err = failure(&["layout", "--config", "/no/such/config.toml"], &[]);
+    assert!(err.contains("/no/such/config.toml"), "{err}");
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "[layout]\norder = [\"ego\"]\nordr = 1\n").unwrap();
+    let err = failure(&["layout", "--config", bad.to_str().unwrap()], &[]);
+    assert!(err.contains("`layout.ordr`") && err.contains("bad.toml"), "{err}");
+}
+
+#[test]
+fn version_help_and_doctor() {
+    let out = umgen(&["--version"]);
+    assert_eq!(
+        text(&out.stdout).trim(),
+        format!("umgen {}", env!("CARGO_PKG_VERSION"))
+    );
+    let help = text(&umgen(&["--help"]).stdout);
+    assert!(help.contains("layout") && help.contains("doctor"), "{help}");
+    // Without the `cuda` feature the doctor only reports that GPU support is not built in.
+    if cfg!(not(feature = "cuda")) {
+        let out = umgen(&["doctor"]);
+        assert!(out.status.success());
+        assert!(text(&out.stdout).contains("cuda     not built in"));
+    }
+}

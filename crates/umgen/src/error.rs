@@ -1,0 +1,18 @@
+//! Errors of the facade.
+
+/// Anything that can fail while setting up a run.
+#[derive(Debug, thiserror::Error)]
+pub enum UmgenError {
+    /// Loading or typing the configuration.
+    #[error(transparent)]
+    Config(#[from] umgen_config::ConfigError),
+    /// Building modalities or the layout.
+    #[error(transparent)]
+    Modality(#[from] umgen_modality::ModalityError),
+    /// A configuration given as text is not valid.
+    #[error("invalid configuration text: {0}")]
+    Text(String),
+}
+
+/// Result with [`UmgenError`].
+pub type Result<T, E = UmgenError> = std::result::Result<T, E>;

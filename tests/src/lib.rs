@@ -1,0 +1,6 @@
+//! Support for umgen's workspace-level integration tests (in `tests/tests/`).
+//!
+//! [`traffic_lights`] is a complete fifth modality written only against the public trait, the way a
+//! user adds one; the tests register it next to the built-ins without touching any built-in crate.
+
+pub mod traffic_lights;

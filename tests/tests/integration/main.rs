@@ -1,0 +1,4 @@
+//! Workspace-level integration tests, one module per concern.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+mod custom_modality;
