@@ -2,10 +2,12 @@
 
 use crate::agent::Agent;
 use crate::error::{Result, SceneError};
+use crate::network::RoadNetwork;
 use crate::pose::{EgoAction, EgoPose};
 use crate::raster::{CameraImage, MapRaster};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 /// Data of a modality the built-in fields do not cover, stored under the modality's own key in
 /// [`Frame::extras`].
@@ -53,6 +55,9 @@ pub struct SceneClip {
     pub interval: f64,
     /// The frames, in time order.
     pub frames: Vec<Frame>,
+    /// The road network the clip was recorded on, when known; views are rendered from it.
+    #[serde(skip)]
+    pub network: Option<Arc<RoadNetwork>>,
 }
 
 impl SceneClip {
@@ -62,9 +67,16 @@ impl SceneClip {
             id: id.into(),
             interval,
             frames,
+            network: None,
         };
         clip.validate()?;
         Ok(clip)
+    }
+
+    /// The same clip on a road network.
+    pub fn with_network(mut self, network: Arc<RoadNetwork>) -> Self {
+        self.network = Some(network);
+        self
     }
 
     /// Number of frames.

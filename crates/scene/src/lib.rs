@@ -6,6 +6,9 @@
 //! raster ([`MapRaster`], C×H×W) and the front camera image ([`CameraImage`], 3×H×W, u8). Modalities that the
 //! built-in types do not cover keep their data in [`Frame::extras`], so adding one never edits this crate.
 //!
+//! The road network around a clip is a [`RoadNetwork`] of vector geometry (lanes, connectors, crossings,
+//! junctions, stop lines, dividers, sidewalks), shared by the clips recorded on it.
+//!
 //! Coordinates: the ego frame has x forward, y left, z up; headings are counter-clockwise from +x in
 //! radians, wrapped to [-π, π). [`Pose2`] moves points, headings and velocities between frames.
 //!
@@ -21,11 +24,15 @@
 mod agent;
 mod error;
 mod frame;
+mod network;
 mod pose;
 mod raster;
 
 pub use agent::{Agent, AgentCategory};
 pub use error::{Result, SceneError};
 pub use frame::{Extra, Frame, SceneClip};
+pub use network::{
+    Bounds, Crosswalk, MapLayer, Marking, Polygon, Polyline, RoadNetwork, bbox, boxes_overlap,
+};
 pub use pose::{EgoAction, EgoPose, Pose2, wrap_angle};
 pub use raster::{CameraImage, MapRaster};

@@ -1,7 +1,10 @@
 //! One module per subcommand.
 
+mod bench;
+mod data;
 mod doctor;
 mod layout;
+mod viz;
 
 use crate::cli::Command;
 
@@ -10,5 +13,8 @@ pub fn run(command: Command) -> anyhow::Result<()> {
     match command {
         Command::Layout(args) => layout::run(&args),
         Command::Doctor => doctor::run(),
+        Command::Data(c) => data::run(c),
+        Command::Viz(args) => viz::run(&args),
+        Command::Bench(c) => bench::run(c),
     }
 }
