@@ -1,0 +1,263 @@
+//! Burn modules and optimizers to and from bytes.
+//!
+//! Weights are safetensors whose tensor names are module paths (`encoder.conv_in.weight`), readable by
+//! Python's `safetensors`. Optimizer state is burn's binary record, keyed by parameter ids; modules get
+//! ids derived from their paths ([`stable_param_ids`]) so that state saved by one process matches the
+//! parameters another process builds.
+
+use crate::error::{CheckpointError, Result};
+use burn::module::{AutodiffModule, Module, ModuleMapper, Param, ParamId};
+use burn::optim::Optimizer;
+use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
+use burn::tensor::Tensor;
+use burn::tensor::backend::{AutodiffBackend, Backend};
+use burn::tensor::{DType, TensorData};
+use burn_store::{ModuleSnapshot, SafetensorsStore};
+use safetensors::{Dtype, tensor::TensorView};
+
+/// FNV-1a: stable across runs, platforms and Rust versions.
+fn fnv1a(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
+struct PathIds {
+    path: Vec<String>,
+}
+
+impl PathIds {
+    fn id(&self) -> ParamId {
+        ParamId::from(fnv1a(&self.path.join(".")))
+    }
+}
+
+impl<B: Backend> ModuleMapper<B> for PathIds {
+    fn enter_module(&mut self, name: &str, _container: &str) {
+        self.path.push(name.into());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container: &str) {
+        self.path.pop();
+    }
+
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<B, D>>) -> Param<Tensor<B, D>> {
+        let (_, tensor, mapper) = param.consume();
+        Param::from_mapped_value(self.id(), tensor, mapper)
+    }
+
+    fn map_int<const D: usize>(
+        &mut self,
+        param: Param<Tensor<B, D, burn::tensor::Int>>,
+    ) -> Param<Tensor<B, D, burn::tensor::Int>> {
+        let (_, tensor, mapper) = param.consume();
+        Param::from_mapped_value(self.id(), tensor, mapper)
+    }
+
+    fn map_bool<const D: usize>(
+        &mut self,
+        param: Param<Tensor<B, D, burn::tensor::Bool>>,
+    ) -> Param<Tensor<B, D, burn::tensor::Bool>> {
+        let (_, tensor, mapper) = param.consume();
+        Param::from_mapped_value(self.id(), tensor, mapper)
+    }
+}
+
+/// The module with every parameter's id replaced by a hash of its path.
+pub fn stable_param_ids<B: Backend, M: Module<B>>(module: M) -> M {
+    module.map(&mut PathIds { path: Vec::new() })
+}
+
+fn safetensors_dtype(d: DType) -> Option<Dtype> {
+    Some(match d {
+        DType::F64 => Dtype::F64,
+        DType::F32 | DType::Flex32 => Dtype::F32,
+        DType::F16 => Dtype::F16,
+        DType::BF16 => Dtype::BF16,
+        DType::I64 => Dtype::I64,
+        DType::I32 => Dtype::I32,
+        DType::I16 => Dtype::I16,
+        DType::I8 => Dtype::I8,
+        DType::U64 => Dtype::U64,
+        DType::U32 => Dtype::U32,
+        DType::U16 => Dtype::U16,
+        DType::U8 => Dtype::U8,
+        DType::Bool(_) => Dtype::BOOL,
+        _ => return None,
+    })
+}
+
+/// The module's weights as safetensors bytes, named by module path. The bytes depend only on the
+/// weights: tensors are sorted by name and no metadata map is written (burn-store's writer orders its
+/// metadata by hash, so equal weights would give different files and checksums).
+pub fn weights_to_bytes<B: Backend, M: Module<B>>(module: &M) -> Result<Vec<u8>> {
+    let fail = |reason: String| CheckpointError::Weights {
+        what: "weights".into(),
+        reason,
+    };
+    let mut tensors: Vec<(String, TensorData)> = module
+        .collect(None, None, false)
+        .into_iter()
+        .map(|s| {
+            s.to_data()
+                .map(|d| (s.full_path(), d))
+                .map_err(|e| fail(format!("{}: {e:?}", s.full_path())))
+        })
+        .collect::<Result<_>>()?;
+    tensors.sort_by(|a, b| a.0.cmp(&b.0));
+    let views = tensors
+        .iter()
+        .map(|(name, d)| {
+            let dtype = safetensors_dtype(d.dtype)
+                .ok_or_else(|| fail(format!("{name}: dtype {:?} has no safetensors code", d.dtype)))?;
+            TensorView::new(dtype, d.shape.to_vec(), d.as_bytes())
+                .map(|v| (name.clone(), v))
+                .map_err(|e| fail(format!("{name}: {e}")))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    safetensors::serialize(views, None).map_err(|e| fail(e.to_string()))
+}
+
+/// Loads safetensors bytes into a module. Every tensor of the module must be present with its shape, and
+/// every tensor of the file must be used; `what` names the weights in errors.
+pub fn weights_from_bytes<B: Backend, M: Module<B>>(mut module: M, bytes: Vec<u8>, what: &str) -> Result<M> {
+    let fail = |reason: String| CheckpointError::Weights {
+        what: what.into(),
+        reason,
+    };
+    let mut store = SafetensorsStore::from_bytes(Some(bytes));
+    let r = module.load_from(&mut store).map_err(|e| fail(e.to_string()))?;
+    if !r.errors.is_empty() {
+        return Err(fail(format!(
+            "{} tensors do not fit: {:?}",
+            r.errors.len(),
+            r.errors.iter().take(3).collect::<Vec<_>>()
+        )));
+    }
+    if !r.missing.is_empty() {
+        let names: Vec<&str> = r.missing.iter().take(5).map(|(p, _)| p.as_str()).collect();
+        return Err(fail(format!(
+            "{} tensors missing, e.g. {}",
+            r.missing.len(),
+            names.join(", ")
+        )));
+    }
+    if !r.unused.is_empty() {
+        return Err(fail(format!(
+            "{} tensors the model does not have, e.g. {}",
+            r.unused.len(),
+            r.unused.iter().take(5).cloned().collect::<Vec<_>>().join(", ")
+        )));
+    }
+    Ok(module)
+}
+
+/// An optimizer's state as bytes.
+pub fn optimizer_to_bytes<B, M, O>(optim: &O) -> Result<Vec<u8>>
+where
+    B: AutodiffBackend,
+    M: AutodiffModule<B>,
+    O: Optimizer<M, B>,
+{
+    BinBytesRecorder::<FullPrecisionSettings>::default()
+        .record(optim.to_record(), ())
+        .map_err(|e| CheckpointError::Weights {
+            what: "optimizer state".into(),
+            reason: e.to_string(),
+        })
+}
+
+/// Restores an optimizer's state from bytes.
+pub fn optimizer_from_bytes<B, M, O>(optim: O, bytes: Vec<u8>, device: &B::Device) -> Result<O>
+where
+    B: AutodiffBackend,
+    M: AutodiffModule<B>,
+    O: Optimizer<M, B>,
+{
+    let record = BinBytesRecorder::<FullPrecisionSettings>::default()
+        .load(bytes, device)
+        .map_err(|e| CheckpointError::Weights {
+            what: "optimizer state".into(),
+            reason: e.to_string(),
+        })?;
+    Ok(optim.load_record(record))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::nn::{Linear, LinearConfig};
+    use burn::optim::{AdamWConfig, GradientsParams};
+
+    type B = burn::backend::Autodiff<burn::backend::Flex>;
+
+    #[derive(Module, Debug)]
+    struct Net<B: Backend> {
+        a: Linear<B>,
+        b: Linear<B>,
+    }
+
+    fn net(dev: &burn::tensor::Device<B>) -> Net<B> {
+        stable_param_ids(Net {
+            a: LinearConfig::new(3, 4).init(dev),
+            b: LinearConfig::new(4, 2).init(dev),
+        })
+    }
+
+    fn step(m: Net<B>, o: &mut impl Optimizer<Net<B>, B>) -> Net<B> {
+        let dev = Default::default();
+        let x = Tensor::<B, 2>::ones([2, 3], &dev);
+        let loss = m.b.forward(m.a.forward(x)).powf_scalar(2.0).sum();
+        let g = GradientsParams::from_grads(loss.backward(), &m);
+        o.step(1e-2, m, g)
+    }
+
+    #[test]
+    fn ids_follow_paths_and_training_resumes_exactly() {
+        let dev = Default::default();
+        let (m1, m2) = (net(&dev), net(&dev));
+        assert_eq!(m1.a.weight.id, m2.a.weight.id);
+        assert_ne!(m1.a.weight.id, m1.b.weight.id);
+        // Two steps straight vs. one step, save, restore into a fresh model and optimizer, one step.
+        let mut o = AdamWConfig::new().init();
+        let straight = step(step(m1.clone(), &mut o), &mut o);
+        let mut o1 = AdamWConfig::new().init();
+        let after1 = step(m1, &mut o1);
+        let (w, s) = (
+            weights_to_bytes(&after1).unwrap(),
+            optimizer_to_bytes(&o1).unwrap(),
+        );
+        let restored = weights_from_bytes(net(&dev), w, "net").unwrap();
+        let mut o2 = optimizer_from_bytes(AdamWConfig::new().init(), s, &dev).unwrap();
+        let resumed = step(restored, &mut o2);
+        let (a, b) = (
+            straight.b.weight.val().into_data(),
+            resumed.b.weight.val().into_data(),
+        );
+        assert_eq!(a, b);
+        assert!(
+            weights_to_bytes(&straight).unwrap() == weights_to_bytes(&resumed).unwrap(),
+            "equal weights, equal bytes"
+        );
+    }
+
+    #[test]
+    fn mismatched_weights_are_refused() {
+        let dev = Default::default();
+        #[derive(Module, Debug)]
+        struct Other<B: Backend> {
+            a: Linear<B>,
+        }
+        let other = Other::<B> {
+            a: LinearConfig::new(3, 4).init(&dev),
+        };
+        let bytes = weights_to_bytes(&other).unwrap();
+        let err = weights_from_bytes(net(&dev), bytes, "net")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("net") && err.contains("missing") && err.contains("b.weight"),
+            "{err}"
+        );
+    }
+}

@@ -1,0 +1,17 @@
+//! umgen checkpoints.
+//!
+//! A run's checkpoints live in one directory: `step-000000123/` per saved step, each with its files and a
+//! `manifest.json` (kind, step, umgen version, free-form metadata, SHA-256 of every file), plus `latest`
+//! naming the newest. [`CheckpointDir::save`] writes atomically (temporary directory, fsync, rename) and
+//! keeps the newest K; [`CheckpointDir::load_latest`] verifies checksums and falls back to the previous
+//! checkpoint when the newest is damaged.
+//!
+//! The [`burn_io`] functions turn burn modules into safetensors bytes (names = module paths) and optimizer
+//! state into bytes, with parameter ids derived from paths so that a resumed process matches them.
+
+pub mod burn_io;
+mod dir;
+mod error;
+
+pub use dir::{CheckpointDir, FileEntry, LATEST, Loaded, MANIFEST, Manifest, load};
+pub use error::{CheckpointError, Result};

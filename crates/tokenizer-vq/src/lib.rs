@@ -1,0 +1,34 @@
+//! VQ-GAN style tokenizers for umgen's image-like modalities (supplementary B.1.2 of the paper;
+//! `official-code-notes.md` §4 describes the authors' design, which this follows).
+//!
+//! - [`VqModel`]: encoder (residual blocks, stride-2 downsampling, optional attention), a codebook of
+//!   unit vectors matched by cosine similarity ([`Quantizer`], EMA updates, dead-code restarts,
+//!   straight-through gradients, commitment loss), and a mirrored decoder. Sizes come from [`VqConfig`].
+//! - [`train`]: AdamW with warm-up + cosine learning rate and global-norm clipping on a reconstruction loss
+//!   (BCE/focal + Dice for binary map layers; L1 + L2 for colour images); checkpoints, TensorBoard scalars
+//!   (losses, codebook usage, perplexity) and exact resume.
+//! - [`VqTokenizer`]: a trained tokenizer (`vq.json` + `vq.safetensors`): rasters ↔ code ids, codebook.
+//! - [`IouCounter`], [`PsnrCounter`], [`code_stats`]: reconstruction quality.
+//!
+//! Training rasters come from a [`RasterSource`]; the map and image modalities render them from datasets.
+
+mod blocks;
+mod coder;
+mod config;
+mod error;
+mod loss;
+mod metrics;
+mod model;
+mod quantizer;
+mod source;
+mod tokenizer;
+mod train;
+
+pub use config::{LossConfig, Output, VqConfig, VqTrainConfig};
+pub use error::{Result, VqError};
+pub use metrics::{IouCounter, PsnrCounter, code_stats};
+pub use model::{Forward, VqModel};
+pub use quantizer::{Quantized, Quantizer, normalize};
+pub use source::{MemorySource, RasterSource, batch_indices, render};
+pub use tokenizer::{CONFIG_FILE, TokenizerInfo, VqTokenizer, WEIGHTS_FILE};
+pub use train::{KIND, StepReport, restart_dead, train};
