@@ -2,5 +2,7 @@
 //!
 //! [`traffic_lights`] is a complete fifth modality written only against the public trait, the way a
 //! user adds one; the tests register it next to the built-ins without touching any built-in crate.
+//! [`fixtures`] makes small datasets through the real importer.
 
+pub mod fixtures;
 pub mod traffic_lights;

@@ -30,6 +30,98 @@ pub enum Command {
     /// Measure speed.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Train and evaluate the VQ tokenizers of image-like modalities (map, image).
+    #[command(subcommand)]
+    Tokenizer(TokenizerCommand),
+    /// Encode every frame of a dataset with every modality of a config into a token cache.
+    Tokenize(TokenizeArgs),
+}
+
+/// `umgen tokenizer …`
+#[derive(Debug, Subcommand)]
+pub enum TokenizerCommand {
+    /// Train a modality's VQ tokenizer on rasters rendered from a dataset.
+    Train(TokenizerTrainArgs),
+    /// Measure a tokenizer's reconstructions (map: IoU per layer; image: PSNR) and draw some.
+    Eval(TokenizerEvalArgs),
+}
+
+/// Arguments of `umgen tokenizer train`.
+#[derive(Debug, Args)]
+pub struct TokenizerTrainArgs {
+    /// The config (its `[modality.<name>]` table sets the architecture and `vq_train`).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// Which modality's tokenizer (a `map` or `image` kind).
+    #[arg(long)]
+    pub modality: String,
+    /// Dataset directory.
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Run directory (checkpoints, TensorBoard, the tokenizer); default `runs/tokenizer-<modality>`.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Split whose frames are used.
+    #[arg(long, default_value = "train")]
+    pub split: String,
+    /// Use every n-th frame of each clip.
+    #[arg(long, default_value_t = 1)]
+    pub stride: usize,
+    /// `cpu`, or `cuda:N` in builds with the `cuda` feature.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+}
+
+/// Arguments of `umgen tokenizer eval`.
+#[derive(Debug, Args)]
+pub struct TokenizerEvalArgs {
+    /// The config.
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// Which modality's tokenizer.
+    #[arg(long)]
+    pub modality: String,
+    /// Dataset directory.
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Tokenizer directory (default: the config's `tokenizer`).
+    #[arg(long, value_name = "DIR")]
+    pub tokenizer: Option<PathBuf>,
+    /// Split to evaluate on.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Frames to evaluate, spread evenly over the split.
+    #[arg(long, default_value_t = 256)]
+    pub frames: usize,
+    /// Directory for `report.json` and input | reconstruction pictures (default: the tokenizer's `eval`).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+}
+
+/// Arguments of `umgen tokenize`.
+#[derive(Debug, Args)]
+pub struct TokenizeArgs {
+    /// The config (every modality needs its tokenizer).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// Dataset directory.
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Token cache directory.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Only this split.
+    #[arg(long)]
+    pub split: Option<String>,
+    /// Threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Where VQ tokenizers run: `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 /// `umgen data …`

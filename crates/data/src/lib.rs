@@ -22,6 +22,7 @@ mod index;
 pub mod log;
 mod stats;
 pub mod sumo;
+mod tokens;
 mod view;
 
 pub use dataset::{Dataset, Window, load_network};
@@ -29,4 +30,5 @@ pub use error::{DataError, Result};
 pub use index::{ClipEntry, INDEX_FILE, Index, LogEntry, NetworkEntry};
 pub use log::{Log, LogShard, State, Track};
 pub use stats::{Stats, Summary};
+pub use tokens::{TOKENS_INDEX, TokenClip, TokenIndex, TokenSet, TokenShard};
 pub use view::{ViewOptions, agent_in_frame, ego_pose, frames};

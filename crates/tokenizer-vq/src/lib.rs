@@ -11,22 +11,28 @@
 //! - [`IouCounter`], [`PsnrCounter`], [`code_stats`]: reconstruction quality.
 //!
 //! Training rasters come from a [`RasterSource`]; the map and image modalities render them from datasets.
+//! [`VqModality`] turns a [`RasterView`] (frame → raster → frame) and a loaded [`Codec`] into a
+//! [`Modality`](umgen_modality::Modality); the map and image modalities are two views.
 
+mod arch;
 mod blocks;
 mod coder;
 mod config;
 mod error;
 mod loss;
 mod metrics;
+mod modality;
 mod model;
 mod quantizer;
 mod source;
 mod tokenizer;
 mod train;
 
+pub use arch::VqArch;
 pub use config::{LossConfig, Output, VqConfig, VqTrainConfig};
 pub use error::{Result, VqError};
 pub use metrics::{IouCounter, PsnrCounter, code_stats};
+pub use modality::{Codec, CodecLoader, CodecOn, RasterView, VqModality, cpu_loader};
 pub use model::{Forward, VqModel};
 pub use quantizer::{Quantized, Quantizer, normalize};
 pub use source::{MemorySource, RasterSource, batch_indices, render};

@@ -9,6 +9,12 @@ pub enum UmgenError {
     /// Building modalities or the layout.
     #[error(transparent)]
     Modality(#[from] umgen_modality::ModalityError),
+    /// Datasets and token caches.
+    #[error(transparent)]
+    Data(#[from] umgen_data::DataError),
+    /// VQ tokenizers.
+    #[error(transparent)]
+    Vq(#[from] umgen_tokenizer_vq::VqError),
     /// A configuration given as text is not valid.
     #[error("invalid configuration text: {0}")]
     Text(String),

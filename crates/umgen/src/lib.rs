@@ -20,28 +20,42 @@
 
 mod config;
 mod error;
+mod tokenize;
+mod vq;
 
 pub use config::UmgenConfig;
 pub use error::{Result, UmgenError};
+pub use tokenize::{TokenizeReport, tokenize_dataset};
 pub use umgen_config as config_layers;
+pub use umgen_data as data;
 pub use umgen_modality as modality;
 pub use umgen_scene as scene;
+pub use umgen_tokenizer_vq as tokenizer_vq;
+pub use vq::{DatasetRasters, VqTarget, vq_target};
 
 use umgen_modality::{ModalityCatalog, Result as ModalityResult};
 
-/// The catalog of built-in modality kinds: `ego`, `map`, `agent` and `image`. Add your own kinds to it
-/// with [`ModalityCatalog::add`] before building a registry.
-pub fn builtin_catalog() -> ModalityResult<ModalityCatalog> {
+/// The built-in catalog with VQ tokenizers (map, image) loaded by `loader` (for example onto a GPU).
+pub fn builtin_catalog_with(loader: umgen_tokenizer_vq::CodecLoader) -> ModalityResult<ModalityCatalog> {
     let mut catalog = ModalityCatalog::new();
     catalog.add(umgen_modality_ego::KIND, umgen_modality_ego::EgoModality::factory)?;
-    catalog.add(umgen_modality_map::KIND, umgen_modality_map::MapModality::factory)?;
+    catalog.add(
+        umgen_modality_map::KIND,
+        umgen_modality_map::factory_with(loader.clone()),
+    )?;
     catalog.add(
         umgen_modality_agent::KIND,
         umgen_modality_agent::AgentModality::factory,
     )?;
     catalog.add(
         umgen_modality_image::KIND,
-        umgen_modality_image::ImageModality::factory,
+        umgen_modality_image::factory_with(loader),
     )?;
     Ok(catalog)
+}
+
+/// The catalog of built-in modality kinds: `ego`, `map`, `agent` and `image`, with VQ tokenizers on the
+/// CPU. Add your own kinds to it with [`ModalityCatalog::add`] before building a registry.
+pub fn builtin_catalog() -> ModalityResult<ModalityCatalog> {
+    builtin_catalog_with(umgen_tokenizer_vq::cpu_loader())
 }

@@ -1,17 +1,20 @@
-//! The map modality (paper supplementary B.2.2): a C×H×W BEV raster of road elements around the ego
-//! (default 6×256×256: lane, stop line, crosswalk, intersection, lane divider, lane connector; 128 m ×
-//! 128 m, 0.5 m per pixel, row 0 at the front), encoded by a VQ tokenizer into a `grid` of codebook ids
-//! (default 32×32 codes from 8192 entries, 8× downsampling).
+//! The map modality (paper supplementary B.2.2): a C×H×W BEV raster of road layers around the ego (default
+//! 6×256×256 — lane, stop line, crosswalk, intersection, lane divider, lane connector — over 128 m × 128 m,
+//! 0.5 m per pixel, row 0 at the front), encoded by a VQ tokenizer into a `grid` of codebook ids (default
+//! 32×32 codes from 8192 entries, 8× downsampling).
 //!
+//! The raster is the frame's own `map` when it has one of the right size, else it is rendered from the
+//! clip's road network around the ego pose. Decoding writes `frame.map` (cells with probability > 0.5).
 //! The layout needs only the grid and the codebook size, so a config can be inspected without trained
-//! tokenizer weights; tokenizing frames needs the weights.
+//! weights; tokenizing needs `tokenizer = "<dir>"` (made by `umgen tokenizer train --modality map`).
 
 use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
 use std::sync::Arc;
-use umgen_modality::{
-    DecodeReport, Modality, ModalityError, ModalitySpec, Result, downsampling, parse_settings,
-};
-use umgen_scene::{Frame, SceneClip};
+use umgen_modality::{Modality, ModalityError, ModalitySpec, Result, downsampling, parse_settings};
+use umgen_render::MapView;
+use umgen_scene::{Frame, MapLayer, MapRaster, SceneClip};
+use umgen_tokenizer_vq::{CodecLoader, Output, RasterView, VqArch, VqModality, VqTrainConfig, cpu_loader};
 
 /// The kind name used in configs.
 pub const KIND: &str = "map";
@@ -20,83 +23,153 @@ pub const KIND: &str = "map";
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MapConfig {
-    /// Raster channels.
-    pub channels: usize,
+    /// Layers, one channel each, in channel order (`lane`, `stop_line`, `crosswalk`, `intersection`,
+    /// `lane_divider`, `lane_connector`).
+    pub layers: Vec<String>,
     /// Raster rows and columns.
     pub raster: [usize; 2],
-    /// Token grid rows and columns; the raster must divide into it evenly.
+    /// Side of the square view around the ego (m).
+    pub extent_m: f64,
+    /// Token grid rows and columns.
     pub grid: [usize; 2],
     /// Codebook entries (the vocabulary).
     pub codebook_size: u32,
+    /// Directory of a trained tokenizer (`vq.json`, `vq.safetensors`).
+    pub tokenizer: Option<PathBuf>,
+    /// Tokenizer architecture.
+    pub vq: VqArch,
+    /// Tokenizer training.
+    pub vq_train: VqTrainConfig,
 }
 
 impl Default for MapConfig {
     fn default() -> Self {
         Self {
-            channels: 6,
+            layers: MapLayer::ALL.iter().map(|l| l.name().to_string()).collect(),
             raster: [256, 256],
+            extent_m: 128.0,
             grid: [32, 32],
             codebook_size: 8192,
+            tokenizer: None,
+            vq: VqArch::paper_map(),
+            vq_train: VqTrainConfig {
+                loss: umgen_tokenizer_vq::LossConfig {
+                    pos_weight: 3.0,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
         }
+    }
+}
+
+/// The map raster of a frame.
+#[derive(Debug, Clone)]
+pub struct MapRasterView {
+    view: MapView,
+}
+
+impl MapRasterView {
+    /// The renderer behind it.
+    pub fn map_view(&self) -> &MapView {
+        &self.view
+    }
+}
+
+impl RasterView for MapRasterView {
+    fn shape(&self) -> [usize; 3] {
+        [self.view.layers.len(), self.view.size[0], self.view.size[1]]
+    }
+
+    fn render(&self, clip: &SceneClip, t: usize) -> Result<Vec<f32>> {
+        let frame = clip.frame(t)?;
+        let [c, h, w] = self.shape();
+        let raster = match &frame.map {
+            Some(m) if (m.channels, m.height, m.width) == (c, h, w) => m.clone(),
+            _ => {
+                let net = clip.network.as_ref().ok_or_else(|| ModalityError::MissingInput {
+                    modality: KIND.into(),
+                    frame: t,
+                    what: "map raster, and its clip has no road network to render one".into(),
+                })?;
+                self.view.render(net, &frame.ego.pose2())
+            }
+        };
+        Ok(raster
+            .data
+            .iter()
+            .map(|&v| if v > 127 { 1.0 } else { 0.0 })
+            .collect())
+    }
+
+    fn write(&self, values: &[f32], frame: &mut Frame) -> Result<()> {
+        let [c, h, w] = self.shape();
+        let data = values.iter().map(|&p| if p > 0.5 { 255 } else { 0 }).collect();
+        frame.map = Some(MapRaster::from_vec(c, h, w, data)?);
+        Ok(())
     }
 }
 
 /// The map modality.
-#[derive(Debug)]
-pub struct MapModality {
-    spec: ModalitySpec,
-    config: MapConfig,
+pub type MapModality = VqModality<MapRasterView>;
+
+/// Builds a map modality called `name` from its settings, loading its tokenizer with `loader`.
+pub fn build(name: &str, config: &MapConfig, loader: &CodecLoader) -> Result<MapModality> {
+    let key = |f: &str| format!("modality.{name}.{f}");
+    let layers = config
+        .layers
+        .iter()
+        .map(|n| {
+            MapLayer::ALL
+                .into_iter()
+                .find(|l| l.name() == n)
+                .ok_or_else(|| ModalityError::Config {
+                    key: key("layers"),
+                    message: format!(
+                        "unknown layer `{n}` (known: {})",
+                        MapLayer::ALL.map(MapLayer::name).join(", ")
+                    ),
+                })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    if layers.is_empty() || config.extent_m.is_nan() || config.extent_m <= 0.0 {
+        return Err(ModalityError::Config {
+            key: key("layers"),
+            message: "needs at least one layer and a positive extent_m".into(),
+        });
+    }
+    downsampling(&key("grid"), config.raster, config.grid)?;
+    let [rows, cols] = config.grid;
+    let spec = ModalitySpec::new(name, KIND, config.codebook_size, rows * cols).with_grid(rows, cols);
+    let view = MapRasterView {
+        view: MapView {
+            extent_m: config.extent_m,
+            size: config.raster,
+            layers: layers.clone(),
+        },
+    };
+    let vq = config
+        .vq
+        .config(layers.len(), Output::Binary, config.codebook_size as usize);
+    let settings =
+        serde_json::json!({"layers": config.layers, "raster": config.raster, "extent_m": config.extent_m});
+    VqModality::new(spec, view, vq, config.tokenizer.clone(), loader, settings)
 }
 
-impl MapModality {
-    /// A map modality called `name`.
-    pub fn new(name: &str, config: MapConfig) -> Result<Self> {
-        downsampling(&format!("modality.{name}.grid"), config.raster, config.grid)?;
-        if config.channels == 0 {
-            return Err(ModalityError::Config {
-                key: format!("modality.{name}.channels"),
-                message: "must be positive".into(),
-            });
-        }
-        let [rows, cols] = config.grid;
-        let spec = ModalitySpec::new(name, KIND, config.codebook_size, rows * cols).with_grid(rows, cols);
-        Ok(Self { spec, config })
-    }
-
-    /// Builds the modality from its config table; the factory registered under [`KIND`].
-    pub fn factory(name: &str, table: &toml::Table) -> Result<Arc<dyn Modality>> {
-        Ok(Arc::new(Self::new(name, parse_settings(name, table)?)?))
-    }
-
-    /// The settings in use.
-    pub fn config(&self) -> &MapConfig {
-        &self.config
-    }
-
-    fn no_tokenizer(&self) -> ModalityError {
-        ModalityError::Tokenizer {
-            modality: self.spec.name.clone(),
-            message: "no VQ tokenizer is attached, so map rasters cannot be encoded or decoded".into(),
-        }
-    }
+/// The factory registered under [`KIND`], loading tokenizers on the CPU.
+pub fn factory(name: &str, table: &toml::Table) -> Result<Arc<dyn Modality>> {
+    Ok(Arc::new(build(
+        name,
+        &parse_settings(name, table)?,
+        &cpu_loader(),
+    )?))
 }
 
-impl Modality for MapModality {
-    fn spec(&self) -> &ModalitySpec {
-        &self.spec
-    }
-
-    fn settings(&self) -> serde_json::Value {
-        serde_json::to_value(&self.config).unwrap_or(serde_json::Value::Null)
-    }
-
-    fn tokenize(&self, _clip: &SceneClip, _t: usize) -> Result<Vec<u32>> {
-        Err(self.no_tokenizer())
-    }
-
-    fn detokenize(&self, _ids: &[u32], _frame: &mut Frame) -> Result<DecodeReport> {
-        Err(self.no_tokenizer())
-    }
+/// A factory that loads tokenizers with `loader` (for example onto a GPU).
+pub fn factory_with(
+    loader: CodecLoader,
+) -> impl Fn(&str, &toml::Table) -> Result<Arc<dyn Modality>> + Send + Sync + 'static {
+    move |name, table| Ok(Arc::new(build(name, &parse_settings(name, table)?, &loader)?) as Arc<dyn Modality>)
 }
 
 #[cfg(test)]
@@ -104,19 +177,43 @@ mod tests {
     use super::*;
 
     #[test]
-    fn paper_defaults_and_grid_checks() {
-        let m = MapModality::new("map", MapConfig::default()).unwrap();
+    fn paper_defaults_and_config_errors() {
+        let m = build("map", &MapConfig::default(), &cpu_loader()).unwrap();
         assert_eq!((m.spec().tokens_per_frame, m.spec().vocab_size), (1024, 8192));
+        assert_eq!(m.vq_config().downsampling(), 8);
         let bad = MapConfig {
             grid: [30, 32],
             ..MapConfig::default()
         };
-        let err = MapModality::new("map", bad).unwrap_err().to_string();
-        assert!(err.contains("modality.map.grid"), "{err}");
+        assert!(
+            build("map", &bad, &cpu_loader())
+                .unwrap_err()
+                .to_string()
+                .contains("modality.map.grid")
+        );
         let bad = MapConfig {
-            grid: [32, 16],
+            grid: [16, 16],
             ..MapConfig::default()
         };
-        assert!(MapModality::new("map", bad).is_err());
+        assert!(
+            build("map", &bad, &cpu_loader())
+                .unwrap_err()
+                .to_string()
+                .contains("modality.map.vq.mult")
+        );
+        let bad = MapConfig {
+            layers: vec!["lane".into(), "trees".into()],
+            ..MapConfig::default()
+        };
+        assert!(
+            build("map", &bad, &cpu_loader())
+                .unwrap_err()
+                .to_string()
+                .contains("unknown layer `trees`")
+        );
+        let mut table = toml::Table::new();
+        table.insert("tokenizer".into(), toml::Value::String("/no/such/dir".into()));
+        let err = factory("map", &table).unwrap_err().to_string();
+        assert!(err.contains("/no/such/dir"), "{err}");
     }
 }

@@ -4,6 +4,8 @@ mod bench;
 mod data;
 mod doctor;
 mod layout;
+mod tokenize;
+mod tokenizer;
 mod viz;
 
 use crate::cli::Command;
@@ -16,5 +18,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Data(c) => data::run(c),
         Command::Viz(args) => viz::run(&args),
         Command::Bench(c) => bench::run(c),
+        Command::Tokenizer(c) => tokenizer::run(c),
+        Command::Tokenize(args) => tokenize::run(&args),
     }
 }

@@ -1,0 +1,45 @@
+//! `umgen tokenize`: a dataset through every modality of a config into a token cache.
+
+use crate::cli::TokenizeArgs;
+use crate::device::Device;
+use umgen::data::Dataset;
+use umgen::{UmgenConfig, builtin_catalog_with, tokenize_dataset};
+
+/// Tokenizes the dataset.
+pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
+    let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
+    let loader = Device::parse(&a.device)?.codec_loader();
+    let registry = config.registry(&builtin_catalog_with(loader)?)?;
+    let data = Dataset::open(&a.data)?;
+    let threads = a
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let bar = indicatif::ProgressBar::new(0).with_message("clips");
+    bar.set_style(indicatif::ProgressStyle::with_template(
+        "{bar:30} {pos}/{len} {msg} [{elapsed_precise} < {eta_precise}]",
+    )?);
+    let started = std::time::Instant::now();
+    let report = tokenize_dataset(
+        &registry,
+        &data,
+        &a.out,
+        a.split.as_deref(),
+        threads,
+        |done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        },
+    )?;
+    bar.finish_and_clear();
+    tracing::info!(
+        "{}: {} shards written ({} frames), {} already there, in {:.1} s; layout {} (N = {})",
+        a.out.display(),
+        report.written,
+        report.frames,
+        report.skipped,
+        started.elapsed().as_secs_f64(),
+        &registry.layout()?.fingerprint()[..12],
+        registry.layout()?.len()
+    );
+    Ok(())
+}

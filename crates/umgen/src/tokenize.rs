@@ -1,0 +1,146 @@
+//! `umgen tokenize`: every frame of a dataset through every modality, into a token cache.
+
+use crate::error::{Result, UmgenError};
+use std::path::Path;
+use umgen_data::{Dataset, TokenClip, TokenIndex};
+use umgen_modality::ModalityRegistry;
+
+/// What a tokenize run did.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct TokenizeReport {
+    /// Shards written.
+    pub written: usize,
+    /// Shards already present and skipped.
+    pub skipped: usize,
+    /// Frames tokenized.
+    pub frames: usize,
+}
+
+/// Tokenizes the clips of `split` (all when `None`) into `out`, one shard per log, using `threads`
+/// threads (clips in parallel). Shards the index already lists for this layout are skipped; a cache made
+/// for another layout is refused. `progress(done, total)` counts clips.
+pub fn tokenize_dataset(
+    registry: &ModalityRegistry,
+    data: &Dataset,
+    out: &Path,
+    split: Option<&str>,
+    threads: usize,
+    mut progress: impl FnMut(usize, usize) + Send,
+) -> Result<TokenizeReport> {
+    let layout = registry.layout()?;
+    let fail = |message: String| {
+        UmgenError::Data(umgen_data::DataError::Request {
+            path: out.into(),
+            message,
+        })
+    };
+    let mut index = match TokenIndex::load(out)? {
+        Some(i) if i.fingerprint != layout.fingerprint() => {
+            return Err(fail(
+                "holds tokens of another layout; choose a new output directory".into(),
+            ));
+        }
+        Some(i) => i,
+        None => TokenIndex::new(layout.fingerprint(), layout.len(), data.index().frame_interval),
+    };
+    std::fs::create_dir_all(out).map_err(|e| fail(e.to_string()))?;
+    let wanted = |c: &umgen_data::ClipEntry| split.is_none_or(|s| s == c.split);
+    let total = data.clips().iter().filter(|c| wanted(c)).count();
+    let (mut report, mut done) = (TokenizeReport::default(), 0);
+    for log in &data.index().logs {
+        let clips: Vec<usize> = (0..data.clips().len())
+            .filter(|&i| data.clips()[i].log == log.id && wanted(&data.clips()[i]))
+            .collect();
+        if clips.is_empty() {
+            continue;
+        }
+        if index
+            .shards
+            .iter()
+            .any(|s| s.log == log.id && s.clips.len() == clips.len())
+            && out.join(format!("shards/{}.tok", log.id)).exists()
+        {
+            report.skipped += 1;
+            done += clips.len();
+            progress(done, total);
+            continue;
+        }
+        let per_clip = tokenize_clips(registry, data, &clips, threads, |n| progress(done + n, total))?;
+        let (mut rows, mut entries) = (Vec::new(), Vec::new());
+        for (&c, clip_rows) in clips.iter().zip(per_clip) {
+            let e = &data.clips()[c];
+            entries.push(TokenClip {
+                id: e.id.clone(),
+                split: e.split.clone(),
+                start: rows.len(),
+                frames: clip_rows.len(),
+            });
+            rows.extend(clip_rows);
+        }
+        report.frames += rows.len();
+        index.add_shard(out, &log.id, entries, &rows)?;
+        report.written += 1;
+        done += clips.len();
+        progress(done, total);
+    }
+    for m in registry.modalities() {
+        for c in m.clamp_report().iter().filter(|c| c.below + c.above > 0) {
+            tracing::warn!(
+                "{}: `{}` clamped {} values below and {} above its range",
+                m.spec().name,
+                c.field,
+                c.below,
+                c.above
+            );
+        }
+    }
+    Ok(report)
+}
+
+/// The token rows of one clip, tagged with its position in the work list.
+type ClipRows = (usize, Vec<Vec<u32>>);
+
+/// Rows of each clip, clips spread over threads.
+fn tokenize_clips(
+    registry: &ModalityRegistry,
+    data: &Dataset,
+    clips: &[usize],
+    threads: usize,
+    progress: impl FnMut(usize) + Send,
+) -> Result<Vec<Vec<Vec<u32>>>> {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let finished = std::sync::atomic::AtomicUsize::new(0);
+    let progress = std::sync::Mutex::new(progress);
+    let results: Vec<Result<Vec<ClipRows>>> = std::thread::scope(|s| {
+        let workers: Vec<_> = (0..threads.clamp(1, clips.len().max(1)))
+            .map(|_| {
+                s.spawn(|| {
+                    let mut mine = Vec::new();
+                    loop {
+                        let k = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(&c) = clips.get(k) else { return Ok(mine) };
+                        let clip = data.read_clip(c)?;
+                        mine.push((k, registry.tokenize_clip(&clip)?));
+                        let n = finished.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                        if let Ok(mut p) = progress.lock() {
+                            p(n);
+                        }
+                    }
+                })
+            })
+            .collect();
+        workers
+            .into_iter()
+            .map(|w| {
+                w.join()
+                    .unwrap_or_else(|_| Err(UmgenError::Text("a tokenizing thread panicked".into())))
+            })
+            .collect()
+    });
+    let mut all: Vec<ClipRows> = Vec::new();
+    for r in results {
+        all.extend(r?);
+    }
+    all.sort_by_key(|(k, _)| *k);
+    Ok(all.into_iter().map(|(_, rows)| rows).collect())
+}
