@@ -8,8 +8,8 @@ pub fn tiny_net() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../crates/data/tests/fixtures/tiny.net.xml")
 }
 
-/// An FCD trace of `steps` steps on [`tiny_net`]: two cars driving east on lane AB_0 at 10 m/s, 10 m
-/// apart, and a pedestrian on the sidewalk.
+/// An FCD trace of `steps` steps on [`tiny_net`]: two cars driving east on lane AB_0 at 2 m/s, 10 m
+/// apart (slow enough to stay on the 100 m road for 40 steps), and a pedestrian on the sidewalk.
 pub fn fcd_text(steps: usize) -> String {
     let mut s = String::from("<?xml version=\"1.0\"?>\n<fcd-export>\n");
     for i in 0..steps {
@@ -17,8 +17,8 @@ pub fn fcd_text(steps: usize) -> String {
         s += &format!("    <timestep time=\"{t:.2}\">\n");
         for (id, x0) in [("ego", 22.5), ("lead", 32.5)] {
             s += &format!(
-                "        <vehicle id=\"{id}\" x=\"{:.2}\" y=\"-4.80\" angle=\"90.00\" type=\"DEFAULT_VEHTYPE\" speed=\"10.00\" lane=\"AB_0\"/>\n",
-                x0 + 10.0 * t
+                "        <vehicle id=\"{id}\" x=\"{:.2}\" y=\"-4.80\" angle=\"90.00\" type=\"DEFAULT_VEHTYPE\" speed=\"2.00\" lane=\"AB_0\"/>\n",
+                x0 + 2.0 * t
             );
         }
         s += &format!(

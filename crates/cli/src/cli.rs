@@ -35,6 +35,22 @@ pub enum Command {
     Tokenizer(TokenizerCommand),
     /// Encode every frame of a dataset with every modality of a config into a token cache.
     Tokenize(TokenizeArgs),
+    /// Train the backbone (tokenizing `train.data` first when the token cache is missing).
+    Train(TrainArgs),
+}
+
+/// Arguments of `umgen train`.
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// The config (`[backbone]`, `[train]`, modalities).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// `cpu`, or `cuda:N` in builds with the `cuda` feature.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Continue from the newest good checkpoint in `train.out_dir`.
+    #[arg(long)]
+    pub resume: bool,
 }
 
 /// `umgen tokenizer …`
@@ -210,6 +226,28 @@ pub struct VizArgs {
 pub enum BenchCommand {
     /// Windows per second read from a dataset (and rendered, with --render).
     Data(BenchDataArgs),
+    /// Training step time, tokens/s, model FLOPs utilisation and peak memory on random tokens.
+    Train(BenchTrainArgs),
+}
+
+/// Arguments of `umgen bench train`.
+#[derive(Debug, Args)]
+pub struct BenchTrainArgs {
+    /// The config whose layout and backbone are measured (tokenizers are not needed).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Timed steps (the median is reported).
+    #[arg(long, default_value_t = 10)]
+    pub steps: usize,
+    /// Untimed warm-up steps (kernel compilation and autotuning happen here).
+    #[arg(long, default_value_t = 3)]
+    pub warmup: usize,
+    /// Peak dense throughput of the device in TFLOP/s, for MFU (default: 989, an H100/H200's bf16).
+    #[arg(long, default_value_t = 989.0)]
+    pub peak_tflops: f64,
 }
 
 /// Arguments of `umgen bench data`.

@@ -66,3 +66,20 @@ macro_rules! with_autodiff {
         }
     };
 }
+
+/// Bytes the device's memory pool holds now (0 on the CPU or when unknown).
+pub fn memory_in_use(device: Device) -> u64 {
+    match device {
+        Device::Cpu => 0,
+        #[cfg(feature = "cuda")]
+        Device::Cuda(i) => {
+            use burn::cubecl::Runtime;
+            let dev = burn::backend::cuda::CudaDevice::new(i);
+            burn::cubecl::cuda::CudaRuntime::client(&dev)
+                .memory_usage()
+                .map_or(0, |m| m.bytes_reserved)
+        }
+        #[cfg(not(feature = "cuda"))]
+        Device::Cuda(_) => 0,
+    }
+}

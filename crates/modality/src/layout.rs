@@ -6,7 +6,7 @@ use serde::Serialize;
 use sha2::{Digest, Sha256};
 
 /// Where one modality's block sits in a frame.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Segment {
     /// Modality name.
     pub modality: String,
@@ -36,6 +36,8 @@ pub struct Segment {
     pub pad_id: Option<u32>,
     /// Spatial grid of the content tokens.
     pub grid: Option<Grid>,
+    /// Bins of the leading content tokens, when they are discretised scalars.
+    pub bins: Vec<crate::scalar::ScalarBins>,
 }
 
 impl Segment {
@@ -67,7 +69,7 @@ pub struct Position {
 
 /// The token layout of one frame: modality blocks in registry order, each optionally wrapped by its own
 /// start and end tokens. Ids are per modality: position `p` takes ids from its own modality's vocabulary.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct FrameLayout {
     segments: Vec<Segment>,
     positions: Vec<Position>,
@@ -126,6 +128,7 @@ impl FrameLayout {
                 end_id: spec.end_id,
                 pad_id: spec.pad_id,
                 grid: spec.grid,
+                bins: spec.bins.clone(),
             });
         }
         let fingerprint = fingerprint(&segments, specs, boundary_tokens);

@@ -4,12 +4,16 @@ use crate::error::{ModalityError, Result};
 use serde::{Deserialize, Serialize};
 
 /// Rows × columns of a modality whose tokens form a spatial grid (row-major), used by map alignment.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Grid {
     /// Rows.
     pub rows: usize,
     /// Columns.
     pub cols: usize,
+    /// Metres covered by one cell, when the grid is a metric bird's-eye view (row 0 at the front, column
+    /// 0 at the left), so that it can be moved by an ego motion.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cell_m: Option<f64>,
 }
 
 impl Grid {
@@ -38,7 +42,7 @@ pub fn downsampling(key: &str, raster: [usize; 2], grid: [usize; 2]) -> Result<u
 /// Content ids are `0..vocab_size`; that range includes the modality's own special values (the agent
 /// modality's category and pad ids, for example). The start and end ids that wrap the block in a frame lie
 /// outside it, by default `vocab_size` and `vocab_size + 1`.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ModalitySpec {
     /// Unique name within a frame (for example `ego`).
     pub name: String,
@@ -56,6 +60,10 @@ pub struct ModalitySpec {
     pub pad_id: Option<u32>,
     /// Spatial arrangement of the tokens, when they form a grid.
     pub grid: Option<Grid>,
+    /// Bins of the leading content tokens, when they are discretised scalars (the ego action's dx, dy,
+    /// dθ), so that models can decode them to values.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub bins: Vec<crate::scalar::ScalarBins>,
 }
 
 impl ModalitySpec {
@@ -75,6 +83,7 @@ impl ModalitySpec {
             end_id: vocab_size + 1,
             pad_id: None,
             grid: None,
+            bins: Vec::new(),
         }
     }
 
@@ -86,7 +95,27 @@ impl ModalitySpec {
 
     /// Sets the spatial grid.
     pub fn with_grid(mut self, rows: usize, cols: usize) -> Self {
-        self.grid = Some(Grid { rows, cols });
+        self.grid = Some(Grid {
+            rows,
+            cols,
+            cell_m: None,
+        });
+        self
+    }
+
+    /// Sets a metric bird's-eye grid of `cell_m` metres per cell.
+    pub fn with_metric_grid(mut self, rows: usize, cols: usize, cell_m: f64) -> Self {
+        self.grid = Some(Grid {
+            rows,
+            cols,
+            cell_m: Some(cell_m),
+        });
+        self
+    }
+
+    /// Sets the bins of the leading content tokens.
+    pub fn with_bins(mut self, bins: Vec<crate::scalar::ScalarBins>) -> Self {
+        self.bins = bins;
         self
     }
 

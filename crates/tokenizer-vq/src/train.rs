@@ -172,7 +172,7 @@ pub fn train<B: AutodiffBackend>(
         for &i in &ids {
             last_used[i as usize] = step;
         }
-        if step % RESTART_CHECK == 0 {
+        if step.is_multiple_of(RESTART_CHECK) {
             model.quantizer = restart_dead(model.quantizer, &last_used, step, tc, z, device);
         }
         recent.extend_from_slice(&ids);
@@ -180,7 +180,7 @@ pub fn train<B: AutodiffBackend>(
         if recent.len() > keep {
             recent.drain(..recent.len() - keep);
         }
-        let logging = step % tc.log_every.max(1) == 0 || step == tc.steps;
+        let logging = step.is_multiple_of(tc.log_every.max(1)) || step == tc.steps;
         let values = if logging {
             let mut names: Vec<&'static str> = vec!["loss/total"];
             let mut parts = vec![loss];
@@ -218,7 +218,7 @@ pub fn train<B: AutodiffBackend>(
             values,
         })
         .is_break();
-        if stop || step % tc.checkpoint_every.max(1) == 0 || step == tc.steps {
+        if stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps {
             let meta = serde_json::json!({"config": config, "train": tc, "last_used": last_used});
             let w = weights_to_bytes(&model)?;
             let o = optimizer_to_bytes::<B, _, _>(&optim)?;

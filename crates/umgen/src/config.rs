@@ -4,8 +4,10 @@ use crate::error::{Result, UmgenError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
+use umgen_backbone::BackboneConfig;
 use umgen_config::{ConfigError, RawConfig};
 use umgen_modality::{LayoutConfig, ModalityCatalog, ModalityError, ModalityRegistry};
+use umgen_train::TrainConfig;
 
 /// A complete umgen configuration (`configs/*.toml`).
 ///
@@ -19,6 +21,12 @@ pub struct UmgenConfig {
     /// Settings per modality name.
     #[serde(default)]
     pub modality: BTreeMap<String, toml::Table>,
+    /// Model sizes.
+    #[serde(default)]
+    pub backbone: BackboneConfig,
+    /// Training settings.
+    #[serde(default)]
+    pub train: TrainConfig,
     /// The layers this config came from, to say where a bad key was set.
     #[serde(skip)]
     layers: Option<RawConfig>,
@@ -43,6 +51,30 @@ impl UmgenConfig {
         catalog
             .build_registry(&self.layout.order, &self.modality, self.layout.boundary_tokens)
             .map_err(|e| self.locate(e))
+    }
+
+    /// The config with every `modality.<name>.tokenizer` that does not exist yet removed, with their
+    /// names: for commands that need the layout but not trained tokenizers. The layout fingerprint then
+    /// lacks those tokenizers' identity.
+    pub fn without_missing_tokenizers(&self) -> (Self, Vec<String>) {
+        let mut c = self.clone();
+        let mut removed = Vec::new();
+        for (name, t) in &mut c.modality {
+            let missing = t
+                .get("tokenizer")
+                .and_then(|v| v.as_str())
+                .is_some_and(|p| !Path::new(p).join("vq.json").exists());
+            if missing {
+                t.remove("tokenizer");
+                removed.push(name.clone());
+            }
+        }
+        (c, removed)
+    }
+
+    /// The configuration as JSON, for checkpoints and reports.
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::to_value(self).unwrap_or(serde_json::Value::Null)
     }
 
     /// Adds the layer (file, environment variable, `--set`) to errors about a config key.

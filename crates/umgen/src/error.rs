@@ -15,6 +15,12 @@ pub enum UmgenError {
     /// VQ tokenizers.
     #[error(transparent)]
     Vq(#[from] umgen_tokenizer_vq::VqError),
+    /// The backbone.
+    #[error(transparent)]
+    Backbone(#[from] umgen_backbone::BackboneError),
+    /// Training.
+    #[error(transparent)]
+    Train(#[from] umgen_train::TrainError),
     /// A configuration given as text is not valid.
     #[error("invalid configuration text: {0}")]
     Text(String),

@@ -20,17 +20,21 @@
 
 mod config;
 mod error;
+mod model;
 mod tokenize;
 mod vq;
 
 pub use config::UmgenConfig;
 pub use error::{Result, UmgenError};
+pub use model::backbone_spec;
 pub use tokenize::{TokenizeReport, tokenize_dataset};
+pub use umgen_backbone as backbone;
 pub use umgen_config as config_layers;
 pub use umgen_data as data;
 pub use umgen_modality as modality;
 pub use umgen_scene as scene;
 pub use umgen_tokenizer_vq as tokenizer_vq;
+pub use umgen_train as train;
 pub use vq::{DatasetRasters, VqTarget, vq_target};
 
 use umgen_modality::{ModalityCatalog, Result as ModalityResult};

@@ -139,8 +139,16 @@ pub fn build(name: &str, config: &MapConfig, loader: &CodecLoader) -> Result<Map
         });
     }
     downsampling(&key("grid"), config.raster, config.grid)?;
+    if config.raster[0] != config.raster[1] || config.grid[0] != config.grid[1] {
+        return Err(ModalityError::Config {
+            key: key("raster"),
+            message: "the map view is square: raster and grid need equal sides".into(),
+        });
+    }
     let [rows, cols] = config.grid;
-    let spec = ModalitySpec::new(name, KIND, config.codebook_size, rows * cols).with_grid(rows, cols);
+    let cell_m = config.extent_m / rows as f64;
+    let spec =
+        ModalitySpec::new(name, KIND, config.codebook_size, rows * cols).with_metric_grid(rows, cols, cell_m);
     let view = MapRasterView {
         view: MapView {
             extent_m: config.extent_m,

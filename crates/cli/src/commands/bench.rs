@@ -10,6 +10,7 @@ use umgen_render::{Camera, MapView};
 pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Data(args) => data(&args),
+        BenchCommand::Train(args) => super::bench_train::run(&args),
     }
 }
 

@@ -9,14 +9,34 @@ use umgen::modality::FrameLayout;
 /// Loads the config, builds its registry and prints the layout.
 pub fn run(args: &LayoutArgs) -> anyhow::Result<()> {
     let path = &args.config.config;
-    let config = UmgenConfig::load(path, &args.config.set)?;
+    let (config, missing) = UmgenConfig::load(path, &args.config.set)?.without_missing_tokenizers();
+    for m in missing {
+        tracing::warn!(
+            "modality `{m}`: its tokenizer does not exist yet; the fingerprint below does not include it"
+        );
+    }
     let registry = config.registry(&umgen::builtin_catalog()?)?;
     let layout = registry.layout()?;
+    let params = umgen::backbone_spec(&registry, &config.backbone)?.param_count(&config.backbone);
     let mut out = std::io::stdout().lock();
     if args.json {
-        writeln!(out, "{}", serde_json::to_string_pretty(&json(layout))?)?;
+        let mut v = json(layout);
+        v["backbone_parameters"] = params.into();
+        writeln!(out, "{}", serde_json::to_string_pretty(&v)?)?;
     } else {
         write_table(&mut out, &path.display().to_string(), layout)?;
+        let b = &config.backbone;
+        writeln!(
+            out,
+            "backbone: {params} parameters ({:.1} M; D {}, {} heads, CA_hist {}, CA_env {}, TAR {} × (temporal + spatial), OAR {})",
+            params as f64 / 1e6,
+            b.d_model,
+            b.heads,
+            b.ego_hist_layers,
+            b.ego_env_layers,
+            b.tar_layers,
+            b.oar_layers
+        )?;
     }
     out.flush().context("writing to stdout")
 }

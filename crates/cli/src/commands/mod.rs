@@ -1,11 +1,13 @@
 //! One module per subcommand.
 
 mod bench;
+mod bench_train;
 mod data;
 mod doctor;
 mod layout;
 mod tokenize;
 mod tokenizer;
+mod train;
 mod viz;
 
 use crate::cli::Command;
@@ -20,5 +22,6 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Bench(c) => bench::run(c),
         Command::Tokenizer(c) => tokenizer::run(c),
         Command::Tokenize(args) => tokenize::run(&args),
+        Command::Train(args) => train::run(&args),
     }
 }

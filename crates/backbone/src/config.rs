@@ -1,0 +1,63 @@
+//! Sizes of the backbone (`[backbone]` in configs).
+
+use serde::{Deserialize, Serialize};
+
+/// Widths, depths and regularisation of the backbone. Defaults are the paper's (supplementary Table).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BackboneConfig {
+    /// Model width D.
+    pub d_model: usize,
+    /// Attention heads (D must divide by it).
+    pub heads: usize,
+    /// Width E of token embeddings before the embedding MLP (0 = D).
+    pub embed_dim: usize,
+    /// MLP hidden width as a multiple of D.
+    pub mlp_ratio: usize,
+    /// Dropout on embeddings, attention outputs and MLP outputs (training only).
+    pub dropout: f64,
+    /// Cross-attention layers over the ego history (CA_hist).
+    pub ego_hist_layers: usize,
+    /// Cross-attention layers over the current environment (CA_env).
+    pub ego_env_layers: usize,
+    /// TAR blocks (each a temporal causal layer and a spatial bidirectional layer).
+    pub tar_layers: usize,
+    /// OAR causal layers.
+    pub oar_layers: usize,
+    /// Longest window the frame (time) embedding covers.
+    pub max_frames: usize,
+    /// The modality whose tokens are the ego action (predicted by the ego module, decoded for AMA).
+    pub action: Option<String>,
+    /// The metric-grid modality that AMA moves by the ego action.
+    pub align: Option<String>,
+}
+
+impl Default for BackboneConfig {
+    fn default() -> Self {
+        Self {
+            d_model: 768,
+            heads: 12,
+            embed_dim: 0,
+            mlp_ratio: 4,
+            dropout: 0.15,
+            ego_hist_layers: 12,
+            ego_env_layers: 12,
+            tar_layers: 24,
+            oar_layers: 24,
+            max_frames: 32,
+            action: Some("ego".into()),
+            align: Some("map".into()),
+        }
+    }
+}
+
+impl BackboneConfig {
+    /// Embedding width E.
+    pub fn embed(&self) -> usize {
+        if self.embed_dim == 0 {
+            self.d_model
+        } else {
+            self.embed_dim
+        }
+    }
+}

@@ -1,0 +1,107 @@
+//! Ego-action prediction (paper eq. 4): learned queries attend to the ego history (CA_hist), then to the
+//! current environment (CA_env), and predict the next frame's action tokens.
+
+use crate::layers::CrossBlock;
+use burn::module::{Module, Param};
+use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
+use burn::tensor::backend::Backend;
+use burn::tensor::{Bool, Distribution, Tensor, TensorData};
+
+/// The ego module.
+#[derive(Module, Debug)]
+pub struct EgoModule<B: Backend> {
+    queries: Param<Tensor<B, 2>>,
+    hist: Vec<CrossBlock<B>>,
+    env: Vec<CrossBlock<B>>,
+    ln: LayerNorm<B>,
+    head: Linear<B>,
+    heads: usize,
+    block: [usize; 2],
+}
+
+/// Sizes of an [`EgoModule`].
+#[derive(Debug, Clone, Copy)]
+pub struct EgoSizes {
+    /// Width.
+    pub d: usize,
+    /// Attention heads.
+    pub heads: usize,
+    /// MLP ratio.
+    pub ratio: usize,
+    /// Dropout.
+    pub dropout: f64,
+    /// CA_hist layers.
+    pub hist: usize,
+    /// CA_env layers.
+    pub env: usize,
+}
+
+impl<B: Backend> EgoModule<B> {
+    /// A module predicting `queries` tokens of vocabulary `vocab` from the action block `block`
+    /// (`[start, len]` positions, boundary tokens included).
+    pub fn new(s: EgoSizes, queries: usize, vocab: usize, block: [usize; 2], dev: &B::Device) -> Self {
+        let blocks = |n: usize| {
+            (0..n)
+                .map(|_| CrossBlock::new(s.d, s.heads, s.ratio, s.dropout, dev))
+                .collect()
+        };
+        Self {
+            queries: Param::from_tensor(Tensor::random(
+                [queries, s.d],
+                Distribution::Normal(0.0, 0.02),
+                dev,
+            )),
+            hist: blocks(s.hist),
+            env: blocks(s.env),
+            ln: LayerNormConfig::new(s.d).init(dev),
+            head: LinearConfig::new(s.d, vocab).with_bias(false).init(dev),
+            heads: s.heads,
+            block,
+        }
+    }
+
+    /// Logits `[b, t, q, vocab]` of the action tokens of frame `i + 1` from frames `0..=i` of `e`
+    /// `[b, t, N, d]`; with `last_only`, only for the last frame (`[b, 1, q, vocab]`).
+    pub fn forward(&self, e: Tensor<B, 4>, last_only: bool) -> Tensor<B, 4> {
+        let [b, t, n, d] = e.dims();
+        let [start, len] = self.block;
+        let q = self.queries.dims()[0];
+        let tq = if last_only { 1 } else { t };
+        let hist = e.clone().narrow(2, start, len).reshape([b, t * len, d]);
+        let mut x = self
+            .queries
+            .val()
+            .unsqueeze_dim::<3>(0)
+            .unsqueeze_dim::<4>(0)
+            .expand([b, tq, q, d])
+            .reshape([b, tq * q, d]);
+        // The queries of frame i see the action blocks of frames 0..=i.
+        let first = t - tq;
+        let mask: Vec<bool> = (0..tq * q)
+            .flat_map(|r| (0..t * len).map(move |c| c / len > first + r / q))
+            .collect();
+        let mask = Tensor::<B, 2, Bool>::from_data(TensorData::new(mask, [tq * q, t * len]), &e.device())
+            .reshape([1, 1, tq * q, t * len])
+            .expand([b, self.heads, tq * q, t * len]);
+        for blk in &self.hist {
+            x = blk.forward(x, hist.clone(), Some(mask.clone()));
+        }
+        // Then each frame's queries see that frame's environment: every block but the action's.
+        let mut parts = Vec::new();
+        if start > 0 {
+            parts.push(e.clone().narrow(2, 0, start));
+        }
+        if start + len < n {
+            parts.push(e.narrow(2, start + len, n - start - len));
+        }
+        let env = Tensor::cat(parts, 2).narrow(1, first, tq);
+        let env = env.reshape([b * tq, n - len, d]);
+        let mut x = x.reshape([b * tq, q, d]);
+        for blk in &self.env {
+            x = blk.forward(x, env.clone(), None);
+        }
+        let logits = self.head.forward(self.ln.forward(x));
+        let v = logits.dims()[2];
+        logits.reshape([b, tq, q, v])
+    }
+}

@@ -1,0 +1,96 @@
+//! Token embedding (paper eq. 2): `e = MLP(Embed_modality(z) + PE(position))`.
+
+use crate::spec::BackboneSpec;
+use burn::module::{Module, Param};
+use burn::nn::{Dropout, DropoutConfig, Embedding, EmbeddingConfig, Linear, LinearConfig};
+use burn::tensor::activation::gelu;
+use burn::tensor::backend::Backend;
+use burn::tensor::{Distribution, Int, Tensor, TensorData};
+
+/// One segment's table: learnable rows (initialised from the modality's codebook when it has one, then
+/// projected to the embedding width).
+#[derive(Module, Debug)]
+pub struct SegmentTable<B: Backend> {
+    table: Embedding<B>,
+    proj: Option<Linear<B>>,
+}
+
+/// Embeds every position of a frame.
+#[derive(Module, Debug)]
+pub struct FrameEmbedding<B: Backend> {
+    tables: Vec<SegmentTable<B>>,
+    pos: Param<Tensor<B, 2>>,
+    fc1: Linear<B>,
+    fc2: Linear<B>,
+    drop: Dropout,
+    blocks: Vec<[usize; 2]>,
+}
+
+impl<B: Backend> FrameEmbedding<B> {
+    /// Tables for every segment of `spec`, width `e`, output width `d`.
+    pub fn new(spec: &BackboneSpec, e: usize, d: usize, dropout: f64, dev: &B::Device) -> Self {
+        let tables = spec
+            .segments
+            .iter()
+            .map(|s| match &s.codebook {
+                Some((dim, data)) => {
+                    let mut table = EmbeddingConfig::new(s.embed_vocab, *dim).init(dev);
+                    // Content rows from the codebook; start/end rows random at the codebook's scale.
+                    let scale = (data.iter().map(|v| f64::from(*v).powi(2)).sum::<f64>()
+                        / data.len().max(1) as f64)
+                        .sqrt();
+                    let content =
+                        Tensor::<B, 2>::from_data(TensorData::new(data.clone(), [s.vocab, *dim]), dev);
+                    let rest = Tensor::<B, 2>::random(
+                        [s.embed_vocab - s.vocab, *dim],
+                        Distribution::Normal(0.0, scale.max(1e-3)),
+                        dev,
+                    );
+                    table.weight = Param::from_tensor(Tensor::cat(vec![content, rest], 0));
+                    SegmentTable {
+                        table,
+                        proj: Some(LinearConfig::new(*dim, e).init(dev)),
+                    }
+                }
+                None => SegmentTable {
+                    table: EmbeddingConfig::new(s.embed_vocab, e).init(dev),
+                    proj: None,
+                },
+            })
+            .collect();
+        Self {
+            tables,
+            pos: Param::from_tensor(Tensor::random([spec.n, e], Distribution::Normal(0.0, 0.02), dev)),
+            fc1: LinearConfig::new(e, d).init(dev),
+            fc2: LinearConfig::new(d, d).init(dev),
+            drop: DropoutConfig::new(dropout).init(),
+            blocks: spec
+                .segments
+                .iter()
+                .map(|s| [s.block_start, s.block_len])
+                .collect(),
+        }
+    }
+
+    /// Embeddings `[b, f, N, d]` of frames of tokens `[b, f, N]`.
+    pub fn forward(&self, tokens: Tensor<B, 3, Int>) -> Tensor<B, 4> {
+        let [b, f, n] = tokens.dims();
+        let flat = tokens.reshape([b * f, n]);
+        let parts: Vec<Tensor<B, 3>> = self
+            .tables
+            .iter()
+            .zip(&self.blocks)
+            .map(|(t, [start, len])| {
+                let x = t.table.forward(flat.clone().narrow(1, *start, *len));
+                match &t.proj {
+                    Some(p) => p.forward(x),
+                    None => x,
+                }
+            })
+            .collect();
+        let x = Tensor::cat(parts, 1) + self.pos.val().unsqueeze_dim::<3>(0);
+        let x = self.drop.forward(self.fc2.forward(gelu(self.fc1.forward(x))));
+        let d = x.dims()[2];
+        x.reshape([b, f, n, d])
+    }
+}

@@ -1,0 +1,56 @@
+//! Output heads with per-modality vocabularies, and the cross-entropy over them.
+
+use crate::spec::SegmentSpec;
+use burn::module::Module;
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::activation::log_softmax;
+use burn::tensor::backend::Backend;
+use burn::tensor::{Int, Tensor};
+
+/// One bias-free linear head per segment, over that segment's content ids only: a position's logits never
+/// cover another modality's ids.
+#[derive(Module, Debug)]
+pub struct Heads<B: Backend> {
+    heads: Vec<Linear<B>>,
+    content: Vec<[usize; 2]>,
+}
+
+impl<B: Backend> Heads<B> {
+    /// Heads for `segments` from width `d`.
+    pub fn new(segments: &[SegmentSpec], d: usize, dev: &B::Device) -> Self {
+        Self {
+            heads: segments
+                .iter()
+                .map(|s| LinearConfig::new(d, s.vocab).with_bias(false).init(dev))
+                .collect(),
+            content: segments.iter().map(|s| [s.offset, s.tokens]).collect(),
+        }
+    }
+
+    /// Logits `[m, tokens, vocab]` of segment `s` from features `[m, N, d]`.
+    pub fn logits(&self, s: usize, x: Tensor<B, 3>) -> Tensor<B, 3> {
+        let [offset, tokens] = self.content[s];
+        self.heads[s].forward(x.narrow(1, offset, tokens))
+    }
+
+    /// Logits of one position `p` of segment `s` from features `[m, d]`: `[m, vocab]`.
+    pub fn logits_at(&self, s: usize, x: Tensor<B, 2>) -> Tensor<B, 2> {
+        self.heads[s].forward(x)
+    }
+
+    /// Summed cross-entropy per segment of features `[m, N, d]` against targets `[m, N]`, with the number
+    /// of tokens each sum covers.
+    pub fn cross_entropy(&self, x: Tensor<B, 3>, targets: Tensor<B, 2, Int>) -> Vec<(Tensor<B, 1>, usize)> {
+        let m = x.dims()[0];
+        (0..self.heads.len())
+            .map(|s| {
+                let [offset, tokens] = self.content[s];
+                let logits = self.logits(s, x.clone());
+                let v = logits.dims()[2];
+                let lp = log_softmax(logits.reshape([m * tokens, v]), 1);
+                let t = targets.clone().narrow(1, offset, tokens).reshape([m * tokens, 1]);
+                (lp.gather(1, t).sum().neg(), m * tokens)
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,161 @@
+//! Transformer layers: pre-norm self- and cross-attention blocks with GELU MLPs.
+
+use burn::module::Module;
+use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
+use burn::tensor::activation::gelu;
+use burn::tensor::backend::Backend;
+use burn::tensor::module::attention;
+use burn::tensor::ops::AttentionModuleOptions;
+use burn::tensor::{Bool, Tensor};
+
+/// `Linear(d → r·d), GELU, Linear(r·d → d)`, dropout on the output.
+#[derive(Module, Debug)]
+pub struct Mlp<B: Backend> {
+    fc: Linear<B>,
+    proj: Linear<B>,
+    drop: Dropout,
+}
+
+impl<B: Backend> Mlp<B> {
+    /// An MLP of width `d` and hidden width `hidden`.
+    pub fn new(d: usize, hidden: usize, dropout: f64, dev: &B::Device) -> Self {
+        Self {
+            fc: LinearConfig::new(d, hidden).init(dev),
+            proj: LinearConfig::new(hidden, d).init(dev),
+            drop: DropoutConfig::new(dropout).init(),
+        }
+    }
+
+    /// Applies it.
+    pub fn forward<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
+        self.drop.forward(self.proj.forward(gelu(self.fc.forward(x))))
+    }
+}
+
+/// `[b, l, h·dh]` → `[b, h, l, dh]`.
+fn split_heads<B: Backend>(x: Tensor<B, 3>, heads: usize) -> Tensor<B, 4> {
+    let [b, l, d] = x.dims();
+    x.reshape([b, l, heads, d / heads]).swap_dims(1, 2)
+}
+
+/// `[b, h, l, dh]` → `[b, l, h·dh]`.
+fn merge_heads<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 3> {
+    let [b, h, l, dh] = x.dims();
+    x.swap_dims(1, 2).reshape([b, l, h * dh])
+}
+
+/// Multi-head attention of queries over keys and values (self- or cross-attention), through burn's
+/// attention operation (fused on backends that have a kernel).
+#[derive(Module, Debug)]
+pub struct MultiHead<B: Backend> {
+    q: Linear<B>,
+    kv: Linear<B>,
+    proj: Linear<B>,
+    drop: Dropout,
+    heads: usize,
+}
+
+impl<B: Backend> MultiHead<B> {
+    /// Attention of width `d` with `heads` heads.
+    pub fn new(d: usize, heads: usize, dropout: f64, dev: &B::Device) -> Self {
+        Self {
+            q: LinearConfig::new(d, d).init(dev),
+            kv: LinearConfig::new(d, 2 * d).init(dev),
+            proj: LinearConfig::new(d, d).init(dev),
+            drop: DropoutConfig::new(dropout).init(),
+            heads,
+        }
+    }
+
+    /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]`; `mask` `[b, heads, lq, lk]` (true = hidden);
+    /// `causal` hides later positions (bottom-right aligned).
+    pub fn forward(
+        &self,
+        x: Tensor<B, 3>,
+        ctx: Tensor<B, 3>,
+        mask: Option<Tensor<B, 4, Bool>>,
+        causal: bool,
+    ) -> Tensor<B, 3> {
+        let q = split_heads(self.q.forward(x), self.heads);
+        let kv = self.kv.forward(ctx);
+        let d = kv.dims()[2] / 2;
+        let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
+        let v = split_heads(kv.narrow(2, d, d), self.heads);
+        let opts = AttentionModuleOptions {
+            is_causal: causal,
+            ..Default::default()
+        };
+        let y = attention(q, k, v, mask, None, opts);
+        self.drop.forward(self.proj.forward(merge_heads(y)))
+    }
+
+    /// Heads.
+    pub fn heads(&self) -> usize {
+        self.heads
+    }
+}
+
+/// A pre-norm self-attention layer: `x + attn(ln(x))`, then `x + mlp(ln(x))`.
+#[derive(Module, Debug)]
+pub struct SelfBlock<B: Backend> {
+    ln1: LayerNorm<B>,
+    attn: MultiHead<B>,
+    ln2: LayerNorm<B>,
+    mlp: Mlp<B>,
+}
+
+impl<B: Backend> SelfBlock<B> {
+    /// A layer of width `d`.
+    pub fn new(d: usize, heads: usize, ratio: usize, dropout: f64, dev: &B::Device) -> Self {
+        Self {
+            ln1: LayerNormConfig::new(d).init(dev),
+            attn: MultiHead::new(d, heads, dropout, dev),
+            ln2: LayerNormConfig::new(d).init(dev),
+            mlp: Mlp::new(d, ratio * d, dropout, dev),
+        }
+    }
+
+    /// Applies it to `[b, l, d]`; `causal` lets position `i` see positions `≤ i` only.
+    pub fn forward(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
+        let n = self.ln1.forward(x.clone());
+        let x = x + self.attn.forward(n.clone(), n, None, causal);
+        x.clone() + self.mlp.forward(self.ln2.forward(x))
+    }
+}
+
+/// A pre-norm cross-attention layer: `x + attn(ln(x), ln(ctx))`, then `x + mlp(ln(x))`.
+#[derive(Module, Debug)]
+pub struct CrossBlock<B: Backend> {
+    ln_q: LayerNorm<B>,
+    ln_ctx: LayerNorm<B>,
+    attn: MultiHead<B>,
+    ln2: LayerNorm<B>,
+    mlp: Mlp<B>,
+}
+
+impl<B: Backend> CrossBlock<B> {
+    /// A layer of width `d`.
+    pub fn new(d: usize, heads: usize, ratio: usize, dropout: f64, dev: &B::Device) -> Self {
+        Self {
+            ln_q: LayerNormConfig::new(d).init(dev),
+            ln_ctx: LayerNormConfig::new(d).init(dev),
+            attn: MultiHead::new(d, heads, dropout, dev),
+            ln2: LayerNormConfig::new(d).init(dev),
+            mlp: Mlp::new(d, ratio * d, dropout, dev),
+        }
+    }
+
+    /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]` with an optional mask (true = hidden).
+    pub fn forward(
+        &self,
+        x: Tensor<B, 3>,
+        ctx: Tensor<B, 3>,
+        mask: Option<Tensor<B, 4, Bool>>,
+    ) -> Tensor<B, 3> {
+        let x = x.clone()
+            + self
+                .attn
+                .forward(self.ln_q.forward(x), self.ln_ctx.forward(ctx), mask, false);
+        x.clone() + self.mlp.forward(self.ln2.forward(x))
+    }
+}

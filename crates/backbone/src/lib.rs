@@ -1,0 +1,37 @@
+//! umgen's generic TAR/OAR backbone (paper §3.2), built only from a frame layout.
+//!
+//! A [`BackboneSpec`] describes the frame: segments (one per modality) with their positions, vocabularies
+//! and optional pre-trained codebooks, which segment carries the ego action (and the bins to decode it),
+//! and which is a metric map grid that AMA can move. No modality names are interpreted.
+//!
+//! The [`Backbone`]:
+//! 1. embeds tokens with per-segment tables (codebook-initialised and projected where there is a
+//!    codebook), a learned position embedding and an MLP; adds a learned frame (time) embedding;
+//! 2. predicts the next ego action from learned queries over the ego history (CA_hist) and the current
+//!    environment (CA_env);
+//! 3. moves the map features by the next action (AMA: affine grid, bilinear, zero padding) and adds them;
+//! 4. runs TAR blocks (temporal causal + spatial bidirectional attention) to a coarse next frame `h`;
+//! 5. runs the OAR (causal attention over the next frame; input at position p = embedding of token p − 1 +
+//!    `h_p`);
+//! 6. scores both with heads whose logits cover only each modality's own vocabulary; the loss is
+//!    CE(OAR) + CE(TAR) + CE(ego), reported per modality.
+
+mod ama;
+mod config;
+mod ego;
+mod embed;
+mod error;
+mod heads;
+mod layers;
+mod model;
+mod spec;
+
+pub use ama::align;
+pub use config::BackboneConfig;
+pub use ego::{EgoModule, EgoSizes};
+pub use embed::FrameEmbedding;
+pub use error::{BackboneError, Result};
+pub use heads::Heads;
+pub use layers::{CrossBlock, Mlp, MultiHead, SelfBlock};
+pub use model::{Backbone, Losses, TarBlock};
+pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec};

@@ -1,0 +1,257 @@
+//! The backbone: embeddings, ego-action prediction, AMA, TAR, OAR and heads (paper §3.2).
+
+use crate::ama::align;
+use crate::config::BackboneConfig;
+use crate::ego::{EgoModule, EgoSizes};
+use crate::embed::FrameEmbedding;
+use crate::error::{BackboneError, Result};
+use crate::heads::Heads;
+use crate::layers::SelfBlock;
+use crate::spec::BackboneSpec;
+use burn::module::{Module, Param};
+use burn::nn::{LayerNorm, LayerNormConfig};
+use burn::tensor::backend::Backend;
+use burn::tensor::{Distribution, Int, Tensor, TensorData};
+
+/// One TAR block: causal attention over time at each position, then bidirectional attention within
+/// each frame.
+#[derive(Module, Debug)]
+pub struct TarBlock<B: Backend> {
+    temporal: SelfBlock<B>,
+    spatial: SelfBlock<B>,
+}
+
+impl<B: Backend> TarBlock<B> {
+    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+        let [b, t, n, d] = x.dims();
+        let xt = self
+            .temporal
+            .forward(x.swap_dims(1, 2).reshape([b * n, t, d]), true);
+        let xs = self.spatial.forward(
+            xt.reshape([b, n, t, d]).swap_dims(1, 2).reshape([b * t, n, d]),
+            false,
+        );
+        xs.reshape([b, t, n, d])
+    }
+}
+
+/// Per-modality losses of one batch, each a mean over that modality's tokens, and their total.
+#[derive(Debug, Clone)]
+pub struct Losses<B: Backend> {
+    /// `CE(OAR) + CE(TAR) + ego_weight · CE(ego)`, the first two averaged over all content tokens.
+    pub total: Tensor<B, 1>,
+    /// Named parts: `oar`, `tar`, `ego`, and `oar/<label>`, `tar/<label>` per segment.
+    pub parts: Vec<(String, Tensor<B, 1>)>,
+}
+
+/// The TAR/OAR backbone.
+#[derive(Module, Debug)]
+pub struct Backbone<B: Backend> {
+    /// Token embedding.
+    pub embed: FrameEmbedding<B>,
+    time: Param<Tensor<B, 2>>,
+    /// Ego-action prediction.
+    pub ego: Option<EgoModule<B>>,
+    tar: Vec<TarBlock<B>>,
+    ln_tar: LayerNorm<B>,
+    oar_bos: Param<Tensor<B, 1>>,
+    oar: Vec<SelfBlock<B>>,
+    ln_oar: LayerNorm<B>,
+    /// Heads on the TAR output.
+    pub tar_heads: Heads<B>,
+    /// Heads on the OAR output.
+    pub oar_heads: Heads<B>,
+    spec: BackboneSpec,
+}
+
+impl<B: Backend> Backbone<B> {
+    /// A freshly initialised backbone of `cfg` for frames of `spec`.
+    pub fn new(cfg: &BackboneConfig, spec: &BackboneSpec, dev: &B::Device) -> Result<Self> {
+        spec.validate(cfg)?;
+        let d = cfg.d_model;
+        let block = |_| SelfBlock::new(d, cfg.heads, cfg.mlp_ratio, cfg.dropout, dev);
+        let ego = spec.action.as_ref().map(|a| {
+            let s = &spec.segments[a.segment];
+            let sizes = EgoSizes {
+                d,
+                heads: cfg.heads,
+                ratio: cfg.mlp_ratio,
+                dropout: cfg.dropout,
+                hist: cfg.ego_hist_layers,
+                env: cfg.ego_env_layers,
+            };
+            EgoModule::new(sizes, s.tokens, s.vocab, [s.block_start, s.block_len], dev)
+        });
+        // The module keeps the spec for shapes; codebooks already went into the tables.
+        let mut light = spec.clone();
+        for s in &mut light.segments {
+            s.codebook = None;
+        }
+        Ok(Self {
+            embed: FrameEmbedding::new(spec, cfg.embed(), d, cfg.dropout, dev),
+            time: Param::from_tensor(Tensor::random(
+                [cfg.max_frames, d],
+                Distribution::Normal(0.0, 0.02),
+                dev,
+            )),
+            ego,
+            tar: (0..cfg.tar_layers)
+                .map(|i| TarBlock {
+                    temporal: block(i),
+                    spatial: block(i),
+                })
+                .collect(),
+            ln_tar: LayerNormConfig::new(d).init(dev),
+            oar_bos: Param::from_tensor(Tensor::random([d], Distribution::Normal(0.0, 0.02), dev)),
+            oar: (0..cfg.oar_layers).map(block).collect(),
+            ln_oar: LayerNormConfig::new(d).init(dev),
+            tar_heads: Heads::new(&spec.segments, d, dev),
+            oar_heads: Heads::new(&spec.segments, d, dev),
+            spec: light,
+        })
+    }
+
+    /// The frame spec.
+    pub fn spec(&self) -> &BackboneSpec {
+        &self.spec
+    }
+
+    /// Ego-module logits `[b, t, q, vocab]` predicting frames `1..=t` from `e` `[b, t, N, d]`.
+    pub fn ego_logits(&self, e: Tensor<B, 4>, last_only: bool) -> Option<Tensor<B, 4>> {
+        self.ego.as_ref().map(|m| m.forward(e, last_only))
+    }
+
+    /// Decoded action values `[b, t, 3]` (dx, dy, dθ at bin centres) of action tokens `[b, t, q]`.
+    pub fn decode_action(&self, ids: Tensor<B, 3, Int>) -> Option<Tensor<B, 3>> {
+        let a = self.spec.action.as_ref()?;
+        let dev = ids.device();
+        let lo: Vec<f32> = a.bins.iter().map(|b| b.0 as f32).collect();
+        let width: Vec<f32> = a
+            .bins
+            .iter()
+            .map(|b| ((b.1 - b.0) / f64::from(b.2)) as f32)
+            .collect();
+        let lo = Tensor::<B, 1>::from_data(TensorData::new(lo, [3]), &dev).reshape([1, 1, 3]);
+        let width = Tensor::<B, 1>::from_data(TensorData::new(width, [3]), &dev).reshape([1, 1, 3]);
+        Some(ids.narrow(2, 0, 3).float().add_scalar(0.5) * width + lo)
+    }
+
+    /// The TAR output `h` `[b, t, N, d]` for conditioning frames `e` `[b, t, N, d]`, given the embeddings
+    /// `e_next` `[b, t, N, d]` and action tokens `next_action` `[b, t, q]` of the frames that follow them:
+    /// frame i's action block is replaced by frame i+1's, and its map is moved by that action (AMA).
+    pub fn tar(
+        &self,
+        e: Tensor<B, 4>,
+        e_next: Tensor<B, 4>,
+        next_action: Option<Tensor<B, 3, Int>>,
+    ) -> Tensor<B, 4> {
+        let [b, t, _, d] = e.dims();
+        let mut x = e;
+        if let Some(a) = &self.spec.action {
+            let s = &self.spec.segments[a.segment];
+            let next = e_next.narrow(2, s.block_start, s.block_len);
+            x = x.slice_assign(
+                [0..b, 0..t, s.block_start..s.block_start + s.block_len, 0..d],
+                next,
+            );
+        }
+        if let (Some(al), Some(ids)) = (&self.spec.align, next_action)
+            && let Some(act) = self.decode_action(ids)
+        {
+            let s = &self.spec.segments[al.segment];
+            let map = x.clone().narrow(2, s.offset, s.tokens);
+            let moved = align(
+                map.clone().reshape([b * t, s.tokens, d]),
+                act.reshape([b * t, 3]),
+                al.rows,
+                al.cols,
+                al.cell_m,
+            );
+            x = x.slice_assign(
+                [0..b, 0..t, s.offset..s.offset + s.tokens, 0..d],
+                map + moved.reshape([b, t, s.tokens, d]),
+            );
+        }
+        let mut x = x + self.time.val().narrow(0, 0, t).reshape([1, t, 1, d]);
+        for blk in &self.tar {
+            x = blk.forward(x);
+        }
+        self.ln_tar.forward(x)
+    }
+
+    /// OAR input for a frame: position 0 gets the learned start vector, position p the embedding of token
+    /// p − 1 (`e` `[m, N, d]`), each plus the TAR prior `h` `[m, N, d]` at p.
+    pub fn oar_input(&self, e: Tensor<B, 3>, h: Tensor<B, 3>) -> Tensor<B, 3> {
+        let [m, n, d] = e.dims();
+        let bos = self.oar_bos.val().reshape([1, 1, d]).expand([m, 1, d]);
+        Tensor::cat(vec![bos, e.narrow(1, 0, n - 1)], 1) + h
+    }
+
+    /// OAR output `[m, L, d]` of inputs `[m, L, d]` (causal).
+    pub fn oar(&self, w: Tensor<B, 3>) -> Tensor<B, 3> {
+        let mut x = w;
+        for blk in &self.oar {
+            x = blk.forward(x, true);
+        }
+        self.ln_oar.forward(x)
+    }
+
+    /// The teacher-forced training loss of windows `[b, t + 1, N]`: frames `0..t` condition, frame
+    /// `i + 1` is the target of frame `i`, all `t` predictions at once.
+    pub fn loss(&self, tokens: Tensor<B, 3, Int>, ego_weight: f64) -> Result<Losses<B>> {
+        let [b, f, n] = tokens.dims();
+        if f < 2 || n != self.spec.n {
+            return Err(BackboneError::Input(format!(
+                "windows of {f} frames × {n} tokens; need ≥ 2 frames × {}",
+                self.spec.n
+            )));
+        }
+        let t = f - 1;
+        let e_all = self.embed.forward(tokens.clone());
+        let (e, e_next) = (e_all.clone().narrow(1, 0, t), e_all.narrow(1, 1, t));
+        let target = tokens.narrow(1, 1, t);
+        let next_action = self.spec.action.as_ref().map(|a| {
+            let s = &self.spec.segments[a.segment];
+            target.clone().narrow(2, s.offset, s.tokens)
+        });
+        let h = self.tar(e.clone(), e_next.clone(), next_action.clone());
+        let d = h.dims()[3];
+        let o = self.oar(self.oar_input(e_next.reshape([b * t, n, d]), h.clone().reshape([b * t, n, d])));
+        let flat_target = target.reshape([b * t, n]);
+        let mut parts = Vec::new();
+        let mut mean = |name: &str, sums: Vec<(Tensor<B, 1>, usize)>| {
+            let count: usize = sums.iter().map(|(_, c)| c).sum();
+            let mut total: Option<Tensor<B, 1>> = None;
+            for ((sum, c), seg) in sums.into_iter().zip(&self.spec.segments) {
+                parts.push((format!("{name}/{}", seg.label), sum.clone().div_scalar(c as f64)));
+                total = Some(match total {
+                    Some(t) => t + sum,
+                    None => sum,
+                });
+            }
+            let total = total.map(|t| t.div_scalar(count.max(1) as f64));
+            if let Some(t) = &total {
+                parts.push((name.to_string(), t.clone()));
+            }
+            total
+        };
+        let oar = mean("oar", self.oar_heads.cross_entropy(o, flat_target.clone()));
+        let tar = mean(
+            "tar",
+            self.tar_heads
+                .cross_entropy(h.reshape([b * t, n, d]), flat_target),
+        );
+        let mut total = match (oar, tar) {
+            (Some(o), Some(t)) => o + t,
+            _ => return Err(BackboneError::Spec("no segments".into())),
+        };
+        if let (Some(logits), Some(ids)) = (self.ego_logits(e, false), next_action) {
+            let [_, _, q, v] = logits.dims();
+            let lp = burn::tensor::activation::log_softmax(logits.reshape([b * t * q, v]), 1);
+            let ego = lp.gather(1, ids.reshape([b * t * q, 1])).mean().neg();
+            parts.push(("ego".into(), ego.clone()));
+            total = total + ego.mul_scalar(ego_weight);
+        }
+        Ok(Losses { total, parts })
+    }
+}

@@ -1,0 +1,198 @@
+//! What the backbone needs to know about the frame: segments, vocabularies, codebooks, and which segments
+//! carry the ego action and the alignable map. No modality names are interpreted here.
+
+use crate::config::BackboneConfig;
+use crate::error::{BackboneError, Result};
+use serde::{Deserialize, Serialize};
+
+/// One modality's block in the frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SegmentSpec {
+    /// Label for logs and metric names.
+    pub label: String,
+    /// First position of the block (its start token when there are boundary tokens).
+    pub block_start: usize,
+    /// Positions of the block, boundary tokens included.
+    pub block_len: usize,
+    /// First content position.
+    pub offset: usize,
+    /// Content tokens.
+    pub tokens: usize,
+    /// Content ids `0..vocab` (the output vocabulary).
+    pub vocab: usize,
+    /// Embedding table rows (content, start and end ids).
+    pub embed_vocab: usize,
+    /// A pre-trained codebook `[vocab, dim]` (row-major) that initialises the embedding table.
+    #[serde(skip)]
+    pub codebook: Option<(usize, Vec<f32>)>,
+}
+
+/// The ego action: a segment whose first three content tokens are dx, dy, dθ in uniform bins.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ActionSpec {
+    /// Segment index.
+    pub segment: usize,
+    /// `(lo, hi, bins)` of dx (m), dy (m) and dθ (rad).
+    pub bins: [(f64, f64, u32); 3],
+}
+
+impl ActionSpec {
+    /// The value at the centre of bin `id` of component `k`.
+    pub fn decode(&self, k: usize, id: u32) -> f64 {
+        let (lo, hi, n) = self.bins[k];
+        lo + (f64::from(id) + 0.5) * (hi - lo) / f64::from(n)
+    }
+}
+
+/// The map that AMA moves: a metric bird's-eye grid (row 0 at the front, column 0 at the left).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AlignSpec {
+    /// Segment index.
+    pub segment: usize,
+    /// Grid rows.
+    pub rows: usize,
+    /// Grid columns.
+    pub cols: usize,
+    /// Metres per cell.
+    pub cell_m: f64,
+}
+
+/// Everything the backbone is built from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BackboneSpec {
+    /// Positions per frame (N).
+    pub n: usize,
+    /// Blocks in frame order.
+    pub segments: Vec<SegmentSpec>,
+    /// The ego action, when the model predicts it.
+    pub action: Option<ActionSpec>,
+    /// The map AMA moves, when enabled.
+    pub align: Option<AlignSpec>,
+}
+
+impl BackboneSpec {
+    /// Checks the spec against the config: contiguous blocks, valid segments, sizes that fit.
+    pub fn validate(&self, cfg: &BackboneConfig) -> Result<()> {
+        let fail = |m: String| Err(BackboneError::Spec(m));
+        let mut pos = 0;
+        for s in &self.segments {
+            if s.block_start != pos
+                || s.offset < s.block_start
+                || s.offset + s.tokens > s.block_start + s.block_len
+                || s.vocab == 0
+                || s.embed_vocab < s.vocab
+            {
+                return fail(format!(
+                    "segment `{}` is not a contiguous block with a vocabulary",
+                    s.label
+                ));
+            }
+            if let Some((dim, data)) = &s.codebook
+                && (*dim == 0 || data.len() != dim * s.vocab)
+            {
+                return fail(format!(
+                    "segment `{}`: codebook of {} values is not {} × {dim}",
+                    s.label,
+                    data.len(),
+                    s.vocab
+                ));
+            }
+            pos += s.block_len;
+        }
+        if pos != self.n {
+            return fail(format!(
+                "segments cover {pos} positions, the frame has {}",
+                self.n
+            ));
+        }
+        if cfg.d_model == 0 || cfg.heads == 0 || !cfg.d_model.is_multiple_of(cfg.heads) {
+            return fail(format!(
+                "d_model {} must be a positive multiple of heads {}",
+                cfg.d_model, cfg.heads
+            ));
+        }
+        if let Some(a) = &self.action {
+            let s = self.segments.get(a.segment).map(|s| s.tokens).unwrap_or(0);
+            if s < 3 {
+                return fail("the action segment needs dx, dy and dθ tokens".into());
+            }
+        }
+        if let Some(a) = &self.align {
+            let s = self.segments.get(a.segment).map(|s| s.tokens).unwrap_or(0);
+            if s != a.rows * a.cols || a.cell_m.is_nan() || a.cell_m <= 0.0 {
+                return fail("the align segment must be a metric grid".into());
+            }
+        }
+        Ok(())
+    }
+
+    /// Floating-point operations of one training step on `batch` windows of `frames + 1` frames: the forward
+    /// pass's matrix products and attention counted as 2 per multiply-add, times 3 for the backward pass.
+    pub fn train_flops(&self, cfg: &BackboneConfig, batch: usize, frames: usize) -> f64 {
+        let (d, e, r) = (cfg.d_model as f64, cfg.embed() as f64, cfg.mlp_ratio as f64);
+        let (n, t) = (self.n as f64, frames as f64);
+        // Per token of a pre-norm layer: projections (3 + 1) d², MLP 2 r d², attention 2 · ctx · d.
+        let layer = |tokens: f64, ctx: f64| tokens * (2.0 * (4.0 * d * d + 2.0 * r * d * d) + 4.0 * ctx * d);
+        let embed = (t + 1.0) * n * 2.0 * (e * d + d * d);
+        let ego = match &self.action {
+            Some(a) => {
+                let s = &self.segments[a.segment];
+                let (q, len) = (t * s.tokens as f64, s.block_len as f64);
+                // Cross layers: queries through q, out and MLP; the context through k and v.
+                let cross = |ctx_tokens: f64, ctx: f64| {
+                    q * (2.0 * (2.0 * d * d + 2.0 * r * d * d) + 4.0 * ctx * d) + ctx_tokens * 4.0 * d * d
+                };
+                cfg.ego_hist_layers as f64 * cross(t * len, t * len)
+                    + cfg.ego_env_layers as f64 * cross(t * (n - len), n - len)
+            }
+            None => 0.0,
+        };
+        let tar = cfg.tar_layers as f64 * (layer(t * n, t) + layer(t * n, n));
+        let oar = cfg.oar_layers as f64 * layer(t * n, n);
+        let heads: f64 = self
+            .segments
+            .iter()
+            .map(|s| 2.0 * 2.0 * d * s.vocab as f64 * t * s.tokens as f64)
+            .sum();
+        3.0 * batch as f64 * (embed + ego + tar + oar + heads)
+    }
+
+    /// Parameters of a backbone of `cfg` on this spec (without building it).
+    pub fn param_count(&self, cfg: &BackboneConfig) -> usize {
+        let (d, e, h) = (cfg.d_model, cfg.embed(), cfg.mlp_ratio * cfg.d_model);
+        let linear = |i: usize, o: usize, bias: bool| i * o + if bias { o } else { 0 };
+        let ln = 2 * d;
+        let mlp = linear(d, h, true) + linear(h, d, true);
+        let self_block = 2 * ln + linear(d, 3 * d, true) + linear(d, d, true) + mlp;
+        let cross_block = 3 * ln + linear(d, d, true) + linear(d, 2 * d, true) + linear(d, d, true) + mlp;
+        let tables: usize = self
+            .segments
+            .iter()
+            .map(|s| match &s.codebook {
+                Some((dim, _)) => s.embed_vocab * dim + linear(*dim, e, true),
+                None => s.embed_vocab * e,
+            })
+            .sum();
+        let embed = tables + self.n * e + linear(e, d, true) + linear(d, d, true);
+        let heads: usize = 2 * self.segments.iter().map(|s| d * s.vocab).sum::<usize>();
+        let ego = match &self.action {
+            Some(a) => {
+                let q = self.segments[a.segment].tokens;
+                q * d
+                    + (cfg.ego_hist_layers + cfg.ego_env_layers) * cross_block
+                    + ln
+                    + d * self.segments[a.segment].vocab
+            }
+            None => 0,
+        };
+        embed
+            + cfg.max_frames * d
+            + ego
+            + cfg.tar_layers * 2 * self_block
+            + ln
+            + d
+            + cfg.oar_layers * self_block
+            + ln
+            + heads
+    }
+}

@@ -1,0 +1,118 @@
+//! Later tokens never change earlier outputs.
+
+use super::*;
+use burn::tensor::Tensor;
+
+fn h_and_ego(m: &Backbone<F>, ids: &[i64], b: usize, f: usize) -> (Vec<f32>, Vec<f32>) {
+    let n = spec().n;
+    let toks = tensor::<F>(ids, b, f, n);
+    let t = f - 1;
+    let e = m.embed.forward(toks.clone());
+    let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
+    let action = toks.narrow(1, 1, t).narrow(2, 1, 3);
+    let h = m.tar(cond.clone(), next, Some(action));
+    let ego = m.ego_logits(cond, false).unwrap();
+    (
+        h.into_data().iter::<f32>().collect(),
+        ego.into_data().iter::<f32>().collect(),
+    )
+}
+
+/// Values of frames `0..upto` of a `[b=1, t, ...]` tensor flattened per frame of `per` values.
+fn frames(v: &[f32], per: usize, upto: usize) -> &[f32] {
+    &v[..per * upto]
+}
+
+#[test]
+fn tar_and_ego_outputs_of_a_frame_ignore_later_frames() {
+    let m = model::<F>();
+    let (f, n, d) = (5, spec().n, config().d_model);
+    let ids = tokens(&spec(), 1, f, 11);
+    let (h0, ego0) = h_and_ego(&m, &ids, 1, f);
+    for k in 1..f {
+        // Non-action tokens of frame k: outputs of frames < k are unchanged, frame k's (if any) move.
+        let mut changed = ids.clone();
+        for p in 5..n {
+            if (k * n + p) % 3 == 0 && ![5, 22, 23, 27, 28, 33].contains(&p) {
+                let v = changed[k * n + p];
+                changed[k * n + p] = if v > 0 { v - 1 } else { v + 1 };
+            }
+        }
+        let (h1, ego1) = h_and_ego(&m, &changed, 1, f);
+        assert_eq!(
+            frames(&h0, n * d, k),
+            frames(&h1, n * d, k),
+            "h of frames < {k} moved"
+        );
+        assert_eq!(
+            frames(&ego0, 3 * 16, k),
+            frames(&ego1, 3 * 16, k),
+            "ego logits of frames < {k} moved"
+        );
+        if k < f - 1 {
+            assert_ne!(
+                frames(&h0, n * d, k + 1),
+                frames(&h1, n * d, k + 1),
+                "frame {k} itself should matter"
+            );
+        }
+        // Frame k's action is the next action of frame k − 1: outputs of frames < k − 1 stay.
+        let mut act = ids.clone();
+        act[k * n + 2] = (act[k * n + 2] + 5) % 16;
+        let (h2, _) = h_and_ego(&m, &act, 1, f);
+        assert_eq!(frames(&h0, n * d, k - 1), frames(&h2, n * d, k - 1));
+        assert_ne!(
+            frames(&h0, n * d, k),
+            frames(&h2, n * d, k),
+            "the next action steers frame {}",
+            k - 1
+        );
+    }
+}
+
+#[test]
+fn oar_logits_at_a_position_ignore_that_token_and_later_ones() {
+    let m = model::<F>();
+    let (f, n) = (3, spec().n);
+    let ids = tokens(&spec(), 1, f, 12);
+    let run = |ids: &[i64]| -> Vec<Vec<f32>> {
+        let toks = tensor::<F>(ids, 1, f, n);
+        let e = m.embed.forward(toks.clone());
+        let t = f - 1;
+        let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
+        let h = m.tar(cond, next.clone(), Some(toks.narrow(1, 1, t).narrow(2, 1, 3)));
+        let d = h.dims()[3];
+        let o = m.oar(m.oar_input(next.reshape([t, n, d]), h.reshape([t, n, d])));
+        // Per position of the last target frame, its logits (through its segment's head).
+        let last = o.narrow(0, t - 1, 1);
+        (0..n)
+            .map(|p| {
+                let s = spec()
+                    .segments
+                    .iter()
+                    .position(|s| (s.block_start..s.block_start + s.block_len).contains(&p))
+                    .unwrap();
+                let x: Tensor<F, 2> = last.clone().narrow(1, p, 1).reshape([1, d]);
+                m.oar_heads.logits_at(s, x).into_data().iter::<f32>().collect()
+            })
+            .collect()
+    };
+    let base = run(&ids);
+    for i in [6, 14, 24, 26, 30] {
+        let mut changed = ids.clone();
+        let p = (f - 1) * n + i;
+        changed[p] = if changed[p] > 0 {
+            changed[p] - 1
+        } else {
+            changed[p] + 1
+        };
+        let after = run(&changed);
+        for q in 0..=i {
+            assert_eq!(base[q], after[q], "logits at {q} moved when token {i} changed");
+        }
+        assert!(
+            (i + 1..n).any(|q| base[q] != after[q]),
+            "token {i} should matter to later positions"
+        );
+    }
+}

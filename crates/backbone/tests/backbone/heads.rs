@@ -1,0 +1,79 @@
+//! Heads cover their own vocabulary only, and the loss is the cross-entropy computed independently.
+
+use super::*;
+
+#[test]
+fn each_segment_scores_only_its_own_vocabulary() {
+    let m = model::<F>();
+    let x = Tensor::<F, 3>::ones([2, spec().n, config().d_model], &Default::default());
+    for (s, seg) in spec().segments.iter().enumerate() {
+        assert_eq!(
+            m.oar_heads.logits(s, x.clone()).dims(),
+            [2, seg.tokens, seg.vocab]
+        );
+        assert_eq!(
+            m.tar_heads.logits(s, x.clone()).dims(),
+            [2, seg.tokens, seg.vocab]
+        );
+    }
+}
+
+#[test]
+fn the_loss_is_the_token_weighted_cross_entropy() {
+    let m = model::<F>();
+    let (b, f, n) = (2, 3, spec().n);
+    let ids = tokens(&spec(), b, f, 21);
+    let toks = tensor::<F>(&ids, b, f, n);
+    let losses = m.loss(toks.clone(), 1.0).unwrap();
+    let part = |name: &str| -> f64 {
+        f64::from(
+            losses
+                .parts
+                .iter()
+                .find(|(k, _)| k == name)
+                .unwrap()
+                .1
+                .clone()
+                .into_scalar(),
+        )
+    };
+    // Independent computation in f64 from the raw logits of the OAR.
+    let t = f - 1;
+    let e = m.embed.forward(toks.clone());
+    let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
+    let h = m.tar(cond, next.clone(), Some(toks.narrow(1, 1, t).narrow(2, 1, 3)));
+    let d = config().d_model;
+    let o = m.oar(m.oar_input(next.reshape([b * t, n, d]), h.reshape([b * t, n, d])));
+    let (mut all, mut count) = (0.0, 0usize);
+    for (s, seg) in spec().segments.iter().enumerate() {
+        let logits: Vec<f32> = m
+            .oar_heads
+            .logits(s, o.clone())
+            .into_data()
+            .iter::<f32>()
+            .collect();
+        let mut sum = 0.0;
+        for r in 0..b * t {
+            let (bi, ti) = (r / t, r % t);
+            for k in 0..seg.tokens {
+                let row = &logits[(r * seg.tokens + k) * seg.vocab..(r * seg.tokens + k + 1) * seg.vocab];
+                let max = row.iter().fold(f64::NEG_INFINITY, |a, &v| a.max(f64::from(v)));
+                let lse = max + row.iter().map(|&v| (f64::from(v) - max).exp()).sum::<f64>().ln();
+                let target = ids[((bi * f) + ti + 1) * n + seg.offset + k] as usize;
+                sum += lse - f64::from(row[target]);
+            }
+        }
+        let mean = sum / (b * t * seg.tokens) as f64;
+        assert!(
+            (part(&format!("oar/{}", seg.label)) - mean).abs() < 1e-4,
+            "{}: {} vs {mean}",
+            seg.label,
+            part(&format!("oar/{}", seg.label))
+        );
+        all += sum;
+        count += b * t * seg.tokens;
+    }
+    assert!((part("oar") - all / count as f64).abs() < 1e-4);
+    let total = f64::from(losses.total.into_scalar());
+    assert!((total - (part("oar") + part("tar") + part("ego"))).abs() < 1e-4);
+}

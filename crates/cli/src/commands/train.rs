@@ -1,0 +1,117 @@
+//! `umgen train`: tokenize if needed, then train the backbone.
+
+use crate::cli::TrainArgs;
+use crate::device::Device;
+use anyhow::Context;
+use std::ops::ControlFlow;
+use umgen::data::{Dataset, TokenSet};
+use umgen::train::{RunSpec, train};
+use umgen::{UmgenConfig, backbone_spec, builtin_catalog_with, tokenize_dataset};
+
+/// Trains.
+pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
+    let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
+    let device = Device::parse(&a.device)?;
+    let registry = config.registry(&builtin_catalog_with(device.codec_loader())?)?;
+    let layout = registry.layout()?;
+    let tc = &config.train;
+    if let Some(data_dir) = &tc.data {
+        // Tokenize what is missing; finished shards are skipped.
+        let data = Dataset::open(data_dir)?;
+        let bar = progress("tokenizing clips")?;
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let r = tokenize_dataset(
+            &registry,
+            &data,
+            &tc.tokens,
+            Some(&tc.split),
+            threads,
+            |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            },
+        )?;
+        bar.finish_and_clear();
+        if r.written > 0 {
+            tracing::info!(
+                "{}: tokenized {} frames of {}",
+                tc.tokens.display(),
+                r.frames,
+                data_dir.display()
+            );
+        }
+    }
+    let tokens = TokenSet::open(&tc.tokens, layout.fingerprint()).with_context(|| {
+        format!(
+            "token cache {} (set train.data to make it, or run `umgen tokenize`)",
+            tc.tokens.display()
+        )
+    })?;
+    let spec = backbone_spec(&registry, &config.backbone)?;
+    let run = RunSpec {
+        backbone: config.backbone.clone(),
+        spec,
+        train: tc.clone(),
+        fingerprint: layout.fingerprint().into(),
+        config: config.to_json(),
+    };
+    std::fs::create_dir_all(&tc.out_dir).with_context(|| format!("creating {}", tc.out_dir.display()))?;
+    std::fs::write(
+        tc.out_dir.join("config.json"),
+        serde_json::to_vec_pretty(&run.config)?,
+    )
+    .with_context(|| format!("writing {}", tc.out_dir.join("config.json").display()))?;
+    tracing::info!(
+        "training {} parameters on {} ({} windows of {} frames × N = {}), {} steps of {} × {} into {}",
+        run.spec.param_count(&run.backbone),
+        tc.tokens.display(),
+        tokens.windows(tc.frames + 1, tc.gap, Some(&tc.split)).len(),
+        tc.frames + 1,
+        layout.len(),
+        tc.steps,
+        tc.batch_size,
+        tc.grad_accum,
+        tc.out_dir.display()
+    );
+    let bar = progress("steps")?;
+    bar.set_length(tc.steps);
+    let summary = crate::with_autodiff!(device, |B, dev| {
+        train::<B>(&run, &tokens, &dev, a.resume, |r| {
+            bar.set_position(r.step);
+            if let Some(v) = &r.values {
+                bar.set_message(format!("loss {:.4}", v[0].1));
+                let line: Vec<String> = v.iter().map(|(k, x)| format!("{k} {x:.4}")).collect();
+                bar.suspend(|| {
+                    tracing::info!(
+                        "step {}/{} ({:.0} ms): {}",
+                        r.step,
+                        r.steps,
+                        1e3 * r.seconds,
+                        line.join(", ")
+                    )
+                });
+            }
+            ControlFlow::Continue(())
+        })?
+    });
+    bar.finish_and_clear();
+    tracing::info!(
+        "done at step {}: loss {} → {}; checkpoint {}",
+        summary.step,
+        summary.first_loss.map_or("-".into(), |v| format!("{v:.4}")),
+        summary.last_loss.map_or("-".into(), |v| format!("{v:.4}")),
+        summary
+            .checkpoint
+            .as_ref()
+            .map_or("none".into(), |p| p.display().to_string())
+    );
+    Ok(())
+}
+
+fn progress(what: &str) -> anyhow::Result<indicatif::ProgressBar> {
+    let bar = indicatif::ProgressBar::new(0).with_message(what.to_string());
+    bar.set_style(indicatif::ProgressStyle::with_template(
+        "{bar:30} {pos}/{len} {msg} [{elapsed_precise} < {eta_precise}]",
+    )?);
+    Ok(bar)
+}

@@ -1,0 +1,196 @@
+//! `umgen train` end to end on a tiny imported SUMO fixture: the loss falls, a run killed with SIGKILL and
+//! resumed repeats the uninterrupted run's losses exactly, damaged checkpoints fall back, other configs
+//! are refused, and TensorBoard reads the event files.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use std::collections::BTreeMap;
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+use umgen::data::Dataset;
+use umgen::{DatasetRasters, UmgenConfig, vq_target};
+use umgen_tests::fixtures::tiny_dataset;
+
+type B = burn::backend::Autodiff<burn::backend::Flex>;
+
+/// The fixture's config: tiny tokenizers (trained here for two steps) and a tiny backbone.
+fn config_text(dir: &Path, data: &Path, out: &str, steps: u64) -> String {
+    let tok = |m: &str| dir.join("tok").join(m).display().to_string();
+    format!(
+        "[layout]\norder = [\"ego\", \"map\", \"agent\", \"image\"]\n\
+         [modality.agent]\nmax_agents = 4\n\
+         [modality.map]\nraster = [32, 32]\ngrid = [4, 4]\ncodebook_size = 32\ntokenizer = \"{}\"\n\
+         [modality.map.vq]\nbase = 8\nmult = [1, 2, 2, 2]\nres_blocks = 1\nz_channels = 4\nembed_dim = 4\nattention = false\ngroups = 4\n\
+         [modality.map.vq_train]\nsteps = 2\nbatch_size = 2\nthreads = 1\n\
+         [modality.image]\nsize = [32, 64]\ngrid = [2, 4]\ncodebook_size = 32\ntokenizer = \"{}\"\n\
+         [modality.image.vq]\nbase = 8\nmult = [1, 1, 2, 2, 2]\nres_blocks = 1\nz_channels = 4\nembed_dim = 4\nattention = false\ngroups = 4\n\
+         [modality.image.vq_train]\nsteps = 2\nbatch_size = 2\nthreads = 1\n\
+         [backbone]\nd_model = 32\nheads = 2\nmlp_ratio = 2\ndropout = 0.1\nego_hist_layers = 1\nego_env_layers = 1\ntar_layers = 1\noar_layers = 1\nmax_frames = 4\n\
+         [train]\nout_dir = \"{}\"\ntokens = \"{}\"\ndata = \"{}\"\nsteps = {steps}\nbatch_size = 2\nframes = 2\nlr = 3e-3\nwarmup = 3\nlog_every = 1\ncheckpoint_every = 5\nkeep_checkpoints = 3\n",
+        tok("map"),
+        tok("image"),
+        dir.join(out).display(),
+        dir.join("tokens").display(),
+        data.display()
+    )
+}
+
+/// A fixture dataset, its tokenizers, and a config file per run directory name.
+struct Fixture {
+    dir: tempfile::TempDir,
+    data: PathBuf,
+}
+
+impl Fixture {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let data = tiny_dataset(dir.path(), 40).unwrap();
+        let ds = Dataset::open(&data).unwrap();
+        let bare = UmgenConfig::from_toml_str(&config_text(dir.path(), &data, "unused", 1)).unwrap();
+        for m in ["map", "image"] {
+            let mut target = vq_target(&bare, m).unwrap();
+            target.tokenizer = None;
+            let source = DatasetRasters::new(&ds, target.view.as_ref(), None, 1);
+            umgen::tokenizer_vq::train::<B>(
+                &target.vq,
+                &target.train,
+                &source,
+                &dir.path().join("tok").join(m),
+                &Default::default(),
+                |_| ControlFlow::Continue(()),
+            )
+            .unwrap();
+        }
+        Self { dir, data }
+    }
+
+    fn config(&self, run: &str, steps: u64) -> PathBuf {
+        let p = self.dir.path().join(format!("{run}.toml"));
+        std::fs::write(&p, config_text(self.dir.path(), &self.data, run, steps)).unwrap();
+        p
+    }
+
+    fn run_dir(&self, run: &str) -> PathBuf {
+        self.dir.path().join(run)
+    }
+}
+
+fn umgen(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(args)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap()
+}
+
+fn ok(out: Output) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "stderr: {err}");
+    err
+}
+
+/// Loss per step from `metrics.jsonl` (the last line of a step wins: a resumed run repeats steps after its
+/// checkpoint).
+fn losses(run: &Path) -> BTreeMap<u64, f64> {
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    text.lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .map(|v| (v["step"].as_u64().unwrap(), v["loss"].as_f64().unwrap()))
+        .collect()
+}
+
+#[test]
+fn training_learns_survives_sigkill_and_resumes_exactly() {
+    let fx = Fixture::new();
+    // The uninterrupted run.
+    let cfg_a = fx.config("a", 30);
+    let log = ok(umgen(&["train", "--config", cfg_a.to_str().unwrap()]));
+    assert!(log.contains("tokenized"), "the first run tokenizes: {log}");
+    let a = losses(&fx.run_dir("a"));
+    assert_eq!(a.len(), 30);
+    let first = a[&1];
+    let last: f64 = (26..=30).map(|s| a[&s]).sum::<f64>() / 5.0;
+    assert!(last < 0.75 * first, "the loss falls: {first} → {last}");
+
+    // The same run, killed with SIGKILL once a checkpoint exists, then resumed.
+    let cfg_b = fx.config("b", 30);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(["train", "--config", cfg_b.to_str().unwrap()])
+        .env("NO_COLOR", "1")
+        .spawn()
+        .unwrap();
+    let ckpt = fx.run_dir("b").join("checkpoints/step-000000010");
+    let t0 = Instant::now();
+    while !ckpt.exists() {
+        assert!(t0.elapsed() < Duration::from_secs(120), "no checkpoint appeared");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    let status = child.wait().unwrap();
+    assert!(!status.success(), "the run was killed before finishing");
+    let refused = umgen(&["train", "--config", cfg_b.to_str().unwrap()]);
+    assert!(!refused.status.success() && String::from_utf8_lossy(&refused.stderr).contains("--resume"));
+    ok(umgen(&["train", "--config", cfg_b.to_str().unwrap(), "--resume"]));
+    let b = losses(&fx.run_dir("b"));
+    assert_eq!(
+        a, b,
+        "the resumed run's losses equal the uninterrupted run's, step by step"
+    );
+
+    // A damaged newest checkpoint is detected and the previous one is used.
+    let newest = fx.run_dir("b").join("checkpoints/step-000000030");
+    let w = newest.join("model.safetensors");
+    let mut bytes = std::fs::read(&w).unwrap();
+    let n = bytes.len();
+    bytes[n - 3] ^= 0x55;
+    std::fs::write(&w, bytes).unwrap();
+    let cfg_b35 = fx.config("b", 35);
+    let log = ok(umgen(&[
+        "train",
+        "--config",
+        cfg_b35.to_str().unwrap(),
+        "--resume",
+    ]));
+    assert!(
+        log.contains("skipping checkpoint") && log.contains("checksum") && log.contains("step 25"),
+        "{log}"
+    );
+
+    // Another model refuses the checkpoints and names the difference.
+    let out = umgen(&[
+        "train",
+        "--config",
+        cfg_b35.to_str().unwrap(),
+        "--resume",
+        "--set",
+        "backbone.d_model=48",
+        "--set",
+        "backbone.heads=3",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success()
+            && err.contains("does not match this run")
+            && err.contains("backbone (d_model, heads)"),
+        "{err}"
+    );
+
+    // TensorBoard's own reader loads the scalars (CI sets UMGEN_TB_PYTHON to a Python with tensorboard).
+    if let Ok(python) = std::env::var("UMGEN_TB_PYTHON") {
+        let script =
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/python/check_tensorboard.py");
+        let out = Command::new(python)
+            .arg(script)
+            .arg(fx.run_dir("a").join("tb"))
+            .args(["loss", "30"])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+}

@@ -1,0 +1,102 @@
+//! Training settings (`[train]` in configs).
+
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// How the backbone is trained.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Run directory: checkpoints, TensorBoard, `metrics.jsonl`.
+    pub out_dir: PathBuf,
+    /// Optimisation steps.
+    pub steps: u64,
+    /// Windows per micro-batch (per process).
+    pub batch_size: usize,
+    /// Micro-batches per step (their gradients are averaged).
+    pub grad_accum: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Linear warm-up steps.
+    pub warmup: u64,
+    /// Final learning rate as a fraction of the peak (cosine decay).
+    pub min_lr_ratio: f64,
+    /// AdamW weight decay.
+    pub weight_decay: f64,
+    /// AdamW β1.
+    pub beta1: f64,
+    /// AdamW β2.
+    pub beta2: f64,
+    /// Global gradient-norm clip (0 = none).
+    pub grad_clip: f64,
+    /// History frames T (windows hold T + 1 frames).
+    pub frames: usize,
+    /// Sampling gap between window frames, in dataset frames.
+    pub gap: usize,
+    /// Seed of initialisation, data order and dropout.
+    pub seed: u64,
+    /// Weight of the ego-action cross-entropy.
+    pub ego_loss_weight: f64,
+    /// Steps between logged metrics.
+    pub log_every: u64,
+    /// Steps between checkpoints.
+    pub checkpoint_every: u64,
+    /// Checkpoints kept.
+    pub keep_checkpoints: usize,
+    /// Token cache directory (made by `umgen tokenize`, or by `umgen train` from `data`).
+    pub tokens: PathBuf,
+    /// Dataset to tokenize when the token cache is missing.
+    pub data: Option<PathBuf>,
+    /// Split to train on.
+    pub split: String,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            out_dir: "runs/train".into(),
+            steps: 1000,
+            batch_size: 8,
+            grad_accum: 1,
+            lr: 1e-4,
+            warmup: 100,
+            min_lr_ratio: 0.1,
+            weight_decay: 0.01,
+            beta1: 0.9,
+            beta2: 0.95,
+            grad_clip: 1.0,
+            frames: 20,
+            gap: 1,
+            seed: 0,
+            ego_loss_weight: 1.0,
+            log_every: 10,
+            checkpoint_every: 500,
+            keep_checkpoints: 3,
+            tokens: "runs/tokens".into(),
+            data: None,
+            split: "train".into(),
+        }
+    }
+}
+
+impl TrainConfig {
+    /// The settings a resumed run must share with the run it continues (everything that changes the
+    /// trajectory; `steps`, logging and checkpoint cadence may change).
+    pub fn identity(&self) -> serde_json::Value {
+        let mut v = serde_json::to_value(self).unwrap_or(serde_json::Value::Null);
+        if let Some(o) = v.as_object_mut() {
+            for k in [
+                "out_dir",
+                "steps",
+                "log_every",
+                "checkpoint_every",
+                "keep_checkpoints",
+                "tokens",
+                "data",
+            ] {
+                o.remove(k);
+            }
+        }
+        v
+    }
+}

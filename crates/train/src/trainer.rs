@@ -1,0 +1,311 @@
+//! The training loop.
+
+use crate::config::TrainConfig;
+use crate::error::{Result, TrainError};
+use crate::sampler::Sampler;
+use burn::optim::{AdamWConfig, GradientsAccumulator, GradientsParams, Optimizer};
+use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::{Int, Tensor, TensorData};
+use std::ops::ControlFlow;
+use std::path::PathBuf;
+use std::time::Instant;
+use umgen_backbone::{Backbone, BackboneConfig, BackboneSpec};
+use umgen_checkpoint::CheckpointDir;
+use umgen_checkpoint::burn_io::{
+    optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
+};
+use umgen_data::{TokenSet, Window};
+use umgen_metrics::MetricLog;
+use umgen_optim::{Schedule, clip_grad_norm};
+
+/// Checkpoint kind of backbone runs.
+pub const KIND: &str = "backbone";
+
+/// What a run trains.
+#[derive(Debug, Clone)]
+pub struct RunSpec {
+    /// Model sizes.
+    pub backbone: BackboneConfig,
+    /// The frame the model is built for.
+    pub spec: BackboneSpec,
+    /// Training settings.
+    pub train: TrainConfig,
+    /// Frame layout fingerprint; checkpoints and token caches must match it.
+    pub fingerprint: String,
+    /// The resolved configuration, saved with every checkpoint.
+    pub config: serde_json::Value,
+}
+
+impl RunSpec {
+    /// What a resumed run must share with the checkpoint.
+    fn identity(&self) -> serde_json::Value {
+        serde_json::json!({"fingerprint": self.fingerprint, "backbone": self.backbone, "train": self.train.identity()})
+    }
+}
+
+/// One step, reported to the caller.
+#[derive(Debug, Clone)]
+pub struct StepReport {
+    /// Steps done.
+    pub step: u64,
+    /// Steps in all.
+    pub steps: u64,
+    /// Seconds of this step.
+    pub seconds: f64,
+    /// Tokens per second of this step (B · T · N · accum / time).
+    pub tokens_per_s: f64,
+    /// Logged scalars on logging steps: `loss`, per-modality losses, `lr`, `grad_norm`, `tokens_per_s`.
+    pub values: Option<Vec<(String, f64)>>,
+}
+
+/// How a run ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Summary {
+    /// Step reached.
+    pub step: u64,
+    /// First logged loss of this process (`None` if nothing was logged).
+    pub first_loss: Option<f64>,
+    /// Last logged loss.
+    pub last_loss: Option<f64>,
+    /// Newest checkpoint.
+    pub checkpoint: Option<PathBuf>,
+}
+
+fn mix(seed: u64, step: u64) -> u64 {
+    let mut z = seed
+        ^ step
+            .wrapping_add(0x9e37_79b9_7f4a_7c15)
+            .wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 30)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Trains the backbone on windows of `tokens` into `train.out_dir`. With `resume`, continues from the
+/// newest good checkpoint (which must belong to the same run); without it, refuses a directory that
+/// already holds checkpoints. Every step is reseeded from (seed, step) and the data order is a function of
+/// (seed, epoch), so a resumed run repeats the uninterrupted one. `on_step` may stop the run
+/// (`ControlFlow::Break`) after a checkpoint.
+pub fn train<B: AutodiffBackend>(
+    run: &RunSpec,
+    tokens: &TokenSet,
+    device: &B::Device,
+    resume: bool,
+    mut on_step: impl FnMut(&StepReport) -> ControlFlow<()>,
+) -> Result<Summary> {
+    let tc = &run.train;
+    let out = &tc.out_dir;
+    let f = tc.frames + 1;
+    let windows = tokens.windows(f, tc.gap, Some(&tc.split));
+    if windows.is_empty() || tc.batch_size == 0 || tc.grad_accum == 0 || tc.frames == 0 {
+        return Err(TrainError::Setup(format!(
+            "no training windows of {f} frames at gap {} in split `{}` (or a zero batch size / accumulation / frames)",
+            tc.gap, tc.split
+        )));
+    }
+    if f > run.backbone.max_frames {
+        return Err(TrainError::Setup(format!(
+            "windows of {f} frames exceed backbone.max_frames = {}",
+            run.backbone.max_frames
+        )));
+    }
+    B::seed(device, tc.seed);
+    let mut model = stable_param_ids(Backbone::<B>::new(&run.backbone, &run.spec, device)?);
+    let mut optim = AdamWConfig::new()
+        .with_beta_1(tc.beta1 as f32)
+        .with_beta_2(tc.beta2 as f32)
+        .with_epsilon(1e-8)
+        .with_weight_decay(tc.weight_decay as f32)
+        .init();
+    let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
+    let mut step = 0u64;
+    let mut last_ckpt = None;
+    if resume {
+        if let Some(l) = ckpts.load_latest()? {
+            let saved = &l.manifest.meta["identity"];
+            if l.manifest.kind != KIND || saved != &run.identity() {
+                return Err(TrainError::Checkpoint(
+                    umgen_checkpoint::CheckpointError::Mismatch {
+                        path: l.dir.clone(),
+                        reason: describe_difference(saved, &run.identity()),
+                    },
+                ));
+            }
+            model = weights_from_bytes(
+                model,
+                l.file("model.safetensors")?.to_vec(),
+                "backbone checkpoint",
+            )?;
+            optim = optimizer_from_bytes::<B, _, _>(optim, l.file("optimizer.bin")?.to_vec(), device)?;
+            step = l.manifest.step;
+            tracing::info!("resuming from {} (step {step})", l.dir.display());
+            last_ckpt = Some(l.dir);
+        }
+    } else if !ckpts.list()?.is_empty() {
+        return Err(TrainError::RunDir { path: out.clone(), message: "holds checkpoints of an earlier run: pass --resume to continue it, or choose another train.out_dir".into() });
+    }
+    let mut log = MetricLog::open(out).map_err(|error| TrainError::Metrics {
+        path: out.clone(),
+        error,
+    })?;
+    let schedule = Schedule {
+        peak: tc.lr,
+        warmup: tc.warmup,
+        total: tc.steps,
+        floor: tc.min_lr_ratio,
+    };
+    let mut sampler = Sampler::new(windows.len(), tc.seed);
+    let n = run.spec.n;
+    let tokens_per_step = (tc.batch_size * tc.frames * n * tc.grad_accum) as f64;
+    let (mut first_loss, mut last_loss) = (None, None);
+    while step < tc.steps {
+        let t0 = Instant::now();
+        B::seed(device, mix(tc.seed, step));
+        let mut acc = GradientsAccumulator::new();
+        let mut parts = Vec::new();
+        for micro in 0..tc.grad_accum {
+            let picks = sampler.batch(step, micro, tc.grad_accum, tc.batch_size, 0, 1);
+            let batch = load_batch::<B>(tokens, &windows, &picks, f, tc.gap, n, device)?;
+            let losses = model.loss(batch, tc.ego_loss_weight)?;
+            let grads = GradientsParams::from_grads(
+                losses.total.clone().div_scalar(tc.grad_accum as f64).backward(),
+                &model,
+            );
+            acc.accumulate(&model, grads);
+            parts.push(losses);
+        }
+        let mut grads = acc.grads();
+        let grad_norm = clip_grad_norm::<B, _>(&model, &mut grads, tc.grad_clip);
+        let lr = schedule.lr(step);
+        model = optim.step(lr, model, grads);
+        step += 1;
+        let seconds = t0.elapsed().as_secs_f64();
+        let logging = step.is_multiple_of(tc.log_every.max(1)) || step == tc.steps || step == 1;
+        let values = if logging {
+            let v = averaged_parts(&parts, lr, grad_norm, tokens_per_step / seconds);
+            log.log(step, &v.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>())
+                .and_then(|()| log.flush())
+                .map_err(|error| TrainError::Metrics {
+                    path: out.clone(),
+                    error,
+                })?;
+            first_loss = first_loss.or(Some(v[0].1));
+            last_loss = Some(v[0].1);
+            Some(v)
+        } else {
+            None
+        };
+        let stop = on_step(&StepReport {
+            step,
+            steps: tc.steps,
+            seconds,
+            tokens_per_s: tokens_per_step / seconds,
+            values,
+        })
+        .is_break();
+        if stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps {
+            let meta = serde_json::json!({"identity": run.identity(), "config": run.config, "world_size": 1});
+            let w = weights_to_bytes(&model)?;
+            let o = optimizer_to_bytes::<B, _, _>(&optim)?;
+            last_ckpt = Some(ckpts.save(
+                KIND,
+                step,
+                meta,
+                &[("model.safetensors", &w), ("optimizer.bin", &o)],
+            )?);
+        }
+        if stop {
+            tracing::info!("stopped at step {step} of {}", tc.steps);
+            break;
+        }
+    }
+    Ok(Summary {
+        step,
+        first_loss,
+        last_loss,
+        checkpoint: last_ckpt,
+    })
+}
+
+/// `[batch, f, N]` ids of the chosen windows.
+fn load_batch<B: AutodiffBackend>(
+    tokens: &TokenSet,
+    windows: &[Window],
+    picks: &[usize],
+    f: usize,
+    gap: usize,
+    n: usize,
+    device: &B::Device,
+) -> Result<Tensor<B, 3, Int>> {
+    let mut ids = Vec::with_capacity(picks.len() * f * n);
+    for &p in picks {
+        ids.extend(tokens.read(windows[p], f, gap)?.into_iter().map(i64::from));
+    }
+    Ok(Tensor::from_data(
+        TensorData::new(ids, [picks.len(), f, n]),
+        device,
+    ))
+}
+
+/// Mean over micro-batches of every loss part, fetched from the device in one transfer, then `lr`,
+/// `grad_norm`, `tokens_per_s`. The first entry is the total loss.
+fn averaged_parts<B: AutodiffBackend>(
+    parts: &[umgen_backbone::Losses<B>],
+    lr: f64,
+    grad_norm: f64,
+    tps: f64,
+) -> Vec<(String, f64)> {
+    let Some(first) = parts.first() else {
+        return Vec::new();
+    };
+    let mut names = vec!["loss".to_string()];
+    names.extend(first.parts.iter().map(|(k, _)| k.clone()));
+    let tensors: Vec<Tensor<B, 1>> = parts
+        .iter()
+        .flat_map(|l| std::iter::once(l.total.clone()).chain(l.parts.iter().map(|(_, t)| t.clone())))
+        .collect();
+    let values: Vec<f64> = Tensor::cat(tensors, 0).into_data().iter::<f64>().collect();
+    let k = names.len();
+    let mut out: Vec<(String, f64)> = names
+        .into_iter()
+        .enumerate()
+        .map(|(i, name)| {
+            (
+                name,
+                (0..parts.len()).map(|m| values[m * k + i]).sum::<f64>() / parts.len() as f64,
+            )
+        })
+        .collect();
+    out.extend([
+        ("lr".into(), lr),
+        ("grad_norm".into(), grad_norm),
+        ("tokens_per_s".into(), tps),
+    ]);
+    out
+}
+
+/// Which top-level keys of two identities differ, in words.
+fn describe_difference(saved: &serde_json::Value, now: &serde_json::Value) -> String {
+    let keys = ["fingerprint", "backbone", "train"];
+    let differing: Vec<String> = keys
+        .iter()
+        .filter(|k| saved.get(*k) != now.get(*k))
+        .map(|k| {
+            match (
+                saved.get(*k).and_then(|v| v.as_object()),
+                now.get(*k).and_then(|v| v.as_object()),
+            ) {
+                (Some(a), Some(b)) => {
+                    let inner: std::collections::BTreeSet<&str> = a
+                        .keys()
+                        .chain(b.keys())
+                        .filter(|x| a.get(*x) != b.get(*x))
+                        .map(String::as_str)
+                        .collect();
+                    format!("{k} ({})", inner.into_iter().collect::<Vec<_>>().join(", "))
+                }
+                _ => (*k).to_string(),
+            }
+        })
+        .collect();
+    format!("it was trained with another {}", differing.join(" and "))
+}

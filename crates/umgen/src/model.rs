@@ -1,0 +1,95 @@
+//! The backbone's view of a registry.
+
+use crate::error::{Result, UmgenError};
+use umgen_backbone::{ActionSpec, AlignSpec, BackboneConfig, BackboneSpec, SegmentSpec};
+use umgen_modality::{ModalityError, ModalityRegistry};
+
+fn config_error(key: &str, message: String) -> UmgenError {
+    UmgenError::Modality(ModalityError::Config {
+        key: key.into(),
+        message,
+    })
+}
+
+/// The frame as the backbone sees it: segments with vocabularies and codebooks, the action segment and
+/// its bins (`backbone.action`), the map grid AMA moves (`backbone.align`).
+pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Result<BackboneSpec> {
+    let layout = registry.layout()?;
+    let segments = layout
+        .segments()
+        .iter()
+        .zip(registry.modalities())
+        .map(|(s, m)| SegmentSpec {
+            label: s.modality.clone(),
+            block_start: s.block_start,
+            block_len: s.block_end - s.block_start,
+            offset: s.offset,
+            tokens: s.tokens,
+            vocab: s.vocab_size as usize,
+            embed_vocab: s.embed_vocab as usize,
+            codebook: m
+                .codebook()
+                .filter(|c| c.entries() == s.vocab_size as usize)
+                .map(|c| (c.dim(), c.weights().to_vec())),
+        })
+        .collect();
+    let index = |key: &str, name: &str| {
+        layout
+            .segments()
+            .iter()
+            .position(|s| s.modality == name)
+            .ok_or_else(|| config_error(key, format!("no modality `{name}` in layout.order")))
+    };
+    let action = match &cfg.action {
+        None => None,
+        Some(name) => {
+            let i = index("backbone.action", name)?;
+            let b = &layout.segments()[i].bins;
+            if b.len() < 3 {
+                return Err(config_error(
+                    "backbone.action",
+                    format!("modality `{name}` does not declare binned dx, dy, dθ tokens"),
+                ));
+            }
+            Some(ActionSpec {
+                segment: i,
+                bins: [0, 1, 2].map(|k| (b[k].lo, b[k].hi, b[k].bins)),
+            })
+        }
+    };
+    let align = match &cfg.align {
+        None => None,
+        Some(name) => {
+            let i = index("backbone.align", name)?;
+            match layout.segments()[i].grid {
+                Some(g) if g.cell_m.is_some() => Some(AlignSpec {
+                    segment: i,
+                    rows: g.rows,
+                    cols: g.cols,
+                    cell_m: g.cell_m.unwrap_or(1.0),
+                }),
+                _ => {
+                    return Err(config_error(
+                        "backbone.align",
+                        format!("modality `{name}` is not a metric bird's-eye grid"),
+                    ));
+                }
+            }
+        }
+    };
+    if align.is_some() && action.is_none() {
+        return Err(config_error(
+            "backbone.align",
+            "AMA needs `backbone.action` to know how the ego moves".into(),
+        ));
+    }
+    let spec = BackboneSpec {
+        n: layout.len(),
+        segments,
+        action,
+        align,
+    };
+    spec.validate(cfg)
+        .map_err(|e| config_error("backbone", e.to_string()))?;
+    Ok(spec)
+}
