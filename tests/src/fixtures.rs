@@ -1,7 +1,10 @@
 //! Small datasets for integration tests, imported through the real SUMO importer.
 
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
+use umgen::data::Dataset;
 use umgen::data::sumo::{ImportOptions, import};
+use umgen::{DatasetRasters, UmgenConfig, vq_target};
 
 /// The hand-made SUMO network of the data crate's tests (a two-way road into a traffic light).
 pub fn tiny_net() -> PathBuf {
@@ -39,4 +42,23 @@ pub fn tiny_dataset(dir: &Path, steps: usize) -> std::io::Result<PathBuf> {
     (o.min_frames, o.clip_frames) = (3, 6);
     import(&o).map_err(|e| std::io::Error::other(e.to_string()))?;
     Ok(dir.join("ds"))
+}
+
+/// Trains the map and image tokenizers of `config` on every frame of `data` into `out/map` and
+/// `out/image`, for as many steps as the config's `vq_train` says (tests use two: enough to exercise the
+/// pipeline, not to reconstruct well). The configured tokenizer paths are ignored.
+pub fn train_tokenizers(config: &UmgenConfig, data: &Dataset, out: &Path) -> umgen::Result<()> {
+    for m in ["map", "image"] {
+        let target = vq_target(config, m)?;
+        let source = DatasetRasters::new(data, target.view.as_ref(), None, 1);
+        umgen::tokenizer_vq::train::<burn::backend::Autodiff<burn::backend::Flex>>(
+            &target.vq,
+            &target.train,
+            &source,
+            &out.join(m),
+            &Default::default(),
+            |_| ControlFlow::Continue(()),
+        )?;
+    }
+    Ok(())
 }

@@ -5,6 +5,7 @@ mod cli;
 mod commands;
 mod device;
 mod logging;
+mod progress;
 
 use clap::Parser;
 use std::io::Write;

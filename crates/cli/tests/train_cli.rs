@@ -4,15 +4,12 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use std::collections::BTreeMap;
-use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
+use umgen::UmgenConfig;
 use umgen::data::Dataset;
-use umgen::{DatasetRasters, UmgenConfig, vq_target};
-use umgen_tests::fixtures::tiny_dataset;
-
-type B = burn::backend::Autodiff<burn::backend::Flex>;
+use umgen_tests::fixtures::{tiny_dataset, train_tokenizers};
 
 /// The fixture's config: tiny tokenizers (trained here for two steps) and a tiny backbone.
 fn config_text(dir: &Path, data: &Path, out: &str, steps: u64) -> String {
@@ -48,20 +45,7 @@ impl Fixture {
         let data = tiny_dataset(dir.path(), 40).unwrap();
         let ds = Dataset::open(&data).unwrap();
         let bare = UmgenConfig::from_toml_str(&config_text(dir.path(), &data, "unused", 1)).unwrap();
-        for m in ["map", "image"] {
-            let mut target = vq_target(&bare, m).unwrap();
-            target.tokenizer = None;
-            let source = DatasetRasters::new(&ds, target.view.as_ref(), None, 1);
-            umgen::tokenizer_vq::train::<B>(
-                &target.vq,
-                &target.train,
-                &source,
-                &dir.path().join("tok").join(m),
-                &Default::default(),
-                |_| ControlFlow::Continue(()),
-            )
-            .unwrap();
-        }
+        train_tokenizers(&bare, &ds, &dir.path().join("tok")).unwrap();
         Self { dir, data }
     }
 

@@ -32,7 +32,9 @@ pub use arch::VqArch;
 pub use config::{LossConfig, Output, VqConfig, VqTrainConfig};
 pub use error::{Result, VqError};
 pub use metrics::{IouCounter, PsnrCounter, code_stats};
-pub use modality::{Codec, CodecLoader, CodecOn, RasterView, VqModality, cpu_loader};
+pub use modality::{
+    Codec, CodecLoader, CodecOn, RasterView, VqBuild, VqModality, VqModalityConfig, cpu_loader, vq_factory,
+};
 pub use model::{Forward, VqModel};
 pub use quantizer::{Quantized, Quantizer, normalize};
 pub use source::{MemorySource, RasterSource, batch_indices, render};

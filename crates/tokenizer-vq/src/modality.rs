@@ -115,6 +115,32 @@ pub fn cpu_loader() -> CodecLoader {
     })
 }
 
+/// What the settings of a VQ modality (`[modality.<name>]`) have in common.
+pub trait VqModalityConfig: serde::de::DeserializeOwned {
+    /// The configured tokenizer directory, taken out (for training a new one).
+    fn take_tokenizer(&mut self) -> Option<PathBuf>;
+    /// The tokenizer training settings.
+    fn vq_train(&self) -> &crate::config::VqTrainConfig;
+}
+
+/// Builds a VQ modality called `name` from its settings, loading its tokenizer with a loader.
+pub type VqBuild<C, V> = fn(&str, &C, &CodecLoader) -> Result<VqModality<V>>;
+
+/// A catalog factory for a VQ modality: parses its settings from the config table and builds it with
+/// `build`, loading tokenizers with `loader` (for example onto a GPU).
+pub fn vq_factory<C: VqModalityConfig + 'static, V: RasterView + 'static>(
+    build: VqBuild<C, V>,
+    loader: CodecLoader,
+) -> impl Fn(&str, &toml::Table) -> Result<Arc<dyn Modality>> + Send + Sync + 'static {
+    move |name, table| {
+        Ok(Arc::new(build(
+            name,
+            &umgen_modality::parse_settings(name, table)?,
+            &loader,
+        )?) as Arc<dyn Modality>)
+    }
+}
+
 /// Rasters encoded per call when tokenizing a clip.
 const BATCH: usize = 16;
 

@@ -5,7 +5,9 @@ use crate::error::{Result, UmgenError};
 use std::path::PathBuf;
 use umgen_data::Dataset;
 use umgen_modality::{ModalityError, parse_settings};
-use umgen_tokenizer_vq::{CodecLoader, RasterSource, RasterView, VqConfig, VqTrainConfig};
+use umgen_tokenizer_vq::{
+    CodecLoader, RasterSource, RasterView, VqBuild, VqConfig, VqModalityConfig, VqTrainConfig,
+};
 
 /// A configured VQ modality, ready for tokenizer training or evaluation.
 #[derive(Debug)]
@@ -24,45 +26,38 @@ pub struct VqTarget {
 
 /// The VQ modality `name` of `config` (kind `map` or `image`), without loading its tokenizer.
 pub fn vq_target(config: &UmgenConfig, name: &str) -> Result<VqTarget> {
-    let empty = toml::Table::new();
-    let table = config.modality.get(name).unwrap_or(&empty);
-    let mut table = table.clone();
+    let mut table = config.modality.get(name).cloned().unwrap_or_default();
     let kind = match table.remove("kind") {
         Some(toml::Value::String(k)) => k,
         _ => name.to_string(),
     };
-    let unused: CodecLoader =
-        std::sync::Arc::new(|_| Err(umgen_tokenizer_vq::VqError::Data("not loaded".into())));
     match kind.as_str() {
-        umgen_modality_map::KIND => {
-            let mut c: umgen_modality_map::MapConfig = parse_settings(name, &table)?;
-            let tokenizer = c.tokenizer.take();
-            let (_, view, vq) = umgen_modality_map::build(name, &c, &unused)?.into_parts();
-            Ok(VqTarget {
-                name: name.into(),
-                view: Box::new(view),
-                vq,
-                train: c.vq_train,
-                tokenizer,
-            })
-        }
-        umgen_modality_image::KIND => {
-            let mut c: umgen_modality_image::ImageConfig = parse_settings(name, &table)?;
-            let tokenizer = c.tokenizer.take();
-            let (_, view, vq) = umgen_modality_image::build(name, &c, &unused)?.into_parts();
-            Ok(VqTarget {
-                name: name.into(),
-                view: Box::new(view),
-                vq,
-                train: c.vq_train,
-                tokenizer,
-            })
-        }
+        umgen_modality_map::KIND => target(name, &table, umgen_modality_map::build),
+        umgen_modality_image::KIND => target(name, &table, umgen_modality_image::build),
         other => Err(UmgenError::Modality(ModalityError::Config {
             key: format!("modality.{name}"),
             message: format!("kind `{other}` has no VQ tokenizer (map and image do)"),
         })),
     }
+}
+
+fn target<C: VqModalityConfig + 'static, V: RasterView + 'static>(
+    name: &str,
+    table: &toml::Table,
+    build: VqBuild<C, V>,
+) -> Result<VqTarget> {
+    let mut c: C = parse_settings(name, table)?;
+    let tokenizer = c.take_tokenizer();
+    let unused: CodecLoader =
+        std::sync::Arc::new(|_| Err(umgen_tokenizer_vq::VqError::Data("not loaded".into())));
+    let (_, view, vq) = build(name, &c, &unused)?.into_parts();
+    Ok(VqTarget {
+        name: name.into(),
+        view: Box::new(view),
+        vq,
+        train: c.vq_train().clone(),
+        tokenizer,
+    })
 }
 
 /// Every frame of the clips of a split, as rasters of a view.

@@ -11,10 +11,13 @@
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::Arc;
-use umgen_modality::{Modality, ModalityError, ModalitySpec, Result, downsampling, parse_settings};
+use umgen_modality::{Modality, ModalityError, ModalitySpec, Result, downsampling};
 use umgen_render::MapView;
 use umgen_scene::{Frame, MapLayer, MapRaster, SceneClip};
-use umgen_tokenizer_vq::{CodecLoader, Output, RasterView, VqArch, VqModality, VqTrainConfig, cpu_loader};
+use umgen_tokenizer_vq::{
+    CodecLoader, Output, RasterView, VqArch, VqModality, VqModalityConfig, VqTrainConfig, cpu_loader,
+    vq_factory,
+};
 
 /// The kind name used in configs.
 pub const KIND: &str = "map";
@@ -166,18 +169,24 @@ pub fn build(name: &str, config: &MapConfig, loader: &CodecLoader) -> Result<Map
 
 /// The factory registered under [`KIND`], loading tokenizers on the CPU.
 pub fn factory(name: &str, table: &toml::Table) -> Result<Arc<dyn Modality>> {
-    Ok(Arc::new(build(
-        name,
-        &parse_settings(name, table)?,
-        &cpu_loader(),
-    )?))
+    factory_with(cpu_loader())(name, table)
 }
 
 /// A factory that loads tokenizers with `loader` (for example onto a GPU).
 pub fn factory_with(
     loader: CodecLoader,
 ) -> impl Fn(&str, &toml::Table) -> Result<Arc<dyn Modality>> + Send + Sync + 'static {
-    move |name, table| Ok(Arc::new(build(name, &parse_settings(name, table)?, &loader)?) as Arc<dyn Modality>)
+    vq_factory(build, loader)
+}
+
+impl VqModalityConfig for MapConfig {
+    fn take_tokenizer(&mut self) -> Option<PathBuf> {
+        self.tokenizer.take()
+    }
+
+    fn vq_train(&self) -> &VqTrainConfig {
+        &self.vq_train
+    }
 }
 
 #[cfg(test)]

@@ -1,13 +1,9 @@
 //! The tokenize pipeline end to end: train tiny tokenizers, tokenize a dataset, skip finished shards,
 //! read windows back and decode them into frames.
 
-use std::ops::ControlFlow;
 use umgen::data::{Dataset, TokenSet};
-use umgen::tokenizer_vq::train;
-use umgen::{DatasetRasters, UmgenConfig, builtin_catalog, tokenize_dataset, vq_target};
-use umgen_tests::fixtures::tiny_dataset;
-
-type B = burn::backend::Autodiff<burn::backend::Flex>;
+use umgen::{UmgenConfig, builtin_catalog, tokenize_dataset};
+use umgen_tests::fixtures::{tiny_dataset, train_tokenizers};
 
 fn config(tokenizers: Option<&std::path::Path>) -> UmgenConfig {
     let tok = |m: &str| {
@@ -35,21 +31,7 @@ fn a_dataset_tokenizes_reads_back_and_decodes() {
     let dir = tempfile::tempdir().unwrap();
     let ds_dir = tiny_dataset(dir.path(), 12).unwrap();
     let data = Dataset::open(&ds_dir).unwrap();
-    // Tokenizers of two steps: enough to exercise the pipeline, not to reconstruct well.
-    let bare = config(None);
-    for m in ["map", "image"] {
-        let target = vq_target(&bare, m).unwrap();
-        let source = DatasetRasters::new(&data, target.view.as_ref(), None, 1);
-        train::<B>(
-            &target.vq,
-            &target.train,
-            &source,
-            &dir.path().join("tok").join(m),
-            &Default::default(),
-            |_| ControlFlow::Continue(()),
-        )
-        .unwrap();
-    }
+    train_tokenizers(&config(None), &data, &dir.path().join("tok")).unwrap();
     let cfg = config(Some(&dir.path().join("tok")));
     let registry = cfg.registry(&builtin_catalog().unwrap()).unwrap();
     let layout = registry.layout().unwrap();

@@ -14,23 +14,8 @@ pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
     let threads = a
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let bar = indicatif::ProgressBar::new(0).with_message("clips");
-    bar.set_style(indicatif::ProgressStyle::with_template(
-        "{bar:30} {pos}/{len} {msg} [{elapsed_precise} < {eta_precise}]",
-    )?);
     let started = std::time::Instant::now();
-    let report = tokenize_dataset(
-        &registry,
-        &data,
-        &a.out,
-        a.split.as_deref(),
-        threads,
-        |done, total| {
-            bar.set_length(total as u64);
-            bar.set_position(done as u64);
-        },
-    )?;
-    bar.finish_and_clear();
+    let report = with_progress(&registry, &data, &a.out, a.split.as_deref(), threads)?;
     tracing::info!(
         "{}: {} shards written ({} frames), {} already there, in {:.1} s; layout {} (N = {})",
         a.out.display(),
@@ -42,4 +27,21 @@ pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
         registry.layout()?.len()
     );
     Ok(())
+}
+
+/// [`tokenize_dataset`] under a progress bar of clips.
+pub fn with_progress(
+    registry: &umgen::modality::ModalityRegistry,
+    data: &Dataset,
+    out: &std::path::Path,
+    split: Option<&str>,
+    threads: usize,
+) -> anyhow::Result<umgen::TokenizeReport> {
+    let bar = crate::progress::bar(0, "clips tokenized")?;
+    let report = tokenize_dataset(registry, data, out, split, threads, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    Ok(report)
 }

@@ -104,7 +104,7 @@ fn eval(a: &TokenizerEvalArgs) -> anyhow::Result<()> {
     let (mut iou, mut psnr, mut ids_all) = (IouCounter::default(), PsnrCounter::default(), Vec::new());
     let out = a.out.clone().unwrap_or_else(|| dir.join("eval"));
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    let bar = indicatif::ProgressBar::new(n as u64);
+    let bar = crate::progress::bar(n as u64, "frames")?;
     for (b, chunk) in picks.chunks(16).enumerate() {
         let input = umgen::tokenizer_vq::render(&source, chunk, 4)?;
         let ids = codec.encode(input.clone(), chunk.len(), [h, w])?;

@@ -6,7 +6,7 @@ use anyhow::Context;
 use std::ops::ControlFlow;
 use umgen::data::{Dataset, TokenSet};
 use umgen::train::{RunSpec, train};
-use umgen::{UmgenConfig, backbone_spec, builtin_catalog_with, tokenize_dataset};
+use umgen::{UmgenConfig, backbone_spec, builtin_catalog_with};
 
 /// Trains.
 pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
@@ -18,20 +18,8 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
     if let Some(data_dir) = &tc.data {
         // Tokenize what is missing; finished shards are skipped.
         let data = Dataset::open(data_dir)?;
-        let bar = progress("tokenizing clips")?;
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let r = tokenize_dataset(
-            &registry,
-            &data,
-            &tc.tokens,
-            Some(&tc.split),
-            threads,
-            |done, total| {
-                bar.set_length(total as u64);
-                bar.set_position(done as u64);
-            },
-        )?;
-        bar.finish_and_clear();
+        let r = super::tokenize::with_progress(&registry, &data, &tc.tokens, Some(&tc.split), threads)?;
         if r.written > 0 {
             tracing::info!(
                 "{}: tokenized {} frames of {}",
@@ -73,8 +61,7 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         tc.grad_accum,
         tc.out_dir.display()
     );
-    let bar = progress("steps")?;
-    bar.set_length(tc.steps);
+    let bar = crate::progress::bar(tc.steps, "steps")?;
     let summary = crate::with_autodiff!(device, |B, dev| {
         train::<B>(&run, &tokens, &dev, a.resume, |r| {
             bar.set_position(r.step);
@@ -106,12 +93,4 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
             .map_or("none".into(), |p| p.display().to_string())
     );
     Ok(())
-}
-
-fn progress(what: &str) -> anyhow::Result<indicatif::ProgressBar> {
-    let bar = indicatif::ProgressBar::new(0).with_message(what.to_string());
-    bar.set_style(indicatif::ProgressStyle::with_template(
-        "{bar:30} {pos}/{len} {msg} [{elapsed_precise} < {eta_precise}]",
-    )?);
-    Ok(bar)
 }
