@@ -26,9 +26,10 @@ pub struct BackboneConfig {
     pub oar_layers: usize,
     /// Longest window the frame (time) embedding covers.
     pub max_frames: usize,
-    /// The modality whose tokens are the ego action (predicted by the ego module, decoded for AMA).
+    /// The modality whose tokens are the ego action (predicted by the ego module, decoded for AMA);
+    /// `""` for none.
     pub action: Option<String>,
-    /// The metric-grid modality that AMA moves by the ego action.
+    /// The metric-grid modality that AMA moves by the ego action; `""` turns AMA off.
     pub align: Option<String>,
 }
 

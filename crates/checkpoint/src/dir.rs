@@ -66,7 +66,8 @@ impl Loaded {
     }
 }
 
-fn sha256(data: &[u8]) -> String {
+/// Lower-case hex SHA-256 of `data` (file checksums, run identities).
+pub fn sha256(data: &[u8]) -> String {
     Sha256::digest(data).iter().map(|b| format!("{b:02x}")).collect()
 }
 

@@ -13,5 +13,5 @@ pub mod burn_io;
 mod dir;
 mod error;
 
-pub use dir::{CheckpointDir, FileEntry, LATEST, Loaded, MANIFEST, Manifest, load};
+pub use dir::{CheckpointDir, FileEntry, LATEST, Loaded, MANIFEST, Manifest, load, sha256};
 pub use error::{CheckpointError, Result};

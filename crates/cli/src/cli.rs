@@ -35,8 +35,46 @@ pub enum Command {
     Tokenizer(TokenizerCommand),
     /// Encode every frame of a dataset with every modality of a config into a token cache.
     Tokenize(TokenizeArgs),
-    /// Train the backbone (tokenizing `train.data` first when the token cache is missing).
+    /// Train the backbone (tokenizing `train.data` first when the token cache is missing). Under
+    /// `umgen launch`, torchrun or SLURM, one process per GPU trains data-parallel.
     Train(TrainArgs),
+    /// Start K local ranks of a command (e.g. `train`) with the torchrun variables and supervise them:
+    /// if one fails, the others are stopped and the exit code is non-zero.
+    Launch(LaunchArgs),
+}
+
+/// Arguments of `umgen launch`.
+#[derive(Debug, Args)]
+pub struct LaunchArgs {
+    /// Processes (ranks) on this node; usually one per GPU.
+    #[arg(long, default_value_t = 1)]
+    pub nproc_per_node: usize,
+    /// Nodes in the job.
+    #[arg(long, default_value_t = 1)]
+    pub nnodes: usize,
+    /// This node's index, `0..nnodes`.
+    #[arg(long, default_value_t = 0)]
+    pub node_rank: usize,
+    /// Host of rank 0 (node 0).
+    #[arg(long, default_value = "127.0.0.1")]
+    pub master_addr: String,
+    /// Rendezvous port on rank 0's host.
+    #[arg(long, default_value_t = umgen::dist::DEFAULT_PORT)]
+    pub master_port: u16,
+    /// The umgen command each rank runs, after `--` (e.g. `-- train --config c.toml --device cuda`).
+    #[arg(last = true, required = true)]
+    pub command: Vec<String>,
+}
+
+/// How ranks of a data-parallel run talk (read by `train` and `bench train`).
+#[derive(Debug, Clone, Args)]
+pub struct DistArgs {
+    /// Seconds after which a dead, stopped or hung rank fails every rank (also the rendezvous timeout).
+    #[arg(long, env = "UMGEN_DIST_TIMEOUT", default_value_t = 120)]
+    pub dist_timeout: u64,
+    /// Collectives: `auto` (NCCL on CUDA, TCP on the CPU), `tcp` or `nccl`.
+    #[arg(long, env = "UMGEN_DIST_BACKEND", default_value = "auto")]
+    pub dist_backend: String,
 }
 
 /// Arguments of `umgen train`.
@@ -51,6 +89,9 @@ pub struct TrainArgs {
     /// Continue from the newest good checkpoint in `train.out_dir`.
     #[arg(long)]
     pub resume: bool,
+    /// Data-parallel settings.
+    #[command(flatten)]
+    pub dist: DistArgs,
 }
 
 /// `umgen tokenizer …`
@@ -226,8 +267,28 @@ pub struct VizArgs {
 pub enum BenchCommand {
     /// Windows per second read from a dataset (and rendered, with --render).
     Data(BenchDataArgs),
-    /// Training step time, tokens/s, model FLOPs utilisation and peak memory on random tokens.
+    /// Training step time, tokens/s, model FLOPs utilisation and peak memory on random tokens. Under
+    /// `umgen launch` it measures data-parallel steps (gradients averaged over the ranks).
     Train(BenchTrainArgs),
+    /// All-reduce bandwidth through the process group, run under `umgen launch`.
+    Allreduce(BenchAllreduceArgs),
+}
+
+/// Arguments of `umgen bench allreduce`.
+#[derive(Debug, Args)]
+pub struct BenchAllreduceArgs {
+    /// `cpu`, or `cuda` (each rank uses the GPU of its `LOCAL_RANK`).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Buffer sizes in MiB.
+    #[arg(long, value_delimiter = ',', default_value = "1,16,64,256")]
+    pub mib: Vec<f64>,
+    /// Timed all-reduces per size (the median is reported).
+    #[arg(long, default_value_t = 20)]
+    pub iters: usize,
+    /// Data-parallel settings.
+    #[command(flatten)]
+    pub dist: DistArgs,
 }
 
 /// Arguments of `umgen bench train`.
@@ -248,6 +309,9 @@ pub struct BenchTrainArgs {
     /// Peak dense throughput of the device in TFLOP/s, for MFU (default: 989, an H100/H200's bf16).
     #[arg(long, default_value_t = 989.0)]
     pub peak_tflops: f64,
+    /// Data-parallel settings.
+    #[command(flatten)]
+    pub dist: DistArgs,
 }
 
 /// Arguments of `umgen bench data`.

@@ -4,6 +4,7 @@
 mod cli;
 mod commands;
 mod device;
+mod dist;
 mod logging;
 mod progress;
 
@@ -14,6 +15,7 @@ use std::process::ExitCode;
 fn main() -> ExitCode {
     let args = cli::Cli::parse();
     logging::init(args.verbose);
+    commands::guard_parent();
     match commands::run(args.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {

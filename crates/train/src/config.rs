@@ -11,7 +11,7 @@ pub struct TrainConfig {
     pub out_dir: PathBuf,
     /// Optimisation steps.
     pub steps: u64,
-    /// Windows per micro-batch (per process).
+    /// Windows per micro-batch, per process: the global batch is `batch_size × grad_accum × world size`.
     pub batch_size: usize,
     /// Micro-batches per step (their gradients are averaged).
     pub grad_accum: usize,
@@ -49,6 +49,8 @@ pub struct TrainConfig {
     pub data: Option<PathBuf>,
     /// Split to train on.
     pub split: String,
+    /// Size of a gradient all-reduce bucket in MiB (data-parallel runs).
+    pub bucket_mib: f64,
 }
 
 impl Default for TrainConfig {
@@ -75,6 +77,7 @@ impl Default for TrainConfig {
             tokens: "runs/tokens".into(),
             data: None,
             split: "train".into(),
+            bucket_mib: 25.0,
         }
     }
 }
@@ -93,6 +96,7 @@ impl TrainConfig {
                 "keep_checkpoints",
                 "tokens",
                 "data",
+                "bucket_mib",
             ] {
                 o.remove(k);
             }

@@ -25,6 +25,9 @@ pub enum TrainError {
     /// Checkpoint I/O.
     #[error(transparent)]
     Checkpoint(#[from] umgen_checkpoint::CheckpointError),
+    /// A collective between ranks failed.
+    #[error(transparent)]
+    Dist(#[from] umgen_dist::DistError),
     /// Metric files.
     #[error("metrics in {path}: {error}")]
     Metrics {

@@ -15,6 +15,7 @@ use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
 };
 use umgen_data::{TokenSet, Window};
+use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module};
 use umgen_metrics::MetricLog;
 use umgen_optim::{Schedule, clip_grad_norm};
 
@@ -40,6 +41,11 @@ impl RunSpec {
     /// What a resumed run must share with the checkpoint.
     fn identity(&self) -> serde_json::Value {
         serde_json::json!({"fingerprint": self.fingerprint, "backbone": self.backbone, "train": self.train.identity()})
+    }
+
+    /// A digest of everything that must be equal on every rank of a data-parallel run.
+    pub fn identity_digest(&self) -> String {
+        umgen_checkpoint::sha256(self.identity().to_string().as_bytes())
     }
 }
 
@@ -84,15 +90,25 @@ fn mix(seed: u64, step: u64) -> u64 {
 /// newest good checkpoint (which must belong to the same run); without it, refuses a directory that
 /// already holds checkpoints. Every step is reseeded from (seed, step) and the data order is a function of
 /// (seed, epoch), so a resumed run repeats the uninterrupted one. `on_step` may stop the run
-/// (`ControlFlow::Break`) after a checkpoint.
+/// (`ControlFlow::Break`) after a checkpoint; with several ranks it must decide alike on all of them.
+///
+/// Data parallel over `group`: every rank starts from rank 0's parameters, reads its own slice of each
+/// step's samples, and averages gradients (in buckets of `bucket_mib`) once per step, after the
+/// accumulation micro-steps; clipping and AdamW then run identically on every rank. Only rank 0 writes
+/// metrics and checkpoints. Resuming with another world size restores weights and optimizer state, but
+/// the global batch and the data order from there on differ from the original run (a warning says so).
 pub fn train<B: AutodiffBackend>(
     run: &RunSpec,
     tokens: &TokenSet,
     device: &B::Device,
     resume: bool,
+    group: &mut dyn ProcessGroup<B::InnerBackend>,
     mut on_step: impl FnMut(&StepReport) -> ControlFlow<()>,
 ) -> Result<Summary> {
     let tc = &run.train;
+    let (rank, world) = (group.rank(), group.world_size());
+    let lead = rank == 0;
+    let bucket = (tc.bucket_mib * 1048576.0).max(4.0) as usize;
     let out = &tc.out_dir;
     let f = tc.frames + 1;
     let windows = tokens.windows(f, tc.gap, Some(&tc.split));
@@ -137,16 +153,33 @@ pub fn train<B: AutodiffBackend>(
             )?;
             optim = optimizer_from_bytes::<B, _, _>(optim, l.file("optimizer.bin")?.to_vec(), device)?;
             step = l.manifest.step;
-            tracing::info!("resuming from {} (step {step})", l.dir.display());
+            let saved_world = l.manifest.meta["world_size"].as_u64().unwrap_or(1);
+            if saved_world != world as u64 && lead {
+                tracing::warn!(
+                    "{} was written by {saved_world} rank(s), this run has {world}: weights and optimizer state continue, but the global batch is now {} windows and the data order differs from an uninterrupted run",
+                    l.dir.display(),
+                    tc.batch_size * tc.grad_accum * world
+                );
+            }
+            if lead {
+                tracing::info!("resuming from {} (step {step})", l.dir.display());
+            }
             last_ckpt = Some(l.dir);
         }
     } else if !ckpts.list()?.is_empty() {
         return Err(TrainError::RunDir { path: out.clone(), message: "holds checkpoints of an earlier run: pass --resume to continue it, or choose another train.out_dir".into() });
     }
-    let mut log = MetricLog::open(out).map_err(|error| TrainError::Metrics {
-        path: out.clone(),
-        error,
-    })?;
+    // Rank 0's parameters everywhere (also after a resume: all ranks loaded the same checkpoint, but a
+    // broadcast makes that a guarantee rather than an assumption about the file system).
+    model = broadcast_module(model, group, bucket)?;
+    let mut log = if lead {
+        Some(MetricLog::open(out).map_err(|error| TrainError::Metrics {
+            path: out.clone(),
+            error,
+        })?)
+    } else {
+        None
+    };
     let schedule = Schedule {
         peak: tc.lr,
         warmup: tc.warmup,
@@ -155,15 +188,17 @@ pub fn train<B: AutodiffBackend>(
     };
     let mut sampler = Sampler::new(windows.len(), tc.seed);
     let n = run.spec.n;
-    let tokens_per_step = (tc.batch_size * tc.frames * n * tc.grad_accum) as f64;
+    let tokens_per_step = (tc.batch_size * tc.frames * n * tc.grad_accum * world) as f64;
+    let rank_salt = (rank as u64).wrapping_mul(0xd1b5_4a32_d192_ed03);
     let (mut first_loss, mut last_loss) = (None, None);
     while step < tc.steps {
         let t0 = Instant::now();
-        B::seed(device, mix(tc.seed, step));
+        // Dropout differs between ranks (they see different samples) and is a function of (seed, step, rank).
+        B::seed(device, mix(tc.seed, step) ^ rank_salt);
         let mut acc = GradientsAccumulator::new();
         let mut parts = Vec::new();
         for micro in 0..tc.grad_accum {
-            let picks = sampler.batch(step, micro, tc.grad_accum, tc.batch_size, 0, 1);
+            let picks = sampler.batch(step, micro, tc.grad_accum, tc.batch_size, rank, world);
             let batch = load_batch::<B>(tokens, &windows, &picks, f, tc.gap, n, device)?;
             let losses = model.loss(batch, tc.ego_loss_weight)?;
             let grads = GradientsParams::from_grads(
@@ -173,7 +208,7 @@ pub fn train<B: AutodiffBackend>(
             acc.accumulate(&model, grads);
             parts.push(losses);
         }
-        let mut grads = acc.grads();
+        let mut grads = all_reduce_grads(&model, acc.grads(), group, bucket)?;
         let grad_norm = clip_grad_norm::<B, _>(&model, &mut grads, tc.grad_clip);
         let lr = schedule.lr(step);
         model = optim.step(lr, model, grads);
@@ -181,13 +216,15 @@ pub fn train<B: AutodiffBackend>(
         let seconds = t0.elapsed().as_secs_f64();
         let logging = step.is_multiple_of(tc.log_every.max(1)) || step == tc.steps || step == 1;
         let values = if logging {
-            let v = averaged_parts(&parts, lr, grad_norm, tokens_per_step / seconds);
-            log.log(step, &v.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>())
-                .and_then(|()| log.flush())
-                .map_err(|error| TrainError::Metrics {
-                    path: out.clone(),
-                    error,
-                })?;
+            let v = averaged_parts(&parts, group, lr, grad_norm, tokens_per_step / seconds)?;
+            if let Some(log) = log.as_mut() {
+                log.log(step, &v.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>())
+                    .and_then(|()| log.flush())
+                    .map_err(|error| TrainError::Metrics {
+                        path: out.clone(),
+                        error,
+                    })?;
+            }
             first_loss = first_loss.or(Some(v[0].1));
             last_loss = Some(v[0].1);
             Some(v)
@@ -202,8 +239,10 @@ pub fn train<B: AutodiffBackend>(
             values,
         })
         .is_break();
-        if stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps {
-            let meta = serde_json::json!({"identity": run.identity(), "config": run.config, "world_size": 1});
+        let due = stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps;
+        if due && lead {
+            let meta =
+                serde_json::json!({"identity": run.identity(), "config": run.config, "world_size": world});
             let w = weights_to_bytes(&model)?;
             let o = optimizer_to_bytes::<B, _, _>(&optim)?;
             last_ckpt = Some(ckpts.save(
@@ -214,10 +253,15 @@ pub fn train<B: AutodiffBackend>(
             )?);
         }
         if stop {
-            tracing::info!("stopped at step {step} of {}", tc.steps);
+            if lead {
+                tracing::info!("stopped at step {step} of {}", tc.steps);
+            }
             break;
         }
     }
+    // Nobody leaves before the last checkpoint is written and every rank is done.
+    group.barrier()?;
+    group.finish();
     Ok(Summary {
         step,
         first_loss,
@@ -246,16 +290,17 @@ fn load_batch<B: AutodiffBackend>(
     ))
 }
 
-/// Mean over micro-batches of every loss part, fetched from the device in one transfer, then `lr`,
-/// `grad_norm`, `tokens_per_s`. The first entry is the total loss.
+/// Mean over micro-batches and ranks of every loss part, fetched from the device in one transfer, then
+/// `lr`, `grad_norm`, `tokens_per_s`. The first entry is the total loss.
 fn averaged_parts<B: AutodiffBackend>(
     parts: &[umgen_backbone::Losses<B>],
+    group: &mut dyn ProcessGroup<B::InnerBackend>,
     lr: f64,
     grad_norm: f64,
     tps: f64,
-) -> Vec<(String, f64)> {
+) -> Result<Vec<(String, f64)>> {
     let Some(first) = parts.first() else {
-        return Vec::new();
+        return Ok(Vec::new());
     };
     let mut names = vec!["loss".to_string()];
     names.extend(first.parts.iter().map(|(k, _)| k.clone()));
@@ -263,7 +308,8 @@ fn averaged_parts<B: AutodiffBackend>(
         .iter()
         .flat_map(|l| std::iter::once(l.total.clone()).chain(l.parts.iter().map(|(_, t)| t.clone())))
         .collect();
-    let values: Vec<f64> = Tensor::cat(tensors, 0).into_data().iter::<f64>().collect();
+    let local = Tensor::cat(tensors, 0).inner();
+    let values: Vec<f64> = group.all_reduce_mean(local)?.into_data().iter::<f64>().collect();
     let k = names.len();
     let mut out: Vec<(String, f64)> = names
         .into_iter()
@@ -280,7 +326,7 @@ fn averaged_parts<B: AutodiffBackend>(
         ("grad_norm".into(), grad_norm),
         ("tokens_per_s".into(), tps),
     ]);
-    out
+    Ok(out)
 }
 
 /// Which top-level keys of two identities differ, in words.

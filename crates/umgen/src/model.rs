@@ -40,7 +40,8 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
             .position(|s| s.modality == name)
             .ok_or_else(|| config_error(key, format!("no modality `{name}` in layout.order")))
     };
-    let action = match &cfg.action {
+    // An empty name turns the part off (TOML has no null).
+    let action = match cfg.action.as_deref().filter(|s| !s.is_empty()) {
         None => None,
         Some(name) => {
             let i = index("backbone.action", name)?;
@@ -57,7 +58,7 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
             })
         }
     };
-    let align = match &cfg.align {
+    let align = match cfg.align.as_deref().filter(|s| !s.is_empty()) {
         None => None,
         Some(name) => {
             let i = index("backbone.align", name)?;

@@ -54,12 +54,7 @@ pub fn tokenize_dataset(
         if clips.is_empty() {
             continue;
         }
-        if index
-            .shards
-            .iter()
-            .any(|s| s.log == log.id && s.clips.len() == clips.len())
-            && out.join(format!("shards/{}.tok", log.id)).exists()
-        {
+        if shard_done(&index, out, &log.id, clips.len()) {
             report.skipped += 1;
             done += clips.len();
             progress(done, total);
@@ -143,4 +138,33 @@ fn tokenize_clips(
     }
     all.sort_by_key(|(k, _)| *k);
     Ok(all.into_iter().map(|(_, rows)| rows).collect())
+}
+
+/// Whether the cache in `out` (with `index`) holds the shard of `log` with all its `clips`.
+fn shard_done(index: &TokenIndex, out: &Path, log: &str, clips: usize) -> bool {
+    index
+        .shards
+        .iter()
+        .any(|s| s.log == log && s.clips.len() == clips)
+        && out.join(format!("shards/{log}.tok")).exists()
+}
+
+/// How many logs of `data` (clips of `split`, or all) the token cache in `out` still lacks; what
+/// [`tokenize_dataset`] would write. Ranks other than 0 poll this while rank 0 tokenizes.
+pub fn tokens_missing(data: &Dataset, out: &Path, split: Option<&str>) -> Result<usize> {
+    let index = TokenIndex::load(out)?;
+    let wanted = |c: &umgen_data::ClipEntry| split.is_none_or(|s| s == c.split);
+    Ok(data
+        .index()
+        .logs
+        .iter()
+        .filter(|log| {
+            let clips = data
+                .clips()
+                .iter()
+                .filter(|c| c.log == log.id && wanted(c))
+                .count();
+            clips > 0 && index.as_ref().is_none_or(|i| !shard_done(i, out, &log.id, clips))
+        })
+        .count())
 }

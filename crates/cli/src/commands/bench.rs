@@ -11,6 +11,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Data(args) => data(&args),
         BenchCommand::Train(args) => super::bench_train::run(&args),
+        BenchCommand::Allreduce(args) => super::bench_train::allreduce(&args),
     }
 }
 

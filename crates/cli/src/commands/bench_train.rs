@@ -1,7 +1,8 @@
 //! `umgen bench train`: the training step on random tokens, for speed and memory.
 
-use crate::cli::BenchTrainArgs;
+use crate::cli::{BenchAllreduceArgs, BenchTrainArgs};
 use crate::device::Device;
+use crate::dist::{DistBackend, rank_device};
 use burn::optim::{AdamWConfig, GradientsParams, Optimizer};
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Int, Tensor, TensorData};
@@ -9,6 +10,7 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec};
+use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
 use umgen::{UmgenConfig, backbone_spec, builtin_catalog};
 
 /// Random windows `[b, f, N]` with every id valid at its position.
@@ -44,13 +46,26 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let (cfg, tc) = (&config.backbone, &config.train);
-    let device = Device::parse(&a.device)?;
+    let env = DistEnv::from_env()?;
+    let device = Device::parse(&rank_device(&a.device, &env))?;
+    let world = env.world_size;
     let (b, f) = (tc.batch_size, tc.frames + 1);
-    let tokens_per_step = (b * tc.frames * spec.n) as f64;
-    let flops = spec.train_flops(cfg, b, tc.frames);
-    let (median, peak) = crate::with_autodiff!(device, |B, dev| {
+    let tokens_per_step = (b * tc.frames * spec.n * world) as f64;
+    let flops = spec.train_flops(cfg, b, tc.frames) * world as f64;
+    let bucket = (tc.bucket_mib * 1048576.0) as usize;
+    // Every rank runs the same binary, so std's hasher is stable enough to compare configs.
+    let identity = {
+        use std::hash::{Hash, Hasher};
+        let mut h = std::collections::hash_map::DefaultHasher::new();
+        config.to_json().to_string().hash(&mut h);
+        format!("{:016x}", h.finish())
+    };
+    let (median, peak, backend) = crate::with_autodiff!(device, |B, dev| {
+        let mut group =
+            <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
         B::seed(&dev, 0);
-        let mut model = Backbone::<B>::new(cfg, &spec, &dev)?;
+        let model = Backbone::<B>::new(cfg, &spec, &dev)?;
+        let mut model = broadcast_module(model, group.as_mut(), bucket)?;
         let mut optim = AdamWConfig::new()
             .with_weight_decay(tc.weight_decay as f32)
             .init();
@@ -62,6 +77,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             let losses = model.loss(batch.clone(), tc.ego_loss_weight)?;
             let loss = losses.total.clone();
             let grads = GradientsParams::from_grads(loss.backward(), &model);
+            let grads = all_reduce_grads(&model, grads, group.as_mut(), bucket)?;
             model = optim.step(tc.lr, model, grads);
             // Wait for the step's work on the device before reading the clock.
             B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
@@ -70,12 +86,24 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                 times.push(t0.elapsed().as_secs_f64());
             }
         }
+        group.barrier()?;
+        group.finish();
         times.sort_by(f64::total_cmp);
-        (times[times.len() / 2], peak)
+        (times[times.len() / 2], peak, group.backend())
     });
+    if env.rank != 0 {
+        return Ok(());
+    }
     let mut out = std::io::stdout().lock();
     writeln!(out, "config        {}", a.config.config.display())?;
     writeln!(out, "device        {}", a.device)?;
+    if world > 1 {
+        writeln!(
+            out,
+            "ranks         {world} ({backend}), gradient buckets of {:.0} MiB",
+            tc.bucket_mib
+        )?;
+    }
     writeln!(
         out,
         "parameters    {} ({:.1} M)",
@@ -84,7 +112,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     )?;
     writeln!(
         out,
-        "batch         {b} windows × {} frames × N {} = {} tokens/step",
+        "batch         {b} windows × {} frames × N {} × {world} rank(s) = {} tokens/step",
         tc.frames, spec.n, tokens_per_step
     )?;
     writeln!(
@@ -93,13 +121,18 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         1e3 * median,
         a.steps
     )?;
-    writeln!(out, "throughput    {:.0} tokens/s", tokens_per_step / median)?;
     writeln!(
         out,
-        "compute       {:.2} TFLOP/step, {:.1} TFLOP/s, MFU {:.1}% of {} TFLOP/s",
+        "throughput    {:.0} tokens/s ({:.0} per rank)",
+        tokens_per_step / median,
+        tokens_per_step / median / world as f64
+    )?;
+    writeln!(
+        out,
+        "compute       {:.2} TFLOP/step, {:.1} TFLOP/s, MFU {:.1}% of {} TFLOP/s per device",
         flops / 1e12,
         flops / median / 1e12,
-        100.0 * flops / median / (a.peak_tflops * 1e12),
+        100.0 * flops / median / (a.peak_tflops * 1e12 * world as f64),
         a.peak_tflops
     )?;
     if peak > 0 {
@@ -110,6 +143,65 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         )?;
     } else {
         writeln!(out, "peak memory   not measured on this device")?;
+    }
+    Ok(())
+}
+
+/// All-reduce (mean) bandwidth through the process group: median time per size, the algorithm bandwidth
+/// (bytes / time) and the bus bandwidth (× 2(W−1)/W, what each link carries in a ring; comparable with
+/// nccl-tests' `busbw`).
+pub fn allreduce(a: &BenchAllreduceArgs) -> anyhow::Result<()> {
+    let env = DistEnv::from_env()?;
+    let device = Device::parse(&rank_device(&a.device, &env))?;
+    let world = env.world_size as f64;
+    let rows = crate::with_autodiff!(device, |B, dev| {
+        type I = <B as AutodiffBackend>::InnerBackend;
+        let mut group = <I as DistBackend>::join(&env, "bench-allreduce", &a.dist)?;
+        let mut rows = Vec::new();
+        for &mib in &a.mib {
+            let n = ((mib * 1048576.0) / 4.0).max(1.0) as usize;
+            let t = Tensor::<I, 1>::ones([n], &dev);
+            let mut times = Vec::new();
+            for i in 0..a.iters + 2 {
+                group.barrier()?;
+                let t0 = Instant::now();
+                let r = group.all_reduce_mean(t.clone())?;
+                <I as Backend>::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
+                if i >= 2 {
+                    times.push(t0.elapsed().as_secs_f64());
+                }
+                drop(r);
+            }
+            times.sort_by(f64::total_cmp);
+            rows.push((mib, times[times.len() / 2]));
+        }
+        group.barrier()?;
+        group.finish();
+        (rows, group.backend())
+    });
+    if env.rank != 0 {
+        return Ok(());
+    }
+    let (rows, backend) = rows;
+    let mut out = std::io::stdout().lock();
+    writeln!(
+        out,
+        "all-reduce (mean) over {} ranks, {backend}, {}",
+        env.world_size, a.device
+    )?;
+    writeln!(
+        out,
+        "{:>10} {:>10} {:>12} {:>12}",
+        "MiB", "ms", "algbw GB/s", "busbw GB/s"
+    )?;
+    for (mib, s) in rows {
+        let alg = mib * 1048576.0 / s / 1e9;
+        writeln!(
+            out,
+            "{mib:>10.1} {:>10.3} {alg:>12.2} {:>12.2}",
+            1e3 * s,
+            alg * 2.0 * (world - 1.0) / world
+        )?;
     }
     Ok(())
 }

@@ -4,6 +4,7 @@ mod bench;
 mod bench_train;
 mod data;
 mod doctor;
+mod launch;
 mod layout;
 mod tokenize;
 mod tokenizer;
@@ -11,6 +12,7 @@ mod train;
 mod viz;
 
 use crate::cli::Command;
+pub use launch::guard_parent;
 
 /// Runs a subcommand.
 pub fn run(command: Command) -> anyhow::Result<()> {
@@ -23,5 +25,6 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Tokenizer(c) => tokenizer::run(c),
         Command::Tokenize(args) => tokenize::run(&args),
         Command::Train(args) => train::run(&args),
+        Command::Launch(args) => launch::run(&args),
     }
 }

@@ -2,20 +2,42 @@
 
 use crate::cli::TrainArgs;
 use crate::device::Device;
+use crate::dist::{DistBackend, rank_device};
 use anyhow::Context;
+use burn::tensor::backend::AutodiffBackend;
 use std::ops::ControlFlow;
+use std::time::Duration;
 use umgen::data::{Dataset, TokenSet};
+use umgen::dist::DistEnv;
 use umgen::train::{RunSpec, train};
-use umgen::{UmgenConfig, backbone_spec, builtin_catalog_with};
+use umgen::{UmgenConfig, backbone_spec, builtin_catalog_with, tokens_missing};
 
-/// Trains.
+/// Trains, alone or as one rank of a data-parallel job.
 pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
+    let env = DistEnv::from_env()?;
+    let lead = env.rank == 0;
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
-    let device = Device::parse(&a.device)?;
+    let device = Device::parse(&rank_device(&a.device, &env))?;
     let registry = config.registry(&builtin_catalog_with(device.codec_loader())?)?;
     let layout = registry.layout()?;
     let tc = &config.train;
-    if let Some(data_dir) = &tc.data {
+    if let (Some(data_dir), false) = (&tc.data, lead) {
+        // Rank 0 tokenizes; the others wait for the cache before they meet it (the launcher or the job
+        // scheduler stops them if rank 0 fails meanwhile).
+        let data = Dataset::open(data_dir)?;
+        let mut waited = false;
+        while tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
+            if !waited {
+                tracing::info!(
+                    "rank {}: waiting for rank 0 to tokenize {}",
+                    env.rank,
+                    data_dir.display()
+                );
+                waited = true;
+            }
+            std::thread::sleep(Duration::from_secs(1));
+        }
+    } else if let Some(data_dir) = &tc.data {
         // Tokenize what is missing; finished shards are skipped.
         let data = Dataset::open(data_dir)?;
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -43,14 +65,16 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         fingerprint: layout.fingerprint().into(),
         config: config.to_json(),
     };
-    std::fs::create_dir_all(&tc.out_dir).with_context(|| format!("creating {}", tc.out_dir.display()))?;
-    std::fs::write(
-        tc.out_dir.join("config.json"),
-        serde_json::to_vec_pretty(&run.config)?,
-    )
-    .with_context(|| format!("writing {}", tc.out_dir.join("config.json").display()))?;
+    if lead {
+        std::fs::create_dir_all(&tc.out_dir).with_context(|| format!("creating {}", tc.out_dir.display()))?;
+        std::fs::write(
+            tc.out_dir.join("config.json"),
+            serde_json::to_vec_pretty(&run.config)?,
+        )
+        .with_context(|| format!("writing {}", tc.out_dir.join("config.json").display()))?;
+    }
     tracing::info!(
-        "training {} parameters on {} ({} windows of {} frames × N = {}), {} steps of {} × {} into {}",
+        "training {} parameters on {} ({} windows of {} frames × N = {}), {} steps of {} × {} × {} rank(s) into {}",
         run.spec.param_count(&run.backbone),
         tc.tokens.display(),
         tokens.windows(tc.frames + 1, tc.gap, Some(&tc.split)).len(),
@@ -59,11 +83,27 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         tc.steps,
         tc.batch_size,
         tc.grad_accum,
+        env.world_size,
         tc.out_dir.display()
     );
-    let bar = crate::progress::bar(tc.steps, "steps")?;
+    let bar = if lead {
+        crate::progress::bar(tc.steps, "steps")?
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let identity = run.identity_digest();
     let summary = crate::with_autodiff!(device, |B, dev| {
-        train::<B>(&run, &tokens, &dev, a.resume, |r| {
+        let mut group =
+            <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
+        if env.world_size > 1 {
+            tracing::info!(
+                "{} ranks over {} (rendezvous {})",
+                env.world_size,
+                group.backend(),
+                env.master()
+            );
+        }
+        train::<B>(&run, &tokens, &dev, a.resume, group.as_mut(), |r| {
             bar.set_position(r.step);
             if let Some(v) = &r.values {
                 bar.set_message(format!("loss {:.4}", v[0].1));

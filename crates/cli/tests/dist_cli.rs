@@ -1,0 +1,260 @@
+//! `umgen launch` on the CPU: 2 and 3 ranks over TCP end with the parameters of one rank training on the
+//! same global batch; a killed or stopped rank makes the launcher fail within the timeout.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+use umgen_tests::fixtures::tiny_dataset;
+
+/// Ego and agents only (no VQ tokenizers to train), no dropout (ranks draw different masks).
+fn config(dir: &Path, data: &Path, out: &str, steps: u64, batch: usize) -> PathBuf {
+    config_with(dir, data, out, steps, batch, 1)
+}
+
+fn config_with(dir: &Path, data: &Path, out: &str, steps: u64, batch: usize, accum: usize) -> PathBuf {
+    let text = format!(
+        "[layout]\norder = [\"ego\", \"agent\"]\n[modality.agent]\nmax_agents = 4\n\
+         [backbone]\nalign = \"\"\nd_model = 32\nheads = 2\nmlp_ratio = 2\ndropout = 0.0\nego_hist_layers = 1\nego_env_layers = 1\ntar_layers = 1\noar_layers = 1\nmax_frames = 4\n\
+         [train]\nout_dir = \"{}\"\ntokens = \"{}\"\ndata = \"{}\"\nsteps = {steps}\nbatch_size = {batch}\ngrad_accum = {accum}\nframes = 2\nlr = 3e-3\nwarmup = 2\nlog_every = 1\ncheckpoint_every = 2\nbucket_mib = 0.01\n",
+        dir.join(out).display(),
+        dir.join("tokens").display(),
+        data.display()
+    );
+    let p = dir.join(format!("{out}.toml"));
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn umgen(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(args)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap()
+}
+
+fn free_port() -> String {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+        .to_string()
+}
+
+/// Every tensor of the newest checkpoint's weights.
+fn weights(run: &Path) -> BTreeMap<String, Vec<f32>> {
+    let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
+    let bytes = std::fs::read(
+        run.join("checkpoints")
+            .join(latest.trim())
+            .join("model.safetensors"),
+    )
+    .unwrap();
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    st.tensors()
+        .into_iter()
+        .map(|(name, view)| {
+            let v = view
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            (name, v)
+        })
+        .collect()
+}
+
+#[test]
+fn ranks_over_tcp_match_one_rank_on_the_same_global_batch() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 40).unwrap();
+    let one = config(dir.path(), &data, "one", 4, 6);
+    let out = umgen(&["train", "--config", one.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let reference = weights(&dir.path().join("one"));
+    let largest_difference = |got: &BTreeMap<String, Vec<f32>>| {
+        assert_eq!(
+            got.keys().collect::<Vec<_>>(),
+            reference.keys().collect::<Vec<_>>()
+        );
+        let mut worst = 0f32;
+        for (k, want) in &reference {
+            for (a, b) in got[k].iter().zip(want) {
+                worst = worst.max((a - b).abs());
+            }
+        }
+        worst
+    };
+    // The yardstick: one rank on half the batch (other data) ends far from the reference.
+    let half = config(dir.path(), &data, "half", 4, 3);
+    assert!(
+        umgen(&["train", "--config", half.to_str().unwrap()])
+            .status
+            .success()
+    );
+    let other_data = largest_difference(&weights(&dir.path().join("half")));
+    assert!(other_data > 2e-3, "{other_data}");
+    // (ranks, windows per micro-batch, micro-batches per step): always 6 windows per step.
+    for (world, batch, accum) in [(2, 3, 1), (3, 2, 1), (2, 1, 3)] {
+        let name = format!("ranks{world}-accum{accum}");
+        let cfg = config_with(dir.path(), &data, &name, 4, batch, accum);
+        let port = free_port();
+        let out = umgen(&[
+            "launch",
+            "--nproc-per-node",
+            &world.to_string(),
+            "--master-port",
+            &port,
+            "--",
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+        ]);
+        let log = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{log}");
+        assert!(log.contains(&format!("{world} ranks over tcp")), "{log}");
+        let worst = largest_difference(&weights(&dir.path().join(&name)));
+        eprintln!("{world} ranks: largest parameter difference {worst:e} (other data: {other_data:e})");
+        assert!(worst < 5e-4, "{world} ranks: largest difference {worst}");
+        let metrics = std::fs::read_to_string(dir.path().join(&name).join("metrics.jsonl")).unwrap();
+        assert_eq!(metrics.lines().count(), 4, "only rank 0 writes metrics");
+    }
+
+    // A 2-rank launch killed (SIGKILL to the launcher: its ranks follow) once a checkpoint exists and
+    // then resumed ends exactly where the uninterrupted 2-rank run ends.
+    let launch = |cfg: &Path, extra: &[&str]| {
+        let port = free_port();
+        let mut args = vec!["launch", "--nproc-per-node", "2", "--master-port", &port, "--"];
+        args.extend(["train", "--config", cfg.to_str().unwrap()]);
+        args.extend(extra);
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_umgen"));
+        cmd.args(args).env("NO_COLOR", "1");
+        cmd
+    };
+    let out = launch(&config(dir.path(), &data, "straight", 30, 3), &[])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let cfg = config(dir.path(), &data, "resumed", 30, 3);
+    let mut child = launch(&cfg, &[]).stderr(Stdio::null()).spawn().unwrap();
+    let ckpt = dir.path().join("resumed/checkpoints/step-000000004");
+    let t0 = Instant::now();
+    while !ckpt.exists() {
+        assert!(t0.elapsed() < Duration::from_secs(120), "no checkpoint appeared");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap();
+    assert!(!child.wait().unwrap().success(), "killed before the end");
+    // The ranks notice that their launcher is gone and exit.
+    std::thread::sleep(Duration::from_secs(3));
+    let out = launch(&cfg, &["--resume"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (a, b) = (
+        weights(&dir.path().join("straight")),
+        weights(&dir.path().join("resumed")),
+    );
+    assert!(
+        a == b,
+        "a resumed 2-rank run repeats the uninterrupted one exactly"
+    );
+}
+
+/// Starts a long 2-rank run and returns the launcher and the pid of rank 1.
+fn start_long_run(dir: &Path, data: &Path, name: &str) -> (std::process::Child, u32, mpsc::Receiver<String>) {
+    let cfg = config(dir, data, name, 1_000_000, 2);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args([
+            "launch",
+            "--nproc-per-node",
+            "2",
+            "--master-port",
+            &free_port(),
+            "--",
+            "train",
+        ])
+        .args(["--config", cfg.to_str().unwrap(), "--dist-timeout", "5"])
+        .env("NO_COLOR", "1")
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = mpsc::channel();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let t0 = Instant::now();
+    let mut pid = None;
+    // Wait until rank 1 has started and training is under way (a logged step).
+    loop {
+        let line = rx
+            .recv_timeout(Duration::from_secs(120))
+            .expect("launcher output");
+        if let Some(rest) = line.split("started rank 1 (pid ").nth(1) {
+            pid = rest.trim_end_matches(')').parse::<u32>().ok();
+        }
+        if line.contains("step 2/") {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(120), "no training progress");
+    }
+    (child, pid.expect("rank 1's pid"), rx)
+}
+
+fn wait_failed(child: &mut std::process::Child, within: Duration) -> Duration {
+    let t0 = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            assert!(!status.success(), "the launcher must fail");
+            return t0.elapsed();
+        }
+        assert!(
+            t0.elapsed() < within,
+            "the launcher is still running after {within:?}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_killed_or_stopped_rank_fails_the_launcher_within_the_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 40).unwrap();
+    // Tokenize once, so that both runs start training at once.
+    let warm = config(dir.path(), &data, "warm", 1, 2);
+    assert!(
+        umgen(&["train", "--config", warm.to_str().unwrap()])
+            .status
+            .success()
+    );
+
+    let (mut launcher, pid, _rx) = start_long_run(dir.path(), &data, "killed");
+    Command::new("kill")
+        .args(["-KILL", &pid.to_string()])
+        .status()
+        .unwrap();
+    wait_failed(&mut launcher, Duration::from_secs(10));
+
+    // A stopped rank is alive to the launcher; the watchdog (timeout 5 s) must notice and name it.
+    let (mut launcher, pid, rx) = start_long_run(dir.path(), &data, "stopped");
+    Command::new("kill")
+        .args(["-STOP", &pid.to_string()])
+        .status()
+        .unwrap();
+    let took = wait_failed(&mut launcher, Duration::from_secs(30));
+    let _ = Command::new("kill")
+        .args(["-KILL", &pid.to_string()])
+        .stderr(Stdio::null())
+        .status();
+    let log: Vec<String> = rx.try_iter().collect();
+    assert!(
+        log.iter().any(|l| l.contains("rank 1 sent nothing for 5 s")),
+        "after {took:?}: {log:?}"
+    );
+}

@@ -1,0 +1,219 @@
+//! NCCL collectives on the device memory of burn-cuda tensors (feature `cuda`).
+//!
+//! burn 0.21 gives no handle to its CUDA stream: each thread that calls into cubecl gets its own
+//! non-blocking stream. So this group orders work on the host, both ways: it resolves the fusion
+//! tensor (running the queued kernels that produce it), waits for cubecl's stream (`client.sync()`),
+//! runs the NCCL call on its own stream and waits for that stream before burn touches the result. The
+//! two waits cost about a millisecond per collective, which bucketing (one collective per ~25 MiB)
+//! keeps small next to a training step. Collectives are out of place into a freshly allocated tensor,
+//! so NCCL never writes into a buffer that autodiff may share between gradients.
+#![allow(unsafe_code)]
+
+use crate::error::{DistError, Result};
+use crate::group::{Group, ProcessGroup};
+use crate::session::Session;
+use burn::backend::Cuda;
+use burn::backend::cuda::CudaDevice;
+use burn::tensor::{Tensor, TensorPrimitive};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::tensor::CubeTensor;
+use cudarc::driver::{CudaContext, CudaSlice, CudaStream};
+use cudarc::nccl::{Comm, Id, ReduceOp};
+use std::sync::Arc;
+
+type Inner = CubeBackend<burn::cubecl::cuda::CudaRuntime, f32, i32, u8>;
+
+/// A fresh NCCL unique id (rank 0 makes it; the rendezvous hands it to the others).
+pub fn nccl_id(rank: usize) -> Result<Vec<u8>> {
+    let id = Id::new().map_err(|e| DistError::Nccl {
+        rank,
+        reason: format!("creating the unique id: {e:?} (is libnccl.so on LD_LIBRARY_PATH?)"),
+    })?;
+    Ok(id.internal().iter().map(|c| *c as u8).collect())
+}
+
+/// Collectives through NCCL on one GPU per rank.
+pub struct NcclGroup {
+    session: Session,
+    comm: Comm,
+    stream: Arc<CudaStream>,
+    device: CudaDevice,
+    /// One float for barriers.
+    token: CudaSlice<f32>,
+}
+
+impl std::fmt::Debug for NcclGroup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("NcclGroup")
+            .field("rank", &self.session.rank())
+            .field("world_size", &self.session.world_size())
+            .field("device", &self.device)
+            .finish()
+    }
+}
+
+/// The device pointer and element count of a resolved, contiguous f32 tensor.
+fn raw(t: Tensor<Cuda, 1>, rank: usize) -> Result<(CubeTensor<burn::cubecl::cuda::CudaRuntime>, u64, usize)> {
+    let n = t.dims()[0];
+    let fusion = match t.into_primitive() {
+        TensorPrimitive::Float(f) => f,
+        TensorPrimitive::QFloat(_) => {
+            return Err(DistError::Nccl {
+                rank,
+                reason: "quantized tensors cannot be reduced".into(),
+            });
+        }
+    };
+    let mut c: CubeTensor<_> = fusion.client.clone().resolve_tensor_float::<Inner>(fusion);
+    if !c.is_contiguous() {
+        c = burn_cubecl::kernel::into_contiguous(c);
+    }
+    let err = |e: String| DistError::Nccl { rank, reason: e };
+    let res = c
+        .client
+        .get_resource(c.handle.clone())
+        .map_err(|e| err(format!("device buffer: {e:?}")))?;
+    let (ptr, bytes) = (res.resource().ptr, res.resource().size);
+    if bytes < 4 * n as u64 {
+        return Err(err(format!("buffer of {bytes} bytes for {n} floats")));
+    }
+    burn::cubecl::future::block_on(c.client.sync()).map_err(|e| err(format!("sync: {e:?}")))?;
+    Ok((c, ptr, n))
+}
+
+impl NcclGroup {
+    /// Builds the communicator on `device` (the GPU of `LOCAL_RANK`) from the session's NCCL id.
+    pub fn new(session: Session, device: &CudaDevice) -> Result<Self> {
+        let rank = session.rank();
+        let err = |what: &str, e: String| DistError::Nccl {
+            rank,
+            reason: format!("{what}: {e}"),
+        };
+        let bytes: [u8; 128] = session
+            .payload
+            .as_slice()
+            .try_into()
+            .map_err(|_| err("unique id", format!("{} bytes, not 128", session.payload.len())))?;
+        let id = Id::uninit(bytes.map(|b| b as std::ffi::c_char));
+        // The primary context, which cubecl uses too.
+        let ctx = CudaContext::new(device.index).map_err(|e| err("CUDA context", format!("{e:?}")))?;
+        let stream = ctx.new_stream().map_err(|e| err("stream", format!("{e:?}")))?;
+        let comm = Comm::from_rank(stream.clone(), rank, session.world_size(), id)
+            .map_err(|e| err("communicator", format!("{e:?}")))?;
+        let token = stream
+            .alloc_zeros::<f32>(1)
+            .map_err(|e| err("alloc", format!("{e:?}")))?;
+        Ok(Self {
+            session,
+            comm,
+            stream,
+            device: device.clone(),
+            token,
+        })
+    }
+
+    fn counted<T>(&mut self, op: &'static str, f: impl FnOnce(&mut Self) -> Result<T>) -> Result<T> {
+        let dog = self.session.watchdog.clone();
+        if let Some(d) = &dog {
+            d.enter();
+        }
+        let out = f(self);
+        if let Some(d) = &dog {
+            d.leave();
+        }
+        out.map_err(|e| match dog.and_then(|d| d.failure()) {
+            Some(reason) => DistError::Collective {
+                rank: self.session.rank(),
+                op,
+                reason,
+            },
+            None => e,
+        })
+    }
+
+    /// Runs `call(comm, input, output)` out of place into a fresh tensor and waits for it.
+    fn out_of_place(
+        &mut self,
+        t: Tensor<Cuda, 1>,
+        call: impl FnOnce(&Comm, &CudaSlice<f32>, &mut CudaSlice<f32>) -> std::result::Result<(), String>,
+    ) -> Result<Tensor<Cuda, 1>> {
+        let rank = self.session.rank();
+        let n = t.dims()[0];
+        let out = Tensor::<Cuda, 1>::empty([n], &self.device);
+        let (_keep_in, in_ptr, _) = raw(t, rank)?;
+        let (keep_out, out_ptr, _) = raw(out.clone(), rank)?;
+        // SAFETY: both pointers are live burn buffers of at least `n` floats (checked in `raw`), kept
+        // alive by `_keep_in`/`keep_out` until the stream is synchronised below; the slices are leaked,
+        // never freed by cudarc.
+        let (input, mut output) = unsafe {
+            (
+                self.stream.upgrade_device_ptr::<f32>(in_ptr, n),
+                self.stream.upgrade_device_ptr::<f32>(out_ptr, n),
+            )
+        };
+        let result = call(&self.comm, &input, &mut output);
+        let synced = self.stream.synchronize();
+        input.leak();
+        output.leak();
+        drop(keep_out);
+        result.map_err(|reason| DistError::Nccl { rank, reason })?;
+        synced.map_err(|e| DistError::Nccl {
+            rank,
+            reason: format!("stream: {e:?}"),
+        })?;
+        Ok(out)
+    }
+}
+
+impl Group for NcclGroup {
+    fn rank(&self) -> usize {
+        self.session.rank()
+    }
+    fn world_size(&self) -> usize {
+        self.session.world_size()
+    }
+    fn barrier(&mut self) -> Result<()> {
+        self.counted("barrier", |g| {
+            let rank = g.session.rank();
+            g.comm
+                .all_reduce_in_place(&mut g.token, &ReduceOp::Sum)
+                .map_err(|e| DistError::Nccl {
+                    rank,
+                    reason: format!("{e:?}"),
+                })?;
+            g.stream.synchronize().map_err(|e| DistError::Nccl {
+                rank,
+                reason: format!("{e:?}"),
+            })
+        })
+    }
+    fn finish(&mut self) {
+        if let Some(d) = &self.session.watchdog {
+            d.finish();
+        }
+    }
+    fn backend(&self) -> &'static str {
+        "nccl"
+    }
+}
+
+impl ProcessGroup<Cuda> for NcclGroup {
+    fn all_reduce_mean(&mut self, t: Tensor<Cuda, 1>) -> Result<Tensor<Cuda, 1>> {
+        self.counted("all-reduce", |g| {
+            g.out_of_place(t, |comm, i, o| {
+                comm.all_reduce(i, o, &ReduceOp::Avg)
+                    .map(|_| ())
+                    .map_err(|e| format!("all-reduce: {e:?}"))
+            })
+        })
+    }
+    fn broadcast(&mut self, t: Tensor<Cuda, 1>) -> Result<Tensor<Cuda, 1>> {
+        self.counted("broadcast", |g| {
+            g.out_of_place(t, |comm, i, o| {
+                comm.broadcast(Some(i), o, 0)
+                    .map(|_| ())
+                    .map_err(|e| format!("broadcast: {e:?}"))
+            })
+        })
+    }
+}
