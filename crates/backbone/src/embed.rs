@@ -72,6 +72,26 @@ impl<B: Backend> FrameEmbedding<B> {
         }
     }
 
+    /// Embeddings `[m, d]` of tokens `ids` `[m]` all at frame position `p` (for decoding one token at a
+    /// time; equal to row `p` of [`forward`](Self::forward)).
+    pub fn forward_at(&self, p: usize, ids: Tensor<B, 1, Int>) -> Tensor<B, 2> {
+        let m = ids.dims()[0];
+        let s = self
+            .blocks
+            .iter()
+            .position(|[start, len]| p >= *start && p < start + len)
+            .unwrap_or(0);
+        let t = &self.tables[s];
+        let x = t.table.forward(ids.reshape([m, 1]));
+        let x = match &t.proj {
+            Some(proj) => proj.forward(x),
+            None => x,
+        };
+        let e = x.dims()[2];
+        let x = x.reshape([m, e]) + self.pos.val().narrow(0, p, 1);
+        self.drop.forward(self.fc2.forward(gelu(self.fc1.forward(x))))
+    }
+
     /// Embeddings `[b, f, N, d]` of frames of tokens `[b, f, N]`.
     pub fn forward(&self, tokens: Tensor<B, 3, Int>) -> Tensor<B, 4> {
         let [b, f, n] = tokens.dims();

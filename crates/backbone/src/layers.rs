@@ -93,6 +93,27 @@ impl<B: Backend> MultiHead<B> {
     pub fn heads(&self) -> usize {
         self.heads
     }
+
+    /// Self-attention of the newest position `x` `[m, 1, d]` over itself and the cached earlier positions
+    /// (causal by construction); appends its key and value to `cache` (`[m, heads, len, dh]` each).
+    pub(crate) fn forward_step(
+        &self,
+        x: Tensor<B, 3>,
+        cache: &mut Option<(Tensor<B, 4>, Tensor<B, 4>)>,
+    ) -> Tensor<B, 3> {
+        let q = split_heads(self.q.forward(x.clone()), self.heads);
+        let kv = self.kv.forward(x);
+        let d = kv.dims()[2] / 2;
+        let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
+        let v = split_heads(kv.narrow(2, d, d), self.heads);
+        let (k, v) = match cache.take() {
+            Some((k0, v0)) => (Tensor::cat(vec![k0, k], 2), Tensor::cat(vec![v0, v], 2)),
+            None => (k, v),
+        };
+        *cache = Some((k.clone(), v.clone()));
+        let y = attention(q, k, v, None, None, AttentionModuleOptions::default());
+        self.drop.forward(self.proj.forward(merge_heads(y)))
+    }
 }
 
 /// A pre-norm self-attention layer: `x + attn(ln(x))`, then `x + mlp(ln(x))`.
@@ -119,6 +140,17 @@ impl<B: Backend> SelfBlock<B> {
     pub fn forward(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
         let n = self.ln1.forward(x.clone());
         let x = x + self.attn.forward(n.clone(), n, None, causal);
+        x.clone() + self.mlp.forward(self.ln2.forward(x))
+    }
+
+    /// The causal layer on one new position `[m, 1, d]`, with the keys and values of the earlier ones in
+    /// `cache`.
+    pub(crate) fn forward_step(
+        &self,
+        x: Tensor<B, 3>,
+        cache: &mut Option<(Tensor<B, 4>, Tensor<B, 4>)>,
+    ) -> Tensor<B, 3> {
+        let x = x.clone() + self.attn.forward_step(self.ln1.forward(x), cache);
         x.clone() + self.mlp.forward(self.ln2.forward(x))
     }
 }

@@ -15,9 +15,12 @@
 //!    `h_p`);
 //! 6. scores both with heads whose logits cover only each modality's own vocabulary; the loss is
 //!    CE(OAR) + CE(TAR) + CE(ego), reported per modality.
+//!
+//! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
 mod ama;
 mod config;
+mod decode;
 mod ego;
 mod embed;
 mod error;
@@ -28,6 +31,7 @@ mod spec;
 
 pub use ama::align;
 pub use config::BackboneConfig;
+pub use decode::{OarCache, Slot};
 pub use ego::{EgoModule, EgoSizes};
 pub use embed::FrameEmbedding;
 pub use error::{BackboneError, Result};

@@ -187,6 +187,34 @@ impl<B: Backend> Backbone<B> {
         Tensor::cat(vec![bos, e.narrow(1, 0, n - 1)], 1) + h
     }
 
+    /// Model width d.
+    pub fn embed_width(&self) -> usize {
+        self.time.val().dims()[1]
+    }
+
+    /// OAR layers.
+    pub(crate) fn oar_layers(&self) -> usize {
+        self.oar.len()
+    }
+
+    /// The learned vector of OAR position 0 `[d]`.
+    pub(crate) fn oar_start(&self) -> Tensor<B, 1> {
+        self.oar_bos.val()
+    }
+
+    /// The OAR blocks and final norm on one new position `[m, 1, d]` over cached earlier positions.
+    pub(crate) fn oar_blocks_step(
+        &self,
+        x: Tensor<B, 3>,
+        caches: &mut [Option<(Tensor<B, 4>, Tensor<B, 4>)>],
+    ) -> Tensor<B, 3> {
+        let mut x = x;
+        for (blk, cache) in self.oar.iter().zip(caches.iter_mut()) {
+            x = blk.forward_step(x, cache);
+        }
+        self.ln_oar.forward(x)
+    }
+
     /// OAR output `[m, L, d]` of inputs `[m, L, d]` (causal).
     pub fn oar(&self, w: Tensor<B, 3>) -> Tensor<B, 3> {
         let mut x = w;

@@ -3,6 +3,7 @@
 
 mod ama;
 mod causality;
+mod decode;
 mod heads;
 
 use burn::tensor::backend::Backend;

@@ -1,0 +1,92 @@
+//! Incremental decoding for generation: the OAR one position at a time over a key/value cache, so that a
+//! frame of N tokens costs N small steps instead of N forward passes over growing prefixes.
+
+use crate::model::Backbone;
+use burn::tensor::backend::Backend;
+use burn::tensor::{Int, Tensor};
+
+/// Keys and values of the positions decoded so far, per OAR layer.
+#[derive(Debug, Clone)]
+pub struct OarCache<B: Backend> {
+    pub(crate) layers: Vec<Option<(Tensor<B, 4>, Tensor<B, 4>)>>,
+}
+
+impl<B: Backend> OarCache<B> {
+    /// Positions cached.
+    pub fn len(&self) -> usize {
+        self.layers
+            .first()
+            .and_then(|l| l.as_ref())
+            .map_or(0, |(k, _)| k.dims()[2])
+    }
+
+    /// Whether nothing is cached yet.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// What position `p` of a frame holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Slot {
+    /// The start token of segment `.0` (its id is the segment's `vocab`).
+    Start(usize),
+    /// Content token `.1` of segment `.0`.
+    Content(usize, usize),
+    /// The end token of segment `.0` (id `vocab + 1`).
+    End(usize),
+}
+
+impl<B: Backend> Backbone<B> {
+    /// An empty cache for one frame.
+    pub fn oar_cache(&self) -> OarCache<B> {
+        OarCache {
+            layers: vec![None; self.oar_layers()],
+        }
+    }
+
+    /// The OAR input at position `p` of a frame: the learned start vector (p = 0) or the embedding of the
+    /// previous token `prev` `[m]` (p > 0), plus the TAR prior `h_p` `[m, d]`.
+    pub fn oar_input_at(&self, p: usize, prev: Option<Tensor<B, 1, Int>>, h_p: Tensor<B, 2>) -> Tensor<B, 2> {
+        match (p, prev) {
+            (0, _) | (_, None) => {
+                let [m, d] = h_p.dims();
+                self.oar_start().reshape([1, d]).expand([m, d]) + h_p
+            }
+            (p, Some(ids)) => self.embed.forward_at(p - 1, ids) + h_p,
+        }
+    }
+
+    /// The OAR output `[m, d]` of the next position, given its input `w` `[m, d]`; updates `cache`.
+    pub fn oar_step(&self, w: Tensor<B, 2>, cache: &mut OarCache<B>) -> Tensor<B, 2> {
+        let [m, d] = w.dims();
+        let x = self.oar_blocks_step(w.reshape([m, 1, d]), &mut cache.layers);
+        x.reshape([m, d])
+    }
+
+    /// Logits `[m, vocab]` of content slot of segment `s` from OAR (or TAR) features `[m, d]`.
+    pub fn logits_at(&self, s: usize, x: Tensor<B, 2>, tar: bool) -> Tensor<B, 2> {
+        if tar {
+            self.tar_heads.logits_at(s, x)
+        } else {
+            self.oar_heads.logits_at(s, x)
+        }
+    }
+
+    /// What each position of a frame holds.
+    pub fn slots(&self) -> Vec<Slot> {
+        let mut out = Vec::with_capacity(self.spec().n);
+        for (i, s) in self.spec().segments.iter().enumerate() {
+            for p in s.block_start..s.block_start + s.block_len {
+                out.push(if p < s.offset {
+                    Slot::Start(i)
+                } else if p >= s.offset + s.tokens {
+                    Slot::End(i)
+                } else {
+                    Slot::Content(i, p - s.offset)
+                });
+            }
+        }
+        out
+    }
+}

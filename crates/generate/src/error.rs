@@ -1,0 +1,15 @@
+//! Errors of generation.
+
+/// What can stop a rollout.
+#[derive(Debug, thiserror::Error)]
+pub enum GenerateError {
+    /// Sampling or control settings that cannot be used.
+    #[error("{0}")]
+    Settings(String),
+    /// History frames that do not fit the model.
+    #[error("history: {0}")]
+    History(String),
+}
+
+/// Result with [`GenerateError`].
+pub type Result<T, E = GenerateError> = std::result::Result<T, E>;

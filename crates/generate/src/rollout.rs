@@ -1,0 +1,229 @@
+//! One new frame at a time: the ego action (predicted or forced), TAR over the last ≤ `window` frames,
+//! then the OAR position by position over a key/value cache, each content token drawn with its
+//! modality's sampling settings. Start and end tokens are placed, not drawn; a known ego action is
+//! placed at its positions (the OAR still reads it, as in training).
+
+use crate::error::{GenerateError, Result};
+use crate::sampling::Sampling;
+use burn::module::Module;
+use burn::tensor::backend::Backend;
+use burn::tensor::{Int, Tensor, TensorData};
+use rand::{SeedableRng, rngs::StdRng};
+use umgen_backbone::{Backbone, Slot};
+
+/// What the caller imposes on one new frame.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameControl {
+    /// Action tokens (dx, dy, dθ ids) per scene of the batch, replacing the ego module's prediction.
+    pub action: Option<Vec<Vec<u32>>>,
+}
+
+/// Generates frames with a backbone.
+#[derive(Debug)]
+pub struct Generator<'a, B: Backend> {
+    model: &'a Backbone<B>,
+    sampling: Vec<Sampling>,
+    window: usize,
+    rng: StdRng,
+    slots: Vec<Slot>,
+}
+
+impl<'a, B: Backend> Generator<'a, B> {
+    /// A generator drawing segment `s`'s tokens with `sampling[s]`, conditioning on at most `window`
+    /// frames, seeded with `seed` (same seed, same model, same history: same frames).
+    pub fn new(model: &'a Backbone<B>, sampling: Vec<Sampling>, window: usize, seed: u64) -> Result<Self> {
+        let segs = &model.spec().segments;
+        if sampling.len() != segs.len() {
+            return Err(GenerateError::Settings(format!(
+                "{} sampling settings for {} modalities",
+                sampling.len(),
+                segs.len()
+            )));
+        }
+        for (s, seg) in sampling.iter().zip(segs) {
+            s.validate(&format!("sampling.{}", seg.label))?;
+        }
+        if window == 0 {
+            return Err(GenerateError::Settings(
+                "window = 0: need at least one frame".into(),
+            ));
+        }
+        Ok(Self {
+            model,
+            sampling,
+            window,
+            rng: StdRng::seed_from_u64(seed),
+            slots: model.slots(),
+        })
+    }
+
+    /// The next frame `[m][N]` of each of `m` scenes, from their histories `[m][t][N]` (all of one length
+    /// `t`; `t = 0` makes an initial scene without TAR, as in the paper).
+    pub fn next_frame(&mut self, history: &[Vec<Vec<u32>>], control: &FrameControl) -> Result<Vec<Vec<u32>>> {
+        let m = history.len();
+        let spec = self.model.spec();
+        let n = spec.n;
+        let t = history.first().map_or(0, Vec::len);
+        if m == 0
+            || history
+                .iter()
+                .any(|h| h.len() != t || h.iter().any(|f| f.len() != n))
+        {
+            return Err(GenerateError::History(format!(
+                "{m} scenes: each needs the same number of frames of {n} tokens"
+            )));
+        }
+        let dev = self.model.devices().into_iter().next().unwrap_or_default();
+        let q = spec
+            .action
+            .as_ref()
+            .map_or(0, |a| spec.segments[a.segment].tokens);
+        let action = match (&control.action, t) {
+            (Some(a), _) => {
+                if a.len() != m || a.iter().any(|x| x.len() != q) {
+                    return Err(GenerateError::Settings(format!(
+                        "a forced action needs {q} tokens for each of the {m} scenes"
+                    )));
+                }
+                Some(a.clone())
+            }
+            (None, 0) => None,
+            (None, _) => self.predict_action(history, &dev)?,
+        };
+        let h = self.prior(history, action.as_ref(), &dev);
+        Ok(self.decode(h, action.as_ref(), m, &dev))
+    }
+
+    /// The last `window` frames as a tensor `[m, w, N]`.
+    fn window_tensor(&self, history: &[Vec<Vec<u32>>], dev: &B::Device) -> Tensor<B, 3, Int> {
+        let t = history[0].len();
+        let w = t.min(self.window);
+        let n = self.model.spec().n;
+        let ids: Vec<i64> = history
+            .iter()
+            .flat_map(|h| h[t - w..].iter().flatten().map(|&x| i64::from(x)))
+            .collect();
+        Tensor::from_data(TensorData::new(ids, [history.len(), w, n]), dev)
+    }
+
+    fn predict_action(
+        &mut self,
+        history: &[Vec<Vec<u32>>],
+        dev: &B::Device,
+    ) -> Result<Option<Vec<Vec<u32>>>> {
+        let spec = self.model.spec();
+        let Some(a) = &spec.action else {
+            return Ok(None);
+        };
+        let e = self.model.embed.forward(self.window_tensor(history, dev));
+        let Some(logits) = self.model.ego_logits(e, true) else {
+            return Ok(None);
+        };
+        let [m, _, q, v] = logits.dims();
+        let rows = host_rows(logits.reshape([m * q, v]));
+        let s = self.sampling[a.segment];
+        Ok(Some(
+            rows.chunks(q)
+                .map(|r| r.iter().map(|l| s.draw(l, &mut self.rng)).collect())
+                .collect(),
+        ))
+    }
+
+    /// The TAR prior of the new frame `[m, N, d]` (zeros without history).
+    fn prior(
+        &self,
+        history: &[Vec<Vec<u32>>],
+        action: Option<&Vec<Vec<u32>>>,
+        dev: &B::Device,
+    ) -> Tensor<B, 3> {
+        let m = history.len();
+        let spec = self.model.spec();
+        let n = spec.n;
+        let d = self.model.embed_width();
+        if history[0].is_empty() {
+            return Tensor::zeros([m, n, d], dev);
+        }
+        let tokens = self.window_tensor(history, dev);
+        let w = tokens.dims()[1];
+        // The new frame as far as it is known: its boundary tokens and action.
+        let mut known = vec![0i64; m * n];
+        for (b, row) in known.chunks_mut(n).enumerate() {
+            for (p, slot) in self.slots.iter().enumerate() {
+                row[p] = match *slot {
+                    Slot::Start(s) => spec.segments[s].vocab as i64,
+                    Slot::End(s) => spec.segments[s].vocab as i64 + 1,
+                    Slot::Content(s, i) => match (&spec.action, action) {
+                        (Some(a), Some(act)) if a.segment == s && i < act[b].len() => i64::from(act[b][i]),
+                        _ => 0,
+                    },
+                };
+            }
+        }
+        let new = Tensor::<B, 3, Int>::from_data(TensorData::new(known, [m, 1, n]), dev);
+        let all = Tensor::cat(vec![tokens.clone(), new], 1);
+        let e_all = self.model.embed.forward(all.clone());
+        let (e, e_next) = (e_all.clone().narrow(1, 0, w), e_all.narrow(1, 1, w));
+        let next_action = spec.action.as_ref().filter(|_| action.is_some()).map(|a| {
+            let s = &spec.segments[a.segment];
+            all.narrow(1, 1, w).narrow(2, s.offset, s.tokens)
+        });
+        let h = self.model.tar(e, e_next, next_action);
+        h.narrow(1, w - 1, 1).reshape([m, n, d])
+    }
+
+    /// The OAR pass over the new frame.
+    fn decode(
+        &mut self,
+        h: Tensor<B, 3>,
+        action: Option<&Vec<Vec<u32>>>,
+        m: usize,
+        dev: &B::Device,
+    ) -> Vec<Vec<u32>> {
+        let spec = self.model.spec();
+        let n = spec.n;
+        let d = h.dims()[2];
+        let mut out = vec![vec![0u32; n]; m];
+        let mut cache = self.model.oar_cache();
+        for p in 0..n {
+            let prev = (p > 0).then(|| {
+                let ids: Vec<i64> = out.iter().map(|r| i64::from(r[p - 1])).collect();
+                Tensor::<B, 1, Int>::from_data(TensorData::new(ids, [m]), dev)
+            });
+            let w = self
+                .model
+                .oar_input_at(p, prev, h.clone().narrow(1, p, 1).reshape([m, d]));
+            let o = self.model.oar_step(w, &mut cache);
+            match self.slots[p] {
+                Slot::Start(s) => out.iter_mut().for_each(|r| r[p] = spec.segments[s].vocab as u32),
+                Slot::End(s) => out
+                    .iter_mut()
+                    .for_each(|r| r[p] = spec.segments[s].vocab as u32 + 1),
+                Slot::Content(s, i) => {
+                    let forced = match (&spec.action, action) {
+                        (Some(a), Some(act)) if a.segment == s && i < act[0].len() => Some(act),
+                        _ => None,
+                    };
+                    if let Some(act) = forced {
+                        for (r, a) in out.iter_mut().zip(act) {
+                            r[p] = a[i];
+                        }
+                    } else {
+                        let rows = host_rows(self.model.logits_at(s, o, false));
+                        let smp = self.sampling[s];
+                        for (r, l) in out.iter_mut().zip(&rows) {
+                            r[p] = smp.draw(l, &mut self.rng);
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+}
+
+/// Rows of a `[r, v]` tensor on the host.
+fn host_rows<B: Backend>(t: Tensor<B, 2>) -> Vec<Vec<f32>> {
+    let [_, v] = t.dims();
+    let flat: Vec<f32> = t.into_data().iter::<f32>().collect();
+    flat.chunks(v.max(1)).map(<[f32]>::to_vec).collect()
+}

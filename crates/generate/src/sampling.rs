@@ -1,0 +1,168 @@
+//! Drawing a token from logits: temperature, top-k and top-p (nucleus), seeded.
+
+use crate::error::{GenerateError, Result};
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+/// How one modality's tokens are drawn. Defaults are the paper's: top-k 16, temperature 1.0, no nucleus.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Sampling {
+    /// Keep the k most likely ids (0 = all).
+    pub top_k: usize,
+    /// Keep the smallest set of most likely ids whose probability reaches p (1.0 = all).
+    pub top_p: f64,
+    /// Divide the logits by this before the softmax (> 0; smaller is greedier).
+    pub temperature: f64,
+}
+
+impl Default for Sampling {
+    fn default() -> Self {
+        Self {
+            top_k: 16,
+            top_p: 1.0,
+            temperature: 1.0,
+        }
+    }
+}
+
+impl Sampling {
+    /// Always the most likely id.
+    pub fn greedy() -> Self {
+        Self {
+            top_k: 1,
+            top_p: 1.0,
+            temperature: 1.0,
+        }
+    }
+
+    /// Refuses settings that cannot sample; `what` names them in the error (e.g. `sampling.map`).
+    pub fn validate(&self, what: &str) -> Result<()> {
+        if !(self.temperature > 0.0 && self.temperature.is_finite()) {
+            return Err(GenerateError::Settings(format!(
+                "{what}.temperature = {}: must be a positive number",
+                self.temperature
+            )));
+        }
+        if !(self.top_p > 0.0 && self.top_p <= 1.0) {
+            return Err(GenerateError::Settings(format!(
+                "{what}.top_p = {}: must be in (0, 1]",
+                self.top_p
+            )));
+        }
+        Ok(())
+    }
+
+    /// Draws an id from `logits` (one row).
+    pub fn draw(&self, logits: &[f32], rng: &mut impl Rng) -> u32 {
+        let mut order: Vec<usize> = (0..logits.len()).collect();
+        // Most likely first; NaN logits sort last and never win.
+        order.sort_by(|&a, &b| logits[b].total_cmp(&logits[a]).then(a.cmp(&b)));
+        order.retain(|&i| logits[i].is_finite());
+        if order.is_empty() {
+            return 0;
+        }
+        if self.top_k > 0 {
+            order.truncate(self.top_k);
+        }
+        let top = f64::from(logits[order[0]]);
+        let mut probs: Vec<f64> = order
+            .iter()
+            .map(|&i| ((f64::from(logits[i]) - top) / self.temperature).exp())
+            .collect();
+        let total: f64 = probs.iter().sum();
+        probs.iter_mut().for_each(|p| *p /= total);
+        if self.top_p < 1.0 {
+            let mut mass = 0.0;
+            let keep = probs
+                .iter()
+                .position(|p| {
+                    mass += p;
+                    mass >= self.top_p
+                })
+                .map_or(probs.len(), |i| i + 1);
+            probs.truncate(keep);
+            order.truncate(keep);
+            let total: f64 = probs.iter().sum();
+            probs.iter_mut().for_each(|p| *p /= total);
+        }
+        let mut u: f64 = rng.random();
+        for (p, &i) in probs.iter().zip(&order) {
+            if u < *p {
+                return i as u32;
+            }
+            u -= p;
+        }
+        order[order.len() - 1] as u32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use rand::{SeedableRng, rngs::StdRng};
+
+    fn counts(s: Sampling, logits: &[f32], draws: usize) -> Vec<usize> {
+        let mut rng = StdRng::seed_from_u64(1);
+        let mut c = vec![0; logits.len()];
+        for _ in 0..draws {
+            c[s.draw(logits, &mut rng) as usize] += 1;
+        }
+        c
+    }
+
+    #[test]
+    fn frequencies_follow_the_softmax_and_the_filters() {
+        let logits = [0.0f32, (2.0f32).ln(), (3.0f32).ln(), f32::NAN, (4.0f32).ln()];
+        let all = Sampling {
+            top_k: 0,
+            top_p: 1.0,
+            temperature: 1.0,
+        };
+        let c = counts(all, &logits, 100_000);
+        // Probabilities 1:2:3:4 over the finite logits.
+        for (i, want) in [(0, 0.1), (1, 0.2), (2, 0.3), (4, 0.4)] {
+            let got = c[i] as f64 / 100_000.0;
+            assert!((got - want).abs() < 0.01, "id {i}: {got} vs {want}");
+        }
+        assert_eq!(c[3], 0, "NaN never drawn");
+        // top-k 2 keeps ids 4 and 2 (4:3).
+        let c = counts(Sampling { top_k: 2, ..all }, &logits, 50_000);
+        assert_eq!(c[0] + c[1], 0);
+        assert!((c[4] as f64 / 50_000.0 - 4.0 / 7.0).abs() < 0.01);
+        // top-p 0.5: 0.4 alone is not enough, 0.4 + 0.3 is: ids 4 and 2.
+        let c = counts(Sampling { top_p: 0.5, ..all }, &logits, 20_000);
+        assert_eq!(c[0] + c[1], 0);
+        assert!(c[2] > 0 && c[4] > 0);
+        // A low temperature is nearly greedy; greedy is exactly.
+        let c = counts(
+            Sampling {
+                temperature: 0.05,
+                ..all
+            },
+            &logits,
+            2_000,
+        );
+        assert!(c[4] > 1_990);
+        assert_eq!(counts(Sampling::greedy(), &logits, 100)[4], 100);
+    }
+
+    #[test]
+    fn bad_settings_are_named() {
+        let e = Sampling {
+            temperature: 0.0,
+            ..Default::default()
+        }
+        .validate("sampling.map")
+        .unwrap_err();
+        assert!(e.to_string().contains("sampling.map.temperature = 0"), "{e}");
+        let e = Sampling {
+            top_p: 1.5,
+            ..Default::default()
+        }
+        .validate("sampling.agent")
+        .unwrap_err();
+        assert!(e.to_string().contains("sampling.agent.top_p = 1.5"), "{e}");
+    }
+}

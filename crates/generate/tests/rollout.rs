@@ -1,0 +1,176 @@
+//! The rollout against the training forward pass: greedy frames are the argmax of the teacher-forced
+//! logits at every position; tokens stay in their vocabularies; seeds, forced actions and initial scenes.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use burn::tensor::backend::Backend;
+use burn::tensor::{Int, Tensor, TensorData};
+use umgen_backbone::{ActionSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec, Slot};
+use umgen_generate::{FrameControl, Generator, Sampling};
+
+type F = burn::backend::Flex;
+
+fn seg(label: &str, start: usize, tokens: usize, vocab: usize) -> SegmentSpec {
+    SegmentSpec {
+        label: label.into(),
+        block_start: start,
+        block_len: tokens + 2,
+        offset: start + 1,
+        tokens,
+        vocab,
+        embed_vocab: vocab + 2,
+        codebook: None,
+    }
+}
+
+fn model() -> Backbone<F> {
+    let spec = BackboneSpec {
+        n: 5 + 8 + 6,
+        segments: vec![seg("ego", 0, 3, 16), seg("map", 5, 6, 12), seg("agent", 13, 4, 9)],
+        action: Some(ActionSpec {
+            segment: 0,
+            bins: [(0.0, 8.0, 16), (-1.0, 1.0, 16), (-0.5, 0.5, 16)],
+        }),
+        align: None,
+    };
+    let cfg = BackboneConfig {
+        d_model: 32,
+        heads: 4,
+        embed_dim: 24,
+        mlp_ratio: 2,
+        dropout: 0.0,
+        ego_hist_layers: 1,
+        ego_env_layers: 1,
+        tar_layers: 2,
+        oar_layers: 2,
+        max_frames: 8,
+        action: None,
+        align: None,
+    };
+    F::seed(&Default::default(), 9);
+    Backbone::new(&cfg, &spec, &Default::default()).unwrap()
+}
+
+/// Valid frames: boundary ids around content ids drawn from a fixed pattern.
+fn frame(m: &Backbone<F>, k: u32) -> Vec<u32> {
+    m.slots()
+        .iter()
+        .enumerate()
+        .map(|(p, s)| match *s {
+            Slot::Start(i) => m.spec().segments[i].vocab as u32,
+            Slot::End(i) => m.spec().segments[i].vocab as u32 + 1,
+            Slot::Content(i, _) => (p as u32 * 7 + k * 3) % m.spec().segments[i].vocab as u32,
+        })
+        .collect()
+}
+
+fn ids(frames: &[Vec<u32>], n: usize) -> Tensor<F, 3, Int> {
+    let v: Vec<i64> = frames.iter().flatten().map(|&x| i64::from(x)).collect();
+    Tensor::from_data(TensorData::new(v, [1, frames.len(), n]), &Default::default())
+}
+
+fn argmax(t: Tensor<F, 2>) -> Vec<u32> {
+    let [r, v] = t.dims();
+    let flat: Vec<f32> = t.into_data().iter::<f32>().collect();
+    (0..r)
+        .map(|i| {
+            let row = &flat[i * v..(i + 1) * v];
+            (0..v)
+                .max_by(|&a, &b| row[a].total_cmp(&row[b]).then(b.cmp(&a)))
+                .unwrap() as u32
+        })
+        .collect()
+}
+
+#[test]
+fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
+    let m = model();
+    let n = m.spec().n;
+    let history = vec![frame(&m, 1), frame(&m, 2)];
+    let mut g = Generator::new(&m, vec![Sampling::greedy(); 3], 20, 0).unwrap();
+    let z = g
+        .next_frame(std::slice::from_ref(&history), &FrameControl::default())
+        .unwrap()
+        .remove(0);
+
+    // The ego module's argmax is the action.
+    let e = m.embed.forward(ids(&history, n));
+    let ego = m.ego_logits(e.clone(), true).unwrap().reshape([3, 16]);
+    assert_eq!(argmax(ego), z[1..4].to_vec());
+
+    // TAR and OAR over the window and the generated frame, as in training.
+    let all = ids(&[history.clone(), vec![z.clone()]].concat(), n);
+    let e_all = m.embed.forward(all.clone());
+    let h = m.tar(
+        e_all.clone().narrow(1, 0, 2),
+        e_all.clone().narrow(1, 1, 2),
+        Some(all.narrow(1, 1, 2).narrow(2, 1, 3)),
+    );
+    let h_last = h.narrow(1, 1, 1).reshape([1, n, 32]);
+    let o = m.oar(m.oar_input(e_all.narrow(1, 2, 1).reshape([1, n, 32]), h_last));
+    for (s, seg) in m.spec().segments.iter().enumerate().skip(1) {
+        let logits = m.oar_heads.logits(s, o.clone()).reshape([seg.tokens, seg.vocab]);
+        assert_eq!(
+            argmax(logits),
+            z[seg.offset..seg.offset + seg.tokens].to_vec(),
+            "{}",
+            seg.label
+        );
+    }
+}
+
+#[test]
+fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
+    let m = model();
+    let history = vec![vec![frame(&m, 1)], vec![frame(&m, 4)]];
+    let run = |seed| {
+        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 20, seed).unwrap();
+        let mut h = history.clone();
+        for _ in 0..3 {
+            let next = g.next_frame(&h, &FrameControl::default()).unwrap();
+            for (hist, f) in h.iter_mut().zip(next) {
+                hist.push(f);
+            }
+        }
+        h
+    };
+    let a = run(5);
+    assert_eq!(a, run(5), "same seed, same scenes");
+    assert_ne!(a, run(6), "another seed, other scenes");
+    for scene in &a {
+        for f in scene {
+            for (p, s) in m.slots().iter().enumerate() {
+                match *s {
+                    Slot::Start(i) => assert_eq!(f[p], m.spec().segments[i].vocab as u32),
+                    Slot::End(i) => assert_eq!(f[p], m.spec().segments[i].vocab as u32 + 1),
+                    Slot::Content(i, _) => assert!(f[p] < m.spec().segments[i].vocab as u32),
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn forced_actions_initial_scenes_and_bad_settings() {
+    let m = model();
+    let mut g = Generator::new(&m, vec![Sampling::default(); 3], 4, 1).unwrap();
+    let control = FrameControl {
+        action: Some(vec![vec![15, 0, 7]]),
+    };
+    let f = g.next_frame(&[vec![frame(&m, 2)]], &control).unwrap();
+    assert_eq!(f[0][1..4], [15, 0, 7]);
+    // From nothing: no TAR, the OAR draws every token, the action too.
+    let f = g.next_frame(&[vec![]], &FrameControl::default()).unwrap();
+    assert_eq!(f[0].len(), m.spec().n);
+    // Long rollouts slide the window (4 frames here) instead of failing past max_frames.
+    let long: Vec<Vec<u32>> = (0..12).map(|k| frame(&m, k)).collect();
+    assert!(g.next_frame(&[long], &FrameControl::default()).is_ok());
+    let bad = FrameControl {
+        action: Some(vec![vec![1, 2]]),
+    };
+    let e = g.next_frame(&[vec![frame(&m, 2)]], &bad).unwrap_err().to_string();
+    assert!(e.contains("3 tokens"), "{e}");
+    let e = Generator::new(&m, vec![Sampling::default(); 2], 4, 1)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("2 sampling settings for 3 modalities"), "{e}");
+}
