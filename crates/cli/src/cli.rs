@@ -38,9 +38,25 @@ pub enum Command {
     /// Train the backbone (tokenizing `train.data` first when the token cache is missing). Under
     /// `umgen launch`, torchrun or SLURM, one process per GPU trains data-parallel.
     Train(TrainArgs),
+    /// Write a self-contained bundle (weights, tokenizers, manifest) of a training run's newest checkpoint.
+    Export(ExportArgs),
     /// Start K local ranks of a command (e.g. `train`) with the torchrun variables and supervise them:
     /// if one fails, the others are stopped and the exit code is non-zero.
     Launch(LaunchArgs),
+}
+
+/// Arguments of `umgen export`.
+#[derive(Debug, Args)]
+pub struct ExportArgs {
+    /// A run directory (its newest good checkpoint) or one checkpoint directory.
+    #[arg(long, value_name = "DIR")]
+    pub checkpoint: PathBuf,
+    /// The bundle directory to create.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Element type of the exported weights: `f32` or `bf16`.
+    #[arg(long, default_value = "f32")]
+    pub dtype: String,
 }
 
 /// Arguments of `umgen launch`.

@@ -178,3 +178,91 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
         );
     }
 }
+
+#[test]
+fn export_writes_a_bundle_that_opens_and_refuses_damage() {
+    let fx = Fixture::new();
+    let cfg = fx.config("e", 2);
+    ok(umgen(&["train", "--config", cfg.to_str().unwrap()]));
+    let run = fx.run_dir("e");
+    let f32_dir = fx.dir.path().join("bundle-f32");
+    let bf16_dir = fx.dir.path().join("bundle-bf16");
+    ok(umgen(&[
+        "export",
+        "--checkpoint",
+        run.to_str().unwrap(),
+        "--out",
+        f32_dir.to_str().unwrap(),
+    ]));
+    ok(umgen(&[
+        "export",
+        "--checkpoint",
+        run.to_str().unwrap(),
+        "--out",
+        bf16_dir.to_str().unwrap(),
+        "--dtype",
+        "bf16",
+    ]));
+    let a = umgen::Bundle::open(&f32_dir).unwrap();
+    let b = umgen::Bundle::open(&bf16_dir).unwrap();
+    assert_eq!(a.manifest.step, 2);
+    assert_eq!(a.manifest.fingerprint, b.manifest.fingerprint);
+    assert!(a.manifest.files.contains_key("tokenizers/map/vq.safetensors"));
+    assert_eq!(a.manifest.layout["n"], b.manifest.layout["n"]);
+    // bf16 = f32 rounded: same names and shapes, values within bf16's relative step.
+    let (wa, wb) = (a.weights().unwrap(), b.weights().unwrap());
+    let (sa, sb) = (
+        safetensors::SafeTensors::deserialize(&wa).unwrap(),
+        safetensors::SafeTensors::deserialize(&wb).unwrap(),
+    );
+    assert_eq!(sa.names().len(), sb.names().len());
+    for (name, va) in sa.tensors() {
+        let vb = sb.tensor(&name).unwrap();
+        assert_eq!((vb.dtype(), vb.shape()), (safetensors::Dtype::BF16, va.shape()));
+        for (x, h) in va.data().chunks_exact(4).zip(vb.data().chunks_exact(2)) {
+            let x = f32::from_le_bytes([x[0], x[1], x[2], x[3]]);
+            let y = f32::from_bits(u32::from(u16::from_le_bytes([h[0], h[1]])) << 16);
+            assert!((x - y).abs() <= x.abs() / 256.0, "{name}: {x} vs {y}");
+        }
+    }
+    // Outside readers: Python's safetensors (CI's UMGEN_TB_PYTHON has it).
+    if let Ok(python) = std::env::var("UMGEN_TB_PYTHON") {
+        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/python/check_bundle.py");
+        for (dir, dtype) in [(&f32_dir, "F32"), (&bf16_dir, "BF16")] {
+            let out = Command::new(&python)
+                .arg(&script)
+                .arg(dir)
+                .args([dtype, "time", "oar_heads.heads.0.weight"])
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "{}{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+    }
+    // A missing or replaced file is refused, naming it; so is an existing output directory.
+    std::fs::remove_file(bf16_dir.join("tokenizers/image/vq.json")).unwrap();
+    let e = umgen::Bundle::open(&bf16_dir).unwrap_err().to_string();
+    assert!(
+        e.contains("tokenizers/image/vq.json") && e.contains("unreadable"),
+        "{e}"
+    );
+    let w = f32_dir.join("model.safetensors");
+    let mut bytes = std::fs::read(&w).unwrap();
+    let n = bytes.len();
+    bytes[n - 1] ^= 1;
+    std::fs::write(&w, bytes).unwrap();
+    let e = umgen::Bundle::open(&f32_dir).unwrap_err().to_string();
+    assert!(e.contains("model.safetensors") && e.contains("checksum"), "{e}");
+    let out = umgen(&[
+        "export",
+        "--checkpoint",
+        run.to_str().unwrap(),
+        "--out",
+        f32_dir.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("already exists"));
+}

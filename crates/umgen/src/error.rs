@@ -21,6 +21,17 @@ pub enum UmgenError {
     /// Training.
     #[error(transparent)]
     Train(#[from] umgen_train::TrainError),
+    /// Checkpoints.
+    #[error(transparent)]
+    Checkpoint(#[from] umgen_checkpoint::CheckpointError),
+    /// An export bundle that is missing, damaged or does not match.
+    #[error("bundle {path}: {message}")]
+    Bundle {
+        /// The bundle directory or file.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        message: String,
+    },
     /// A configuration given as text is not valid.
     #[error("invalid configuration text: {0}")]
     Text(String),

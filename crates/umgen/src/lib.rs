@@ -18,12 +18,16 @@
 //! # Ok::<(), umgen::UmgenError>(())
 //! ```
 
+mod bundle;
 mod config;
 mod error;
 mod model;
 mod tokenize;
 mod vq;
 
+pub use bundle::{
+    BUNDLE_MANIFEST, BUNDLE_WEIGHTS, Bundle, BundleFile, BundleManifest, WeightDtype, export_bundle,
+};
 pub use config::UmgenConfig;
 pub use error::{Result, UmgenError};
 pub use model::backbone_spec;

@@ -4,6 +4,7 @@ mod bench;
 mod bench_train;
 mod data;
 mod doctor;
+mod export;
 mod launch;
 mod layout;
 mod tokenize;
@@ -26,5 +27,6 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Tokenize(args) => tokenize::run(&args),
         Command::Train(args) => train::run(&args),
         Command::Launch(args) => launch::run(&args),
+        Command::Export(args) => export::run(&args),
     }
 }

@@ -1,0 +1,25 @@
+//! `umgen export`: a bundle for `umgen generate` and outside runners (docs/export-format.md).
+
+use crate::cli::ExportArgs;
+use umgen::{WeightDtype, export_bundle};
+
+/// Exports.
+pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
+    let dtype = match a.dtype.as_str() {
+        "f32" => WeightDtype::F32,
+        "bf16" => WeightDtype::Bf16,
+        other => anyhow::bail!("--dtype {other}: expected f32 or bf16"),
+    };
+    let m = export_bundle(&a.checkpoint, &a.out, dtype)?;
+    let bytes: u64 = m.files.values().map(|f| f.bytes).sum();
+    tracing::info!(
+        "{}: step {} of {} ({:?} weights, {} files, {:.1} MB)",
+        a.out.display(),
+        m.step,
+        a.checkpoint.display(),
+        m.dtype,
+        m.files.len() + 1,
+        bytes as f64 / 1e6
+    );
+    Ok(())
+}
