@@ -187,6 +187,11 @@ impl<B: Backend> Backbone<B> {
         Tensor::cat(vec![bos, e.narrow(1, 0, n - 1)], 1) + h
     }
 
+    /// Longest window of frames the TAR takes (rows of the frame embedding).
+    pub fn max_frames(&self) -> usize {
+        self.time.val().dims()[0]
+    }
+
     /// Model width d.
     pub fn embed_width(&self) -> usize {
         self.time.val().dims()[1]

@@ -40,6 +40,8 @@ pub enum Command {
     Train(TrainArgs),
     /// Write a self-contained bundle (weights, tokenizers, manifest) of a training run's newest checkpoint.
     Export(ExportArgs),
+    /// Generate scenes with an exported bundle: continue a dataset clip or start from nothing.
+    Generate(GenerateArgs),
     /// Start K local ranks of a command (e.g. `train`) with the torchrun variables and supervise them:
     /// if one fails, the others are stopped and the exit code is non-zero.
     Launch(LaunchArgs),
@@ -57,6 +59,55 @@ pub struct ExportArgs {
     /// Element type of the exported weights: `f32` or `bf16`.
     #[arg(long, default_value = "f32")]
     pub dtype: String,
+}
+
+/// Arguments of `umgen generate`.
+#[derive(Debug, Args)]
+pub struct GenerateArgs {
+    /// The bundle (`umgen export`).
+    #[arg(long, value_name = "DIR")]
+    pub bundle: PathBuf,
+    /// History to continue: `DATASET:CLIP` or `DATASET:CLIP:FRAMES` (its first FRAMES frames; default:
+    /// the window).
+    #[arg(long, value_name = "DATA:CLIP[:FRAMES]", conflicts_with = "from_scratch")]
+    pub context: Option<String>,
+    /// Start from nothing: the first frame is generated without history (TAR off).
+    #[arg(long)]
+    pub from_scratch: bool,
+    /// Frames to generate.
+    #[arg(long, default_value_t = 10)]
+    pub frames: usize,
+    /// Scenes generated together (a batch), each with its own random draws.
+    #[arg(long, default_value_t = 1)]
+    pub scenes: usize,
+    /// Output directory: `tokens.json`, `scenes.json`, `rollout.gif` (scene 0).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Also write scene 0's frames as PNGs into the output directory.
+    #[arg(long)]
+    pub png: bool,
+    /// Control file (TOML or JSON), see docs/control.md.
+    #[arg(long, value_name = "FILE")]
+    pub control: Option<PathBuf>,
+    /// Frames of history the TAR sees (older ones slide out); default 20, or the model's
+    /// `backbone.max_frames` when smaller.
+    #[arg(long)]
+    pub window: Option<usize>,
+    /// Keep the k most likely ids (0 = all), every modality.
+    #[arg(long, default_value_t = 16)]
+    pub top_k: usize,
+    /// Nucleus mass (1 = off), every modality.
+    #[arg(long, default_value_t = 1.0)]
+    pub top_p: f64,
+    /// Softmax temperature, every modality.
+    #[arg(long, default_value_t = 1.0)]
+    pub temperature: f64,
+    /// Seed of the random draws.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 /// Arguments of `umgen launch`.

@@ -243,6 +243,88 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
             );
         }
     }
+    // Generation from the bundle: tokens in their vocabularies, a forced left turn turns left, seeds repeat.
+    let ds = Dataset::open(&fx.data).unwrap();
+    let context = format!("{}:{}:2", fx.data.display(), ds.clips()[0].id);
+    let control = fx.dir.path().join("left.toml");
+    std::fs::write(&control, "[[ego]]\nfrom = 0\nto = 4\ndx = 2.0\ndtheta = 0.15\n").unwrap();
+    let generate = |bundle: &Path, out: &str, seed: &str| {
+        let out = fx.dir.path().join(out);
+        let args = [
+            "generate",
+            "--bundle",
+            bundle.to_str().unwrap(),
+            "--context",
+            &context,
+            "--frames",
+            "4",
+            "--scenes",
+            "2",
+            "--control",
+            control.to_str().unwrap(),
+            "--seed",
+            seed,
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        ok(umgen(&args));
+        out
+    };
+    let g1 = generate(&bf16_dir, "gen1", "3");
+    let tokens: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(g1.join("tokens.json")).unwrap()).unwrap();
+    let segments = b.manifest.layout["segments"].as_array().unwrap().clone();
+    for scene in tokens["scenes"].as_array().unwrap() {
+        let frames = scene.as_array().unwrap();
+        assert_eq!(frames.len(), 2 + 4, "2 context + 4 generated frames");
+        for f in frames {
+            let f: Vec<u64> = f
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_u64().unwrap())
+                .collect();
+            for seg in &segments {
+                let (off, n, vocab) = (
+                    seg["offset"].as_u64().unwrap() as usize,
+                    seg["tokens"].as_u64().unwrap() as usize,
+                    seg["vocab_size"].as_u64().unwrap(),
+                );
+                assert!(
+                    f[off..off + n].iter().all(|&id| id < vocab),
+                    "{}",
+                    seg["modality"]
+                );
+            }
+        }
+    }
+    let scenes: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(g1.join("scenes.json")).unwrap()).unwrap();
+    for clip in scenes.as_array().unwrap() {
+        let headings: Vec<f64> = clip["frames"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["ego"]["heading"].as_f64().unwrap())
+            .collect();
+        let turns: Vec<f64> = headings.windows(2).map(|w| w[1] - w[0]).collect();
+        assert!(
+            turns.iter().all(|d| *d > 0.1 && *d < 0.2),
+            "a left turn each frame: {headings:?}"
+        );
+    }
+    assert!(g1.join("rollout.gif").exists());
+    let g2 = generate(&bf16_dir, "gen2", "3");
+    assert_eq!(
+        std::fs::read(g1.join("tokens.json")).unwrap(),
+        std::fs::read(g2.join("tokens.json")).unwrap()
+    );
+    let g3 = generate(&bf16_dir, "gen3", "4");
+    assert_ne!(
+        std::fs::read(g1.join("tokens.json")).unwrap(),
+        std::fs::read(g3.join("tokens.json")).unwrap()
+    );
+
     // A missing or replaced file is refused, naming it; so is an existing output directory.
     std::fs::remove_file(bf16_dir.join("tokenizers/image/vq.json")).unwrap();
     let e = umgen::Bundle::open(&bf16_dir).unwrap_err().to_string();

@@ -6,10 +6,12 @@
 //! over a key/value cache, each modality sampled with its own [`Sampling`] (top-k, top-p, temperature,
 //! seeded). Without history (`t = 0`) the TAR is skipped and an initial scene is generated from nothing.
 
+mod control;
 mod error;
 mod rollout;
 mod sampling;
 
+pub use control::{Control, EgoControl};
 pub use error::{GenerateError, Result};
 pub use rollout::{FrameControl, Generator};
 pub use sampling::Sampling;

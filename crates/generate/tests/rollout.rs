@@ -86,7 +86,7 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
     let m = model();
     let n = m.spec().n;
     let history = vec![frame(&m, 1), frame(&m, 2)];
-    let mut g = Generator::new(&m, vec![Sampling::greedy(); 3], 20, 0).unwrap();
+    let mut g = Generator::new(&m, vec![Sampling::greedy(); 3], 8, 0).unwrap();
     let z = g
         .next_frame(std::slice::from_ref(&history), &FrameControl::default())
         .unwrap()
@@ -123,7 +123,7 @@ fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
     let m = model();
     let history = vec![vec![frame(&m, 1)], vec![frame(&m, 4)]];
     let run = |seed| {
-        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 20, seed).unwrap();
+        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 8, seed).unwrap();
         let mut h = history.clone();
         for _ in 0..3 {
             let next = g.next_frame(&h, &FrameControl::default()).unwrap();

@@ -78,37 +78,47 @@ fn load_checkpoint(dir: &Path) -> Result<Loaded> {
         .ok_or_else(|| bundle_err(dir, "no checkpoint here or in its `checkpoints/`"))
 }
 
-/// f32 safetensors bytes → bf16 (round to nearest even; NaN stays NaN).
-fn to_bf16(bytes: &[u8], path: &Path) -> Result<Vec<u8>> {
+/// Safetensors bytes with every tensor converted to `to` (F32 ↔ BF16; bf16 rounds to nearest even, NaN
+/// stays NaN), names sorted.
+fn convert(bytes: &[u8], to: safetensors::Dtype, path: &Path) -> Result<Vec<u8>> {
+    use safetensors::Dtype;
     let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| bundle_err(path, e.to_string()))?;
     let mut out: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
     for (name, view) in st.tensors() {
-        if view.dtype() != safetensors::Dtype::F32 {
-            return Err(bundle_err(
-                path,
-                format!("{name}: {:?}, expected F32", view.dtype()),
-            ));
-        }
-        let half: Vec<u8> = view
-            .data()
-            .chunks_exact(4)
-            .flat_map(|b| {
-                let x = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-                let h = if f32::from_bits(x).is_nan() {
-                    (x >> 16) as u16 | 0x40
-                } else {
-                    ((x + 0x7fff + ((x >> 16) & 1)) >> 16) as u16
-                };
-                h.to_le_bytes()
-            })
-            .collect();
-        out.push((name, view.shape().to_vec(), half));
+        let data: Vec<u8> = match (view.dtype(), to) {
+            (a, b) if a == b => view.data().to_vec(),
+            (Dtype::F32, Dtype::BF16) => view
+                .data()
+                .chunks_exact(4)
+                .flat_map(|b| {
+                    let x = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+                    let h = if f32::from_bits(x).is_nan() {
+                        (x >> 16) as u16 | 0x40
+                    } else {
+                        ((x + 0x7fff + ((x >> 16) & 1)) >> 16) as u16
+                    };
+                    h.to_le_bytes()
+                })
+                .collect(),
+            (Dtype::BF16, Dtype::F32) => view
+                .data()
+                .chunks_exact(2)
+                .flat_map(|b| (u32::from(u16::from_le_bytes([b[0], b[1]])) << 16).to_le_bytes())
+                .collect(),
+            (from, _) => {
+                return Err(bundle_err(
+                    path,
+                    format!("{name}: {from:?} cannot be converted to {to:?}"),
+                ));
+            }
+        };
+        out.push((name, view.shape().to_vec(), data));
     }
     out.sort_by(|a, b| a.0.cmp(&b.0));
     let views = out
         .iter()
         .map(|(n, s, d)| {
-            safetensors::tensor::TensorView::new(safetensors::Dtype::BF16, s.clone(), d)
+            safetensors::tensor::TensorView::new(to, s.clone(), d)
                 .map(|v| (n.clone(), v))
                 .map_err(|e| bundle_err(path, e.to_string()))
         })
@@ -163,7 +173,7 @@ pub fn export_bundle(checkpoint: &Path, out: &Path, dtype: WeightDtype) -> Resul
     let weights = loaded.file(BUNDLE_WEIGHTS)?;
     let weights = match dtype {
         WeightDtype::F32 => weights.to_vec(),
-        WeightDtype::Bf16 => to_bf16(weights, &loaded.dir)?,
+        WeightDtype::Bf16 => convert(weights, safetensors::Dtype::BF16, &loaded.dir)?,
     };
     write(&out.join(BUNDLE_WEIGHTS), &weights, &mut files, BUNDLE_WEIGHTS)?;
     for (name, table) in &mut config.modality {
@@ -267,9 +277,18 @@ impl Bundle {
         })
     }
 
-    /// The weights' bytes (safetensors).
+    /// The weights' bytes (safetensors), as exported.
     pub fn weights(&self) -> Result<Vec<u8>> {
         let p = self.dir.join(BUNDLE_WEIGHTS);
         std::fs::read(&p).map_err(|e| bundle_err(&p, e.to_string()))
+    }
+
+    /// The weights as f32 safetensors (bf16 bundles widened), for loading into an f32 model.
+    pub fn weights_f32(&self) -> Result<Vec<u8>> {
+        let w = self.weights()?;
+        match self.manifest.dtype {
+            WeightDtype::F32 => Ok(w),
+            WeightDtype::Bf16 => convert(&w, safetensors::Dtype::F32, &self.dir.join(BUNDLE_WEIGHTS)),
+        }
     }
 }

@@ -24,6 +24,21 @@ impl Rgb {
         }
     }
 
+    /// The image enlarged `k` times (nearest neighbour), for small rasters.
+    pub fn scaled(&self, k: usize) -> Self {
+        let k = k.max(1);
+        let (w, h) = (self.width * k, self.height * k);
+        let pixels = (0..h)
+            .flat_map(|r| (0..w).map(move |c| (r / k) * self.width + c / k))
+            .map(|i| self.pixels[i])
+            .collect();
+        Self {
+            width: w,
+            height: h,
+            pixels,
+        }
+    }
+
     /// The pixel at (row, col).
     pub fn get(&self, r: usize, c: usize) -> Option<[u8; 3]> {
         (r < self.height && c < self.width).then(|| self.pixels[r * self.width + c])
@@ -88,5 +103,22 @@ impl Rgb {
     /// Interleaved bytes (`r, g, b, r, g, b, …`).
     pub fn bytes(&self) -> Vec<u8> {
         self.pixels.iter().flatten().copied().collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scaling_repeats_each_pixel_k_by_k() {
+        let mut img = Rgb::filled(2, 1, [0, 0, 0]);
+        img.pixels[1] = [9, 9, 9];
+        let s = img.scaled(3);
+        assert_eq!((s.width, s.height), (6, 3));
+        assert_eq!(s.get(2, 2), Some([0, 0, 0]));
+        assert_eq!(s.get(0, 3), Some([9, 9, 9]));
+        assert_eq!(s.get(2, 5), Some([9, 9, 9]));
+        assert_eq!(img.scaled(0), img);
     }
 }

@@ -66,6 +66,48 @@ impl Default for MapConfig {
     }
 }
 
+impl MapConfig {
+    /// The renderer these settings describe (raster size, extent, layers), checked; `name` is the
+    /// modality's name for error keys.
+    pub fn map_view(&self, name: &str) -> Result<MapView> {
+        let key = |f: &str| format!("modality.{name}.{f}");
+        let layers = self
+            .layers
+            .iter()
+            .map(|n| {
+                MapLayer::ALL
+                    .into_iter()
+                    .find(|l| l.name() == n)
+                    .ok_or_else(|| ModalityError::Config {
+                        key: key("layers"),
+                        message: format!(
+                            "unknown layer `{n}` (known: {})",
+                            MapLayer::ALL.map(MapLayer::name).join(", ")
+                        ),
+                    })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        if layers.is_empty() || self.extent_m.is_nan() || self.extent_m <= 0.0 {
+            return Err(ModalityError::Config {
+                key: key("layers"),
+                message: "needs at least one layer and a positive extent_m".into(),
+            });
+        }
+        downsampling(&key("grid"), self.raster, self.grid)?;
+        if self.raster[0] != self.raster[1] || self.grid[0] != self.grid[1] {
+            return Err(ModalityError::Config {
+                key: key("raster"),
+                message: "the map view is square: raster and grid need equal sides".into(),
+            });
+        }
+        Ok(MapView {
+            extent_m: self.extent_m,
+            size: self.raster,
+            layers,
+        })
+    }
+}
+
 /// The map raster of a frame.
 #[derive(Debug, Clone)]
 pub struct MapRasterView {
@@ -118,47 +160,13 @@ pub type MapModality = VqModality<MapRasterView>;
 
 /// Builds a map modality called `name` from its settings, loading its tokenizer with `loader`.
 pub fn build(name: &str, config: &MapConfig, loader: &CodecLoader) -> Result<MapModality> {
-    let key = |f: &str| format!("modality.{name}.{f}");
-    let layers = config
-        .layers
-        .iter()
-        .map(|n| {
-            MapLayer::ALL
-                .into_iter()
-                .find(|l| l.name() == n)
-                .ok_or_else(|| ModalityError::Config {
-                    key: key("layers"),
-                    message: format!(
-                        "unknown layer `{n}` (known: {})",
-                        MapLayer::ALL.map(MapLayer::name).join(", ")
-                    ),
-                })
-        })
-        .collect::<Result<Vec<_>>>()?;
-    if layers.is_empty() || config.extent_m.is_nan() || config.extent_m <= 0.0 {
-        return Err(ModalityError::Config {
-            key: key("layers"),
-            message: "needs at least one layer and a positive extent_m".into(),
-        });
-    }
-    downsampling(&key("grid"), config.raster, config.grid)?;
-    if config.raster[0] != config.raster[1] || config.grid[0] != config.grid[1] {
-        return Err(ModalityError::Config {
-            key: key("raster"),
-            message: "the map view is square: raster and grid need equal sides".into(),
-        });
-    }
+    let view = config.map_view(name)?;
     let [rows, cols] = config.grid;
     let cell_m = config.extent_m / rows as f64;
     let spec =
         ModalitySpec::new(name, KIND, config.codebook_size, rows * cols).with_metric_grid(rows, cols, cell_m);
-    let view = MapRasterView {
-        view: MapView {
-            extent_m: config.extent_m,
-            size: config.raster,
-            layers: layers.clone(),
-        },
-    };
+    let layers = view.layers.clone();
+    let view = MapRasterView { view };
     let vq = config
         .vq
         .config(layers.len(), Output::Binary, config.codebook_size as usize);

@@ -5,6 +5,7 @@ mod bench_train;
 mod data;
 mod doctor;
 mod export;
+mod generate;
 mod launch;
 mod layout;
 mod tokenize;
@@ -28,5 +29,6 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Train(args) => train::run(&args),
         Command::Launch(args) => launch::run(&args),
         Command::Export(args) => export::run(&args),
+        Command::Generate(args) => generate::run(&args),
     }
 }

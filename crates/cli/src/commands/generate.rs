@@ -1,0 +1,226 @@
+//! `umgen generate`: roll a bundle's model forward from a dataset clip or from nothing, decode the frames
+//! and draw them.
+
+use crate::cli::GenerateArgs;
+use crate::device::Device;
+use anyhow::Context;
+use burn::tensor::backend::AutodiffBackend;
+use std::path::Path;
+use umgen::backbone::Backbone;
+use umgen::checkpoint::burn_io::weights_from_bytes;
+use umgen::data::Dataset;
+use umgen::generate::{Control, FrameControl, Generator, Sampling};
+use umgen::modality::ModalityRegistry;
+use umgen::scene::{Frame, SceneClip};
+use umgen::{Bundle, backbone_spec, builtin_catalog_with};
+
+/// Generates.
+pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(a.scenes >= 1, "--scenes must be at least 1");
+    let bundle = Bundle::open(&a.bundle)?;
+    let device = Device::parse(&a.device)?;
+    let registry = bundle
+        .config
+        .registry(&builtin_catalog_with(device.codec_loader())?)?;
+    let spec = backbone_spec(&registry, &bundle.config.backbone)?;
+    let control = match &a.control {
+        Some(p) => read_control(p)?,
+        None => Control::default(),
+    };
+    control.validate().with_context(|| {
+        a.control
+            .as_ref()
+            .map_or(String::new(), |p| p.display().to_string())
+    })?;
+    let (context, interval) = context_clip(a)?;
+    let context_rows = match &context {
+        Some(clip) => registry.tokenize_clip(clip)?,
+        None => Vec::new(),
+    };
+    let sampling = Sampling {
+        top_k: a.top_k,
+        top_p: a.top_p,
+        temperature: a.temperature,
+    };
+    let bins = spec.action.as_ref().map(|x| x.bins);
+    let started = std::time::Instant::now();
+    let scenes = crate::with_autodiff!(device, |B, dev| {
+        type I = <B as AutodiffBackend>::InnerBackend;
+        let model = Backbone::<I>::new(&bundle.config.backbone, &spec, &dev)?;
+        let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
+        let window = a.window.unwrap_or_else(|| {
+            let w = 20.min(model.max_frames());
+            if w < 20 {
+                tracing::info!("conditioning on {w} frames (backbone.max_frames)");
+            }
+            w
+        });
+        let mut g = Generator::new(&model, vec![sampling; spec.segments.len()], window, a.seed)?;
+        let mut history = vec![context_rows.clone(); a.scenes];
+        let bar = crate::progress::bar(a.frames as u64, "frames")?;
+        for k in 0..a.frames {
+            let forced = bins.and_then(|b| control.action_at(k, &b));
+            if let Some((_, clamped)) = &forced
+                && *clamped > 0
+            {
+                tracing::warn!("frame {k}: {clamped} forced action value(s) outside the bins, clamped");
+            }
+            let fc = FrameControl {
+                action: forced.map(|(ids, _)| vec![ids; a.scenes]),
+            };
+            let next = g.next_frame(&history, &fc)?;
+            for (h, f) in history.iter_mut().zip(next) {
+                h.push(f);
+            }
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        history
+    });
+    let elapsed = started.elapsed().as_secs_f64();
+    let tokens = (a.frames * a.scenes * spec.n) as f64;
+    tracing::info!(
+        "generated {} frame(s) × {} scene(s) in {elapsed:.1} s ({:.0} tokens/s, {:.2} frames/s)",
+        a.frames,
+        a.scenes,
+        tokens / elapsed,
+        (a.frames * a.scenes) as f64 / elapsed
+    );
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let n_context = context_rows.len();
+    std::fs::write(
+        a.out.join("tokens.json"),
+        serde_json::to_vec(&serde_json::json!({
+            "n": spec.n, "context_frames": n_context, "fingerprint": bundle.manifest.fingerprint, "scenes": scenes,
+        }))?,
+    )?;
+    let start = context
+        .as_ref()
+        .and_then(|c| c.frames.last().cloned())
+        .unwrap_or_default();
+    let mut decoded = Vec::with_capacity(scenes.len());
+    let mut malformed = 0;
+    for rows in &scenes {
+        let (clip, bad) = decode(&registry, &rows[n_context..], &start, interval)?;
+        malformed += bad;
+        decoded.push(clip);
+    }
+    if malformed > 0 {
+        tracing::warn!("{malformed} malformed token group(s) were skipped while decoding");
+    }
+    let light: Vec<SceneClip> = decoded
+        .iter()
+        .map(|c| {
+            let mut c = c.clone();
+            c.frames.iter_mut().for_each(|f| (f.map, f.image) = (None, None));
+            c
+        })
+        .collect();
+    std::fs::write(a.out.join("scenes.json"), serde_json::to_vec(&light)?)?;
+    draw(&bundle, &decoded[0], &a.out, a.png)?;
+    tracing::info!(
+        "{}: tokens.json, scenes.json, rollout.gif ({} context + {} generated frames)",
+        a.out.display(),
+        n_context,
+        a.frames
+    );
+    Ok(())
+}
+
+fn read_control(p: &Path) -> anyhow::Result<Control> {
+    let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+    let c = if p.extension().is_some_and(|e| e == "json") {
+        serde_json::from_str(&text).with_context(|| p.display().to_string())?
+    } else {
+        toml::from_str(&text).with_context(|| p.display().to_string())?
+    };
+    Ok(c)
+}
+
+/// The context clip (`--context DATA:CLIP[:FRAMES]`) and the frame interval.
+fn context_clip(a: &GenerateArgs) -> anyhow::Result<(Option<SceneClip>, f64)> {
+    let Some(spec) = &a.context else {
+        anyhow::ensure!(
+            a.from_scratch,
+            "give --context DATA:CLIP[:FRAMES] or --from-scratch"
+        );
+        return Ok((None, 0.5));
+    };
+    // Clip ids may hold ':' themselves (`rand-s3/v0:2`): a numeric suffix is a frame count only when
+    // the whole rest is not a clip id.
+    let (data, rest) = spec
+        .split_once(':')
+        .with_context(|| format!("--context {spec}: expected DATA:CLIP or DATA:CLIP:FRAMES"))?;
+    let ds = Dataset::open(Path::new(data))?;
+    let (index, frames) = match ds.find_clip(rest) {
+        Ok(i) => (i, None),
+        Err(e) => match rest.rsplit_once(':') {
+            Some((clip, f)) if f.parse::<usize>().is_ok() => (ds.find_clip(clip)?, f.parse::<usize>().ok()),
+            _ => return Err(e.into()),
+        },
+    };
+    let available = ds.clips()[index].frames;
+    let n = frames.unwrap_or(a.window.unwrap_or(20)).min(available);
+    anyhow::ensure!(n > 0, "--context {spec}: the clip has no frames");
+    let clip = ds.read_window(index, 0, n, 1)?;
+    let interval = clip.interval;
+    Ok((Some(clip), interval))
+}
+
+/// Decodes generated rows into frames, integrating the ego pose from `start` by each decoded action.
+fn decode(
+    registry: &ModalityRegistry,
+    rows: &[Vec<u32>],
+    start: &Frame,
+    interval: f64,
+) -> anyhow::Result<(SceneClip, u64)> {
+    let mut frames = Vec::with_capacity(rows.len());
+    let mut prev = start.clone();
+    let mut malformed = 0;
+    for row in rows {
+        let mut f = Frame::default();
+        malformed += registry.detokenize(row, &mut f)?.malformed;
+        f.time = prev.time + interval;
+        f.ego = prev.ego.advance(&f.action, interval);
+        prev = f.clone();
+        frames.push(f);
+    }
+    Ok((SceneClip::new("generated", interval, frames)?, malformed))
+}
+
+/// Scene 0 as `rollout.gif` (and `frame-NNNN.png` with `png`): BEV from the decoded map raster with the
+/// decoded agents, camera below.
+fn draw(bundle: &Bundle, clip: &SceneClip, out: &Path, png: bool) -> anyhow::Result<()> {
+    let view = bundle
+        .config
+        .modality
+        .iter()
+        .find_map(|(name, table)| {
+            let kind = table.get("kind").and_then(|k| k.as_str()).unwrap_or(name);
+            (kind == umgen::modality_map::KIND)
+                .then(|| umgen::modality::parse_settings::<umgen::modality_map::MapConfig>(name, table))
+                .map(|c| c.and_then(|c| c.map_view(name)))
+        })
+        .transpose()?
+        .unwrap_or_default();
+    let pictures: Vec<_> = clip
+        .frames
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            // Small rasters (the tiny config's 64 px) are enlarged to about 256 px wide.
+            let k = (256 / view.size[1].max(1)).max(1);
+            let mut pic = umgen_viz::scene_picture(&view, f.map.as_ref(), f.image.as_ref(), f, "").scaled(k);
+            let label = format!("GEN {i} {} AGENTS", f.agents.len());
+            umgen_viz::text(&mut pic, 4, 4, 2, &label, [250, 250, 250]);
+            pic
+        })
+        .collect();
+    if png {
+        for (i, p) in pictures.iter().enumerate() {
+            umgen_viz::write_png(&out.join(format!("frame-{i:04}.png")), p)?;
+        }
+    }
+    umgen_viz::write_gif(&out.join("rollout.gif"), &pictures, clip.interval)?;
+    Ok(())
+}
