@@ -90,3 +90,52 @@ impl<B: Backend> Backbone<B> {
         out
     }
 }
+
+/// The baseline of the paper's Fig. 7: one causal transformer over the concatenated tokens of all frames
+/// (no TAR), of the same width, decoding with a key/value cache that grows with the history. Only its
+/// per-token cost matters, so it has no embedding tables: inputs are feature vectors.
+#[derive(burn::module::Module, Debug)]
+pub struct VanillaAr<B: Backend> {
+    blocks: Vec<crate::layers::SelfBlock<B>>,
+    ln: burn::nn::LayerNorm<B>,
+    head: burn::nn::Linear<B>,
+}
+
+impl<B: Backend> VanillaAr<B> {
+    /// `depth` causal layers of width `d` and a head over `vocab` ids.
+    pub fn new(d: usize, heads: usize, ratio: usize, depth: usize, vocab: usize, dev: &B::Device) -> Self {
+        Self {
+            blocks: (0..depth)
+                .map(|_| crate::layers::SelfBlock::new(d, heads, ratio, 0.0, dev))
+                .collect(),
+            ln: burn::nn::LayerNormConfig::new(d).init(dev),
+            head: burn::nn::LinearConfig::new(d, vocab).with_bias(false).init(dev),
+        }
+    }
+
+    /// A cache holding `len` earlier positions of `m` sequences (random keys and values: the cost of a
+    /// step does not depend on them).
+    pub fn filled_cache(&self, m: usize, len: usize, heads: usize, dev: &B::Device) -> OarCache<B> {
+        let d = self.ln.gamma.val().dims()[0];
+        let kv = || {
+            Tensor::<B, 4>::random(
+                [m, heads, len, d / heads],
+                burn::tensor::Distribution::Normal(0.0, 1.0),
+                dev,
+            )
+        };
+        OarCache {
+            layers: self.blocks.iter().map(|_| Some((kv(), kv()))).collect(),
+        }
+    }
+
+    /// Logits `[m, vocab]` of the next position from input features `[m, d]`; updates `cache`.
+    pub fn step(&self, x: Tensor<B, 2>, cache: &mut OarCache<B>) -> Tensor<B, 2> {
+        let [m, d] = x.dims();
+        let mut h = x.reshape([m, 1, d]);
+        for (blk, c) in self.blocks.iter().zip(cache.layers.iter_mut()) {
+            h = blk.forward_step(h, c);
+        }
+        self.head.forward(self.ln.forward(h).reshape([m, d]))
+    }
+}

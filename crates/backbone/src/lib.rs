@@ -31,7 +31,7 @@ mod spec;
 
 pub use ama::align;
 pub use config::BackboneConfig;
-pub use decode::{OarCache, Slot};
+pub use decode::{OarCache, Slot, VanillaAr};
 pub use ego::{EgoModule, EgoSizes};
 pub use embed::FrameEmbedding;
 pub use error::{BackboneError, Result};

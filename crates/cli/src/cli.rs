@@ -339,6 +339,29 @@ pub enum BenchCommand {
     Train(BenchTrainArgs),
     /// All-reduce bandwidth through the process group, run under `umgen launch`.
     Allreduce(BenchAllreduceArgs),
+    /// Per-token generation latency and memory as the history grows: the TAR/OAR model against a vanilla
+    /// autoregressive transformer of the same width and depth over all frames' tokens (paper Fig. 7).
+    Generate(BenchGenerateArgs),
+}
+
+/// Arguments of `umgen bench generate`.
+#[derive(Debug, Args)]
+pub struct BenchGenerateArgs {
+    /// The config whose layout and backbone are measured (random weights; tokenizers are not needed).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// History lengths T (frames); each must fit `backbone.max_frames`.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,20")]
+    pub history: Vec<usize>,
+    /// Scenes per batch.
+    #[arg(long, default_value_t = 1)]
+    pub batch: usize,
+    /// Tokens timed per vanilla-AR measurement.
+    #[arg(long, default_value_t = 64)]
+    pub tokens: usize,
 }
 
 /// Arguments of `umgen bench allreduce`.

@@ -12,6 +12,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Data(args) => data(&args),
         BenchCommand::Train(args) => super::bench_train::run(&args),
         BenchCommand::Allreduce(args) => super::bench_train::allreduce(&args),
+        BenchCommand::Generate(args) => super::bench_generate::run(&args),
     }
 }
 

@@ -1,6 +1,7 @@
 //! One module per subcommand.
 
 mod bench;
+mod bench_generate;
 mod bench_train;
 mod data;
 mod doctor;

@@ -1,0 +1,161 @@
+//! `umgen bench generate`: what one new frame costs per token as the history grows, for the TAR/OAR model
+//! and for a vanilla autoregressive transformer over all frames' tokens.
+
+use crate::cli::BenchGenerateArgs;
+use crate::device::{Device, memory_in_use};
+use burn::tensor::backend::{AutodiffBackend, Backend};
+use burn::tensor::{Distribution, Tensor};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+use std::io::Write;
+use std::time::Instant;
+use umgen::backbone::{Backbone, BackboneSpec, Slot, VanillaAr};
+use umgen::generate::{FrameControl, Generator, Sampling};
+use umgen::{UmgenConfig, backbone_spec, builtin_catalog};
+
+/// Random valid frames `[batch][t][N]`.
+fn history(model_spec: &BackboneSpec, slots: &[Slot], batch: usize, t: usize) -> Vec<Vec<Vec<u32>>> {
+    let mut rng = StdRng::seed_from_u64(7);
+    (0..batch)
+        .map(|_| {
+            (0..t)
+                .map(|_| {
+                    slots
+                        .iter()
+                        .map(|s| match *s {
+                            Slot::Start(i) => model_spec.segments[i].vocab as u32,
+                            Slot::End(i) => model_spec.segments[i].vocab as u32 + 1,
+                            Slot::Content(i, _) => rng.random_range(0..model_spec.segments[i].vocab as u32),
+                        })
+                        .collect()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// One row of the table.
+struct Row {
+    t: usize,
+    ours_ms: f64,
+    ours_peak: u64,
+    vanilla_ms: f64,
+    vanilla_peak: u64,
+    vanilla_cache: u64,
+}
+
+/// Measures.
+pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
+    let (config, _) = UmgenConfig::load(&a.config.config, &a.config.set)?.without_missing_tokenizers();
+    let registry = config.registry(&builtin_catalog()?)?;
+    let spec = backbone_spec(&registry, &config.backbone)?;
+    let cfg = &config.backbone;
+    let device = Device::parse(&a.device)?;
+    let n = spec.n;
+    let depth = 2 * cfg.tar_layers + cfg.oar_layers;
+    let vocab = spec.segments.iter().map(|s| s.vocab).max().unwrap_or(1);
+    anyhow::ensure!(
+        a.batch >= 1 && a.tokens >= 1,
+        "--batch and --tokens must be at least 1"
+    );
+    if let Some(t) = a.history.iter().find(|t| **t == 0 || **t > cfg.max_frames) {
+        anyhow::bail!(
+            "--history {t}: must be 1..={} (backbone.max_frames; raise it with --set backbone.max_frames=20)",
+            cfg.max_frames
+        );
+    }
+    let rows = crate::with_autodiff!(device, |B, dev| {
+        type I = <B as AutodiffBackend>::InnerBackend;
+        let sync = || <I as Backend>::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
+        <I as Backend>::seed(&dev, 0);
+        let model = Backbone::<I>::new(cfg, &spec, &dev)?;
+        let vanilla = VanillaAr::<I>::new(cfg.d_model, cfg.heads, cfg.mlp_ratio, depth, vocab, &dev);
+        let slots = model.slots();
+        let sampling = vec![Sampling::default(); spec.segments.len()];
+        let mut rows = Vec::new();
+        for &t in &a.history {
+            let h = history(&spec, &slots, a.batch, t);
+            let mut g = Generator::new(&model, sampling.clone(), t, 0)?;
+            // The first frame compiles kernels (CUDA) and warms caches.
+            g.next_frame(&h, &FrameControl::default())?;
+            sync()?;
+            let t0 = Instant::now();
+            g.next_frame(&h, &FrameControl::default())?;
+            sync()?;
+            let ours_ms = 1e3 * t0.elapsed().as_secs_f64() / n as f64;
+            let ours_peak = memory_in_use(device);
+            // The vanilla model decodes frame t + 1 after t·N cached tokens.
+            let mut rng = StdRng::seed_from_u64(3);
+            let step = |cache: &mut _, rng: &mut StdRng| -> anyhow::Result<()> {
+                let x = Tensor::<I, 2>::random([a.batch, cfg.d_model], Distribution::Normal(0.0, 1.0), &dev);
+                let logits = vanilla.step(x, cache);
+                let host: Vec<f32> = logits.into_data().iter::<f32>().collect();
+                for row in host.chunks(vocab) {
+                    Sampling::default().draw(row, rng);
+                }
+                Ok(())
+            };
+            let mut cache = vanilla.filled_cache(a.batch, t * n, cfg.heads, &dev);
+            step(&mut cache, &mut rng)?;
+            sync()?;
+            let t0 = Instant::now();
+            for _ in 0..a.tokens {
+                step(&mut cache, &mut rng)?;
+            }
+            sync()?;
+            let vanilla_ms = 1e3 * t0.elapsed().as_secs_f64() / a.tokens as f64;
+            let vanilla_peak = memory_in_use(device);
+            let vanilla_cache = (depth * 2 * a.batch * (t * n + a.tokens) * cfg.d_model * 4) as u64;
+            rows.push(Row {
+                t,
+                ours_ms,
+                ours_peak,
+                vanilla_ms,
+                vanilla_peak,
+                vanilla_cache,
+            });
+            drop(cache);
+        }
+        rows
+    });
+    let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+    let mut out = std::io::stdout().lock();
+    writeln!(
+        out,
+        "config   {} (N = {n}, d {}, TAR {} + OAR {}; vanilla AR depth {depth})",
+        a.config.config.display(),
+        cfg.d_model,
+        cfg.tar_layers,
+        cfg.oar_layers
+    )?;
+    writeln!(out, "device   {}, batch {}", a.device, a.batch)?;
+    writeln!(
+        out,
+        "{:>4} {:>16} {:>18} {:>16} {:>18} {:>16}",
+        "T", "TAR/OAR ms/tok", "TAR/OAR mem GiB", "vanilla ms/tok", "vanilla mem GiB", "vanilla KV GiB"
+    )?;
+    for r in rows {
+        writeln!(
+            out,
+            "{:>4} {:>16.3} {:>18} {:>16.3} {:>18} {:>16.3}",
+            r.t,
+            r.ours_ms,
+            if r.ours_peak > 0 {
+                format!("{:.2}", gib(r.ours_peak))
+            } else {
+                "-".into()
+            },
+            r.vanilla_ms,
+            if r.vanilla_peak > 0 {
+                format!("{:.2}", gib(r.vanilla_peak))
+            } else {
+                "-".into()
+            },
+            gib(r.vanilla_cache)
+        )?;
+    }
+    writeln!(
+        out,
+        "ms/tok: one new frame of N tokens (ego action, TAR over T frames, N OAR steps with sampling) / N; vanilla: a decode step after T·N cached tokens, with sampling. mem: device pool after the measurement (CUDA only)."
+    )?;
+    Ok(())
+}
