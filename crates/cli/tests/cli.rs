@@ -150,3 +150,48 @@ fn version_help_and_doctor() {
         assert!(text(&out.stdout).contains("cuda     not built in"));
     }
 }
+
+#[test]
+fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
+    let tiny = config("tiny.toml");
+    let out = umgen(&[
+        "bench",
+        "generate",
+        "--config",
+        tiny.to_str().unwrap(),
+        "--history",
+        "1,3",
+        "--tokens",
+        "4",
+    ]);
+    let table = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let rows: Vec<&str> = table
+        .lines()
+        .filter(|l| l.split_whitespace().next().is_some_and(|w| w == "1" || w == "3"))
+        .collect();
+    assert_eq!(rows.len(), 2, "{table}");
+    // Every timing is a positive number.
+    for r in rows {
+        let cols: Vec<&str> = r.split_whitespace().collect();
+        assert!(
+            cols[1].parse::<f64>().unwrap() > 0.0 && cols[3].parse::<f64>().unwrap() > 0.0,
+            "{r}"
+        );
+    }
+    let err = failure(
+        &[
+            "bench",
+            "generate",
+            "--config",
+            tiny.to_str().unwrap(),
+            "--history",
+            "9",
+        ],
+        &[],
+    );
+    assert!(
+        err.contains("--history 9") && err.contains("backbone.max_frames"),
+        "{err}"
+    );
+}
