@@ -319,6 +319,30 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         std::fs::read(g1.join("tokens.json")).unwrap(),
         std::fs::read(g2.join("tokens.json")).unwrap()
     );
+    // An agent placed by the control file appears where it was put (within a bin), with its velocity.
+    std::fs::write(
+        &control,
+        "[[agent]]\nslot = 1\nfrom = 0\nto = 4\nx = 12.0\ny = 3.5\nvx = 6.0\nvy = -1.0\n",
+    )
+    .unwrap();
+    let g4 = generate(&bf16_dir, "gen4", "3");
+    let scenes: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(g4.join("scenes.json")).unwrap()).unwrap();
+    for clip in scenes.as_array().unwrap() {
+        for f in clip["frames"].as_array().unwrap() {
+            let a = f["agents"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|a| a["track_id"] == 1)
+                .expect("the controlled agent");
+            for (k, want) in [("x", 12.0), ("y", 3.5), ("vx", 6.0), ("vy", -1.0)] {
+                let got = a[k].as_f64().unwrap();
+                assert!((got - want).abs() < 0.5, "{k}: {got} vs {want}");
+            }
+            assert_eq!(a["category"], "vehicle");
+        }
+    }
     let g3 = generate(&bf16_dir, "gen3", "4");
     assert_ne!(
         std::fs::read(g1.join("tokens.json")).unwrap(),

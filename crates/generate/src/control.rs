@@ -21,13 +21,59 @@ pub struct EgoControl {
     pub dtheta: f64,
 }
 
-/// A control file: `[[ego]]` entries (TOML), or `{"ego": [...]}` (JSON).
+/// An agent's state set for a range of generated frames: the agent in slot `slot` (a generated agent's
+/// `track_id`) gets the given values, in the ego frame of each generated frame; values left out are
+/// generated.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentControl {
+    /// Agent slot.
+    pub slot: usize,
+    /// First generated frame it applies to.
+    pub from: usize,
+    /// One past the last (exclusive).
+    pub to: usize,
+    /// Position ahead of the ego (m).
+    pub x: Option<f64>,
+    /// Position to the left of the ego (m).
+    pub y: Option<f64>,
+    /// Velocity ahead (m/s).
+    pub vx: Option<f64>,
+    /// Velocity to the left (m/s).
+    pub vy: Option<f64>,
+    /// Heading relative to the ego (rad).
+    pub heading: Option<f64>,
+    /// `vehicle` (default), `pedestrian` or `cyclist`: placed with the values, so that an empty slot
+    /// becomes an agent.
+    pub category: Option<String>,
+}
+
+impl AgentControl {
+    /// The set values as (field name, value), in the agent modality's field order.
+    pub fn values(&self) -> Vec<(&'static str, f64)> {
+        [
+            ("x", self.x),
+            ("y", self.y),
+            ("vx", self.vx),
+            ("vy", self.vy),
+            ("heading", self.heading),
+        ]
+        .into_iter()
+        .filter_map(|(k, v)| v.map(|v| (k, v)))
+        .collect()
+    }
+}
+
+/// A control file: `[[ego]]` and `[[agent]]` entries (TOML), or `{"ego": [...], "agent": [...]}` (JSON).
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Control {
     /// Forced ego motions.
     #[serde(default)]
     pub ego: Vec<EgoControl>,
+    /// Agent states.
+    #[serde(default)]
+    pub agent: Vec<AgentControl>,
 }
 
 impl Control {
@@ -49,7 +95,37 @@ impl Control {
                 )));
             }
         }
+        for (i, a) in self.agent.iter().enumerate() {
+            if a.from >= a.to {
+                return Err(GenerateError::Settings(format!(
+                    "agent[{i}]: from {} is not below to {}",
+                    a.from, a.to
+                )));
+            }
+            if a.values().is_empty() {
+                return Err(GenerateError::Settings(format!(
+                    "agent[{i}]: sets no value (x, y, vx, vy, heading)"
+                )));
+            }
+            if !a.values().iter().all(|(_, v)| v.is_finite()) {
+                return Err(GenerateError::Settings(format!(
+                    "agent[{i}]: values must be finite"
+                )));
+            }
+            if let Some(c) = &a.category
+                && !["vehicle", "pedestrian", "cyclist"].contains(&c.as_str())
+            {
+                return Err(GenerateError::Settings(format!(
+                    "agent[{i}].category = {c:?}: expected vehicle, pedestrian or cyclist"
+                )));
+            }
+        }
         Ok(())
+    }
+
+    /// The agent controls active at generated frame `k`.
+    pub fn agents_at(&self, k: usize) -> impl Iterator<Item = &AgentControl> {
+        self.agent.iter().filter(move |a| a.from <= k && k < a.to)
     }
 
     /// The action tokens forced at generated frame `k`, given the action bins `(lo, hi, bins)` of dx, dy,
@@ -80,6 +156,7 @@ mod tests {
     #[test]
     fn ranges_bins_and_errors() {
         let c = Control {
+            agent: Vec::new(),
             ego: vec![
                 EgoControl {
                     from: 0,
@@ -112,6 +189,7 @@ mod tests {
                     ..c.ego[1].clone()
                 },
             ],
+            agent: Vec::new(),
         };
         assert!(
             bad.validate()
@@ -119,5 +197,32 @@ mod tests {
                 .to_string()
                 .contains("ego[1] overlaps ego[0]")
         );
+    }
+
+    #[test]
+    fn agent_entries_are_checked() {
+        let text = "[[agent]]\nslot = 2\nfrom = 1\nto = 3\nvx = 6.0\n[[agent]]\nslot = 4\nfrom = 0\nto = 1\ncategory = \"cyclist\"\ny = 2.0\n";
+        let c: Control = toml::from_str(text).unwrap();
+        c.validate().unwrap();
+        assert_eq!(c.agents_at(0).map(|a| a.slot).collect::<Vec<_>>(), [4]);
+        assert_eq!(c.agents_at(2).map(|a| a.slot).collect::<Vec<_>>(), [2]);
+        assert_eq!(c.agent[0].values(), [("vx", 6.0)]);
+        let empty: Control = toml::from_str("[[agent]]\nslot = 0\nfrom = 0\nto = 2\n").unwrap();
+        assert!(
+            empty
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("agent[0]: sets no value")
+        );
+        let cat: Control =
+            toml::from_str("[[agent]]\nslot = 0\nfrom = 0\nto = 2\nx = 1.0\ncategory = \"bus\"\n").unwrap();
+        assert!(
+            cat.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("agent[0].category = \"bus\"")
+        );
+        assert!(toml::from_str::<Control>("[[agent]]\nslot = 0\nfrom = 0\nto = 2\nspeed = 1.0\n").is_err());
     }
 }

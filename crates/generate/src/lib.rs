@@ -11,7 +11,7 @@ mod error;
 mod rollout;
 mod sampling;
 
-pub use control::{Control, EgoControl};
+pub use control::{AgentControl, Control, EgoControl};
 pub use error::{GenerateError, Result};
 pub use rollout::{FrameControl, Generator};
 pub use sampling::Sampling;

@@ -16,6 +16,12 @@ use umgen_backbone::{Backbone, Slot};
 pub struct FrameControl {
     /// Action tokens (dx, dy, dθ ids) per scene of the batch, replacing the ego module's prediction.
     pub action: Option<Vec<Vec<u32>>>,
+    /// Content tokens placed instead of drawn: frame position and the id for every scene. The OAR reads
+    /// them like drawn ones, so the tokens after them react.
+    pub tokens: Vec<(usize, u32)>,
+    /// Positions whose drawn id must be below a limit (e.g. the value bins of a controlled agent slot,
+    /// so that its other attributes are values, not pad or category ids).
+    pub below: Vec<(usize, u32)>,
 }
 
 /// Generates frames with a backbone.
@@ -90,8 +96,28 @@ impl<'a, B: Backend> Generator<'a, B> {
             (None, 0) => None,
             (None, _) => self.predict_action(history, &dev)?,
         };
+        let mut forced = vec![None; n];
+        for &(p, id) in &control.tokens {
+            match self.slots.get(p) {
+                Some(Slot::Content(s, _)) if (id as usize) < spec.segments[*s].vocab => forced[p] = Some(id),
+                _ => {
+                    return Err(GenerateError::Settings(format!(
+                        "forced token {id} at position {p}: not a content position of this layout, or outside its vocabulary"
+                    )));
+                }
+            }
+        }
+        let mut limits = vec![None; n];
+        for &(p, lim) in &control.below {
+            if p >= n || lim == 0 {
+                return Err(GenerateError::Settings(format!(
+                    "id limit {lim} at position {p}: outside the frame or empty"
+                )));
+            }
+            limits[p] = Some(lim as usize);
+        }
         let h = self.prior(history, action.as_ref(), &dev);
-        Ok(self.decode(h, action.as_ref(), m, &dev))
+        Ok(self.decode(h, action.as_ref(), &forced, &limits, m, &dev))
     }
 
     /// The last `window` frames as a tensor `[m, w, N]`.
@@ -176,6 +202,8 @@ impl<'a, B: Backend> Generator<'a, B> {
         &mut self,
         h: Tensor<B, 3>,
         action: Option<&Vec<Vec<u32>>>,
+        placed: &[Option<u32>],
+        limits: &[Option<usize>],
         m: usize,
         dev: &B::Device,
     ) -> Vec<Vec<u32>> {
@@ -207,10 +235,13 @@ impl<'a, B: Backend> Generator<'a, B> {
                         for (r, a) in out.iter_mut().zip(act) {
                             r[p] = a[i];
                         }
+                    } else if let Some(id) = placed[p] {
+                        out.iter_mut().for_each(|r| r[p] = id);
                     } else {
                         let rows = host_rows(self.model.logits_at(s, o, false));
                         let smp = self.sampling[s];
                         for (r, l) in out.iter_mut().zip(&rows) {
+                            let l = limits[p].map_or(&l[..], |k| &l[..k.min(l.len())]);
                             r[p] = smp.draw(l, &mut self.rng);
                         }
                     }

@@ -155,9 +155,22 @@ fn forced_actions_initial_scenes_and_bad_settings() {
     let mut g = Generator::new(&m, vec![Sampling::default(); 3], 4, 1).unwrap();
     let control = FrameControl {
         action: Some(vec![vec![15, 0, 7]]),
+        tokens: vec![(7, 11), (15, 2)],
+        below: Vec::new(),
     };
     let f = g.next_frame(&[vec![frame(&m, 2)]], &control).unwrap();
     assert_eq!(f[0][1..4], [15, 0, 7]);
+    assert_eq!((f[0][7], f[0][15]), (11, 2), "placed tokens");
+    // A limit of 1 leaves only id 0 at that position, whatever the draws.
+    for seed in 0..5 {
+        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 4, seed).unwrap();
+        let limited = FrameControl {
+            below: vec![(8, 1), (16, 1)],
+            ..Default::default()
+        };
+        let f = g.next_frame(&[vec![frame(&m, 2)]], &limited).unwrap();
+        assert_eq!((f[0][8], f[0][16]), (0, 0));
+    }
     // From nothing: no TAR, the OAR draws every token, the action too.
     let f = g.next_frame(&[vec![]], &FrameControl::default()).unwrap();
     assert_eq!(f[0].len(), m.spec().n);
@@ -166,6 +179,7 @@ fn forced_actions_initial_scenes_and_bad_settings() {
     assert!(g.next_frame(&[long], &FrameControl::default()).is_ok());
     let bad = FrameControl {
         action: Some(vec![vec![1, 2]]),
+        ..Default::default()
     };
     let e = g.next_frame(&[vec![frame(&m, 2)]], &bad).unwrap_err().to_string();
     assert!(e.contains("3 tokens"), "{e}");

@@ -39,6 +39,7 @@ pub use umgen_data as data;
 pub use umgen_dist as dist;
 pub use umgen_generate as generate;
 pub use umgen_modality as modality;
+pub use umgen_modality_agent as modality_agent;
 pub use umgen_modality_map as modality_map;
 pub use umgen_scene as scene;
 pub use umgen_tokenizer_vq as tokenizer_vq;

@@ -65,8 +65,11 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             {
                 tracing::warn!("frame {k}: {clamped} forced action value(s) outside the bins, clamped");
             }
+            let (placed, below) = agent_tokens(&bundle, &registry, &control, k)?;
             let fc = FrameControl {
                 action: forced.map(|(ids, _)| vec![ids; a.scenes]),
+                tokens: placed.clone(),
+                below,
             };
             let next = g.next_frame(&history, &fc)?;
             for (h, f) in history.iter_mut().zip(next) {
@@ -125,6 +128,76 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         a.frames
     );
     Ok(())
+}
+
+/// Placed tokens and id limits for generated frame `k`: each value the control file sets, encoded with the
+/// agent modality's bins (its `[modality.<name>]` table), and the slot's category are placed; the slot's
+/// other attributes are drawn from the value bins only (never pad or a category).
+type Placement = (Vec<(usize, u32)>, Vec<(usize, u32)>);
+
+fn agent_tokens(
+    bundle: &Bundle,
+    registry: &ModalityRegistry,
+    control: &Control,
+    k: usize,
+) -> anyhow::Result<Placement> {
+    use umgen::modality_agent::{ATTRIBUTES, AgentConfig, VALUE_FIELDS};
+    let (mut out, mut below) = (Vec::new(), Vec::new());
+    let active: Vec<_> = control.agents_at(k).collect();
+    if active.is_empty() {
+        return Ok((out, below));
+    }
+    let layout = registry.layout()?;
+    let seg = layout
+        .segments()
+        .iter()
+        .find(|s| s.kind == umgen::modality_agent::KIND)
+        .context("the control file sets agents, but this model has no agent modality")?;
+    let table = bundle
+        .config
+        .modality
+        .get(&seg.modality)
+        .cloned()
+        .unwrap_or_default();
+    let cfg: AgentConfig = umgen::modality::parse_settings(&seg.modality, &table)?;
+    let slots = seg.tokens / ATTRIBUTES;
+    for (i, a) in active.iter().enumerate() {
+        anyhow::ensure!(
+            a.slot < slots,
+            "agent[{i}].slot = {}: this model has slots 0..{slots}",
+            a.slot
+        );
+        let base = seg.offset + a.slot * ATTRIBUTES;
+        for (name, v) in a.values() {
+            let f = VALUE_FIELDS
+                .iter()
+                .position(|x| *x == name)
+                .context("unknown agent field")?;
+            let [lo, hi] = cfg.ranges()[f];
+            let bins = umgen::modality::ScalarBins::new(
+                &format!("modality.{}.{name}", seg.modality),
+                lo,
+                hi,
+                cfg.bins,
+            )?;
+            let (id, clamp) = bins.encode(v);
+            if clamp.is_some() {
+                tracing::warn!(
+                    "frame {k}: agent slot {} {name} = {v} is outside [{lo}, {hi}], clamped",
+                    a.slot
+                );
+            }
+            out.push((base + f, id));
+        }
+        let category = match a.category.as_deref().unwrap_or("vehicle") {
+            "pedestrian" => umgen::scene::AgentCategory::Pedestrian,
+            "cyclist" => umgen::scene::AgentCategory::Cyclist,
+            _ => umgen::scene::AgentCategory::Vehicle,
+        };
+        out.push((base + ATTRIBUTES - 1, cfg.category_id(category)));
+        below.extend((0..ATTRIBUTES - 1).map(|f| (base + f, cfg.bins)));
+    }
+    Ok((out, below))
 }
 
 fn read_control(p: &Path) -> anyhow::Result<Control> {
