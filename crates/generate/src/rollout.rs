@@ -22,6 +22,10 @@ pub struct FrameControl {
     /// Positions whose drawn id must be below a limit (e.g. the value bins of a controlled agent slot,
     /// so that its other attributes are values, not pad or category ids).
     pub below: Vec<(usize, u32)>,
+    /// Positions `(p, pad id, per scene)` where, for the scenes marked true, a drawn pad id is replaced by a
+    /// draw from the TAR head with pad excluded: an agent present in the previous frame does not vanish
+    /// on one OAR draw; the TAR, which sees the history, decides (the official code's heuristic).
+    pub keep: Vec<(usize, u32, Vec<bool>)>,
 }
 
 /// Generates frames with a backbone.
@@ -116,8 +120,22 @@ impl<'a, B: Backend> Generator<'a, B> {
             }
             limits[p] = Some(lim as usize);
         }
+        let mut keep = vec![None; n];
+        for (p, pad, scenes) in &control.keep {
+            if *p >= n || scenes.len() != m {
+                return Err(GenerateError::Settings(format!(
+                    "keep at position {p}: outside the frame, or not one flag per scene"
+                )));
+            }
+            keep[*p] = Some((*pad, scenes.clone()));
+        }
         let h = self.prior(history, action.as_ref(), &dev);
-        Ok(self.decode(h, action.as_ref(), &forced, &limits, m, &dev))
+        let rules = Rules {
+            placed: &forced,
+            limits: &limits,
+            keep: &keep,
+        };
+        Ok(self.decode(h, action.as_ref(), &rules, m, &dev))
     }
 
     /// The last `window` frames as a tensor `[m, w, N]`.
@@ -202,8 +220,7 @@ impl<'a, B: Backend> Generator<'a, B> {
         &mut self,
         h: Tensor<B, 3>,
         action: Option<&Vec<Vec<u32>>>,
-        placed: &[Option<u32>],
-        limits: &[Option<usize>],
+        rules: &Rules<'_>,
         m: usize,
         dev: &B::Device,
     ) -> Vec<Vec<u32>> {
@@ -235,14 +252,29 @@ impl<'a, B: Backend> Generator<'a, B> {
                         for (r, a) in out.iter_mut().zip(act) {
                             r[p] = a[i];
                         }
-                    } else if let Some(id) = placed[p] {
+                    } else if let Some(id) = rules.placed[p] {
                         out.iter_mut().for_each(|r| r[p] = id);
                     } else {
                         let rows = host_rows(self.model.logits_at(s, o, false));
                         let smp = self.sampling[s];
                         for (r, l) in out.iter_mut().zip(&rows) {
-                            let l = limits[p].map_or(&l[..], |k| &l[..k.min(l.len())]);
+                            let l = rules.limits[p].map_or(&l[..], |k| &l[..k.min(l.len())]);
                             r[p] = smp.draw(l, &mut self.rng);
+                        }
+                        if let Some((pad, scenes)) = &rules.keep[p] {
+                            let redraw: Vec<usize> =
+                                (0..m).filter(|&b| scenes[b] && out[b][p] == *pad).collect();
+                            if !redraw.is_empty() {
+                                let hp = h.clone().narrow(1, p, 1).reshape([m, d]);
+                                let tar = host_rows(self.model.logits_at(s, hp, true));
+                                for b in redraw {
+                                    let mut l = tar[b].clone();
+                                    if let Some(x) = l.get_mut(*pad as usize) {
+                                        *x = f32::NEG_INFINITY;
+                                    }
+                                    out[b][p] = smp.draw(&l, &mut self.rng);
+                                }
+                            }
                         }
                     }
                 }
@@ -250,6 +282,13 @@ impl<'a, B: Backend> Generator<'a, B> {
         }
         out
     }
+}
+
+/// Per-position rules of one frame's decoding.
+struct Rules<'a> {
+    placed: &'a [Option<u32>],
+    limits: &'a [Option<usize>],
+    keep: &'a [Option<(u32, Vec<bool>)>],
 }
 
 /// Rows of a `[r, v]` tensor on the host.

@@ -156,11 +156,26 @@ fn forced_actions_initial_scenes_and_bad_settings() {
     let control = FrameControl {
         action: Some(vec![vec![15, 0, 7]]),
         tokens: vec![(7, 11), (15, 2)],
-        below: Vec::new(),
+        ..Default::default()
     };
     let f = g.next_frame(&[vec![frame(&m, 2)]], &control).unwrap();
     assert_eq!(f[0][1..4], [15, 0, 7]);
     assert_eq!((f[0][7], f[0][15]), (11, 2), "placed tokens");
+    // Keep: where the OAR can only draw id 0 (a stand-in for pad), scenes marked true redraw from the TAR
+    // head without it; the others keep 0.
+    for seed in 0..5 {
+        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 4, seed).unwrap();
+        let keep = FrameControl {
+            below: vec![(8, 1)],
+            keep: vec![(8, 0, vec![true, false])],
+            ..Default::default()
+        };
+        let f = g
+            .next_frame(&[vec![frame(&m, 2)], vec![frame(&m, 3)]], &keep)
+            .unwrap();
+        assert!(f[0][8] != 0 && f[0][8] < 12, "redrawn: {}", f[0][8]);
+        assert_eq!(f[1][8], 0);
+    }
     // A limit of 1 leaves only id 0 at that position, whatever the draws.
     for seed in 0..5 {
         let mut g = Generator::new(&m, vec![Sampling::default(); 3], 4, seed).unwrap();

@@ -66,10 +66,12 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
                 tracing::warn!("frame {k}: {clamped} forced action value(s) outside the bins, clamped");
             }
             let (placed, below) = agent_tokens(&bundle, &registry, &control, k)?;
+            let keep = keep_agents(&registry, &history)?;
             let fc = FrameControl {
                 action: forced.map(|(ids, _)| vec![ids; a.scenes]),
                 tokens: placed.clone(),
                 below,
+                keep,
             };
             let next = g.next_frame(&history, &fc)?;
             for (h, f) in history.iter_mut().zip(next) {
@@ -198,6 +200,34 @@ fn agent_tokens(
         below.extend((0..ATTRIBUTES - 1).map(|f| (base + f, cfg.bins)));
     }
     Ok((out, below))
+}
+
+/// Every agent-slot position whose token was not pad in a scene's newest frame: a pad drawn there is
+/// redrawn from the TAR head, so agents leave the scene when the TAR says so, not on one OAR draw.
+fn keep_agents(
+    registry: &ModalityRegistry,
+    history: &[Vec<Vec<u32>>],
+) -> anyhow::Result<Vec<(usize, u32, Vec<bool>)>> {
+    let layout = registry.layout()?;
+    let Some(seg) = layout
+        .segments()
+        .iter()
+        .find(|s| s.kind == umgen::modality_agent::KIND)
+    else {
+        return Ok(Vec::new());
+    };
+    let Some(pad) = seg.pad_id else {
+        return Ok(Vec::new());
+    };
+    Ok((seg.offset..seg.offset + seg.tokens)
+        .filter_map(|p| {
+            let alive: Vec<bool> = history
+                .iter()
+                .map(|h| h.last().is_some_and(|f| f.get(p).is_some_and(|&id| id != pad)))
+                .collect();
+            alive.iter().any(|&x| x).then_some((p, pad, alive))
+        })
+        .collect())
 }
 
 fn read_control(p: &Path) -> anyhow::Result<Control> {
