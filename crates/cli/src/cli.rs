@@ -42,6 +42,9 @@ pub enum Command {
     Export(ExportArgs),
     /// Generate scenes with an exported bundle: continue a dataset clip or start from nothing.
     Generate(GenerateArgs),
+    /// Measure generated scenes against real data: MMD of agent attributes, collision rate, L2 of ego and
+    /// agents against ground truth next to the constant-velocity baseline.
+    Eval(EvalArgs),
     /// Start K local ranks of a command (e.g. `train`) with the torchrun variables and supervise them:
     /// if one fails, the others are stopped and the exit code is non-zero.
     Launch(LaunchArgs),
@@ -108,6 +111,26 @@ pub struct GenerateArgs {
     /// `cpu`, or `cuda:N`.
     #[arg(long, default_value = "cpu")]
     pub device: String,
+}
+
+/// Arguments of `umgen eval`.
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Output of `umgen generate` (`scenes.json`, `meta.json`).
+    #[arg(long, value_name = "DIR")]
+    pub generated: PathBuf,
+    /// The real dataset (ground truth of the context clip; the reference collision rate and initial scenes).
+    #[arg(long, value_name = "DIR")]
+    pub reference: PathBuf,
+    /// Report directory (`report.json`, `report.md`, `l2.png`); default `<generated>/eval`.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Split of the reference data sampled for the real collision rate and initial scenes.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Use every n-th frame of the reference split.
+    #[arg(long, default_value_t = 10)]
+    pub stride: usize,
 }
 
 /// Arguments of `umgen launch`.

@@ -34,7 +34,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     })?;
     let (context, interval) = context_clip(a)?;
     let context_rows = match &context {
-        Some(clip) => registry.tokenize_clip(clip)?,
+        Some(c) => registry.tokenize_clip(&c.clip)?,
         None => Vec::new(),
     };
     let sampling = Sampling {
@@ -101,7 +101,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     )?;
     let start = context
         .as_ref()
-        .and_then(|c| c.frames.last().cloned())
+        .and_then(|c| c.clip.frames.last().cloned())
         .unwrap_or_default();
     let mut decoded = Vec::with_capacity(scenes.len());
     let mut malformed = 0;
@@ -122,6 +122,21 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         })
         .collect();
     std::fs::write(a.out.join("scenes.json"), serde_json::to_vec(&light)?)?;
+    // What `umgen eval` needs to find the ground truth and the tokenizers.
+    let context_meta = context
+        .as_ref()
+        .map(|c| serde_json::json!({"data": c.data, "clip": c.id, "frames": n_context}));
+    std::fs::write(
+        a.out.join("meta.json"),
+        serde_json::to_vec_pretty(&serde_json::json!({
+            "bundle": std::fs::canonicalize(&a.bundle).unwrap_or_else(|_| a.bundle.clone()),
+            "context": context_meta,
+            "frames": a.frames,
+            "scenes": a.scenes,
+            "seed": a.seed,
+            "interval": interval,
+        }))?,
+    )?;
     draw(&bundle, &decoded[0], &a.out, a.png)?;
     tracing::info!(
         "{}: tokens.json, scenes.json, rollout.gif ({} context + {} generated frames)",
@@ -240,8 +255,15 @@ fn read_control(p: &Path) -> anyhow::Result<Control> {
     Ok(c)
 }
 
-/// The context clip (`--context DATA:CLIP[:FRAMES]`) and the frame interval.
-fn context_clip(a: &GenerateArgs) -> anyhow::Result<(Option<SceneClip>, f64)> {
+/// The context (`--context DATA:CLIP[:FRAMES]`): its frames, and the dataset and clip id for `meta.json`.
+struct ContextClip {
+    clip: SceneClip,
+    data: String,
+    id: String,
+}
+
+/// The context clip, if any, and the frame interval.
+fn context_clip(a: &GenerateArgs) -> anyhow::Result<(Option<ContextClip>, f64)> {
     let Some(spec) = &a.context else {
         anyhow::ensure!(
             a.from_scratch,
@@ -267,7 +289,15 @@ fn context_clip(a: &GenerateArgs) -> anyhow::Result<(Option<SceneClip>, f64)> {
     anyhow::ensure!(n > 0, "--context {spec}: the clip has no frames");
     let clip = ds.read_window(index, 0, n, 1)?;
     let interval = clip.interval;
-    Ok((Some(clip), interval))
+    let id = ds.clips()[index].id.clone();
+    Ok((
+        Some(ContextClip {
+            clip,
+            data: data.to_string(),
+            id,
+        }),
+        interval,
+    ))
 }
 
 /// Decodes generated rows into frames, integrating the ego pose from `start` by each decoded action.

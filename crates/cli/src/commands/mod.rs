@@ -5,6 +5,8 @@ mod bench_generate;
 mod bench_train;
 mod data;
 mod doctor;
+mod eval;
+mod eval_plot;
 mod export;
 mod generate;
 mod launch;
@@ -30,6 +32,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Train(args) => train::run(&args),
         Command::Launch(args) => launch::run(&args),
         Command::Export(args) => export::run(&args),
+        Command::Eval(args) => eval::run(&args),
         Command::Generate(args) => generate::run(&args),
     }
 }

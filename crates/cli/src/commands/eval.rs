@@ -1,0 +1,208 @@
+//! `umgen eval`: the paper's measures on the output of `umgen generate` (docs/results.md explains them).
+
+use crate::cli::EvalArgs;
+use anyhow::Context;
+use std::fmt::Write as _;
+use std::path::Path;
+use umgen::data::Dataset;
+use umgen::modality::ModalityRegistry;
+use umgen::scene::{Agent, Frame, SceneClip};
+use umgen::{Bundle, builtin_catalog};
+use umgen_eval::collision::collision_rate;
+use umgen_eval::l2::{agent_l2, constant_velocity_agents, constant_velocity_ego, ego_l2, positions};
+use umgen_eval::mmd::{Group, mmd};
+
+/// Decoded agents (slot ids as track ids, binned values) of every row.
+fn decode_rows(registry: &ModalityRegistry, rows: &[Vec<u32>]) -> anyhow::Result<Vec<Vec<Agent>>> {
+    rows.iter()
+        .map(|r| {
+            let mut f = Frame::default();
+            registry.detokenize(r, &mut f)?;
+            Ok(f.agents)
+        })
+        .collect()
+}
+
+/// MMD per attribute group between two agent sets.
+fn mmd_groups(generated: &[&Agent], real: &[&Agent]) -> serde_json::Value {
+    let mut out = serde_json::Map::new();
+    for g in Group::ALL {
+        let x: Vec<Vec<f64>> = generated.iter().map(|a| g.features(a)).collect();
+        let y: Vec<Vec<f64>> = real.iter().map(|a| g.features(a)).collect();
+        out.insert(g.name().into(), serde_json::json!(mmd(&x, &y)));
+    }
+    serde_json::Value::Object(out)
+}
+
+fn mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+/// Evaluates.
+pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
+    let read = |name: &str| -> anyhow::Result<serde_json::Value> {
+        let p = a.generated.join(name);
+        let bytes = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+        serde_json::from_slice(&bytes).with_context(|| p.display().to_string())
+    };
+    let meta = read("meta.json")?;
+    let scenes: Vec<SceneClip> = serde_json::from_value(read("scenes.json")?).context("scenes.json")?;
+    anyhow::ensure!(
+        !scenes.is_empty(),
+        "{}: no generated scenes",
+        a.generated.display()
+    );
+    let bundle_dir = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
+    let bundle = Bundle::open(Path::new(bundle_dir))?;
+    let registry = bundle.config.registry(&builtin_catalog()?)?;
+    let ds = Dataset::open(&a.reference)?;
+    let dt = meta["interval"].as_f64().unwrap_or(0.5);
+    let mut report =
+        serde_json::json!({"generated": a.generated, "reference": a.reference, "scenes": scenes.len()});
+
+    // The real data's collision rate over a sample of the split (raw agents).
+    let mut real_frames: Vec<Vec<Agent>> = Vec::new();
+    let mut initial: Vec<Agent> = Vec::new();
+    for (i, c) in ds.clips().iter().enumerate().filter(|(_, c)| c.split == a.split) {
+        let clip = ds.read_clip(i)?;
+        initial.extend(clip.frames.first().map(|f| f.agents.clone()).unwrap_or_default());
+        real_frames.extend(
+            clip.frames
+                .iter()
+                .step_by(a.stride.max(1))
+                .map(|f| f.agents.clone()),
+        );
+        let _ = c;
+    }
+    let generated_frames: Vec<&[Agent]> = scenes
+        .iter()
+        .flat_map(|s| s.frames.iter().map(|f| &f.agents[..]))
+        .collect();
+    report["collision_rate"] = serde_json::json!({
+        "generated": collision_rate(generated_frames.iter().copied()),
+        "real": collision_rate(real_frames.iter().map(|f| &f[..])),
+        "real_frames": real_frames.len(),
+    });
+
+    let mut md = String::new();
+    writeln!(md, "# Evaluation of {}\n", a.generated.display())?;
+    let (mut l2_rows, mut mmd_rows) = (Vec::new(), Vec::new());
+    match meta["context"].as_object() {
+        Some(ctx) => {
+            let clip_id = ctx
+                .get("clip")
+                .and_then(|v| v.as_str())
+                .context("meta.json: context.clip")?;
+            let n = ctx.get("frames").and_then(serde_json::Value::as_u64).unwrap_or(1) as usize;
+            let idx = ds.find_clip(clip_id)?;
+            let k = scenes[0]
+                .frames
+                .len()
+                .min(ds.clips()[idx].frames.saturating_sub(n));
+            anyhow::ensure!(
+                n >= 1 && k >= 1,
+                "clip `{clip_id}` has no ground truth after its {n} context frames"
+            );
+            let gt = ds.read_window(idx, 0, n + k, 1)?;
+            let truth = decode_rows(&registry, &registry.tokenize_clip(&gt)?)?;
+            let last = &gt.frames[n - 1];
+            let cv_ego = constant_velocity_ego(&last.ego, &last.action, dt, k);
+            let truth_poses: Vec<_> = gt.frames[n..n + k].iter().map(|f| f.ego).collect();
+            let cv_ego_err = ego_l2(&cv_ego, &truth_poses);
+            for h in 1..=k {
+                let t = &gt.frames[n + h - 1];
+                let true_pos = positions(&t.ego, &truth[n + h - 1]);
+                let model_ego: Vec<f64> = scenes
+                    .iter()
+                    .map(|s| ego_l2(&[s.frames[h - 1].ego], &[t.ego])[0])
+                    .collect();
+                let model_agents: Vec<f64> = scenes
+                    .iter()
+                    .filter_map(|s| {
+                        agent_l2(
+                            &positions(&s.frames[h - 1].ego, &s.frames[h - 1].agents),
+                            &true_pos,
+                        )
+                    })
+                    .map(|(d, _)| d)
+                    .collect();
+                let cv_agents = agent_l2(
+                    &constant_velocity_agents(&last.ego, &truth[n - 1], dt, h),
+                    &true_pos,
+                );
+                l2_rows.push(serde_json::json!({
+                    "horizon": h, "seconds": dt * h as f64,
+                    "ego_model": mean(&model_ego), "ego_constant_velocity": cv_ego_err[h - 1],
+                    "agents_model": mean(&model_agents), "agents_constant_velocity": cv_agents.map(|x| x.0),
+                }));
+                let generated: Vec<&Agent> = scenes
+                    .iter()
+                    .flat_map(|s| s.frames[h - 1].agents.iter())
+                    .collect();
+                let real: Vec<&Agent> = truth[n + h - 1].iter().collect();
+                mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
+            }
+        }
+        None => {
+            // Initial scenes (TrafficGen's setting): generated first frames against real first frames.
+            let generated: Vec<&Agent> = scenes.iter().flat_map(|s| s.frames[0].agents.iter()).collect();
+            let real: Vec<&Agent> = initial.iter().collect();
+            mmd_rows.push(serde_json::json!({"frame": 1, "mmd": mmd_groups(&generated, &real)}));
+        }
+    }
+    let mut mmd_mean = serde_json::Map::new();
+    for g in Group::ALL {
+        let v: Vec<f64> = mmd_rows
+            .iter()
+            .filter_map(|r| r["mmd"][g.name()].as_f64())
+            .collect();
+        mmd_mean.insert(g.name().into(), serde_json::json!(mean(&v)));
+    }
+    report["l2"] = serde_json::json!(l2_rows);
+    report["mmd_per_frame"] = serde_json::json!(mmd_rows);
+    report["mmd"] = serde_json::Value::Object(mmd_mean);
+    let out = a.out.clone().unwrap_or_else(|| a.generated.join("eval"));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    std::fs::write(out.join("report.json"), serde_json::to_vec_pretty(&report)?)?;
+    let f = |v: &serde_json::Value| v.as_f64().map_or("-".to_string(), |x| format!("{x:.4}"));
+    writeln!(md, "| measure | value |\n|---|---|")?;
+    writeln!(
+        md,
+        "| collision rate, generated | {} |",
+        f(&report["collision_rate"]["generated"])
+    )?;
+    writeln!(
+        md,
+        "| collision rate, real ({} frames) | {} |",
+        real_frames.len(),
+        f(&report["collision_rate"]["real"])
+    )?;
+    for g in Group::ALL {
+        writeln!(md, "| MMD {} | {} |", g.name(), f(&report["mmd"][g.name()]))?;
+    }
+    if !l2_rows.is_empty() {
+        writeln!(
+            md,
+            "\n| horizon (s) | ego L2 model | ego L2 const. vel. | agents L2 model | agents L2 const. vel. |\n|---|---|---|---|---|"
+        )?;
+        for r in &l2_rows {
+            writeln!(
+                md,
+                "| {:.1} | {} | {} | {} | {} |",
+                r["seconds"].as_f64().unwrap_or(0.0),
+                f(&r["ego_model"]),
+                f(&r["ego_constant_velocity"]),
+                f(&r["agents_model"]),
+                f(&r["agents_constant_velocity"])
+            )?;
+        }
+        super::eval_plot::l2_plot(&l2_rows, &out.join("l2.png"))?;
+    }
+    std::fs::write(out.join("report.md"), &md)?;
+    tracing::info!(
+        "{}: report.json, report.md{}",
+        out.display(),
+        if l2_rows.is_empty() { "" } else { ", l2.png" }
+    );
+    Ok(())
+}

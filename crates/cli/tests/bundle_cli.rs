@@ -1,0 +1,256 @@
+//! Export, generation and evaluation end to end on the tiny fixture: a bundle that outside readers load
+//! and that refuses damage; rollouts whose tokens stay in their vocabularies, that follow ego and agent
+//! control and repeat with their seed; `umgen eval` on them.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use umgen::data::Dataset;
+use umgen_tests::run_fixture::Fixture;
+
+fn umgen(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(args)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap()
+}
+
+fn ok(out: Output) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "stderr: {err}");
+    err
+}
+
+#[test]
+fn export_writes_a_bundle_that_opens_and_refuses_damage() {
+    let fx = Fixture::new();
+    let cfg = fx.config("e", 2);
+    ok(umgen(&["train", "--config", cfg.to_str().unwrap()]));
+    let run = fx.run_dir("e");
+    let f32_dir = fx.dir.path().join("bundle-f32");
+    let bf16_dir = fx.dir.path().join("bundle-bf16");
+    ok(umgen(&[
+        "export",
+        "--checkpoint",
+        run.to_str().unwrap(),
+        "--out",
+        f32_dir.to_str().unwrap(),
+    ]));
+    ok(umgen(&[
+        "export",
+        "--checkpoint",
+        run.to_str().unwrap(),
+        "--out",
+        bf16_dir.to_str().unwrap(),
+        "--dtype",
+        "bf16",
+    ]));
+    let a = umgen::Bundle::open(&f32_dir).unwrap();
+    let b = umgen::Bundle::open(&bf16_dir).unwrap();
+    assert_eq!(a.manifest.step, 2);
+    assert_eq!(a.manifest.fingerprint, b.manifest.fingerprint);
+    assert!(a.manifest.files.contains_key("tokenizers/map/vq.safetensors"));
+    assert_eq!(a.manifest.layout["n"], b.manifest.layout["n"]);
+    // bf16 = f32 rounded: same names and shapes, values within bf16's relative step.
+    let (wa, wb) = (a.weights().unwrap(), b.weights().unwrap());
+    let (sa, sb) = (
+        safetensors::SafeTensors::deserialize(&wa).unwrap(),
+        safetensors::SafeTensors::deserialize(&wb).unwrap(),
+    );
+    assert_eq!(sa.names().len(), sb.names().len());
+    for (name, va) in sa.tensors() {
+        let vb = sb.tensor(&name).unwrap();
+        assert_eq!((vb.dtype(), vb.shape()), (safetensors::Dtype::BF16, va.shape()));
+        for (x, h) in va.data().chunks_exact(4).zip(vb.data().chunks_exact(2)) {
+            let x = f32::from_le_bytes([x[0], x[1], x[2], x[3]]);
+            let y = f32::from_bits(u32::from(u16::from_le_bytes([h[0], h[1]])) << 16);
+            assert!((x - y).abs() <= x.abs() / 256.0, "{name}: {x} vs {y}");
+        }
+    }
+    // Outside readers: Python's safetensors (CI's UMGEN_TB_PYTHON has it).
+    if let Ok(python) = std::env::var("UMGEN_TB_PYTHON") {
+        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/python/check_bundle.py");
+        for (dir, dtype) in [(&f32_dir, "F32"), (&bf16_dir, "BF16")] {
+            let out = Command::new(&python)
+                .arg(&script)
+                .arg(dir)
+                .args([dtype, "time", "oar_heads.heads.0.weight"])
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "{}{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+    }
+    // Generation from the bundle: tokens in their vocabularies, a forced left turn turns left, seeds repeat.
+    let ds = Dataset::open(&fx.data).unwrap();
+    let context = format!("{}:{}:2", fx.data.display(), ds.clips()[0].id);
+    let control = fx.dir.path().join("left.toml");
+    std::fs::write(&control, "[[ego]]\nfrom = 0\nto = 4\ndx = 2.0\ndtheta = 0.15\n").unwrap();
+    let generate = |bundle: &Path, out: &str, seed: &str| {
+        let out = fx.dir.path().join(out);
+        let args = [
+            "generate",
+            "--bundle",
+            bundle.to_str().unwrap(),
+            "--context",
+            &context,
+            "--frames",
+            "4",
+            "--scenes",
+            "2",
+            "--control",
+            control.to_str().unwrap(),
+            "--seed",
+            seed,
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        ok(umgen(&args));
+        out
+    };
+    let g1 = generate(&bf16_dir, "gen1", "3");
+    let tokens: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(g1.join("tokens.json")).unwrap()).unwrap();
+    let segments = b.manifest.layout["segments"].as_array().unwrap().clone();
+    for scene in tokens["scenes"].as_array().unwrap() {
+        let frames = scene.as_array().unwrap();
+        assert_eq!(frames.len(), 2 + 4, "2 context + 4 generated frames");
+        for f in frames {
+            let f: Vec<u64> = f
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_u64().unwrap())
+                .collect();
+            for seg in &segments {
+                let (off, n, vocab) = (
+                    seg["offset"].as_u64().unwrap() as usize,
+                    seg["tokens"].as_u64().unwrap() as usize,
+                    seg["vocab_size"].as_u64().unwrap(),
+                );
+                assert!(
+                    f[off..off + n].iter().all(|&id| id < vocab),
+                    "{}",
+                    seg["modality"]
+                );
+            }
+        }
+    }
+    let scenes: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(g1.join("scenes.json")).unwrap()).unwrap();
+    for clip in scenes.as_array().unwrap() {
+        let headings: Vec<f64> = clip["frames"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["ego"]["heading"].as_f64().unwrap())
+            .collect();
+        let turns: Vec<f64> = headings.windows(2).map(|w| w[1] - w[0]).collect();
+        assert!(
+            turns.iter().all(|d| *d > 0.1 && *d < 0.2),
+            "a left turn each frame: {headings:?}"
+        );
+    }
+    assert!(g1.join("rollout.gif").exists());
+
+    let g2 = generate(&bf16_dir, "gen2", "3");
+    assert_eq!(
+        std::fs::read(g1.join("tokens.json")).unwrap(),
+        std::fs::read(g2.join("tokens.json")).unwrap()
+    );
+    // An agent placed by the control file appears where it was put (within a bin), with its velocity.
+    std::fs::write(
+        &control,
+        "[[agent]]\nslot = 1\nfrom = 0\nto = 4\nx = 12.0\ny = 3.5\nvx = 6.0\nvy = -1.0\n",
+    )
+    .unwrap();
+    let g4 = generate(&bf16_dir, "gen4", "3");
+    let scenes: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(g4.join("scenes.json")).unwrap()).unwrap();
+    for clip in scenes.as_array().unwrap() {
+        for f in clip["frames"].as_array().unwrap() {
+            let a = f["agents"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|a| a["track_id"] == 1)
+                .expect("the controlled agent");
+            for (k, want) in [("x", 12.0), ("y", 3.5), ("vx", 6.0), ("vy", -1.0)] {
+                let got = a[k].as_f64().unwrap();
+                assert!((got - want).abs() < 0.5, "{k}: {got} vs {want}");
+            }
+            assert_eq!(a["category"], "vehicle");
+        }
+    }
+    // `umgen eval` on the rollout with a placed agent: an L2 row per generated frame, rates in [0, 1], an MMD per attribute group.
+    let split = ds.clips()[0].split.clone();
+    ok(umgen(&[
+        "eval",
+        "--generated",
+        g4.to_str().unwrap(),
+        "--reference",
+        fx.data.to_str().unwrap(),
+        "--split",
+        &split,
+        "--stride",
+        "1",
+    ]));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(g4.join("eval/report.json")).unwrap()).unwrap();
+    let l2 = report["l2"].as_array().unwrap();
+    assert_eq!(l2.len(), 4, "{report}");
+    for r in l2 {
+        for k in ["ego_model", "ego_constant_velocity"] {
+            assert!(r[k].as_f64().unwrap() >= 0.0, "{k}: {r}");
+        }
+    }
+    // The real rate exists (the fixture has cars); the generated one exists when the model drew agents.
+    assert!(
+        report["collision_rate"]["real"]
+            .as_f64()
+            .is_some_and(|v| (0.0..=1.0).contains(&v)),
+        "{report}"
+    );
+    let g = &report["collision_rate"]["generated"];
+    assert!(
+        g.is_null() || g.as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)),
+        "{report}"
+    );
+    for g in ["position", "heading", "size", "velocity"] {
+        assert!(report["mmd"][g].as_f64().is_some(), "{g}: {report}");
+    }
+    assert!(g4.join("eval/report.md").exists() && g4.join("eval/l2.png").exists());
+    let g3 = generate(&bf16_dir, "gen3", "4");
+    assert_ne!(
+        std::fs::read(g1.join("tokens.json")).unwrap(),
+        std::fs::read(g3.join("tokens.json")).unwrap()
+    );
+
+    // A missing or replaced file is refused, naming it; so is an existing output directory.
+    std::fs::remove_file(bf16_dir.join("tokenizers/image/vq.json")).unwrap();
+    let e = umgen::Bundle::open(&bf16_dir).unwrap_err().to_string();
+    assert!(
+        e.contains("tokenizers/image/vq.json") && e.contains("unreadable"),
+        "{e}"
+    );
+    let w = f32_dir.join("model.safetensors");
+    let mut bytes = std::fs::read(&w).unwrap();
+    let n = bytes.len();
+    bytes[n - 1] ^= 1;
+    std::fs::write(&w, bytes).unwrap();
+    let e = umgen::Bundle::open(&f32_dir).unwrap_err().to_string();
+    assert!(e.contains("model.safetensors") && e.contains("checksum"), "{e}");
+    let out = umgen(&[
+        "export",
+        "--checkpoint",
+        run.to_str().unwrap(),
+        "--out",
+        f32_dir.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("already exists"));
+}
