@@ -13,5 +13,5 @@ mod sampling;
 
 pub use control::{AgentControl, Control, EgoControl};
 pub use error::{GenerateError, Result};
-pub use rollout::{FrameControl, Generator};
+pub use rollout::{FrameControl, Generator, TokenGroups};
 pub use sampling::Sampling;

@@ -26,6 +26,27 @@ pub struct FrameControl {
     /// draw from the TAR head with pad excluded: an agent present in the previous frame does not vanish
     /// on one OAR draw; the TAR, which sees the history, decides (the official code's heuristic).
     pub keep: Vec<(usize, u32, Vec<bool>)>,
+    /// Runs of token groups that must each come out whole (agent slots: all pad, or values then a
+    /// category).
+    pub groups: Vec<TokenGroups>,
+}
+
+/// `count` groups of `size` tokens from position `first`. A group's first token is a value or pad; after a
+/// pad the rest is pad; otherwise the middle tokens are values and the last one is from `last`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TokenGroups {
+    /// First position of the first group.
+    pub first: usize,
+    /// Tokens per group.
+    pub size: usize,
+    /// Groups.
+    pub count: usize,
+    /// The pad id.
+    pub pad: u32,
+    /// Value ids are `0..values`.
+    pub values: u32,
+    /// Ids of a group's last token (e.g. the categories).
+    pub last: std::ops::Range<u32>,
 }
 
 /// Generates frames with a backbone.
@@ -129,11 +150,24 @@ impl<'a, B: Backend> Generator<'a, B> {
             }
             keep[*p] = Some((*pad, scenes.clone()));
         }
+        let mut group = vec![None; n];
+        for g in &control.groups {
+            if g.size < 2 || g.first + g.size * g.count > n {
+                return Err(GenerateError::Settings(format!(
+                    "token groups from {} ({} × {}): outside the frame or smaller than 2",
+                    g.first, g.count, g.size
+                )));
+            }
+            for k in 0..g.count * g.size {
+                group[g.first + k] = Some((g.first + (k / g.size) * g.size, k % g.size, g.clone()));
+            }
+        }
         let h = self.prior(history, action.as_ref(), &dev);
         let rules = Rules {
             placed: &forced,
             limits: &limits,
             keep: &keep,
+            group: &group,
         };
         Ok(self.decode(h, action.as_ref(), &rules, m, &dev))
     }
@@ -258,8 +292,18 @@ impl<'a, B: Backend> Generator<'a, B> {
                         let rows = host_rows(self.model.logits_at(s, o, false));
                         let smp = self.sampling[s];
                         for (r, l) in out.iter_mut().zip(&rows) {
-                            let l = rules.limits[p].map_or(&l[..], |k| &l[..k.min(l.len())]);
-                            r[p] = smp.draw(l, &mut self.rng);
+                            match allowed(rules, p, r, true) {
+                                Allowed::Only(id) => r[p] = id,
+                                Allowed::Ids(ok) => {
+                                    let mut l = l.clone();
+                                    for (id, x) in l.iter_mut().enumerate() {
+                                        if !ok(id as u32) {
+                                            *x = f32::NEG_INFINITY;
+                                        }
+                                    }
+                                    r[p] = smp.draw(&l, &mut self.rng);
+                                }
+                            }
                         }
                         if let Some((pad, scenes)) = &rules.keep[p] {
                             let redraw: Vec<usize> =
@@ -269,8 +313,14 @@ impl<'a, B: Backend> Generator<'a, B> {
                                 let tar = host_rows(self.model.logits_at(s, hp, true));
                                 for b in redraw {
                                     let mut l = tar[b].clone();
-                                    if let Some(x) = l.get_mut(*pad as usize) {
-                                        *x = f32::NEG_INFINITY;
+                                    let ok = match allowed(rules, p, &out[b], false) {
+                                        Allowed::Ids(ok) => ok,
+                                        Allowed::Only(_) => Box::new(|_| true),
+                                    };
+                                    for (id, x) in l.iter_mut().enumerate() {
+                                        if id as u32 == *pad || !ok(id as u32) {
+                                            *x = f32::NEG_INFINITY;
+                                        }
                                     }
                                     out[b][p] = smp.draw(&l, &mut self.rng);
                                 }
@@ -289,6 +339,40 @@ struct Rules<'a> {
     placed: &'a [Option<u32>],
     limits: &'a [Option<usize>],
     keep: &'a [Option<(u32, Vec<bool>)>],
+    /// Per position: the group's first position, the index in the group, the group run.
+    group: &'a [Option<(usize, usize, TokenGroups)>],
+}
+
+/// What may be drawn at a position.
+enum Allowed {
+    /// Nothing to draw: this id.
+    Only(u32),
+    /// Any id passing the test.
+    Ids(Box<dyn Fn(u32) -> bool>),
+}
+
+/// The ids allowed at `p` of a scene whose frame so far is `row` (with `limited`, also below the position's
+/// limit; the TAR redraw of a kept agent ignores limits, which only shape OAR draws).
+fn allowed(rules: &Rules<'_>, p: usize, row: &[u32], limited: bool) -> Allowed {
+    let limit = match (limited, rules.limits[p]) {
+        (true, Some(k)) => k as u32,
+        _ => u32::MAX,
+    };
+    match &rules.group[p] {
+        None => Allowed::Ids(Box::new(move |id| id < limit)),
+        Some((start, j, g)) => {
+            let (pad, values, last) = (g.pad, g.values, g.last.clone());
+            if *j == 0 {
+                Allowed::Ids(Box::new(move |id| id < limit && (id < values || id == pad)))
+            } else if row[*start] == pad {
+                Allowed::Only(pad)
+            } else if *j + 1 == g.size {
+                Allowed::Ids(Box::new(move |id| last.contains(&id)))
+            } else {
+                Allowed::Ids(Box::new(move |id| id < values && id < limit))
+            }
+        }
+    }
 }
 
 /// Rows of a `[r, v]` tensor on the host.

@@ -176,6 +176,42 @@ fn forced_actions_initial_scenes_and_bad_settings() {
         assert!(f[0][8] != 0 && f[0][8] < 12, "redrawn: {}", f[0][8]);
         assert_eq!(f[1][8], 0);
     }
+    // Token groups: the agent segment (positions 14..18, ids 0..9) as 2 groups of 2 with pad 8, values
+    // 0..6 and last ids 6..8: every group comes out all-pad or values-then-last.
+    for seed in 0..20 {
+        let mut g = Generator::new(
+            &m,
+            vec![
+                Sampling {
+                    top_k: 0,
+                    ..Sampling::default()
+                };
+                3
+            ],
+            4,
+            seed,
+        )
+        .unwrap();
+        let grouped = FrameControl {
+            groups: vec![umgen_generate::TokenGroups {
+                first: 14,
+                size: 2,
+                count: 2,
+                pad: 8,
+                values: 6,
+                last: 6..8,
+            }],
+            ..Default::default()
+        };
+        let f = g.next_frame(&[vec![frame(&m, 2)]], &grouped).unwrap();
+        for k in [14, 16] {
+            let (a, b) = (f[0][k], f[0][k + 1]);
+            assert!(
+                (a == 8 && b == 8) || (a < 6 && (6..8).contains(&b)),
+                "seed {seed}: group ({a}, {b})"
+            );
+        }
+    }
     // A limit of 1 leaves only id 0 at that position, whatever the draws.
     for seed in 0..5 {
         let mut g = Generator::new(&m, vec![Sampling::default(); 3], 4, seed).unwrap();

@@ -43,6 +43,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         temperature: a.temperature,
     };
     let bins = spec.action.as_ref().map(|x| x.bins);
+    let groups = agent_groups(&bundle, &registry)?;
     let started = std::time::Instant::now();
     let scenes = crate::with_autodiff!(device, |B, dev| {
         type I = <B as AutodiffBackend>::InnerBackend;
@@ -67,11 +68,13 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             }
             let (placed, below) = agent_tokens(&bundle, &registry, &control, k)?;
             let keep = keep_agents(&registry, &history)?;
+            let groups = groups.clone();
             let fc = FrameControl {
                 action: forced.map(|(ids, _)| vec![ids; a.scenes]),
                 tokens: placed.clone(),
                 below,
                 keep,
+                groups,
             };
             let next = g.next_frame(&history, &fc)?;
             for (h, f) in history.iter_mut().zip(next) {
@@ -215,6 +218,44 @@ fn agent_tokens(
         below.extend((0..ATTRIBUTES - 1).map(|f| (base + f, cfg.bins)));
     }
     Ok((out, below))
+}
+
+/// The agent slots as token groups: each comes out either empty (all pad) or as values and a category,
+/// never a mix that decodes to nothing.
+fn agent_groups(
+    bundle: &Bundle,
+    registry: &ModalityRegistry,
+) -> anyhow::Result<Vec<umgen::generate::TokenGroups>> {
+    use umgen::modality_agent::{ATTRIBUTES, AgentConfig};
+    use umgen::scene::AgentCategory;
+    let layout = registry.layout()?;
+    let Some(seg) = layout
+        .segments()
+        .iter()
+        .find(|s| s.kind == umgen::modality_agent::KIND)
+    else {
+        return Ok(Vec::new());
+    };
+    let table = bundle
+        .config
+        .modality
+        .get(&seg.modality)
+        .cloned()
+        .unwrap_or_default();
+    let cfg: AgentConfig = umgen::modality::parse_settings(&seg.modality, &table)?;
+    let ids: Vec<u32> = AgentCategory::ALL.iter().map(|c| cfg.category_id(*c)).collect();
+    let (lo, hi) = (
+        ids.iter().min().copied().unwrap_or(0),
+        ids.iter().max().copied().unwrap_or(0),
+    );
+    Ok(vec![umgen::generate::TokenGroups {
+        first: seg.offset,
+        size: ATTRIBUTES,
+        count: seg.tokens / ATTRIBUTES,
+        pad: cfg.pad_id(),
+        values: cfg.bins,
+        last: lo..hi + 1,
+    }])
 }
 
 /// Every agent-slot position whose token was not pad in a scene's newest frame: a pad drawn there is
