@@ -6,11 +6,13 @@
 //! over a key/value cache, each modality sampled with its own [`Sampling`] (top-k, top-p, temperature,
 //! seeded). Without history (`t = 0`) the TAR is skipped and an initial scene is generated from nothing.
 
+mod boxes;
 mod control;
 mod error;
 mod rollout;
 mod sampling;
 
+pub use boxes::GroupBoxes;
 pub use control::{AgentControl, Control, EgoControl};
 pub use error::{GenerateError, Result};
 pub use rollout::{FrameControl, Generator, TokenGroups};

@@ -33,7 +33,7 @@ pub struct FrameControl {
 
 /// `count` groups of `size` tokens from position `first`. A group's first token is a value or pad; after a
 /// pad the rest is pad; otherwise the middle tokens are values and the last one is from `last`.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct TokenGroups {
     /// First position of the first group.
     pub first: usize,
@@ -47,6 +47,8 @@ pub struct TokenGroups {
     pub values: u32,
     /// Ids of a group's last token (e.g. the categories).
     pub last: std::ops::Range<u32>,
+    /// How to read a box from a group, for the new-agent rule (`None`: no rule).
+    pub boxes: Option<crate::boxes::GroupBoxes>,
 }
 
 /// Generates frames with a backbone.
@@ -162,8 +164,22 @@ impl<'a, B: Backend> Generator<'a, B> {
                 group[g.first + k] = Some((g.first + (k / g.size) * g.size, k % g.size, g.clone()));
             }
         }
+        // Groups empty in each scene's newest frame (all of them for an initial scene).
+        let newborn: Vec<Vec<bool>> = history
+            .iter()
+            .map(|h| {
+                (0..n)
+                    .map(|p| match (&group[p], h.last()) {
+                        (Some((start, _, g)), Some(f)) => f.get(*start) == Some(&g.pad),
+                        (Some(_), None) => true,
+                        _ => false,
+                    })
+                    .collect()
+            })
+            .collect();
         let h = self.prior(history, action.as_ref(), &dev);
         let rules = Rules {
+            newborn: &newborn,
             placed: &forced,
             limits: &limits,
             keep: &keep,
@@ -263,6 +279,12 @@ impl<'a, B: Backend> Generator<'a, B> {
         let d = h.dims()[2];
         let mut out = vec![vec![0u32; n]; m];
         let mut cache = self.model.oar_cache();
+        let ego = rules
+            .group
+            .iter()
+            .flatten()
+            .find_map(|(_, _, g)| g.boxes.as_ref().map(|b| b.ego));
+        let mut boxes = crate::boxes::FrameBoxes::new(m, ego.unwrap_or([0.0, 0.0]));
         for p in 0..n {
             let prev = (p > 0).then(|| {
                 let ids: Vec<i64> = out.iter().map(|r| i64::from(r[p - 1])).collect();
@@ -329,6 +351,18 @@ impl<'a, B: Backend> Generator<'a, B> {
                     }
                 }
             }
+            // A finished group: the new-agent rule (groups placed by the caller are never dropped).
+            if let Some((start, j, g)) = &rules.group[p]
+                && *j + 1 == g.size
+                && let Some(spec) = &g.boxes
+                && !(*start..=p).any(|q| rules.placed[q].is_some())
+            {
+                for (b, row) in out.iter_mut().enumerate() {
+                    if row[*start] != g.pad && boxes.admit(b, &row[*start..=p], spec, rules.newborn[b][p]) {
+                        row[*start..=p].iter_mut().for_each(|x| *x = g.pad);
+                    }
+                }
+            }
         }
         out
     }
@@ -341,6 +375,8 @@ struct Rules<'a> {
     keep: &'a [Option<(u32, Vec<bool>)>],
     /// Per position: the group's first position, the index in the group, the group run.
     group: &'a [Option<(usize, usize, TokenGroups)>],
+    /// Per scene and position: the position's group was empty in the newest frame.
+    newborn: &'a [Vec<bool>],
 }
 
 /// What may be drawn at a position.

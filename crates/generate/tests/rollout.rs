@@ -200,6 +200,7 @@ fn forced_actions_initial_scenes_and_bad_settings() {
                 pad: 8,
                 values: 6,
                 last: 6..8,
+                boxes: None,
             }],
             ..Default::default()
         };

@@ -255,6 +255,15 @@ fn agent_groups(
         pad: cfg.pad_id(),
         values: cfg.bins,
         last: lo..hi + 1,
+        // The official rule: the ego box (l 5.176 m, w 2.297 m) first, at most 30 other boxes.
+        boxes: Some(umgen::generate::GroupBoxes {
+            fields: [0, 1, 6, 7, 8].map(|i| {
+                let [lo, hi] = cfg.ranges()[i];
+                (i, lo, hi, cfg.bins)
+            }),
+            ego: [5.176, 2.297],
+            max_boxes: 31,
+        }),
     }])
 }
 
