@@ -327,8 +327,15 @@ pub struct InfoArgs {
 #[derive(Debug, Args)]
 pub struct VizArgs {
     /// Dataset directory.
-    #[arg(long, value_name = "DIR")]
-    pub data: PathBuf,
+    #[arg(long, value_name = "DIR", required_unless_present = "generated")]
+    pub data: Option<PathBuf>,
+    /// Or: an output directory of `umgen generate` (its tokens are decoded with its bundle, context frames
+    /// included).
+    #[arg(long, value_name = "DIR", conflicts_with = "data")]
+    pub generated: Option<PathBuf>,
+    /// Which generated scene (with `--generated`).
+    #[arg(long, default_value_t = 0)]
+    pub scene: usize,
     /// Clip id, or `first`.
     #[arg(long, default_value = "first")]
     pub clip: String,

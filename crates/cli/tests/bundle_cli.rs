@@ -158,6 +158,23 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
     }
     assert!(g1.join("rollout.gif").exists());
 
+    // `umgen viz` draws any generated scene, context frames included.
+    let gif = fx.dir.path().join("scene1.gif");
+    let log = ok(umgen(&[
+        "viz",
+        "--generated",
+        g1.to_str().unwrap(),
+        "--scene",
+        "1",
+        "--out",
+        gif.to_str().unwrap(),
+    ]));
+    assert!(
+        gif.exists() && log.contains("2 context + 4 generated frames"),
+        "{log}"
+    );
+    let out = umgen(&["viz", "--generated", g1.to_str().unwrap(), "--scene", "2"]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("scenes 0..2"));
     let g2 = generate(&bf16_dir, "gen2", "3");
     assert_eq!(
         std::fs::read(g1.join("tokens.json")).unwrap(),

@@ -11,7 +11,7 @@ use umgen::checkpoint::burn_io::weights_from_bytes;
 use umgen::data::Dataset;
 use umgen::generate::{Control, FrameControl, Generator, Sampling};
 use umgen::modality::ModalityRegistry;
-use umgen::scene::{Frame, SceneClip};
+use umgen::scene::SceneClip;
 use umgen::{Bundle, backbone_spec, builtin_catalog_with};
 
 /// Generates.
@@ -109,7 +109,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let mut decoded = Vec::with_capacity(scenes.len());
     let mut malformed = 0;
     for rows in &scenes {
-        let (clip, bad) = decode(&registry, &rows[n_context..], &start, interval)?;
+        let (clip, bad) = super::scenes::decode(&registry, &rows[n_context..], &start, interval)?;
         malformed += bad;
         decoded.push(clip);
     }
@@ -140,7 +140,13 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             "interval": interval,
         }))?,
     )?;
-    draw(&bundle, &decoded[0], &a.out, a.png)?;
+    super::scenes::draw(
+        &bundle,
+        &decoded[0],
+        &a.out.join("rollout.gif"),
+        a.png.then_some(a.out.as_path()),
+        0,
+    )?;
     tracing::info!(
         "{}: tokens.json, scenes.json, rollout.gif ({} context + {} generated frames)",
         a.out.display(),
@@ -348,62 +354,4 @@ fn context_clip(a: &GenerateArgs) -> anyhow::Result<(Option<ContextClip>, f64)> 
         }),
         interval,
     ))
-}
-
-/// Decodes generated rows into frames, integrating the ego pose from `start` by each decoded action.
-fn decode(
-    registry: &ModalityRegistry,
-    rows: &[Vec<u32>],
-    start: &Frame,
-    interval: f64,
-) -> anyhow::Result<(SceneClip, u64)> {
-    let mut frames = Vec::with_capacity(rows.len());
-    let mut prev = start.clone();
-    let mut malformed = 0;
-    for row in rows {
-        let mut f = Frame::default();
-        malformed += registry.detokenize(row, &mut f)?.malformed;
-        f.time = prev.time + interval;
-        f.ego = prev.ego.advance(&f.action, interval);
-        prev = f.clone();
-        frames.push(f);
-    }
-    Ok((SceneClip::new("generated", interval, frames)?, malformed))
-}
-
-/// Scene 0 as `rollout.gif` (and `frame-NNNN.png` with `png`): BEV from the decoded map raster with the
-/// decoded agents, camera below.
-fn draw(bundle: &Bundle, clip: &SceneClip, out: &Path, png: bool) -> anyhow::Result<()> {
-    let view = bundle
-        .config
-        .modality
-        .iter()
-        .find_map(|(name, table)| {
-            let kind = table.get("kind").and_then(|k| k.as_str()).unwrap_or(name);
-            (kind == umgen::modality_map::KIND)
-                .then(|| umgen::modality::parse_settings::<umgen::modality_map::MapConfig>(name, table))
-                .map(|c| c.and_then(|c| c.map_view(name)))
-        })
-        .transpose()?
-        .unwrap_or_default();
-    let pictures: Vec<_> = clip
-        .frames
-        .iter()
-        .enumerate()
-        .map(|(i, f)| {
-            // Small rasters (the tiny config's 64 px) are enlarged to about 256 px wide.
-            let k = (256 / view.size[1].max(1)).max(1);
-            let mut pic = umgen_viz::scene_picture(&view, f.map.as_ref(), f.image.as_ref(), f, "").scaled(k);
-            let label = format!("GEN {i} {} AGENTS", f.agents.len());
-            umgen_viz::text(&mut pic, 4, 4, 2, &label, [250, 250, 250]);
-            pic
-        })
-        .collect();
-    if png {
-        for (i, p) in pictures.iter().enumerate() {
-            umgen_viz::write_png(&out.join(format!("frame-{i:04}.png")), p)?;
-        }
-    }
-    umgen_viz::write_gif(&out.join("rollout.gif"), &pictures, clip.interval)?;
-    Ok(())
 }

@@ -11,6 +11,7 @@ mod export;
 mod generate;
 mod launch;
 mod layout;
+mod scenes;
 mod tokenize;
 mod tokenizer;
 mod train;

@@ -5,11 +5,15 @@ use anyhow::Context;
 use umgen_data::Dataset;
 use umgen_render::{Camera, MapView};
 
-/// Draws the requested frames of a clip into a GIF (and PNGs).
+/// Draws the requested frames of a clip, or a generated scene, into a GIF (and PNGs).
 pub fn run(a: &VizArgs) -> anyhow::Result<()> {
-    let ds = Dataset::open(&a.data)?;
+    if let Some(dir) = &a.generated {
+        return generated(a, dir);
+    }
+    let data = a.data.as_ref().context("--data or --generated")?;
+    let ds = Dataset::open(data)?;
     let clip = if a.clip == "first" {
-        anyhow::ensure!(!ds.clips().is_empty(), "{} has no clips", a.data.display());
+        anyhow::ensure!(!ds.clips().is_empty(), "{} has no clips", data.display());
         0
     } else {
         ds.find_clip(&a.clip)?
@@ -52,5 +56,44 @@ pub fn run(a: &VizArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     umgen_viz::write_gif(&a.out, &pictures, scene.interval)?;
     tracing::info!("{}: {n} frames of clip `{}`", a.out.display(), entry.id);
+    Ok(())
+}
+
+/// A scene of `umgen generate`'s output: its token rows decoded with the bundle it names.
+fn generated(a: &VizArgs, dir: &std::path::Path) -> anyhow::Result<()> {
+    let read = |name: &str| -> anyhow::Result<serde_json::Value> {
+        let p = dir.join(name);
+        let bytes = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+        serde_json::from_slice(&bytes).with_context(|| p.display().to_string())
+    };
+    let (meta, tokens) = (read("meta.json")?, read("tokens.json")?);
+    let bundle = umgen::Bundle::open(std::path::Path::new(
+        meta["bundle"].as_str().context("meta.json: no `bundle`")?,
+    ))?;
+    let registry = bundle.config.registry(&umgen::builtin_catalog()?)?;
+    let scenes = tokens["scenes"].as_array().context("tokens.json: no `scenes`")?;
+    let scene = scenes.get(a.scene).with_context(|| {
+        format!(
+            "--scene {}: {} holds scenes 0..{}",
+            a.scene,
+            dir.display(),
+            scenes.len()
+        )
+    })?;
+    let rows: Vec<Vec<u32>> = serde_json::from_value(scene.clone()).context("tokens.json: scene rows")?;
+    let context = tokens["context_frames"].as_u64().unwrap_or(0) as usize;
+    let interval = meta["interval"].as_f64().unwrap_or(0.5);
+    let (clip, malformed) =
+        super::scenes::decode(&registry, &rows, &umgen::scene::Frame::default(), interval)?;
+    if malformed > 0 {
+        tracing::warn!("{malformed} malformed token group(s) were skipped while decoding");
+    }
+    super::scenes::draw(&bundle, &clip, &a.out, a.png_dir.as_deref(), context)?;
+    tracing::info!(
+        "{}: scene {} ({context} context + {} generated frames)",
+        a.out.display(),
+        a.scene,
+        rows.len() - context
+    );
     Ok(())
 }
