@@ -111,7 +111,13 @@ impl<'a, B: Backend> Generator<'a, B> {
             .action
             .as_ref()
             .map_or(0, |a| spec.segments[a.segment].tokens);
-        let action = match (&control.action, t) {
+        // The history window, embedded once for the ego module and the TAR.
+        let window = (t > 0).then(|| {
+            let tokens = self.window_tensor(history, &dev);
+            let e = self.model.embed.forward(tokens.clone());
+            (tokens, e)
+        });
+        let action = match (&control.action, &window) {
             (Some(a), _) => {
                 if a.len() != m || a.iter().any(|x| x.len() != q) {
                     return Err(GenerateError::Settings(format!(
@@ -120,8 +126,8 @@ impl<'a, B: Backend> Generator<'a, B> {
                 }
                 Some(a.clone())
             }
-            (None, 0) => None,
-            (None, _) => self.predict_action(history, &dev)?,
+            (None, None) => None,
+            (None, Some((_, e))) => self.predict_action(e.clone()),
         };
         let mut forced = vec![None; n];
         for &(p, id) in &control.tokens {
@@ -153,7 +159,7 @@ impl<'a, B: Backend> Generator<'a, B> {
             keep[*p] = Some((*pad, scenes.clone()));
         }
         let mut group = vec![None; n];
-        for g in &control.groups {
+        for (gi, g) in control.groups.iter().enumerate() {
             if g.size < 2 || g.first + g.size * g.count > n {
                 return Err(GenerateError::Settings(format!(
                     "token groups from {} ({} × {}): outside the frame or smaller than 2",
@@ -161,7 +167,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                 )));
             }
             for k in 0..g.count * g.size {
-                group[g.first + k] = Some((g.first + (k / g.size) * g.size, k % g.size, g.clone()));
+                group[g.first + k] = Some((g.first + (k / g.size) * g.size, k % g.size, gi));
             }
         }
         // Groups empty in each scene's newest frame (all of them for an initial scene).
@@ -170,20 +176,24 @@ impl<'a, B: Backend> Generator<'a, B> {
             .map(|h| {
                 (0..n)
                     .map(|p| match (&group[p], h.last()) {
-                        (Some((start, _, g)), Some(f)) => f.get(*start) == Some(&g.pad),
+                        (Some((start, _, gi)), Some(f)) => f.get(*start) == Some(&control.groups[*gi].pad),
                         (Some(_), None) => true,
                         _ => false,
                     })
                     .collect()
             })
             .collect();
-        let h = self.prior(history, action.as_ref(), &dev);
+        let h = match &window {
+            Some((tokens, e)) => self.prior(tokens.clone(), e.clone(), action.as_ref(), &dev),
+            None => Tensor::zeros([m, n, self.model.embed_width()], &dev),
+        };
         let rules = Rules {
             newborn: &newborn,
             placed: &forced,
             limits: &limits,
             keep: &keep,
             group: &group,
+            groups: &control.groups,
         };
         Ok(self.decode(h, action.as_ref(), &rules, m, &dev))
     }
@@ -200,45 +210,31 @@ impl<'a, B: Backend> Generator<'a, B> {
         Tensor::from_data(TensorData::new(ids, [history.len(), w, n]), dev)
     }
 
-    fn predict_action(
-        &mut self,
-        history: &[Vec<Vec<u32>>],
-        dev: &B::Device,
-    ) -> Result<Option<Vec<Vec<u32>>>> {
-        let spec = self.model.spec();
-        let Some(a) = &spec.action else {
-            return Ok(None);
-        };
-        let e = self.model.embed.forward(self.window_tensor(history, dev));
-        let Some(logits) = self.model.ego_logits(e, true) else {
-            return Ok(None);
-        };
+    /// The ego module's action for the frame after the embedded window `e` `[m, w, N, d]`.
+    fn predict_action(&mut self, e: Tensor<B, 4>) -> Option<Vec<Vec<u32>>> {
+        let a = self.model.spec().action.as_ref()?;
+        let logits = self.model.ego_logits(e, true)?;
         let [m, _, q, v] = logits.dims();
         let rows = host_rows(logits.reshape([m * q, v]));
         let s = self.sampling[a.segment];
-        Ok(Some(
+        Some(
             rows.chunks(q)
                 .map(|r| r.iter().map(|l| s.draw(l, &mut self.rng)).collect())
                 .collect(),
-        ))
+        )
     }
 
-    /// The TAR prior of the new frame `[m, N, d]` (zeros without history).
+    /// The TAR prior `[m, N, d]` of the frame after the window `tokens` `[m, w, N]` (embedded: `e`).
     fn prior(
         &self,
-        history: &[Vec<Vec<u32>>],
+        tokens: Tensor<B, 3, Int>,
+        e: Tensor<B, 4>,
         action: Option<&Vec<Vec<u32>>>,
         dev: &B::Device,
     ) -> Tensor<B, 3> {
-        let m = history.len();
         let spec = self.model.spec();
-        let n = spec.n;
+        let [m, w, n] = tokens.dims();
         let d = self.model.embed_width();
-        if history[0].is_empty() {
-            return Tensor::zeros([m, n, d], dev);
-        }
-        let tokens = self.window_tensor(history, dev);
-        let w = tokens.dims()[1];
         // The new frame as far as it is known: its boundary tokens and action.
         let mut known = vec![0i64; m * n];
         for (b, row) in known.chunks_mut(n).enumerate() {
@@ -254,12 +250,18 @@ impl<'a, B: Backend> Generator<'a, B> {
             }
         }
         let new = Tensor::<B, 3, Int>::from_data(TensorData::new(known, [m, 1, n]), dev);
-        let all = Tensor::cat(vec![tokens.clone(), new], 1);
-        let e_all = self.model.embed.forward(all.clone());
-        let (e, e_next) = (e_all.clone().narrow(1, 0, w), e_all.narrow(1, 1, w));
+        // Frames embed independently: only the new one needs embedding.
+        let e_new = self.model.embed.forward(new.clone());
+        let e_next = if w > 1 {
+            Tensor::cat(vec![e.clone().narrow(1, 1, w - 1), e_new], 1)
+        } else {
+            e_new
+        };
         let next_action = spec.action.as_ref().filter(|_| action.is_some()).map(|a| {
             let s = &spec.segments[a.segment];
-            all.narrow(1, 1, w).narrow(2, s.offset, s.tokens)
+            Tensor::cat(vec![tokens, new], 1)
+                .narrow(1, 1, w)
+                .narrow(2, s.offset, s.tokens)
         });
         let h = self.model.tar(e, e_next, next_action);
         h.narrow(1, w - 1, 1).reshape([m, n, d])
@@ -279,11 +281,7 @@ impl<'a, B: Backend> Generator<'a, B> {
         let d = h.dims()[2];
         let mut out = vec![vec![0u32; n]; m];
         let mut cache = self.model.oar_cache();
-        let ego = rules
-            .group
-            .iter()
-            .flatten()
-            .find_map(|(_, _, g)| g.boxes.as_ref().map(|b| b.ego));
+        let ego = rules.groups.iter().find_map(|g| g.boxes.as_ref().map(|b| b.ego));
         let mut boxes = crate::boxes::FrameBoxes::new(m, ego.unwrap_or([0.0, 0.0]));
         for p in 0..n {
             let prev = (p > 0).then(|| {
@@ -352,7 +350,8 @@ impl<'a, B: Backend> Generator<'a, B> {
                 }
             }
             // A finished group: the new-agent rule (groups placed by the caller are never dropped).
-            if let Some((start, j, g)) = &rules.group[p]
+            if let Some((start, j, gi)) = &rules.group[p]
+                && let g = &rules.groups[*gi]
                 && *j + 1 == g.size
                 && let Some(spec) = &g.boxes
                 && !(*start..=p).any(|q| rules.placed[q].is_some())
@@ -373,8 +372,10 @@ struct Rules<'a> {
     placed: &'a [Option<u32>],
     limits: &'a [Option<usize>],
     keep: &'a [Option<(u32, Vec<bool>)>],
-    /// Per position: the group's first position, the index in the group, the group run.
-    group: &'a [Option<(usize, usize, TokenGroups)>],
+    /// Per position: the group's first position, the index in the group, the run in `groups`.
+    group: &'a [Option<(usize, usize, usize)>],
+    /// The caller's group runs.
+    groups: &'a [TokenGroups],
     /// Per scene and position: the position's group was empty in the newest frame.
     newborn: &'a [Vec<bool>],
 }
@@ -396,7 +397,8 @@ fn allowed(rules: &Rules<'_>, p: usize, row: &[u32], limited: bool) -> Allowed {
     };
     match &rules.group[p] {
         None => Allowed::Ids(Box::new(move |id| id < limit)),
-        Some((start, j, g)) => {
+        Some((start, j, gi)) => {
+            let g = &rules.groups[*gi];
             let (pad, values, last) = (g.pad, g.values, g.last.clone());
             if *j == 0 {
                 Allowed::Ids(Box::new(move |id| id < limit && (id < values || id == pad)))
