@@ -10,7 +10,6 @@ use umgen::backbone::Backbone;
 use umgen::checkpoint::burn_io::weights_from_bytes;
 use umgen::data::Dataset;
 use umgen::generate::{Control, FrameControl, Generator, Sampling};
-use umgen::modality::ModalityRegistry;
 use umgen::scene::SceneClip;
 use umgen::{Bundle, backbone_spec, builtin_catalog_with};
 
@@ -43,7 +42,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         temperature: a.temperature,
     };
     let bins = spec.action.as_ref().map(|x| x.bins);
-    let groups = agent_groups(&bundle, &registry)?;
+    let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
+    let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
     let started = std::time::Instant::now();
     let scenes = crate::with_autodiff!(device, |B, dev| {
         type I = <B as AutodiffBackend>::InnerBackend;
@@ -66,15 +66,22 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             {
                 tracing::warn!("frame {k}: {clamped} forced action value(s) outside the bins, clamped");
             }
-            let (placed, below) = agent_tokens(&bundle, &registry, &control, k)?;
-            let keep = keep_agents(&registry, &history)?;
-            let groups = groups.clone();
+            let ((placed, below), keep) = match &agents {
+                Some(slots) => (slots.placement(&control, k)?, slots.keep(&history)),
+                None => {
+                    anyhow::ensure!(
+                        control.agents_at(k).next().is_none(),
+                        "the control file sets agents, but this model has no agent modality"
+                    );
+                    Default::default()
+                }
+            };
             let fc = FrameControl {
                 action: forced.map(|(ids, _)| vec![ids; a.scenes]),
-                tokens: placed.clone(),
+                tokens: placed,
                 below,
                 keep,
-                groups,
+                groups: groups.clone(),
             };
             let next = g.next_frame(&history, &fc)?;
             for (h, f) in history.iter_mut().zip(next) {
@@ -154,151 +161,6 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         a.frames
     );
     Ok(())
-}
-
-/// Placed tokens and id limits for generated frame `k`: each value the control file sets, encoded with the
-/// agent modality's bins (its `[modality.<name>]` table), and the slot's category are placed; the slot's
-/// other attributes are drawn from the value bins only (never pad or a category).
-type Placement = (Vec<(usize, u32)>, Vec<(usize, u32)>);
-
-fn agent_tokens(
-    bundle: &Bundle,
-    registry: &ModalityRegistry,
-    control: &Control,
-    k: usize,
-) -> anyhow::Result<Placement> {
-    use umgen::modality_agent::{ATTRIBUTES, AgentConfig, VALUE_FIELDS};
-    let (mut out, mut below) = (Vec::new(), Vec::new());
-    let active: Vec<_> = control.agents_at(k).collect();
-    if active.is_empty() {
-        return Ok((out, below));
-    }
-    let layout = registry.layout()?;
-    let seg = layout
-        .segments()
-        .iter()
-        .find(|s| s.kind == umgen::modality_agent::KIND)
-        .context("the control file sets agents, but this model has no agent modality")?;
-    let table = bundle
-        .config
-        .modality
-        .get(&seg.modality)
-        .cloned()
-        .unwrap_or_default();
-    let cfg: AgentConfig = umgen::modality::parse_settings(&seg.modality, &table)?;
-    let slots = seg.tokens / ATTRIBUTES;
-    for (i, a) in active.iter().enumerate() {
-        anyhow::ensure!(
-            a.slot < slots,
-            "agent[{i}].slot = {}: this model has slots 0..{slots}",
-            a.slot
-        );
-        let base = seg.offset + a.slot * ATTRIBUTES;
-        for (name, v) in a.values() {
-            let f = VALUE_FIELDS
-                .iter()
-                .position(|x| *x == name)
-                .context("unknown agent field")?;
-            let [lo, hi] = cfg.ranges()[f];
-            let bins = umgen::modality::ScalarBins::new(
-                &format!("modality.{}.{name}", seg.modality),
-                lo,
-                hi,
-                cfg.bins,
-            )?;
-            let (id, clamp) = bins.encode(v);
-            if clamp.is_some() {
-                tracing::warn!(
-                    "frame {k}: agent slot {} {name} = {v} is outside [{lo}, {hi}], clamped",
-                    a.slot
-                );
-            }
-            out.push((base + f, id));
-        }
-        let category = match a.category.as_deref().unwrap_or("vehicle") {
-            "pedestrian" => umgen::scene::AgentCategory::Pedestrian,
-            "cyclist" => umgen::scene::AgentCategory::Cyclist,
-            _ => umgen::scene::AgentCategory::Vehicle,
-        };
-        out.push((base + ATTRIBUTES - 1, cfg.category_id(category)));
-        below.extend((0..ATTRIBUTES - 1).map(|f| (base + f, cfg.bins)));
-    }
-    Ok((out, below))
-}
-
-/// The agent slots as token groups: each comes out either empty (all pad) or as values and a category,
-/// never a mix that decodes to nothing.
-fn agent_groups(
-    bundle: &Bundle,
-    registry: &ModalityRegistry,
-) -> anyhow::Result<Vec<umgen::generate::TokenGroups>> {
-    use umgen::modality_agent::{ATTRIBUTES, AgentConfig};
-    use umgen::scene::AgentCategory;
-    let layout = registry.layout()?;
-    let Some(seg) = layout
-        .segments()
-        .iter()
-        .find(|s| s.kind == umgen::modality_agent::KIND)
-    else {
-        return Ok(Vec::new());
-    };
-    let table = bundle
-        .config
-        .modality
-        .get(&seg.modality)
-        .cloned()
-        .unwrap_or_default();
-    let cfg: AgentConfig = umgen::modality::parse_settings(&seg.modality, &table)?;
-    let ids: Vec<u32> = AgentCategory::ALL.iter().map(|c| cfg.category_id(*c)).collect();
-    let (lo, hi) = (
-        ids.iter().min().copied().unwrap_or(0),
-        ids.iter().max().copied().unwrap_or(0),
-    );
-    Ok(vec![umgen::generate::TokenGroups {
-        first: seg.offset,
-        size: ATTRIBUTES,
-        count: seg.tokens / ATTRIBUTES,
-        pad: cfg.pad_id(),
-        values: cfg.bins,
-        last: lo..hi + 1,
-        // The official rule: the ego box (l 5.176 m, w 2.297 m) first, at most 30 other boxes.
-        boxes: Some(umgen::generate::GroupBoxes {
-            fields: [0, 1, 6, 7, 8].map(|i| {
-                let [lo, hi] = cfg.ranges()[i];
-                (i, lo, hi, cfg.bins)
-            }),
-            ego: [5.176, 2.297],
-            max_boxes: 31,
-        }),
-    }])
-}
-
-/// Every agent-slot position whose token was not pad in a scene's newest frame: a pad drawn there is
-/// redrawn from the TAR head, so agents leave the scene when the TAR says so, not on one OAR draw.
-fn keep_agents(
-    registry: &ModalityRegistry,
-    history: &[Vec<Vec<u32>>],
-) -> anyhow::Result<Vec<(usize, u32, Vec<bool>)>> {
-    let layout = registry.layout()?;
-    let Some(seg) = layout
-        .segments()
-        .iter()
-        .find(|s| s.kind == umgen::modality_agent::KIND)
-    else {
-        return Ok(Vec::new());
-    };
-    let Some(pad) = seg.pad_id else {
-        return Ok(Vec::new());
-    };
-    Ok((seg.offset..seg.offset + seg.tokens)
-        .filter_map(|p| {
-            let alive: Vec<bool> = history
-                .iter()
-                .map(|h| h.last().is_some_and(|f| f.get(p).is_some_and(|&id| id != pad)))
-                .collect();
-            alive.iter().any(|&x| x).then_some((p, pad, alive))
-        })
-        .collect())
 }
 
 fn read_control(p: &Path) -> anyhow::Result<Control> {

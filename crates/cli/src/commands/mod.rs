@@ -1,5 +1,6 @@
 //! One module per subcommand.
 
+mod agents;
 mod bench;
 mod bench_generate;
 mod bench_train;

@@ -1,0 +1,137 @@
+//! The agent modality's slots as `umgen generate` steers them: control-file states encoded into tokens,
+//! whole-slot groups with the new-agent rule, and keep-alive positions.
+
+use anyhow::Context;
+use umgen::Bundle;
+use umgen::generate::{Control, GroupBoxes, TokenGroups};
+use umgen::modality::{ModalityRegistry, ScalarBins};
+use umgen::modality_agent::{ATTRIBUTES, AgentConfig, VALUE_FIELDS};
+use umgen::scene::AgentCategory;
+
+/// Placed tokens and id limits of one frame.
+pub type Placement = (Vec<(usize, u32)>, Vec<(usize, u32)>);
+
+/// Where the agent slots sit in a frame and how their values are binned.
+#[derive(Debug)]
+pub struct AgentSlots {
+    offset: usize,
+    slots: usize,
+    cfg: AgentConfig,
+    /// Bins of the ten values, in [`VALUE_FIELDS`] order.
+    bins: Vec<ScalarBins>,
+}
+
+impl AgentSlots {
+    /// The model's agent modality (`None` without one), from the bundle's config.
+    pub fn of(bundle: &Bundle, registry: &ModalityRegistry) -> anyhow::Result<Option<Self>> {
+        let layout = registry.layout()?;
+        let Some(seg) = layout
+            .segments()
+            .iter()
+            .find(|s| s.kind == umgen::modality_agent::KIND)
+        else {
+            return Ok(None);
+        };
+        let table = bundle
+            .config
+            .modality
+            .get(&seg.modality)
+            .cloned()
+            .unwrap_or_default();
+        let cfg: AgentConfig = umgen::modality::parse_settings(&seg.modality, &table)?;
+        let bins = VALUE_FIELDS
+            .iter()
+            .zip(cfg.ranges())
+            .map(|(name, [lo, hi])| {
+                ScalarBins::new(&format!("modality.{}.{name}", seg.modality), lo, hi, cfg.bins)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Some(Self {
+            offset: seg.offset,
+            slots: seg.tokens / ATTRIBUTES,
+            cfg,
+            bins,
+        }))
+    }
+
+    /// Tokens placed at generated frame `k`: each value the control file sets and the slot's category; the
+    /// slot's other attributes are drawn from the value bins only (never pad or a category).
+    pub fn placement(&self, control: &Control, k: usize) -> anyhow::Result<Placement> {
+        let (mut out, mut below) = (Vec::new(), Vec::new());
+        for (i, a) in control.agents_at(k).enumerate() {
+            anyhow::ensure!(
+                a.slot < self.slots,
+                "agent[{i}].slot = {}: this model has slots 0..{}",
+                a.slot,
+                self.slots
+            );
+            let base = self.offset + a.slot * ATTRIBUTES;
+            for (name, v) in a.values() {
+                let f = VALUE_FIELDS
+                    .iter()
+                    .position(|x| *x == name)
+                    .context("unknown agent field")?;
+                let (id, clamp) = self.bins[f].encode(v);
+                if clamp.is_some() {
+                    tracing::warn!(
+                        "frame {k}: agent slot {} {name} = {v} is outside [{}, {}], clamped",
+                        a.slot,
+                        self.bins[f].lo,
+                        self.bins[f].hi
+                    );
+                }
+                out.push((base + f, id));
+            }
+            let category = match a.category.as_deref().unwrap_or("vehicle") {
+                "pedestrian" => AgentCategory::Pedestrian,
+                "cyclist" => AgentCategory::Cyclist,
+                _ => AgentCategory::Vehicle,
+            };
+            out.push((base + ATTRIBUTES - 1, self.cfg.category_id(category)));
+            below.extend((0..ATTRIBUTES - 1).map(|f| (base + f, self.cfg.bins)));
+        }
+        Ok((out, below))
+    }
+
+    /// The slots as token groups: each comes out either empty (all pad) or as values and a category,
+    /// never a mix that decodes to nothing; new agents follow the official rule (the ego box, l 5.176 m
+    /// × w 2.297 m, first; no overlaps; at most 30 other boxes).
+    pub fn groups(&self) -> TokenGroups {
+        let ids: Vec<u32> = AgentCategory::ALL
+            .iter()
+            .map(|c| self.cfg.category_id(*c))
+            .collect();
+        let (lo, hi) = (
+            ids.iter().min().copied().unwrap_or(0),
+            ids.iter().max().copied().unwrap_or(0),
+        );
+        TokenGroups {
+            first: self.offset,
+            size: ATTRIBUTES,
+            count: self.slots,
+            pad: self.cfg.pad_id(),
+            values: self.cfg.bins,
+            last: lo..hi + 1,
+            boxes: Some(GroupBoxes {
+                fields: [0, 1, 6, 7, 8].map(|i| (i, self.bins[i].lo, self.bins[i].hi, self.cfg.bins)),
+                ego: [5.176, 2.297],
+                max_boxes: 31,
+            }),
+        }
+    }
+
+    /// Every slot position whose token was not pad in a scene's newest frame: a pad drawn there is redrawn
+    /// from the TAR head, so agents leave the scene when the TAR says so, not on one OAR draw.
+    pub fn keep(&self, history: &[Vec<Vec<u32>>]) -> Vec<(usize, u32, Vec<bool>)> {
+        let pad = self.cfg.pad_id();
+        (self.offset..self.offset + self.slots * ATTRIBUTES)
+            .filter_map(|p| {
+                let alive: Vec<bool> = history
+                    .iter()
+                    .map(|h| h.last().is_some_and(|f| f.get(p).is_some_and(|&id| id != pad)))
+                    .collect();
+                alive.iter().any(|&x| x).then_some((p, pad, alive))
+            })
+            .collect()
+    }
+}
