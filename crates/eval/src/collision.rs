@@ -1,7 +1,25 @@
 //! BEV collisions: exact overlap of rotated rectangles (separating-axis test), and the per-frame rate of
 //! agents that overlap at least one other agent (the authors' `ratio`, ego not counted).
 
-use umgen_scene::Agent;
+use umgen_scene::{Agent, AgentCategory};
+
+/// A vehicle that is only a BEV box (centre, heading, length, width), for overlap tests.
+pub fn bev_box(x: f64, y: f64, heading: f64, length: f64, width: f64) -> Agent {
+    Agent {
+        track_id: 0,
+        category: AgentCategory::Vehicle,
+        x,
+        y,
+        z: 0.0,
+        vx: 0.0,
+        vy: 0.0,
+        vz: 0.0,
+        heading,
+        length,
+        width,
+        height: 0.0,
+    }
+}
 
 /// The four corners of an agent's BEV box.
 pub fn corners(a: &Agent) -> [[f64; 2]; 4] {
@@ -59,23 +77,9 @@ pub fn collision_rate<'a>(frames: impl IntoIterator<Item = &'a [Agent]>) -> Opti
 #[cfg(test)]
 mod tests {
     use super::*;
-    use umgen_scene::AgentCategory;
 
     fn car(x: f64, y: f64, heading: f64) -> Agent {
-        Agent {
-            track_id: 0,
-            category: AgentCategory::Vehicle,
-            x,
-            y,
-            z: 0.0,
-            vx: 0.0,
-            vy: 0.0,
-            vz: 0.0,
-            heading,
-            length: 4.0,
-            width: 2.0,
-            height: 1.5,
-        }
+        bev_box(x, y, heading, 4.0, 2.0)
     }
 
     #[test]

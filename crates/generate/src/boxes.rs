@@ -3,8 +3,8 @@
 //! a new agent that overlaps one, or that would exceed the frame's box budget, is dropped (its slot becomes
 //! pad). Agents that existed before, and agents placed by a control file, are never dropped.
 
-use umgen_eval::collision::overlap;
-use umgen_scene::{Agent, AgentCategory};
+use umgen_eval::collision::{bev_box, overlap};
+use umgen_scene::Agent;
 
 /// How to read a box from a token group.
 #[derive(Debug, Clone, PartialEq)]
@@ -25,24 +25,7 @@ impl GroupBoxes {
                 .filter(|id| **id < bins)
                 .map(|&id| lo + (f64::from(id) + 0.5) * (hi - lo) / f64::from(bins))
         });
-        Some(box_at(v[0]?, v[1]?, v[2]?, [v[3]?, v[4]?]))
-    }
-}
-
-fn box_at(x: f64, y: f64, heading: f64, [length, width]: [f64; 2]) -> Agent {
-    Agent {
-        track_id: 0,
-        category: AgentCategory::Vehicle,
-        x,
-        y,
-        z: 0.0,
-        vx: 0.0,
-        vy: 0.0,
-        vz: 0.0,
-        heading,
-        length,
-        width,
-        height: 0.0,
+        Some(bev_box(v[0]?, v[1]?, v[2]?, v[3]?, v[4]?))
     }
 }
 
@@ -56,7 +39,7 @@ impl FrameBoxes {
     /// `m` scenes, each starting with the ego box.
     pub(crate) fn new(m: usize, ego: [f64; 2]) -> Self {
         Self {
-            boxes: vec![vec![box_at(0.0, 0.0, 0.0, ego)]; m],
+            boxes: vec![vec![bev_box(0.0, 0.0, 0.0, ego[0], ego[1])]; m],
         }
     }
 
