@@ -3,11 +3,9 @@
 use crate::cli::EvalArgs;
 use anyhow::Context;
 use std::fmt::Write as _;
-use std::path::Path;
 use umgen::data::Dataset;
 use umgen::modality::ModalityRegistry;
 use umgen::scene::{Agent, Frame, SceneClip};
-use umgen::{Bundle, builtin_catalog};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{agent_l2, constant_velocity_agents, constant_velocity_ego, ego_l2, positions};
 use umgen_eval::mmd::{Group, mmd};
@@ -40,21 +38,15 @@ fn mean(v: &[f64]) -> Option<f64> {
 
 /// Evaluates.
 pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
-    let read = |name: &str| -> anyhow::Result<serde_json::Value> {
-        let p = a.generated.join(name);
-        let bytes = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
-        serde_json::from_slice(&bytes).with_context(|| p.display().to_string())
-    };
-    let meta = read("meta.json")?;
-    let scenes: Vec<SceneClip> = serde_json::from_value(read("scenes.json")?).context("scenes.json")?;
+    let (meta, _bundle, registry) = super::scenes::open_output(&a.generated)?;
+    let scenes: Vec<SceneClip> =
+        serde_json::from_value(super::scenes::read_json(&a.generated, "scenes.json")?)
+            .context("scenes.json")?;
     anyhow::ensure!(
         !scenes.is_empty(),
         "{}: no generated scenes",
         a.generated.display()
     );
-    let bundle_dir = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
-    let bundle = Bundle::open(Path::new(bundle_dir))?;
-    let registry = bundle.config.registry(&builtin_catalog()?)?;
     let ds = Dataset::open(&a.reference)?;
     let dt = meta["interval"].as_f64().unwrap_or(0.5);
     let mut report =

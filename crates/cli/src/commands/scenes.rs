@@ -3,9 +3,25 @@
 
 use anyhow::Context;
 use std::path::Path;
-use umgen::Bundle;
 use umgen::modality::ModalityRegistry;
 use umgen::scene::{Frame, SceneClip};
+use umgen::{Bundle, builtin_catalog};
+
+/// A JSON file of a `umgen generate` output directory.
+pub fn read_json(dir: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
+    let p = dir.join(name);
+    let bytes = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+    serde_json::from_slice(&bytes).with_context(|| p.display().to_string())
+}
+
+/// A `umgen generate` output directory: its `meta.json`, the bundle it names and that bundle's modalities.
+pub fn open_output(dir: &Path) -> anyhow::Result<(serde_json::Value, Bundle, ModalityRegistry)> {
+    let meta = read_json(dir, "meta.json")?;
+    let bundle_dir = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
+    let bundle = Bundle::open(Path::new(bundle_dir))?;
+    let registry = bundle.config.registry(&builtin_catalog()?)?;
+    Ok((meta, bundle, registry))
+}
 
 /// Decodes generated rows into frames, integrating the ego pose from `start` by each decoded action.
 pub fn decode(

@@ -61,16 +61,8 @@ pub fn run(a: &VizArgs) -> anyhow::Result<()> {
 
 /// A scene of `umgen generate`'s output: its token rows decoded with the bundle it names.
 fn generated(a: &VizArgs, dir: &std::path::Path) -> anyhow::Result<()> {
-    let read = |name: &str| -> anyhow::Result<serde_json::Value> {
-        let p = dir.join(name);
-        let bytes = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
-        serde_json::from_slice(&bytes).with_context(|| p.display().to_string())
-    };
-    let (meta, tokens) = (read("meta.json")?, read("tokens.json")?);
-    let bundle = umgen::Bundle::open(std::path::Path::new(
-        meta["bundle"].as_str().context("meta.json: no `bundle`")?,
-    ))?;
-    let registry = bundle.config.registry(&umgen::builtin_catalog()?)?;
+    let (meta, bundle, registry) = super::scenes::open_output(dir)?;
+    let tokens = super::scenes::read_json(dir, "tokens.json")?;
     let scenes = tokens["scenes"].as_array().context("tokens.json: no `scenes`")?;
     let scene = scenes.get(a.scene).with_context(|| {
         format!(
