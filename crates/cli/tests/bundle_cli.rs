@@ -3,24 +3,13 @@
 //! control and repeat with their seed; `umgen eval` on them.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+mod common;
+use common::{ok, umgen};
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use umgen::data::Dataset;
 use umgen_tests::run_fixture::Fixture;
-
-fn umgen(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_umgen"))
-        .args(args)
-        .env("NO_COLOR", "1")
-        .output()
-        .unwrap()
-}
-
-fn ok(out: Output) -> String {
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "stderr: {err}");
-    err
-}
 
 #[test]
 fn export_writes_a_bundle_that_opens_and_refuses_damage() {

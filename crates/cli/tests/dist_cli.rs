@@ -2,10 +2,13 @@
 //! same global batch; a killed or stopped rank makes the launcher fail within the timeout.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+mod common;
+use common::{free_port, umgen};
+
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 use umgen_tests::fixtures::tiny_dataset;
@@ -27,23 +30,6 @@ fn config_with(dir: &Path, data: &Path, out: &str, steps: u64, batch: usize, acc
     let p = dir.join(format!("{out}.toml"));
     std::fs::write(&p, text).unwrap();
     p
-}
-
-fn umgen(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_umgen"))
-        .args(args)
-        .env("NO_COLOR", "1")
-        .output()
-        .unwrap()
-}
-
-fn free_port() -> String {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-        .to_string()
 }
 
 /// Every tensor of the newest checkpoint's weights.

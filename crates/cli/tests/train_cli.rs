@@ -3,25 +3,14 @@
 //! are refused, and TensorBoard reads the event files.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+mod common;
+use common::{ok, umgen};
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::time::{Duration, Instant};
 use umgen_tests::run_fixture::Fixture;
-
-fn umgen(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_umgen"))
-        .args(args)
-        .env("NO_COLOR", "1")
-        .output()
-        .unwrap()
-}
-
-fn ok(out: Output) -> String {
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "stderr: {err}");
-    err
-}
 
 /// Loss per step from `metrics.jsonl` (the last line of a step wins: a resumed run repeats steps after its
 /// checkpoint).

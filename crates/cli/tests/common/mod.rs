@@ -1,0 +1,31 @@
+//! Helpers shared by the CLI test files (each test file is its own crate and uses some of them).
+#![allow(dead_code, clippy::unwrap_used, clippy::panic)]
+
+use std::process::{Command, Output};
+
+/// Runs the `umgen` binary under test with plain (uncoloured, default-level) logs.
+pub fn umgen(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(args)
+        .env("NO_COLOR", "1")
+        .env_remove("UMGEN_LOG")
+        .output()
+        .unwrap()
+}
+
+/// Asserts success and returns stderr (the log).
+pub fn ok(out: Output) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "stderr: {err}");
+    err
+}
+
+/// A TCP port free right now (for rendezvous in tests).
+pub fn free_port() -> String {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+        .to_string()
+}
