@@ -1,6 +1,5 @@
 //! A tiny imported SUMO dataset with trained (2-step) tokenizers and a config per run directory: the
-//! fixture of the end-to-end CLI tests (train, export, generate, eval). Test support: setup failures
-//! panic, as a test's would.
+//! fixture of the end-to-end CLI tests (train, export, generate, eval).
 
 use crate::fixtures::{tiny_dataset, train_tokenizers};
 use std::path::{Path, PathBuf};
@@ -38,33 +37,25 @@ pub struct Fixture {
 }
 
 impl Fixture {
-    /// Imports the dataset and trains the tokenizers.
-    #[allow(clippy::unwrap_used)]
-    pub fn new() -> Self {
-        let dir = tempfile::tempdir().unwrap();
-        let data = tiny_dataset(dir.path(), 40).unwrap();
-        let ds = Dataset::open(&data).unwrap();
-        let bare = UmgenConfig::from_toml_str(&config_text(dir.path(), &data, "unused", 1)).unwrap();
-        train_tokenizers(&bare, &ds, &dir.path().join("tok")).unwrap();
-        Self { dir, data }
+    /// Imports the dataset into a temporary directory and trains the tokenizers.
+    pub fn new() -> Result<Self, Box<dyn std::error::Error>> {
+        let dir = tempfile::tempdir()?;
+        let data = tiny_dataset(dir.path(), 40)?;
+        let ds = Dataset::open(&data)?;
+        let bare = UmgenConfig::from_toml_str(&config_text(dir.path(), &data, "unused", 1))?;
+        train_tokenizers(&bare, &ds, &dir.path().join("tok"))?;
+        Ok(Self { dir, data })
     }
 
     /// Writes `<run>.toml` for a run of `steps` steps into `<dir>/<run>`.
-    #[allow(clippy::unwrap_used)]
-    pub fn config(&self, run: &str, steps: u64) -> PathBuf {
+    pub fn config(&self, run: &str, steps: u64) -> std::io::Result<PathBuf> {
         let p = self.dir.path().join(format!("{run}.toml"));
-        std::fs::write(&p, config_text(self.dir.path(), &self.data, run, steps)).unwrap();
-        p
+        std::fs::write(&p, config_text(self.dir.path(), &self.data, run, steps))?;
+        Ok(p)
     }
 
     /// The run directory of `run`.
     pub fn run_dir(&self, run: &str) -> PathBuf {
         self.dir.path().join(run)
-    }
-}
-
-impl Default for Fixture {
-    fn default() -> Self {
-        Self::new()
     }
 }

@@ -13,8 +13,8 @@ use umgen_tests::run_fixture::Fixture;
 
 #[test]
 fn export_writes_a_bundle_that_opens_and_refuses_damage() {
-    let fx = Fixture::new();
-    let cfg = fx.config("e", 2);
+    let fx = Fixture::new().unwrap();
+    let cfg = fx.config("e", 2).unwrap();
     ok(umgen(&["train", "--config", cfg.to_str().unwrap()]));
     let run = fx.run_dir("e");
     let f32_dir = fx.dir.path().join("bundle-f32");

@@ -24,9 +24,9 @@ fn losses(run: &Path) -> BTreeMap<u64, f64> {
 
 #[test]
 fn training_learns_survives_sigkill_and_resumes_exactly() {
-    let fx = Fixture::new();
+    let fx = Fixture::new().unwrap();
     // The uninterrupted run.
-    let cfg_a = fx.config("a", 30);
+    let cfg_a = fx.config("a", 30).unwrap();
     let log = ok(umgen(&["train", "--config", cfg_a.to_str().unwrap()]));
     assert!(log.contains("tokenized"), "the first run tokenizes: {log}");
     let a = losses(&fx.run_dir("a"));
@@ -36,7 +36,7 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
     assert!(last < 0.75 * first, "the loss falls: {first} → {last}");
 
     // The same run, killed with SIGKILL once a checkpoint exists, then resumed.
-    let cfg_b = fx.config("b", 30);
+    let cfg_b = fx.config("b", 30).unwrap();
     let mut child = Command::new(env!("CARGO_BIN_EXE_umgen"))
         .args(["train", "--config", cfg_b.to_str().unwrap()])
         .env("NO_COLOR", "1")
@@ -67,7 +67,7 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
     let n = bytes.len();
     bytes[n - 3] ^= 0x55;
     std::fs::write(&w, bytes).unwrap();
-    let cfg_b35 = fx.config("b", 35);
+    let cfg_b35 = fx.config("b", 35).unwrap();
     let log = ok(umgen(&[
         "train",
         "--config",
