@@ -82,21 +82,14 @@ impl TcpGroup {
         let Some(ring) = self.session.ring.as_mut() else {
             return Ok(());
         };
-        let dog = self.session.watchdog.clone();
-        if let Some(d) = &dog {
-            d.enter();
-        }
-        let out = f(ring, buf);
-        if let Some(d) = &dog {
-            d.leave();
-        }
-        out.map_err(|e| {
-            // Give the watchdog a moment to learn why the socket broke.
-            std::thread::sleep(std::time::Duration::from_millis(200));
-            let reason = dog
-                .and_then(|d| d.failure())
-                .unwrap_or_else(|| format!("{e} (a peer exited or stalled?)"));
-            DistError::Collective { rank, op, reason }
+        // A moment for the watchdog to learn why a socket broke.
+        let grace = std::time::Duration::from_millis(200);
+        crate::watchdog::Watchdog::track(self.session.watchdog.as_ref(), rank, op, grace, || {
+            f(ring, buf).map_err(|e| DistError::Collective {
+                rank,
+                op,
+                reason: format!("{e} (a peer exited or stalled?)"),
+            })
         })
     }
 

@@ -12,6 +12,7 @@
 use crate::error::{DistError, Result};
 use crate::group::{Group, ProcessGroup};
 use crate::session::Session;
+use crate::watchdog::Watchdog;
 use burn::backend::Cuda;
 use burn::backend::cuda::CudaDevice;
 use burn::tensor::{Tensor, TensorPrimitive};
@@ -113,22 +114,8 @@ impl NcclGroup {
     }
 
     fn counted<T>(&mut self, op: &'static str, f: impl FnOnce(&mut Self) -> Result<T>) -> Result<T> {
-        let dog = self.session.watchdog.clone();
-        if let Some(d) = &dog {
-            d.enter();
-        }
-        let out = f(self);
-        if let Some(d) = &dog {
-            d.leave();
-        }
-        out.map_err(|e| match dog.and_then(|d| d.failure()) {
-            Some(reason) => DistError::Collective {
-                rank: self.session.rank(),
-                op,
-                reason,
-            },
-            None => e,
-        })
+        let (rank, dog) = (self.session.rank(), self.session.watchdog.clone());
+        Watchdog::track(dog.as_ref(), rank, op, std::time::Duration::ZERO, || f(self))
     }
 
     /// Runs `call(comm, input, output)` out of place into a fresh tensor and waits for it.

@@ -185,6 +185,32 @@ impl Watchdog {
             .clone()
     }
 
+    /// Runs collective `op` of `rank`, counted so that rank 0 can tell who is missing. On failure, after
+    /// `grace` (time for the watchdog to learn why a socket broke), the watchdog's reason — which names
+    /// the peer — replaces `f`'s error when it has one.
+    pub(crate) fn track<T>(
+        dog: Option<&Watchdog>,
+        rank: usize,
+        op: &'static str,
+        grace: Duration,
+        f: impl FnOnce() -> crate::Result<T>,
+    ) -> crate::Result<T> {
+        if let Some(d) = dog {
+            d.enter();
+        }
+        let out = f();
+        if let Some(d) = dog {
+            d.leave();
+        }
+        out.map_err(|e| {
+            std::thread::sleep(grace);
+            match dog.and_then(Watchdog::failure) {
+                Some(reason) => crate::DistError::Collective { rank, op, reason },
+                None => e,
+            }
+        })
+    }
+
     /// Leaves the job without a goodbye, as a crashed process would: closes every socket, so that the
     /// other ranks fail (and name this rank) at once.
     pub(crate) fn abandon(&self) {
