@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use umgen_checkpoint::{CheckpointDir, Loaded, sha256};
+use umgen_modality::{ModalityCatalog, ModalityRegistry};
 
 /// The manifest's file name.
 pub const BUNDLE_MANIFEST: &str = "manifest.json";
@@ -222,6 +223,12 @@ impl Bundle {
     /// Opens `dir`: every file the manifest lists must be there with its checksum, and the config with the
     /// bundled tokenizers must give the manifest's layout fingerprint.
     pub fn open(dir: &Path) -> Result<Self> {
+        Ok(Self::open_with(dir, &builtin_catalog()?)?.0)
+    }
+
+    /// [`open`](Self::open), building the modalities with `catalog` (e.g. tokenizers on a GPU); returns
+    /// them too, so that callers need not build them again.
+    pub fn open_with(dir: &Path, catalog: &ModalityCatalog) -> Result<(Self, ModalityRegistry)> {
         let path = dir.join(BUNDLE_MANIFEST);
         let text = std::fs::read(&path).map_err(|e| bundle_err(&path, e.to_string()))?;
         let manifest: BundleManifest =
@@ -263,18 +270,21 @@ impl Bundle {
                 );
             }
         }
-        let registry = config.registry(&builtin_catalog()?)?;
+        let registry = config.registry(catalog)?;
         if registry.layout()?.fingerprint() != manifest.fingerprint {
             return Err(bundle_err(
                 &path,
                 "its tokenizers and config do not give the layout it was exported with",
             ));
         }
-        Ok(Self {
-            dir: dir.to_path_buf(),
-            manifest,
-            config,
-        })
+        Ok((
+            Self {
+                dir: dir.to_path_buf(),
+                manifest,
+                config,
+            },
+            registry,
+        ))
     }
 
     /// The weights' bytes (safetensors), as exported.

@@ -16,11 +16,8 @@ use umgen::{Bundle, backbone_spec, builtin_catalog_with};
 /// Generates.
 pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.scenes >= 1, "--scenes must be at least 1");
-    let bundle = Bundle::open(&a.bundle)?;
     let device = Device::parse(&a.device)?;
-    let registry = bundle
-        .config
-        .registry(&builtin_catalog_with(device.codec_loader())?)?;
+    let (bundle, registry) = Bundle::open_with(&a.bundle, &builtin_catalog_with(device.codec_loader())?)?;
     let spec = backbone_spec(&registry, &bundle.config.backbone)?;
     let control = match &a.control {
         Some(p) => read_control(p)?,

@@ -18,8 +18,7 @@ pub fn read_json(dir: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
 pub fn open_output(dir: &Path) -> anyhow::Result<(serde_json::Value, Bundle, ModalityRegistry)> {
     let meta = read_json(dir, "meta.json")?;
     let bundle_dir = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
-    let bundle = Bundle::open(Path::new(bundle_dir))?;
-    let registry = bundle.config.registry(&builtin_catalog()?)?;
+    let (bundle, registry) = Bundle::open_with(Path::new(bundle_dir), &builtin_catalog()?)?;
     Ok((meta, bundle, registry))
 }
 
