@@ -4,10 +4,9 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{ok, umgen};
+use common::{ok, python_check, umgen};
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 use umgen::data::Dataset;
 use umgen_tests::run_fixture::Fixture;
 
@@ -58,22 +57,14 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         }
     }
     // Outside readers: Python's safetensors (CI's UMGEN_TB_PYTHON has it).
-    if let Ok(python) = std::env::var("UMGEN_TB_PYTHON") {
-        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/python/check_bundle.py");
-        for (dir, dtype) in [(&f32_dir, "F32"), (&bf16_dir, "BF16")] {
-            let out = Command::new(&python)
-                .arg(&script)
-                .arg(dir)
-                .args([dtype, "time", "oar_heads.heads.0.weight"])
-                .output()
-                .unwrap();
-            assert!(
-                out.status.success(),
-                "{}{}",
-                String::from_utf8_lossy(&out.stdout),
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
+    for (dir, dtype) in [(&f32_dir, "F32"), (&bf16_dir, "BF16")] {
+        let args = [
+            dir.as_os_str(),
+            dtype.as_ref(),
+            "time".as_ref(),
+            "oar_heads.heads.0.weight".as_ref(),
+        ];
+        python_check("check_bundle.py", &args);
     }
     // Generation from the bundle: tokens in their vocabularies, a forced left turn turns left, seeds repeat.
     let ds = Dataset::open(&fx.data).unwrap();

@@ -4,10 +4,10 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{ok, umgen};
+use common::{ok, python_check, umgen};
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 use umgen_tests::run_fixture::Fixture;
@@ -99,20 +99,9 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
     );
 
     // TensorBoard's own reader loads the scalars (CI sets UMGEN_TB_PYTHON to a Python with tensorboard).
-    if let Ok(python) = std::env::var("UMGEN_TB_PYTHON") {
-        let script =
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/python/check_tensorboard.py");
-        let out = Command::new(python)
-            .arg(script)
-            .arg(fx.run_dir("a").join("tb"))
-            .args(["loss", "30"])
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
+    let tb = fx.run_dir("a").join("tb");
+    python_check(
+        "check_tensorboard.py",
+        &[tb.as_os_str(), "loss".as_ref(), "30".as_ref()],
+    );
 }

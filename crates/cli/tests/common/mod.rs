@@ -29,3 +29,21 @@ pub fn free_port() -> String {
         .port()
         .to_string()
 }
+
+/// Runs `tests/python/<script>` with `args` in the Python of `UMGEN_TB_PYTHON` (CI's venv with tensorboard
+/// and safetensors) and asserts success; skipped without that variable.
+pub fn python_check(script: &str, args: &[&std::ffi::OsStr]) {
+    let Ok(python) = std::env::var("UMGEN_TB_PYTHON") else {
+        return;
+    };
+    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/python")
+        .join(script);
+    let out = Command::new(python).arg(path).args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{script}: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
