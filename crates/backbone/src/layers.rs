@@ -81,11 +81,7 @@ impl<B: Backend> MultiHead<B> {
         let d = kv.dims()[2] / 2;
         let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
         let v = split_heads(kv.narrow(2, d, d), self.heads);
-        let opts = AttentionModuleOptions {
-            is_causal: causal,
-            ..Default::default()
-        };
-        let y = attention(q, k, v, mask, None, opts);
+        let y = crate::attention::attend(q, k, v, mask, causal);
         self.drop.forward(self.proj.forward(merge_heads(y)))
     }
 

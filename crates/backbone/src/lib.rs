@@ -19,6 +19,7 @@
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
 mod ama;
+pub mod attention;
 mod config;
 mod decode;
 mod ego;
