@@ -214,6 +214,10 @@ pub struct TokenizerTrainArgs {
     /// Use every n-th frame of each clip.
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
+    /// Stop after this many minutes of training (after a checkpoint; the tokenizer is written and a later
+    /// run with the same `--out` resumes), for machines lent for a fixed time.
+    #[arg(long, value_name = "MINUTES", value_parser = positive_minutes)]
+    pub time_limit: Option<f64>,
     /// `cpu`, or `cuda:N` in builds with the `cuda` feature.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -372,6 +376,28 @@ pub enum BenchCommand {
     /// Per-token generation latency and memory as the history grows: the TAR/OAR model against a vanilla
     /// autoregressive transformer of the same width and depth over all frames' tokens (paper Fig. 7).
     Generate(BenchGenerateArgs),
+    /// The backbone's tiled attention against burn's decomposed attention: agreement of outputs and
+    /// gradients, forward+backward time and memory, at the shapes of the `small` and `paper` presets.
+    Attention(BenchAttentionArgs),
+}
+
+/// Arguments of `umgen bench attention`.
+#[derive(Debug, Args)]
+pub struct BenchAttentionArgs {
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Cases as `SEQS×HEADS×LQ×LK×DH` with a trailing `c` for causal, comma-separated (default: the OAR and
+    /// spatial-TAR attention of `--preset small`, the OAR of `--preset paper`, the temporal TAR of `small`).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "32x6x2199x2199x64c,32x6x2199x2199x64,20x12x2199x2199x64c,70352x6x8x8x64c"
+    )]
+    pub cases: Vec<String>,
+    /// Timed forward+backward passes per case and path (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub iters: usize,
 }
 
 /// Arguments of `umgen bench generate`.
@@ -414,9 +440,17 @@ pub struct BenchAllreduceArgs {
 /// Arguments of `umgen bench train`.
 #[derive(Debug, Args)]
 pub struct BenchTrainArgs {
-    /// The config whose layout and backbone are measured (tokenizers are not needed).
-    #[command(flatten)]
-    pub config: ConfigArgs,
+    /// The config whose layout and backbone are measured (tokenizers are not needed); default with
+    /// `--preset`: `configs/<preset>.toml`.
+    #[arg(short, long, value_name = "FILE", required_unless_present = "preset")]
+    pub config: Option<PathBuf>,
+    /// Override a config key (applied after the preset's).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// The sizes of `torch_umgen.py`'s preset of this name, for side-by-side timing (docs/performance.md):
+    /// N = 2199 (60 agents, no boundary tokens), no dropout; `small` batch 4 × T 8, `paper` batch 1 × T 20.
+    #[arg(long, value_enum)]
+    pub preset: Option<BenchPreset>,
     /// `cpu`, or `cuda:N`.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -432,6 +466,41 @@ pub struct BenchTrainArgs {
     /// Data-parallel settings.
     #[command(flatten)]
     pub dist: DistArgs,
+}
+
+/// The reference sizes `umgen bench train --preset` knows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BenchPreset {
+    /// D 384, 4 layers per stack, batch 4 × T 8.
+    Small,
+    /// D 768, the paper's depths, batch 1 × T 20.
+    Paper,
+}
+
+impl BenchPreset {
+    /// Its name (also the stem of its config under `configs/`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Small => "small",
+            Self::Paper => "paper",
+        }
+    }
+
+    /// Config overrides that give the PyTorch reference's sizes.
+    pub fn overrides(self) -> Vec<String> {
+        let (batch, frames) = match self {
+            Self::Small => (4, 8),
+            Self::Paper => (1, 20),
+        };
+        [
+            "layout.boundary_tokens=false".to_string(),
+            "modality.agent.max_agents=60".into(),
+            "backbone.dropout=0.0".into(),
+            format!("train.batch_size={batch}"),
+            format!("train.frames={frames}"),
+        ]
+        .into()
+    }
 }
 
 /// Arguments of `umgen bench data`.
@@ -474,4 +543,12 @@ pub struct LayoutArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+/// A positive, finite number of minutes.
+fn positive_minutes(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(m) if m.is_finite() && m > 0.0 => Ok(m),
+        _ => Err(format!("`{s}` is not a positive number of minutes")),
+    }
 }

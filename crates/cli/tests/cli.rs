@@ -195,3 +195,73 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
         "{err}"
     );
 }
+
+#[test]
+fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
+    let out = umgen(&[
+        "bench",
+        "attention",
+        "--cases",
+        "2x2x300x300x8c,1x2x40x90x8",
+        "--iters",
+        "1",
+    ]);
+    let table = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    for case in ["2x2x300x300x8c", "1x2x40x90x8"] {
+        let row = table
+            .lines()
+            .find(|l| l.starts_with(case))
+            .unwrap_or_else(|| panic!("no row for {case}: {table}"));
+        let cols: Vec<f64> = row
+            .split_whitespace()
+            .skip(1)
+            .map(|c| c.parse().unwrap())
+            .collect();
+        assert!(cols[0] > 0.0 && cols[1] > 0.0, "{row}");
+        // Output and the three gradients agree to f32 rounding.
+        assert!(cols[2..6].iter().all(|&e| e < 1e-5), "{row}");
+    }
+    let err = failure(&["bench", "attention", "--cases", "2x2x30x20x8c"], &[]);
+    assert!(err.contains("2x2x30x20x8c") && err.contains("LK ≥ LQ"), "{err}");
+}
+
+#[test]
+fn bench_train_preset_names_the_config_it_reads_and_flags_are_checked() {
+    let dir = std::env::temp_dir().join(format!("umgen-preset-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_umgen"))
+        .args(["bench", "train", "--preset", "small"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    let err = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("configs/small.toml") && err.contains("--config"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+    // Neither a config nor a preset, and a time limit that is not a positive number: usage errors.
+    let out = umgen(&["bench", "train"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("--config"), "{}", text(&out.stderr));
+    let out = umgen(&[
+        "tokenizer",
+        "train",
+        "--config",
+        "x.toml",
+        "--modality",
+        "map",
+        "--data",
+        "d",
+        "--time-limit",
+        "0",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        text(&out.stderr).contains("not a positive number of minutes"),
+        "{}",
+        text(&out.stderr)
+    );
+}

@@ -13,6 +13,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Train(args) => super::bench_train::run(&args),
         BenchCommand::Allreduce(args) => super::bench_train::allreduce(&args),
         BenchCommand::Generate(args) => super::bench_generate::run(&args),
+        BenchCommand::Attention(args) => super::bench_attention::run(&args),
     }
 }
 

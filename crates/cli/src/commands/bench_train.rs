@@ -3,11 +3,13 @@
 use crate::cli::{BenchAllreduceArgs, BenchTrainArgs};
 use crate::device::Device;
 use crate::dist::{DistBackend, rank_device};
+use anyhow::Context;
 use burn::optim::{AdamWConfig, GradientsParams, Optimizer};
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
+use std::path::PathBuf;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec};
 use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
@@ -42,7 +44,23 @@ fn random_tokens<B: AutodiffBackend>(
 /// Measures.
 pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     // Speed does not depend on trained tokenizers; codebook sizes come from the config.
-    let (config, _) = UmgenConfig::load(&a.config.config, &a.config.set)?.without_missing_tokenizers();
+    let path = match (&a.config, a.preset) {
+        (Some(p), _) => p.clone(),
+        (None, Some(p)) => PathBuf::from(format!("configs/{}.toml", p.name())),
+        (None, None) => anyhow::bail!("give --config or --preset"),
+    };
+    let mut sets = a.preset.map(|p| p.overrides()).unwrap_or_default();
+    sets.extend(a.set.iter().cloned());
+    let (config, _) = UmgenConfig::load(&path, &sets)
+        .with_context(|| match a.preset {
+            Some(p) if a.config.is_none() => format!(
+                "preset `{}` reads {} (run from the repository root, or pass --config)",
+                p.name(),
+                path.display()
+            ),
+            _ => format!("loading {}", path.display()),
+        })?
+        .without_missing_tokenizers();
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let (cfg, tc) = (&config.backbone, &config.train);
@@ -95,7 +113,10 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     let mut out = std::io::stdout().lock();
-    writeln!(out, "config        {}", a.config.config.display())?;
+    match a.preset {
+        Some(p) => writeln!(out, "preset        {} ({})", p.name(), path.display())?,
+        None => writeln!(out, "config        {}", path.display())?,
+    }
     writeln!(out, "device        {}", a.device)?;
     if world > 1 {
         writeln!(

@@ -2,6 +2,7 @@
 
 mod agents;
 mod bench;
+mod bench_attention;
 mod bench_generate;
 mod bench_train;
 mod data;

@@ -57,6 +57,11 @@ fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
                 bar.set_message(format!("loss {:.4}", v[0].1));
                 bar.suspend(|| tracing::info!("step {}/{}: {}", r.step, r.steps, line.join(", ")));
             }
+            let limit = a.time_limit.map(|m| std::time::Duration::from_secs_f64(60.0 * m));
+            if limit.is_some_and(|l| started.elapsed() >= l) {
+                bar.suspend(|| tracing::info!("time limit reached at step {}", r.step));
+                return ControlFlow::Break(());
+            }
             ControlFlow::Continue(())
         })?;
         tok.info().clone()

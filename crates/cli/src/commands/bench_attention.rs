@@ -1,0 +1,169 @@
+//! `umgen bench attention`: the tiled attention against burn's decomposed one on the device, for
+//! correctness (outputs and gradients) and for time and memory.
+
+use crate::cli::BenchAttentionArgs;
+use crate::device::{Device, memory_in_use};
+use anyhow::Context;
+use burn::tensor::backend::{AutodiffBackend, Backend};
+use burn::tensor::module::attention_fallback;
+use burn::tensor::ops::AttentionModuleOptions;
+use burn::tensor::{Distribution, ElementConversion, Tensor};
+use std::io::Write;
+use std::time::Instant;
+use umgen::backbone::attention::tiled_for;
+
+/// One measured shape.
+#[derive(Debug, Clone, Copy)]
+struct Case {
+    seqs: usize,
+    heads: usize,
+    lq: usize,
+    lk: usize,
+    dh: usize,
+    causal: bool,
+}
+
+impl Case {
+    fn parse(s: &str) -> anyhow::Result<Self> {
+        let (body, causal) = match s.strip_suffix('c') {
+            Some(b) => (b, true),
+            None => (s, false),
+        };
+        let n: Vec<usize> = body
+            .split('x')
+            .map(|x| x.parse::<usize>())
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("--cases `{s}`: expected SEQSxHEADSxLQxLKxDH[c]"))?;
+        match n[..] {
+            [seqs, heads, lq, lk, dh] if n.iter().all(|&x| x > 0) && (!causal || lk >= lq) => Ok(Self {
+                seqs,
+                heads,
+                lq,
+                lk,
+                dh,
+                causal,
+            }),
+            _ => anyhow::bail!(
+                "--cases `{s}`: need five positive sizes SEQSxHEADSxLQxLKxDH (LK ≥ LQ when causal)"
+            ),
+        }
+    }
+}
+
+/// Output and q, k, v gradients of one path, and its median forward+backward time.
+struct Run<B: Backend> {
+    out: Tensor<B, 4>,
+    grads: [Tensor<B, 4>; 3],
+    seconds: f64,
+    reserved: u64,
+}
+
+fn measure<B: AutodiffBackend>(
+    c: &Case,
+    tiled: bool,
+    iters: usize,
+    device: Device,
+    dev: &B::Device,
+) -> anyhow::Result<Run<B::InnerBackend>> {
+    B::seed(dev, 7);
+    let shape = |l: usize| [c.seqs, c.heads, l, c.dh];
+    let normal = Distribution::Normal(0.0, 1.0);
+    let q = Tensor::<B::InnerBackend, 4>::random(shape(c.lq), normal, dev);
+    let k = Tensor::<B::InnerBackend, 4>::random(shape(c.lk), normal, dev);
+    let v = Tensor::<B::InnerBackend, 4>::random(shape(c.lk), normal, dev);
+    let w = Tensor::<B::InnerBackend, 4>::random(shape(c.lq), normal, dev);
+    let mut times = Vec::new();
+    let mut last = None;
+    for i in 0..iters + 1 {
+        let t0 = Instant::now();
+        let (qa, ka, va) = (
+            Tensor::<B, 4>::from_inner(q.clone()).require_grad(),
+            Tensor::<B, 4>::from_inner(k.clone()).require_grad(),
+            Tensor::<B, 4>::from_inner(v.clone()).require_grad(),
+        );
+        let y = if tiled {
+            let f = tiled_for::<B>().context("no tiled attention for this backend")?;
+            f(qa.clone(), ka.clone(), va.clone(), c.causal)
+        } else {
+            let opts = AttentionModuleOptions {
+                is_causal: c.causal,
+                ..Default::default()
+            };
+            attention_fallback(qa.clone(), ka.clone(), va.clone(), None, None, opts)
+        };
+        let g = (y.clone() * Tensor::from_inner(w.clone())).sum().backward();
+        let grads = [qa.grad(&g), ka.grad(&g), va.grad(&g)];
+        let [Some(dq), Some(dk), Some(dv)] = grads else {
+            anyhow::bail!("attention gave no gradient to q, k or v");
+        };
+        B::sync(dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
+        if i > 0 {
+            times.push(t0.elapsed().as_secs_f64());
+        }
+        last = Some((y.inner(), [dq, dk, dv]));
+    }
+    times.sort_by(f64::total_cmp);
+    let (out, grads) = last.context("no iteration ran")?;
+    Ok(Run {
+        out,
+        grads,
+        seconds: times[times.len() / 2],
+        reserved: memory_in_use(device),
+    })
+}
+
+/// max |a − b| / max |b|.
+fn rel_err<B: Backend>(a: Tensor<B, 4>, b: Tensor<B, 4>) -> f64 {
+    let scale: f64 = b.clone().abs().max().into_scalar().elem();
+    let diff: f64 = (a - b).abs().max().into_scalar().elem();
+    diff / scale.max(f64::MIN_POSITIVE)
+}
+
+/// Measures.
+pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
+    let cases: Vec<Case> = a.cases.iter().map(|s| Case::parse(s)).collect::<Result<_, _>>()?;
+    let device = Device::parse(&a.device)?;
+    let mut out = std::io::stdout().lock();
+    writeln!(
+        out,
+        "attention forward+backward on {}, f32; err = max|Δ| / max|decomposed|; GiB = memory pool after \
+         the path (the pool only grows: the decomposed figure includes the tiled one's)",
+        a.device
+    )?;
+    writeln!(
+        out,
+        "{:<22} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>11} {:>11}",
+        "case", "tiled ms", "decomp ms", "err out", "err dq", "err dk", "err dv", "tiled GiB", "decomp GiB"
+    )?;
+    let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+    for (c, name) in cases.iter().zip(&a.cases) {
+        let row = crate::with_autodiff!(device, |B, dev| {
+            // Tiled first: the pool only grows, so the decomposed path's figure includes what it added.
+            let t = measure::<B>(c, true, a.iters, device, &dev)?;
+            let d = measure::<B>(c, false, a.iters, device, &dev)?;
+            let [tq, tk, tv] = t.grads;
+            let [dq, dk, dv] = d.grads;
+            let errs = [
+                rel_err(t.out, d.out),
+                rel_err(tq, dq),
+                rel_err(tk, dk),
+                rel_err(tv, dv),
+            ];
+            (t.seconds, d.seconds, errs, t.reserved, d.reserved)
+        });
+        let (ts, ds, e, tr, dr) = row;
+        writeln!(
+            out,
+            "{name:<22} {:>10.2} {:>10.2} {:>9.1e} {:>9.1e} {:>9.1e} {:>9.1e} {:>11.2} {:>11.2}",
+            1e3 * ts,
+            1e3 * ds,
+            e[0],
+            e[1],
+            e[2],
+            e[3],
+            gib(tr),
+            gib(dr)
+        )?;
+    }
+    Ok(())
+}
