@@ -137,6 +137,33 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         );
     }
     assert!(g1.join("rollout.gif").exists());
+    // The same scenes as a dataset on the context clip's network: ego poses as in scenes.json.
+    let clip0 = &ds.clips()[0];
+    let network = ds
+        .index()
+        .logs
+        .iter()
+        .find(|l| l.id == clip0.log)
+        .unwrap()
+        .network
+        .clone();
+    let data = Dataset::open(&g1.join("dataset")).unwrap();
+    assert_eq!(data.clips().len(), 2);
+    for (k, clip) in scenes.as_array().unwrap().iter().enumerate() {
+        let read = data.read_clip(k).unwrap();
+        let want = clip["frames"].as_array().unwrap();
+        assert_eq!(read.frames.len(), want.len());
+        assert_eq!(
+            read.network.as_ref().map(|n| n.id.as_str()),
+            Some(network.as_str()),
+            "the context clip's network"
+        );
+        for (f, w) in read.frames.iter().zip(want) {
+            let d = (f.ego.x - w["ego"]["x"].as_f64().unwrap()).abs()
+                + (f.ego.heading - w["ego"]["heading"].as_f64().unwrap()).abs();
+            assert!(d < 1e-3, "scene {k}: ego differs by {d}");
+        }
+    }
 
     // `umgen viz` draws any generated scene, context frames included.
     let gif = fx.dir.path().join("scene1.gif");

@@ -1,7 +1,12 @@
 //! Per-modality statistics of a dataset: exact, and mergeable across logs.
 
+use crate::error::Result;
+use crate::index::ClipEntry;
+use crate::log::Log;
+use crate::view::{ViewOptions, frames};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+use std::path::Path;
 
 /// Count, range, mean and spread of one quantity.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -106,6 +111,55 @@ impl Stats {
             *self.categories.entry(k.clone()).or_default() += v;
         }
     }
+}
+
+/// Statistics over every frame of the clips, cut exactly as readers will cut them.
+pub(crate) fn clip_stats(log: &Log, clips: &[ClipEntry], view: &ViewOptions, path: &Path) -> Result<Stats> {
+    let mut st = Stats::default();
+    for c in clips {
+        let steps: Vec<&[_]> = log.steps[c.first_step..c.first_step + c.frames]
+            .iter()
+            .map(Vec::as_slice)
+            .collect();
+        let before = c.first_step.checked_sub(1).and_then(|s| {
+            let step = &log.steps[s];
+            step.binary_search_by_key(&c.ego_track, |x| x.track)
+                .ok()
+                .map(|i| step[i])
+        });
+        for f in frames(
+            path,
+            &log.tracks,
+            c.ego_track,
+            &steps,
+            before.as_ref(),
+            log.dt,
+            view,
+        )? {
+            st.frames += 1;
+            st.ego("dx", f.action.dx);
+            st.ego("dy", f.action.dy);
+            st.ego("dtheta", f.action.dtheta);
+            st.ego("speed", f.ego.speed);
+            st.agent("per_frame", f.agents.len() as f64);
+            for a in &f.agents {
+                *st.categories.entry(a.category.name().into()).or_default() += 1;
+                for (k, v) in [
+                    ("x", a.x),
+                    ("y", a.y),
+                    ("vx", a.vx),
+                    ("vy", a.vy),
+                    ("heading", a.heading),
+                    ("length", a.length),
+                    ("width", a.width),
+                    ("height", a.height),
+                ] {
+                    st.agent(k, v);
+                }
+            }
+        }
+    }
+    Ok(st)
 }
 
 #[cfg(test)]

@@ -129,6 +129,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         })
         .collect();
     std::fs::write(a.out.join("scenes.json"), serde_json::to_vec(&light)?)?;
+    let network = context.as_ref().and_then(|c| c.clip.network.clone());
+    write_dataset(&a.out.join("dataset"), light, network)?;
     // What `umgen eval` needs to find the ground truth and the tokenizers.
     let context_meta = context
         .as_ref()
@@ -152,11 +154,34 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         0,
     )?;
     tracing::info!(
-        "{}: tokens.json, scenes.json, rollout.gif ({} context + {} generated frames)",
+        "{}: tokens.json, scenes.json, dataset/, rollout.gif ({} context + {} generated frames)",
         a.out.display(),
         n_context,
         a.frames
     );
+    Ok(())
+}
+
+/// The decoded scenes as a umgen dataset in `dir` (replacing one from an earlier run), on the context clip's
+/// road network: ego and agent tracks in world coordinates, one clip per scene, split `generated`. Generated
+/// map and image tokens are not part of it (a dataset derives those from its network).
+fn write_dataset(
+    dir: &Path,
+    mut scenes: Vec<SceneClip>,
+    network: Option<std::sync::Arc<umgen::scene::RoadNetwork>>,
+) -> anyhow::Result<()> {
+    for c in &mut scenes {
+        c.network = network.clone();
+    }
+    let partial = dir.with_extension("partial");
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).with_context(|| format!("removing {}", partial.display()))?;
+    }
+    umgen::data::write_scene_dataset(&partial, &scenes, "scene", "generated")?;
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).with_context(|| format!("replacing {}", dir.display()))?;
+    }
+    std::fs::rename(&partial, dir).with_context(|| format!("writing {}", dir.display()))?;
     Ok(())
 }
 

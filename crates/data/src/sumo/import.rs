@@ -6,8 +6,8 @@ use super::types::TypeTable;
 use crate::error::{DataError, Result, corrupt, io};
 use crate::index::{ClipEntry, INDEX_FILE, Index, LogEntry, NetworkEntry};
 use crate::log::{Log, write_atomic};
-use crate::stats::Stats;
-use crate::view::{ViewOptions, frames};
+use crate::stats::clip_stats;
+use crate::view::ViewOptions;
 use std::path::{Path, PathBuf};
 use umgen_scene::AgentCategory;
 
@@ -233,53 +233,4 @@ fn cut_clips(log: &Log, o: &ImportOptions, log_id: &str) -> Vec<ClipEntry> {
         }
     }
     clips
-}
-
-/// Statistics over every frame of the clips, cut exactly as readers will cut them.
-fn clip_stats(log: &Log, clips: &[ClipEntry], view: &ViewOptions, path: &Path) -> Result<Stats> {
-    let mut st = Stats::default();
-    for c in clips {
-        let steps: Vec<&[_]> = log.steps[c.first_step..c.first_step + c.frames]
-            .iter()
-            .map(Vec::as_slice)
-            .collect();
-        let before = c.first_step.checked_sub(1).and_then(|s| {
-            let step = &log.steps[s];
-            step.binary_search_by_key(&c.ego_track, |x| x.track)
-                .ok()
-                .map(|i| step[i])
-        });
-        for f in frames(
-            path,
-            &log.tracks,
-            c.ego_track,
-            &steps,
-            before.as_ref(),
-            log.dt,
-            view,
-        )? {
-            st.frames += 1;
-            st.ego("dx", f.action.dx);
-            st.ego("dy", f.action.dy);
-            st.ego("dtheta", f.action.dtheta);
-            st.ego("speed", f.ego.speed);
-            st.agent("per_frame", f.agents.len() as f64);
-            for a in &f.agents {
-                *st.categories.entry(a.category.name().into()).or_default() += 1;
-                for (k, v) in [
-                    ("x", a.x),
-                    ("y", a.y),
-                    ("vx", a.vx),
-                    ("vy", a.vy),
-                    ("heading", a.heading),
-                    ("length", a.length),
-                    ("width", a.width),
-                    ("height", a.height),
-                ] {
-                    st.agent(k, v);
-                }
-            }
-        }
-    }
-    Ok(st)
 }

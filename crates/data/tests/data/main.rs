@@ -4,6 +4,7 @@
 mod format;
 mod geometry;
 mod import;
+mod scenes;
 
 use std::path::{Path, PathBuf};
 
