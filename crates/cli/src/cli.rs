@@ -460,6 +460,10 @@ pub struct BenchTrainArgs {
     /// Untimed warm-up steps (kernel compilation and autotuning happen here).
     #[arg(long, default_value_t = 3)]
     pub warmup: usize,
+    /// Also time each phase of the step (forward, backward, gradient all-reduce, optimizer) with a device
+    /// sync after each; the syncs remove overlap between phases, so the step is timed separately.
+    #[arg(long)]
+    pub phases: bool,
     /// Peak dense throughput of the device in TFLOP/s, for MFU (default: 989, an H100/H200's bf16).
     #[arg(long, default_value_t = 989.0)]
     pub peak_tflops: f64,

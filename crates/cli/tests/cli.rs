@@ -265,3 +265,36 @@ fn bench_train_preset_names_the_config_it_reads_and_flags_are_checked() {
         text(&out.stderr)
     );
 }
+
+#[test]
+fn bench_train_times_the_phases_of_the_step() {
+    let tiny = config("tiny.toml");
+    let out = umgen(&[
+        "bench",
+        "train",
+        "--config",
+        tiny.to_str().unwrap(),
+        "--steps",
+        "1",
+        "--warmup",
+        "0",
+        "--phases",
+        "--set",
+        "train.batch_size=1",
+    ]);
+    let report = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let line = report
+        .lines()
+        .find(|l| l.starts_with("phases"))
+        .unwrap_or_else(|| panic!("no phases line: {report}"));
+    let ms: Vec<f64> = line
+        .split_whitespace()
+        .filter_map(|w| w.parse::<f64>().ok())
+        .collect();
+    assert_eq!(ms.len(), 4, "{line}");
+    assert!(
+        ms[0] > 0.0 && ms[1] > 0.0,
+        "forward and backward take time: {line}"
+    );
+}

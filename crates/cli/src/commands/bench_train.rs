@@ -78,7 +78,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         config.to_json().to_string().hash(&mut h);
         format!("{:016x}", h.finish())
     };
-    let (median, peak, backend) = crate::with_autodiff!(device, |B, dev| {
+    let (median, peak, backend, phases) = crate::with_autodiff!(device, |B, dev| {
         let mut group =
             <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
         B::seed(&dev, 0);
@@ -89,25 +89,53 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             .init();
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
+        let mut phases: [Vec<f64>; 4] = Default::default();
         let mut peak = 0u64;
-        for i in 0..a.warmup + a.steps {
-            let t0 = Instant::now();
+        let sync = || B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
+        for i in 0..a.warmup + 2 * a.steps {
+            // Timed steps first, then (with --phases) as many steps with a sync after every phase.
+            let split = a.phases && i >= a.warmup + a.steps;
+            if !a.phases && i >= a.warmup + a.steps {
+                break;
+            }
+            let mut mark = Instant::now();
+            let t0 = mark;
+            let mut lap = |k: usize| -> anyhow::Result<()> {
+                if split {
+                    sync()?;
+                    phases[k].push(mark.elapsed().as_secs_f64());
+                    mark = Instant::now();
+                }
+                Ok(())
+            };
             let losses = model.loss(batch.clone(), tc.ego_loss_weight)?;
             let loss = losses.total.clone();
+            if split {
+                // Only a read of the loss makes the lazy graph run before the backward pass.
+                drop(loss.clone().into_data());
+            }
+            lap(0)?;
             let grads = GradientsParams::from_grads(loss.backward(), &model);
+            lap(1)?;
             let grads = all_reduce_grads(&model, grads, group.as_mut(), bucket)?;
+            lap(2)?;
             model = optim.step(tc.lr, model, grads);
+            lap(3)?;
             // Wait for the step's work on the device before reading the clock.
-            B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
+            sync()?;
             peak = peak.max(crate::device::memory_in_use(device));
-            if i >= a.warmup {
+            if i >= a.warmup && !split {
                 times.push(t0.elapsed().as_secs_f64());
             }
         }
         group.barrier()?;
         group.finish();
         times.sort_by(f64::total_cmp);
-        (times[times.len() / 2], peak, group.backend())
+        let phases = phases.map(|mut p| {
+            p.sort_by(f64::total_cmp);
+            p.get(p.len() / 2).copied()
+        });
+        (times[times.len() / 2], peak, group.backend(), phases)
     });
     if env.rank != 0 {
         return Ok(());
@@ -142,6 +170,17 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         1e3 * median,
         a.steps
     )?;
+    if let [Some(f), Some(b), Some(r), Some(o)] = phases {
+        writeln!(
+            out,
+            "phases        forward {:.1} ms, backward {:.1} ms, all-reduce {:.1} ms, optimizer {:.1} ms \
+             (synced after each; medians)",
+            1e3 * f,
+            1e3 * b,
+            1e3 * r,
+            1e3 * o
+        )?;
+    }
     writeln!(
         out,
         "throughput    {:.0} tokens/s ({:.0} per rank)",
