@@ -51,22 +51,14 @@ pub fn attend<B: Backend>(
         Some(tiled) if mask.is_none() && lk >= MIN_TILED_KEYS && (!causal || lk >= lq) => {
             tiled(q, k, v, causal)
         }
-        _ => fused(q, k, v, mask, causal),
+        _ => {
+            let opts = AttentionModuleOptions {
+                is_causal: causal,
+                ..Default::default()
+            };
+            attention(q, k, v, mask, None, opts)
+        }
     }
-}
-
-fn fused<B: Backend>(
-    q: Tensor<B, 4>,
-    k: Tensor<B, 4>,
-    v: Tensor<B, 4>,
-    mask: Option<Tensor<B, 4, Bool>>,
-    causal: bool,
-) -> Tensor<B, 4> {
-    let opts = AttentionModuleOptions {
-        is_causal: causal,
-        ..Default::default()
-    };
-    attention(q, k, v, mask, None, opts)
 }
 
 /// The signature of an attention function on backend `B`.
@@ -219,11 +211,16 @@ pub fn tiled_backward<B: Backend>(
         let dv_r = p.swap_dims(2, 3).matmul(doi);
         let dk_r = ds.clone().swap_dims(2, 3).matmul(qi).mul_scalar(scale);
         dqs.push(ds.matmul(kr).mul_scalar(scale));
-        let keys = [0..b, 0..h, 0..blk.keys];
-        dv = dv
-            .clone()
-            .slice_assign(keys.clone(), dv.slice(keys.clone()) + dv_r);
-        dk = dk.clone().slice_assign(keys.clone(), dk.slice(keys) + dk_r);
+        if blk.keys == lk {
+            dv = dv + dv_r;
+            dk = dk + dk_r;
+        } else {
+            let keys = [0..b, 0..h, 0..blk.keys];
+            dv = dv
+                .clone()
+                .slice_assign(keys.clone(), dv.slice(keys.clone()) + dv_r);
+            dk = dk.clone().slice_assign(keys.clone(), dk.slice(keys) + dk_r);
+        }
     }
     (Tensor::cat(dqs, 2), dk, dv)
 }
