@@ -83,3 +83,40 @@ pub fn memory_in_use(device: Device) -> u64 {
         Device::Cuda(_) => 0,
     }
 }
+
+/// Where compiled CUDA kernels are kept between processes: `$UMGEN_KERNEL_CACHE` (`off` for nowhere), else
+/// `$XDG_CACHE_HOME/umgen/kernels`, else `~/.cache/umgen/kernels`.
+#[cfg(feature = "cuda")]
+pub fn kernel_cache_dir() -> Option<std::path::PathBuf> {
+    match std::env::var_os("UMGEN_KERNEL_CACHE") {
+        Some(v) if v == "off" => None,
+        Some(v) if !v.is_empty() => Some(v.into()),
+        _ => std::env::var_os("XDG_CACHE_HOME")
+            .filter(|v| !v.is_empty())
+            .map(std::path::PathBuf::from)
+            .or_else(|| std::env::var_os("HOME").map(|h| std::path::Path::new(&h).join(".cache")))
+            .map(|c| c.join("umgen").join("kernels")),
+    }
+}
+
+/// Keeps compiled CUDA kernels between processes. cubecl compiles every kernel with NVRTC at run time and,
+/// unless a config names a cache, forgets them when the process ends, so every run and every rank of a
+/// data-parallel run paid minutes of compilation again. A `cubecl.toml` (or a `burn.toml` with a `cubecl`
+/// section) found from the working directory up still decides; without one that sets a compilation cache,
+/// [`kernel_cache_dir`] is used. `CUBECL_*` variables apply on top, as they do for cubecl's own loading.
+/// Call before any CUDA work; returns the cache directory chosen here, if any.
+#[cfg(feature = "cuda")]
+pub fn init_kernel_cache() -> Option<std::path::PathBuf> {
+    use burn::cubecl::config::cache::CacheConfig;
+    use burn::cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
+    let mut cfg = CubeClRuntimeConfig::from_current_dir();
+    let chosen = match cfg.compilation.cache {
+        Some(_) => None,
+        None => kernel_cache_dir(),
+    };
+    if let Some(dir) = &chosen {
+        cfg.compilation.cache = Some(CacheConfig::File(dir.clone()));
+    }
+    CubeClRuntimeConfig::set(cfg.override_from_env());
+    chosen
+}

@@ -15,6 +15,10 @@ use std::process::ExitCode;
 fn main() -> ExitCode {
     let args = cli::Cli::parse();
     logging::init(args.verbose);
+    #[cfg(feature = "cuda")]
+    if let Some(dir) = device::init_kernel_cache() {
+        tracing::debug!("compiled CUDA kernels are kept in {}", dir.display());
+    }
     commands::guard_parent();
     match commands::run(args.command) {
         Ok(()) => ExitCode::SUCCESS,

@@ -110,6 +110,18 @@ mod gpu {
                  LD_LIBRARY_PATH (launchers/gpu-env.sh does this)"
             )?;
         }
+        match crate::device::kernel_cache_dir() {
+            Some(dir) => writeln!(
+                out,
+                "kernels  compiled CUDA kernels kept in {} (UMGEN_KERNEL_CACHE=DIR moves it, =off disables; a \
+                 cubecl.toml that sets a compilation cache wins)",
+                dir.display()
+            )?,
+            None => writeln!(
+                out,
+                "kernels  not kept between runs (UMGEN_KERNEL_CACHE=off, or no home directory)"
+            )?,
+        }
         Ok(problems)
     }
 }
