@@ -55,16 +55,19 @@ impl Sampling {
 
     /// Draws an id from `logits` (one row).
     pub fn draw(&self, logits: &[f32], rng: &mut impl Rng) -> u32 {
-        let mut order: Vec<usize> = (0..logits.len()).collect();
-        // Most likely first; NaN logits sort last and never win.
-        order.sort_by(|&a, &b| logits[b].total_cmp(&logits[a]).then(a.cmp(&b)));
-        order.retain(|&i| logits[i].is_finite());
+        // Non-finite logits (NaN, masked −∞) are never drawn.
+        let mut order: Vec<usize> = (0..logits.len()).filter(|&i| logits[i].is_finite()).collect();
         if order.is_empty() {
             return 0;
         }
-        if self.top_k > 0 {
+        // Most likely first, ties by id: one total order, so the draw does not depend on how it is sorted.
+        let most_likely = |a: &usize, b: &usize| logits[*b].total_cmp(&logits[*a]).then(a.cmp(b));
+        if self.top_k > 0 && self.top_k < order.len() {
+            // Selecting the k best is linear; sorting all 8,192 ids for 16 of them was most of a draw.
+            order.select_nth_unstable_by(self.top_k - 1, most_likely);
             order.truncate(self.top_k);
         }
+        order.sort_unstable_by(most_likely);
         let top = f64::from(logits[order[0]]);
         let mut probs: Vec<f64> = order
             .iter()
@@ -146,6 +149,50 @@ mod tests {
         );
         assert!(c[4] > 1_990);
         assert_eq!(counts(Sampling::greedy(), &logits, 100)[4], 100);
+    }
+
+    /// The draw as first written: sort every id, then cut to the top k.
+    fn draw_by_full_sort(s: &Sampling, logits: &[f32], rng: &mut impl Rng) -> u32 {
+        let mut order: Vec<usize> = (0..logits.len()).collect();
+        order.sort_by(|&a, &b| logits[b].total_cmp(&logits[a]).then(a.cmp(&b)));
+        order.retain(|&i| logits[i].is_finite());
+        order.truncate(s.top_k);
+        let top = f64::from(logits[order[0]]);
+        let probs: Vec<f64> = order
+            .iter()
+            .map(|&i| ((f64::from(logits[i]) - top) / s.temperature).exp())
+            .collect();
+        let total: f64 = probs.iter().sum();
+        let mut u: f64 = rng.random();
+        for (p, &i) in probs.iter().zip(&order) {
+            if u < *p / total {
+                return i as u32;
+            }
+            u -= *p / total;
+        }
+        order[order.len() - 1] as u32
+    }
+
+    #[test]
+    fn selecting_the_top_k_draws_what_sorting_everything_drew() {
+        let mut data = StdRng::seed_from_u64(5);
+        for k in [1, 2, 16, 100] {
+            let s = Sampling {
+                top_k: k,
+                ..Default::default()
+            };
+            let (mut a, mut b) = (StdRng::seed_from_u64(9), StdRng::seed_from_u64(9));
+            for _ in 0..200 {
+                // Few distinct values, so ties are common; some ids masked.
+                let logits: Vec<f32> = (0..500)
+                    .map(|_| match data.random_range(0..10) {
+                        0 => f32::NEG_INFINITY,
+                        v => v as f32 * 0.5,
+                    })
+                    .collect();
+                assert_eq!(s.draw(&logits, &mut a), draw_by_full_sort(&s, &logits, &mut b));
+            }
+        }
     }
 
     #[test]
