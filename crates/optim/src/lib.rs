@@ -3,7 +3,7 @@
 //! - [`Schedule`]: linear warm-up to the peak learning rate, then cosine decay to a floor at the last step
 //!   (and flat after it: unlike burn's cosine scheduler it never restarts).
 //! - [`clip_grad_norm`]: scales all gradients so that their global L2 norm is at most a bound (burn's own
-//!   clipping works per parameter), with a single device-to-host transfer.
+//!   clipping works per parameter), without a device-to-host transfer.
 
 use burn::module::{AutodiffModule, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
@@ -52,57 +52,67 @@ impl<B: AutodiffBackend> ModuleVisitor<B> for SquaredNorms<'_, B> {
 
 struct Scale<'a, B: AutodiffBackend> {
     grads: &'a mut GradientsParams,
-    factor: f64,
+    /// `[1]`, broadcast over every gradient.
+    factor: Tensor<B::InnerBackend, 1>,
     _b: std::marker::PhantomData<B>,
 }
 
 impl<B: AutodiffBackend> ModuleVisitor<B> for Scale<'_, B> {
     fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<B, D>>) {
         if let Some(g) = self.grads.remove::<B::InnerBackend, D>(param.id) {
-            self.grads.register(param.id, g.mul_scalar(self.factor));
+            let factor = self.factor.clone().reshape([1; D]);
+            self.grads.register(param.id, g * factor);
         }
     }
 }
 
-/// The global L2 norm of `grads` over the parameters of `model`.
-pub fn grad_norm<B: AutodiffBackend, M: AutodiffModule<B>>(model: &M, grads: &GradientsParams) -> f64 {
+/// The global L2 norm of `grads` over the parameters of `model`, on the device (`[1]`).
+pub fn grad_norm<B: AutodiffBackend, M: AutodiffModule<B>>(
+    model: &M,
+    grads: &GradientsParams,
+) -> Tensor<B::InnerBackend, 1> {
     let mut v = SquaredNorms::<B> {
         grads,
         parts: Vec::new(),
     };
     model.visit(&mut v);
-    if v.parts.is_empty() {
-        return 0.0;
+    match v.parts.first() {
+        None => Tensor::zeros([1], &Default::default()),
+        Some(first) => {
+            let dev = first.device();
+            Tensor::cat(v.parts, 0).sum().sqrt().to_device(&dev)
+        }
     }
-    let total: f64 = Tensor::cat(v.parts, 0).sum().into_scalar().elem();
-    total.sqrt()
 }
 
-/// Scales `grads` so that their global norm is at most `max_norm` (no-op when `max_norm <= 0`) and
-/// returns the norm before scaling.
+/// Scales `grads` so that their global norm is at most `max_norm` (no-op when `max_norm <= 0`, or when the
+/// norm is not finite) and returns the norm before scaling, still on the device: the factor is computed
+/// there, so clipping does not make the host wait for the backward pass (read the norm only when logging).
 pub fn clip_grad_norm<B: AutodiffBackend, M: AutodiffModule<B>>(
     model: &M,
     grads: &mut GradientsParams,
     max_norm: f64,
-) -> f64 {
+) -> Tensor<B::InnerBackend, 1> {
     let norm = grad_norm::<B, M>(model, grads);
-    if max_norm > 0.0 && norm > max_norm && norm.is_finite() {
+    if max_norm > 0.0 {
+        // min(1, max / norm), and 1 where the norm is NaN or infinite (as if not clipped).
+        let factor = norm.clone().clamp_min(max_norm).recip().mul_scalar(max_norm);
+        let factor = factor.mask_fill(norm.clone().is_finite().bool_not(), 1.0);
         model.visit(&mut Scale::<B> {
             grads,
-            factor: max_norm / norm,
+            factor,
             _b: std::marker::PhantomData,
         });
     }
     norm
 }
 
-use burn::tensor::ElementConversion;
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use burn::module::Module;
     use burn::nn::{Linear, LinearConfig};
+    use burn::tensor::ElementConversion;
 
     type B = burn::backend::Autodiff<burn::backend::Flex>;
 
@@ -148,13 +158,20 @@ mod tests {
             let t = g.get::<burn::backend::Flex, 1>(id).unwrap();
             want += t.powf_scalar(2.0).sum().into_scalar().elem::<f64>();
         }
-        let norm = clip_grad_norm::<B, _>(&m, &mut g, 0.5);
+        let norm: f64 = clip_grad_norm::<B, _>(&m, &mut g, 0.5).into_scalar().elem();
         assert!(
             (norm - want.sqrt()).abs() / norm < 1e-5,
             "{norm} vs {}",
             want.sqrt()
         );
         assert!(norm > 0.5);
-        assert!((grad_norm::<B, _>(&m, &g) - 0.5).abs() < 1e-4);
+        let after: f64 = grad_norm::<B, _>(&m, &g).into_scalar().elem();
+        assert!((after - 0.5).abs() < 1e-4);
+        // A bound above the norm, or none, leaves the gradients as they are.
+        for bound in [1.0, 0.0] {
+            let before: f64 = clip_grad_norm::<B, _>(&m, &mut g, bound).into_scalar().elem();
+            let now: f64 = grad_norm::<B, _>(&m, &g).into_scalar().elem();
+            assert!((before - now).abs() < 1e-7, "bound {bound}: {before} -> {now}");
+        }
     }
 }

@@ -190,7 +190,10 @@ pub fn train<B: AutodiffBackend>(
             }
             names.push("commitment");
             parts.push(commit);
-            let got: Vec<f64> = Tensor::cat(parts, 0).into_data().iter::<f64>().collect();
+            // The gradient norm rides along in the same transfer, last.
+            parts.push(Tensor::from_inner(grad_norm));
+            let mut got: Vec<f64> = Tensor::cat(parts, 0).into_data().iter::<f64>().collect();
+            let grad_norm = got.pop().unwrap_or(f64::NAN);
             let (usage, ppl) = code_stats(&recent, k);
             let secs = t0.elapsed().as_secs_f64();
             let mut v: Vec<(&'static str, f64)> = names.into_iter().zip(got).collect();

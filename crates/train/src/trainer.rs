@@ -56,9 +56,11 @@ pub struct StepReport {
     pub step: u64,
     /// Steps in all.
     pub steps: u64,
-    /// Seconds of this step.
+    /// Seconds per step: on logging steps the mean since the previous logging step (the device's work
+    /// included, since logging reads the losses); on other steps the host's time for this step, which does
+    /// not wait for the device.
     pub seconds: f64,
-    /// Tokens per second of this step (B · T · N · accum / time).
+    /// Tokens per second (B · T · N · accum / `seconds`).
     pub tokens_per_s: f64,
     /// Logged scalars on logging steps: `loss`, per-modality losses, `lr`, `grad_norm`, `tokens_per_s`.
     pub values: Option<Vec<(String, f64)>>,
@@ -191,6 +193,7 @@ pub fn train<B: AutodiffBackend>(
     let tokens_per_step = (tc.batch_size * tc.frames * n * tc.grad_accum * world) as f64;
     let rank_salt = (rank as u64).wrapping_mul(0xd1b5_4a32_d192_ed03);
     let (mut first_loss, mut last_loss) = (None, None);
+    let (mut interval, mut interval_from) = (Instant::now(), step);
     while step < tc.steps {
         let t0 = Instant::now();
         // Dropout differs between ranks (they see different samples) and is a function of (seed, step, rank).
@@ -213,10 +216,15 @@ pub fn train<B: AutodiffBackend>(
         let lr = schedule.lr(step);
         model = optim.step(lr, model, grads);
         step += 1;
-        let seconds = t0.elapsed().as_secs_f64();
+        let mut seconds = t0.elapsed().as_secs_f64();
         let logging = step.is_multiple_of(tc.log_every.max(1)) || step == tc.steps || step == 1;
         let values = if logging {
-            let v = averaged_parts(&parts, group, lr, grad_norm, tokens_per_step / seconds)?;
+            // Reading the losses waits for the device; nothing else in a step does (clipping stays on the
+            // device), so time is only meaningful averaged over the steps since the previous log.
+            let mut v = averaged_parts(&parts, group, lr, grad_norm)?;
+            seconds = interval.elapsed().as_secs_f64() / (step - interval_from).max(1) as f64;
+            (interval, interval_from) = (Instant::now(), step);
+            v.push(("tokens_per_s".into(), tokens_per_step / seconds));
             if let Some(log) = log.as_mut() {
                 log.log(step, &v.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>())
                     .and_then(|()| log.flush())
@@ -290,14 +298,13 @@ fn load_batch<B: AutodiffBackend>(
     ))
 }
 
-/// Mean over micro-batches and ranks of every loss part, fetched from the device in one transfer, then
-/// `lr`, `grad_norm`, `tokens_per_s`. The first entry is the total loss.
+/// Mean over micro-batches and ranks of every loss part and the gradient norm (equal on every rank), fetched
+/// from the device in one transfer, then `lr`, `grad_norm`. The first entry is the total loss.
 fn averaged_parts<B: AutodiffBackend>(
     parts: &[umgen_backbone::Losses<B>],
     group: &mut dyn ProcessGroup<B::InnerBackend>,
     lr: f64,
-    grad_norm: f64,
-    tps: f64,
+    grad_norm: Tensor<B::InnerBackend, 1>,
 ) -> Result<Vec<(String, f64)>> {
     let Some(first) = parts.first() else {
         return Ok(Vec::new());
@@ -308,8 +315,9 @@ fn averaged_parts<B: AutodiffBackend>(
         .iter()
         .flat_map(|l| std::iter::once(l.total.clone()).chain(l.parts.iter().map(|(_, t)| t.clone())))
         .collect();
-    let local = Tensor::cat(tensors, 0).inner();
-    let values: Vec<f64> = group.all_reduce_mean(local)?.into_data().iter::<f64>().collect();
+    let local = Tensor::cat(vec![Tensor::cat(tensors, 0).inner(), grad_norm], 0);
+    let mut values: Vec<f64> = group.all_reduce_mean(local)?.into_data().iter::<f64>().collect();
+    let grad_norm = values.pop().unwrap_or(f64::NAN);
     let k = names.len();
     let mut out: Vec<(String, f64)> = names
         .into_iter()
@@ -321,11 +329,7 @@ fn averaged_parts<B: AutodiffBackend>(
             )
         })
         .collect();
-    out.extend([
-        ("lr".into(), lr),
-        ("grad_norm".into(), grad_norm),
-        ("tokens_per_s".into(), tps),
-    ]);
+    out.extend([("lr".into(), lr), ("grad_norm".into(), grad_norm)]);
     Ok(out)
 }
 
