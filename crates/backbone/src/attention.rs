@@ -118,7 +118,7 @@ fn blocks<B: Backend>(lq: usize, lk: usize, rows: usize, causal: bool, dev: &B::
                 };
             }
             // Query i sees keys j ≤ i + off; the block's last row sees the most.
-            let keys = (end - 1 + off + 1).min(lk);
+            let keys = (end + off).min(lk);
             let needs_mask = start + off < keys - 1;
             let hidden = needs_mask.then(|| {
                 Tensor::<B, 2, Bool>::tril_mask([end - start, keys], (start + off) as i64, dev)

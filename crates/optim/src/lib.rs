@@ -76,13 +76,10 @@ pub fn grad_norm<B: AutodiffBackend, M: AutodiffModule<B>>(
         parts: Vec::new(),
     };
     model.visit(&mut v);
-    match v.parts.first() {
-        None => Tensor::zeros([1], &Default::default()),
-        Some(first) => {
-            let dev = first.device();
-            Tensor::cat(v.parts, 0).sum().sqrt().to_device(&dev)
-        }
+    if v.parts.is_empty() {
+        return Tensor::zeros([1], &Default::default());
     }
+    Tensor::cat(v.parts, 0).sum().sqrt()
 }
 
 /// Scales `grads` so that their global norm is at most `max_norm` (no-op when `max_norm <= 0`, or when the

@@ -92,12 +92,10 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         let mut phases: [Vec<f64>; 4] = Default::default();
         let mut peak = 0u64;
         let sync = || B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
-        for i in 0..a.warmup + 2 * a.steps {
-            // Timed steps first, then (with --phases) as many steps with a sync after every phase.
-            let split = a.phases && i >= a.warmup + a.steps;
-            if !a.phases && i >= a.warmup + a.steps {
-                break;
-            }
+        // Timed steps first, then (with --phases) as many steps with a sync after every phase.
+        let phase_steps = if a.phases { a.steps } else { 0 };
+        for i in 0..a.warmup + a.steps + phase_steps {
+            let split = i >= a.warmup + a.steps;
             let mut mark = Instant::now();
             let t0 = mark;
             let mut lap = |k: usize| -> anyhow::Result<()> {
