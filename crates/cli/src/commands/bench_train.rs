@@ -78,7 +78,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         config.to_json().to_string().hash(&mut h);
         format!("{:016x}", h.finish())
     };
-    let (median, peak, backend, phases) = crate::with_autodiff!(device, |B, dev| {
+    let (median, peak, backend, phases, first) = crate::with_autodiff!(device, |B, dev| {
         let mut group =
             <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
         B::seed(&dev, 0);
@@ -90,6 +90,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
         let mut phases: [Vec<f64>; 4] = Default::default();
+        // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
+        // so that its cost is reported apart and split by phase.
+        let mut first = [0.0f64; 4];
         let mut peak = 0u64;
         let sync = || B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         // Timed steps first, then (with --phases) as many steps with a sync after every phase.
@@ -99,16 +102,21 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             let mut mark = Instant::now();
             let t0 = mark;
             let mut lap = |k: usize| -> anyhow::Result<()> {
-                if split {
+                if split || i == 0 {
                     sync()?;
-                    phases[k].push(mark.elapsed().as_secs_f64());
+                    let s = mark.elapsed().as_secs_f64();
+                    if i == 0 {
+                        first[k] = s;
+                    } else {
+                        phases[k].push(s);
+                    }
                     mark = Instant::now();
                 }
                 Ok(())
             };
             let losses = model.loss(batch.clone(), tc.ego_loss_weight)?;
             let loss = losses.total.clone();
-            if split {
+            if split || i == 0 {
                 // Only a read of the loss makes the lazy graph run before the backward pass.
                 drop(loss.clone().into_data());
             }
@@ -122,8 +130,16 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             // Wait for the step's work on the device before reading the clock.
             sync()?;
             peak = peak.max(crate::device::memory_in_use(device));
+            let took = t0.elapsed().as_secs_f64();
+            if env.rank == 0 {
+                tracing::info!(
+                    "step {} of {}: {took:.3} s",
+                    i + 1,
+                    a.warmup + a.steps + phase_steps
+                );
+            }
             if i >= a.warmup && !split {
-                times.push(t0.elapsed().as_secs_f64());
+                times.push(took);
             }
         }
         group.barrier()?;
@@ -133,7 +149,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             p.sort_by(f64::total_cmp);
             p.get(p.len() / 2).copied()
         });
-        (times[times.len() / 2], peak, group.backend(), phases)
+        (times[times.len() / 2], peak, group.backend(), phases, first)
     });
     if env.rank != 0 {
         return Ok(());
@@ -161,6 +177,16 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         out,
         "batch         {b} windows × {} frames × N {} × {world} rank(s) = {} tokens/step",
         tc.frames, spec.n, tokens_per_step
+    )?;
+    writeln!(
+        out,
+        "first step    {:.1} s (forward {:.1} s, backward {:.1} s, all-reduce {:.1} s, optimizer {:.1} s): \
+         kernel compilation and autotuning on CUDA",
+        first.iter().sum::<f64>(),
+        first[0],
+        first[1],
+        first[2],
+        first[3]
     )?;
     writeln!(
         out,

@@ -122,6 +122,18 @@ mod gpu {
                 "kernels  not kept between runs (UMGEN_KERNEL_CACHE=off, or no home directory)"
             )?,
         }
+        if cfg!(feature = "autotune") {
+            writeln!(
+                out,
+                "autotune on: matmuls, convolutions and fused kernels are timed per shape on first use (minutes \
+                 per process; docs/performance.md)"
+            )?;
+        } else {
+            writeln!(
+                out,
+                "autotune off: burn's default kernels (build with `--features autotune` to time candidates)"
+            )?;
+        }
         Ok(problems)
     }
 }
