@@ -1,5 +1,6 @@
 //! Building blocks: residual blocks, down/upsampling, spatial self-attention.
 
+use crate::conv::conv2d;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{GroupNorm, GroupNormConfig, PaddingConfig2d};
@@ -63,12 +64,10 @@ impl<B: Backend> ResBlock<B> {
 
     /// Applies it.
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
-        let h = self.conv2.forward(
-            self.act2
-                .forward(self.conv1.forward(self.act1.forward(x.clone()))),
-        );
+        let h = conv2d(&self.conv1, self.act1.forward(x.clone()));
+        let h = conv2d(&self.conv2, self.act2.forward(h));
         match &self.skip {
-            Some(s) => s.forward(x) + h,
+            Some(s) => conv2d(s, x) + h,
             None => x + h,
         }
     }
@@ -92,7 +91,7 @@ impl<B: Backend> Down<B> {
 
     /// Applies it.
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
-        self.conv.forward(x)
+        conv2d(&self.conv, x)
     }
 }
 
@@ -118,7 +117,7 @@ impl<B: Backend> Up<B> {
             .reshape([b, c, h, 1, w, 1])
             .expand([b, c, h, 2, w, 2])
             .reshape([b, c, 2 * h, 2 * w]);
-        self.conv.forward(x)
+        conv2d(&self.conv, x)
     }
 }
 
@@ -143,15 +142,12 @@ impl<B: Backend> Attention<B> {
     /// Applies it (residual included).
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let [b, c, h, w] = x.dims();
-        let qkv = self
-            .qkv
-            .forward(self.norm.forward(x.clone()))
-            .reshape([b, 3, c, h * w]);
+        let qkv = conv2d(&self.qkv, self.norm.forward(x.clone())).reshape([b, 3, c, h * w]);
         let q = qkv.clone().narrow(1, 0, 1).reshape([b, c, h * w]).swap_dims(1, 2);
         let k = qkv.clone().narrow(1, 1, 1).reshape([b, c, h * w]);
         let v = qkv.narrow(1, 2, 1).reshape([b, c, h * w]).swap_dims(1, 2);
         let att = softmax(q.matmul(k).div_scalar((c as f64).sqrt()), 2);
         let y = att.matmul(v).swap_dims(1, 2).reshape([b, c, h, w]);
-        x + self.proj.forward(y)
+        x + conv2d(&self.proj, y)
     }
 }

@@ -2,6 +2,7 @@
 
 use crate::blocks::{Attention, Down, NormAct, ResBlock, Up, conv3};
 use crate::config::VqConfig;
+use crate::conv::conv2d;
 use burn::module::Module;
 use burn::nn::conv::Conv2d;
 use burn::tensor::Tensor;
@@ -86,7 +87,7 @@ impl<B: Backend> Encoder<B> {
 
     /// Applies it.
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
-        let mut h = self.conv_in.forward(x);
+        let mut h = conv2d(&self.conv_in, x);
         for level in &self.levels {
             for b in &level.blocks {
                 h = b.forward(h);
@@ -95,8 +96,7 @@ impl<B: Backend> Encoder<B> {
                 h = d.forward(h);
             }
         }
-        self.conv_out
-            .forward(self.out_act.forward(self.middle.forward(h)))
+        conv2d(&self.conv_out, self.out_act.forward(self.middle.forward(h)))
     }
 }
 
@@ -153,7 +153,7 @@ impl<B: Backend> Decoder<B> {
 
     /// Applies it.
     pub fn forward(&self, z: Tensor<B, 4>) -> Tensor<B, 4> {
-        let mut h = self.middle.forward(self.conv_in.forward(z));
+        let mut h = self.middle.forward(conv2d(&self.conv_in, z));
         for level in &self.levels {
             for b in &level.blocks {
                 h = b.forward(h);
@@ -162,6 +162,6 @@ impl<B: Backend> Decoder<B> {
                 h = u.forward(h);
             }
         }
-        self.conv_out.forward(self.out_act.forward(h))
+        conv2d(&self.conv_out, self.out_act.forward(h))
     }
 }

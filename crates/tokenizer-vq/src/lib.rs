@@ -7,6 +7,8 @@
 //! - [`train`]: AdamW with warm-up + cosine learning rate and global-norm clipping on a reconstruction loss
 //!   (BCE/focal + Dice for binary map layers; L1 + L2 for colour images); checkpoints, TensorBoard scalars
 //!   (losses, codebook usage, perplexity) and exact resume.
+//! - Convolutions run as im2col matrix products on CUDA (feature `cuda`), burn's own kernel elsewhere
+//!   (`conv.rs` says why).
 //! - [`VqTokenizer`]: a trained tokenizer (`vq.json` + `vq.safetensors`): rasters ↔ code ids, codebook.
 //! - [`IouCounter`], [`PsnrCounter`], [`code_stats`]: reconstruction quality.
 //!
@@ -18,6 +20,7 @@ mod arch;
 mod blocks;
 mod coder;
 mod config;
+mod conv;
 mod error;
 mod loss;
 mod metrics;

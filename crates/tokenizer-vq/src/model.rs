@@ -3,6 +3,7 @@
 use crate::blocks::conv1;
 use crate::coder::{Decoder, Encoder};
 use crate::config::VqConfig;
+use crate::conv::conv2d;
 use crate::quantizer::{Quantized, Quantizer};
 use burn::module::Module;
 use burn::nn::conv::Conv2d;
@@ -45,7 +46,7 @@ impl<B: Backend> VqModel<B> {
 
     /// Encoder outputs as rows `[B·h·w, D]` and the grid size.
     pub fn encode_rows(&self, x: Tensor<B, 4>) -> (Tensor<B, 2>, [usize; 3]) {
-        let z = self.quant_conv.forward(self.encoder.forward(x));
+        let z = conv2d(&self.quant_conv, self.encoder.forward(x));
         let [b, d, h, w] = z.dims();
         (z.permute([0, 2, 3, 1]).reshape([b * h * w, d]), [b, h, w])
     }
@@ -53,7 +54,7 @@ impl<B: Backend> VqModel<B> {
     fn decode_rows(&self, rows: Tensor<B, 2>, [b, h, w]: [usize; 3]) -> Tensor<B, 4> {
         let d = rows.dims()[1];
         let z = rows.reshape([b, h, w, d]).permute([0, 3, 1, 2]);
-        self.decoder.forward(self.post_quant_conv.forward(z))
+        self.decoder.forward(conv2d(&self.post_quant_conv, z))
     }
 
     /// The training pass.
