@@ -13,6 +13,8 @@
 //! takes burn's `attention` (fused on CUDA for inference, the decomposed path elsewhere), which computes the
 //! same function.
 
+use crate::config::Precision;
+use crate::precision::{matmul, operand};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -37,19 +39,21 @@ const MIN_TILED_KEYS: usize = 256;
 const BLOCK_BYTES: usize = 1 << 30;
 
 /// `softmax(q kᵀ / √d) v` over `[b, h, l, d]` tensors; `causal` hides keys after each query (bottom-right
-/// aligned, as burn's `is_causal`). Without a mask, training backends take the tiled operation.
+/// aligned, as burn's `is_causal`). Without a mask, training backends take the tiled operation, whose
+/// products follow `precision`; the decomposed path stays f32.
 pub fn attend<B: Backend>(
     q: Tensor<B, 4>,
     k: Tensor<B, 4>,
     v: Tensor<B, 4>,
     mask: Option<Tensor<B, 4, Bool>>,
     causal: bool,
+    precision: Precision,
 ) -> Tensor<B, 4> {
     let [_, _, lq, _] = q.dims();
     let lk = k.dims()[2];
     match tiled_for::<B>() {
         Some(tiled) if mask.is_none() && lk >= MIN_TILED_KEYS && (!causal || lk >= lq) => {
-            tiled(q, k, v, causal)
+            tiled(q, k, v, causal, precision)
         }
         _ => {
             let opts = AttentionModuleOptions {
@@ -62,7 +66,7 @@ pub fn attend<B: Backend>(
 }
 
 /// The signature of an attention function on backend `B`.
-type AttentionFn<B> = fn(Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>, bool) -> Tensor<B, 4>;
+type AttentionFn<B> = fn(Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>, bool, Precision) -> Tensor<B, 4>;
 
 /// The tiled operation as a function on `B`, when `B` is one of the autodiff backends named here; `None`
 /// otherwise (inference backends, or a backend this list does not know).
@@ -134,16 +138,17 @@ fn blocks<B: Backend>(lq: usize, lk: usize, rows: usize, causal: bool, dev: &B::
         .collect()
 }
 
-/// Scaled scores of one block, hidden entries at −∞: `[b, h, rows, keys]`.
+/// Scaled scores of one block in f32, hidden entries at −∞: `[b, h, rows, keys]`, and the block's queries.
 fn scores<B: Backend>(
     q: &Tensor<B, 4>,
     k: &Tensor<B, 4>,
     blk: &Block<B>,
     scale: f64,
+    precision: Precision,
 ) -> (Tensor<B, 4>, Tensor<B, 4>) {
     let qi = q.clone().narrow(2, blk.start, blk.end - blk.start);
     let kr = k.clone().narrow(2, 0, blk.keys);
-    let s = qi.clone().matmul(kr.swap_dims(2, 3)).mul_scalar(scale);
+    let s = matmul(qi.clone(), kr.swap_dims(2, 3), precision).mul_scalar(scale);
     let s = match &blk.hidden {
         Some(m) => {
             let shape = s.shape();
@@ -162,17 +167,24 @@ pub fn tiled_forward<B: Backend>(
     v: Tensor<B, 4>,
     causal: bool,
     rows: usize,
+    precision: Precision,
 ) -> (Tensor<B, 4>, Tensor<B, 4>) {
     let [_, _, lq, d] = q.dims();
     let lk = k.dims()[2];
     let scale = 1.0 / (d as f64).sqrt();
+    // Cast once, not per block.
+    let (q, k, v) = (
+        operand(q, precision),
+        operand(k, precision),
+        operand(v, precision),
+    );
     let (mut outs, mut lses) = (Vec::new(), Vec::new());
     for blk in blocks::<B>(lq, lk, rows.max(1), causal, &q.device()) {
-        let (s, _) = scores(&q, &k, &blk, scale);
+        let (s, _) = scores(&q, &k, &blk, scale, precision);
         let m = s.clone().max_dim(3);
         let p = (s - m.clone()).exp();
         let l = p.clone().sum_dim(3);
-        outs.push(p.matmul(v.clone().narrow(2, 0, blk.keys)) / l.clone());
+        outs.push(matmul(p, v.clone().narrow(2, 0, blk.keys), precision) / l.clone());
         lses.push(m + l.log());
     }
     (Tensor::cat(outs, 2), Tensor::cat(lses, 2))
@@ -190,6 +202,7 @@ pub fn tiled_backward<B: Backend>(
     dout: Tensor<B, 4>,
     causal: bool,
     rows: usize,
+    precision: Precision,
 ) -> (Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>) {
     let [b, h, lq, d] = q.dims();
     let lk = k.dims()[2];
@@ -198,19 +211,26 @@ pub fn tiled_backward<B: Backend>(
     let delta = (dout.clone() * out).sum_dim(3);
     let mut dk = Tensor::<B, 4>::zeros(k.shape(), &k.device());
     let mut dv = Tensor::<B, 4>::zeros(v.shape(), &v.device());
+    let (q, k, v) = (
+        operand(q, precision),
+        operand(k, precision),
+        operand(v, precision),
+    );
+    let dout = operand(dout, precision);
     let mut dqs = Vec::new();
     for blk in blocks::<B>(lq, lk, rows.max(1), causal, &q.device()) {
         let rows = blk.end - blk.start;
-        let (s, qi) = scores(&q, &k, &blk, scale);
+        let (s, qi) = scores(&q, &k, &blk, scale, precision);
         let p = (s - lse.clone().narrow(2, blk.start, rows)).exp();
         let doi = dout.clone().narrow(2, blk.start, rows);
         let kr = k.clone().narrow(2, 0, blk.keys);
         let vr = v.clone().narrow(2, 0, blk.keys);
-        let dp = doi.clone().matmul(vr.swap_dims(2, 3));
+        let dp = matmul(doi.clone(), vr.swap_dims(2, 3), precision);
         let ds = p.clone() * (dp - delta.clone().narrow(2, blk.start, rows));
-        let dv_r = p.swap_dims(2, 3).matmul(doi);
-        let dk_r = ds.clone().swap_dims(2, 3).matmul(qi).mul_scalar(scale);
-        dqs.push(ds.matmul(kr).mul_scalar(scale));
+        let dv_r = matmul(p.swap_dims(2, 3), doi, precision);
+        let ds = operand(ds, precision);
+        let dk_r = matmul(ds.clone().swap_dims(2, 3), qi, precision).mul_scalar(scale);
+        dqs.push(matmul(ds, kr, precision).mul_scalar(scale));
         if blk.keys == lk {
             dv = dv + dv_r;
             dk = dk + dk_r;
@@ -229,7 +249,7 @@ pub fn tiled_backward<B: Backend>(
 struct TiledAttention;
 
 impl<B: Backend> Backward<B, 3> for TiledAttention {
-    /// q, k, v, output, log-sum-exp, causal, block rows.
+    /// q, k, v, output, log-sum-exp, causal, block rows, precision of the products.
     type State = (
         FloatTensor<B>,
         FloatTensor<B>,
@@ -238,14 +258,15 @@ impl<B: Backend> Backward<B, 3> for TiledAttention {
         FloatTensor<B>,
         bool,
         usize,
+        Precision,
     );
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [nq, nk, nv] = ops.parents;
         let dout = float::<B, 4>(grads.consume::<B>(&ops.node));
-        let (q, k, v, out, lse, causal, rows) = ops.state;
+        let (q, k, v, out, lse, causal, rows, precision) = ops.state;
         let (q, k, v, out, lse) = (float(q), float(k), float(v), float(out), float(lse));
-        let (dq, dk, dv) = tiled_backward(q, k, v, out, lse, dout, causal, rows);
+        let (dq, dk, dv) = tiled_backward(q, k, v, out, lse, dout, causal, rows, precision);
         for (node, g) in [(nq, dq), (nk, dk), (nv, dv)] {
             if let Some(node) = node {
                 grads.register::<B>(node.id, g.into_primitive().tensor());
@@ -261,6 +282,7 @@ pub fn tiled_autodiff<I: Backend, C: CheckpointStrategy>(
     k: Tensor<Autodiff<I, C>, 4>,
     v: Tensor<Autodiff<I, C>, 4>,
     causal: bool,
+    precision: Precision,
 ) -> Tensor<Autodiff<I, C>, 4> {
     let (q, k, v) = (
         q.into_primitive().tensor(),
@@ -278,7 +300,7 @@ pub fn tiled_autodiff<I: Backend, C: CheckpointStrategy>(
     );
     let [b, h, lq, _] = qi.dims();
     let rows = block_rows(b, h, lq, ki.dims()[2]);
-    let (out, lse) = tiled_forward(qi.clone(), ki.clone(), vi.clone(), causal, rows);
+    let (out, lse) = tiled_forward(qi.clone(), ki.clone(), vi.clone(), causal, rows, precision);
     let out_p = out.clone().into_primitive().tensor();
     let y = match prep {
         OpsKind::Tracked(prep) => {
@@ -290,6 +312,7 @@ pub fn tiled_autodiff<I: Backend, C: CheckpointStrategy>(
                 lse.into_primitive().tensor(),
                 causal,
                 rows,
+                precision,
             );
             prep.finish(state, out_p)
         }

@@ -31,6 +31,20 @@ pub struct BackboneConfig {
     pub action: Option<String>,
     /// The metric-grid modality that AMA moves by the ego action; `""` turns AMA off.
     pub align: Option<String>,
+    /// Number format of the matrix products (`f32`, or `bf16` with f32 master weights; `precision.rs`).
+    pub precision: Precision,
+}
+
+/// Number format of the backbone's matrix products.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// Everything in f32 (TF32 on CUDA tensor cores).
+    #[default]
+    F32,
+    /// Linear layers and attention products in bf16 with f32 accumulation and f32 outputs; parameters,
+    /// gradients, optimizer state, norms, softmax statistics and losses stay f32.
+    Bf16,
 }
 
 impl Default for BackboneConfig {
@@ -48,6 +62,7 @@ impl Default for BackboneConfig {
             max_frames: 32,
             action: Some("ego".into()),
             align: Some("map".into()),
+            precision: Precision::F32,
         }
     }
 }

@@ -102,11 +102,19 @@ pub struct VanillaAr<B: Backend> {
 }
 
 impl<B: Backend> VanillaAr<B> {
-    /// `depth` causal layers of width `d` and a head over `vocab` ids.
-    pub fn new(d: usize, heads: usize, ratio: usize, depth: usize, vocab: usize, dev: &B::Device) -> Self {
+    /// `depth` causal layers of width `d` (products in `precision`) and a head over `vocab` ids.
+    pub fn new(
+        d: usize,
+        heads: usize,
+        ratio: usize,
+        depth: usize,
+        vocab: usize,
+        precision: crate::config::Precision,
+        dev: &B::Device,
+    ) -> Self {
         Self {
             blocks: (0..depth)
-                .map(|_| crate::layers::SelfBlock::new(d, heads, ratio, 0.0, dev))
+                .map(|_| crate::layers::SelfBlock::new(d, heads, ratio, 0.0, precision, dev))
                 .collect(),
             ln: burn::nn::LayerNormConfig::new(d).init(dev),
             head: burn::nn::LinearConfig::new(d, vocab).with_bias(false).init(dev),

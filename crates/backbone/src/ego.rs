@@ -1,7 +1,9 @@
 //! Ego-action prediction (paper eq. 4): learned queries attend to the ego history (CA_hist), then to the
 //! current environment (CA_env), and predict the next frame's action tokens.
 
+use crate::config::Precision;
 use crate::layers::CrossBlock;
+use crate::precision::linear;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
@@ -17,6 +19,7 @@ pub struct EgoModule<B: Backend> {
     head: Linear<B>,
     heads: usize,
     block: [usize; 2],
+    precision: Precision,
 }
 
 /// Sizes of an [`EgoModule`].
@@ -34,6 +37,8 @@ pub struct EgoSizes {
     pub hist: usize,
     /// CA_env layers.
     pub env: usize,
+    /// Number format of the products.
+    pub precision: Precision,
 }
 
 impl<B: Backend> EgoModule<B> {
@@ -42,7 +47,7 @@ impl<B: Backend> EgoModule<B> {
     pub fn new(s: EgoSizes, queries: usize, vocab: usize, block: [usize; 2], dev: &B::Device) -> Self {
         let blocks = |n: usize| {
             (0..n)
-                .map(|_| CrossBlock::new(s.d, s.heads, s.ratio, s.dropout, dev))
+                .map(|_| CrossBlock::new(s.d, s.heads, s.ratio, s.dropout, s.precision, dev))
                 .collect()
         };
         Self {
@@ -57,6 +62,7 @@ impl<B: Backend> EgoModule<B> {
             head: LinearConfig::new(s.d, vocab).with_bias(false).init(dev),
             heads: s.heads,
             block,
+            precision: s.precision,
         }
     }
 
@@ -100,7 +106,7 @@ impl<B: Backend> EgoModule<B> {
         for blk in &self.env {
             x = blk.forward(x, env.clone(), None);
         }
-        let logits = self.head.forward(self.ln.forward(x));
+        let logits = linear(&self.head, self.ln.forward(x), self.precision);
         let v = logits.dims()[2];
         logits.reshape([b, tq, q, v])
     }

@@ -1,5 +1,7 @@
 //! Token embedding (paper eq. 2): `e = MLP(Embed_modality(z) + PE(position))`.
 
+use crate::config::Precision;
+use crate::precision::linear;
 use crate::spec::BackboneSpec;
 use burn::module::{Module, Param};
 use burn::nn::{Dropout, DropoutConfig, Embedding, EmbeddingConfig, Linear, LinearConfig};
@@ -24,11 +26,19 @@ pub struct FrameEmbedding<B: Backend> {
     fc2: Linear<B>,
     drop: Dropout,
     blocks: Vec<[usize; 2]>,
+    precision: Precision,
 }
 
 impl<B: Backend> FrameEmbedding<B> {
-    /// Tables for every segment of `spec`, width `e`, output width `d`.
-    pub fn new(spec: &BackboneSpec, e: usize, d: usize, dropout: f64, dev: &B::Device) -> Self {
+    /// Tables for every segment of `spec`, width `e`, output width `d`, products in `precision`.
+    pub fn new(
+        spec: &BackboneSpec,
+        e: usize,
+        d: usize,
+        dropout: f64,
+        precision: Precision,
+        dev: &B::Device,
+    ) -> Self {
         let tables = spec
             .segments
             .iter()
@@ -69,6 +79,7 @@ impl<B: Backend> FrameEmbedding<B> {
                 .iter()
                 .map(|s| [s.block_start, s.block_len])
                 .collect(),
+            precision,
         }
     }
 
@@ -84,12 +95,12 @@ impl<B: Backend> FrameEmbedding<B> {
         let t = &self.tables[s];
         let x = t.table.forward(ids.reshape([m, 1]));
         let x = match &t.proj {
-            Some(proj) => proj.forward(x),
+            Some(proj) => linear(proj, x, self.precision),
             None => x,
         };
         let e = x.dims()[2];
         let x = x.reshape([m, e]) + self.pos.val().narrow(0, p, 1);
-        self.drop.forward(self.fc2.forward(gelu(self.fc1.forward(x))))
+        self.mlp(x)
     }
 
     /// Embeddings `[b, f, N, d]` of frames of tokens `[b, f, N]`.
@@ -103,14 +114,21 @@ impl<B: Backend> FrameEmbedding<B> {
             .map(|(t, [start, len])| {
                 let x = t.table.forward(flat.clone().narrow(1, *start, *len));
                 match &t.proj {
-                    Some(p) => p.forward(x),
+                    Some(p) => linear(p, x, self.precision),
                     None => x,
                 }
             })
             .collect();
         let x = Tensor::cat(parts, 1) + self.pos.val().unsqueeze_dim::<3>(0);
-        let x = self.drop.forward(self.fc2.forward(gelu(self.fc1.forward(x))));
+        let x = self.mlp(x);
         let d = x.dims()[2];
         x.reshape([b, f, n, d])
+    }
+
+    /// The embedding MLP (paper eq. 2) with dropout.
+    fn mlp<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
+        let p = self.precision;
+        self.drop
+            .forward(linear(&self.fc2, gelu(linear(&self.fc1, x, p)), p))
     }
 }

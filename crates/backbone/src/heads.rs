@@ -1,5 +1,7 @@
 //! Output heads with per-modality vocabularies, and the cross-entropy over them.
 
+use crate::config::Precision;
+use crate::precision::linear;
 use crate::spec::SegmentSpec;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
@@ -13,29 +15,31 @@ use burn::tensor::{Int, Tensor};
 pub struct Heads<B: Backend> {
     heads: Vec<Linear<B>>,
     content: Vec<[usize; 2]>,
+    precision: Precision,
 }
 
 impl<B: Backend> Heads<B> {
-    /// Heads for `segments` from width `d`.
-    pub fn new(segments: &[SegmentSpec], d: usize, dev: &B::Device) -> Self {
+    /// Heads for `segments` from width `d`, their products in `precision` (logits are f32 either way).
+    pub fn new(segments: &[SegmentSpec], d: usize, precision: Precision, dev: &B::Device) -> Self {
         Self {
             heads: segments
                 .iter()
                 .map(|s| LinearConfig::new(d, s.vocab).with_bias(false).init(dev))
                 .collect(),
             content: segments.iter().map(|s| [s.offset, s.tokens]).collect(),
+            precision,
         }
     }
 
     /// Logits `[m, tokens, vocab]` of segment `s` from features `[m, N, d]`.
     pub fn logits(&self, s: usize, x: Tensor<B, 3>) -> Tensor<B, 3> {
         let [offset, tokens] = self.content[s];
-        self.heads[s].forward(x.narrow(1, offset, tokens))
+        linear(&self.heads[s], x.narrow(1, offset, tokens), self.precision)
     }
 
     /// Logits of one position `p` of segment `s` from features `[m, d]`: `[m, vocab]`.
     pub fn logits_at(&self, s: usize, x: Tensor<B, 2>) -> Tensor<B, 2> {
-        self.heads[s].forward(x)
+        linear(&self.heads[s], x, self.precision)
     }
 
     /// Summed cross-entropy per segment of features `[m, N, d]` against targets `[m, N]`, with the number

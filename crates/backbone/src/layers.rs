@@ -1,5 +1,7 @@
 //! Transformer layers: pre-norm self- and cross-attention blocks with GELU MLPs.
 
+use crate::config::Precision;
+use crate::precision::linear;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::gelu;
@@ -14,21 +16,25 @@ pub struct Mlp<B: Backend> {
     fc: Linear<B>,
     proj: Linear<B>,
     drop: Dropout,
+    precision: Precision,
 }
 
 impl<B: Backend> Mlp<B> {
-    /// An MLP of width `d` and hidden width `hidden`.
-    pub fn new(d: usize, hidden: usize, dropout: f64, dev: &B::Device) -> Self {
+    /// An MLP of width `d` and hidden width `hidden`, its products in `precision`.
+    pub fn new(d: usize, hidden: usize, dropout: f64, precision: Precision, dev: &B::Device) -> Self {
         Self {
             fc: LinearConfig::new(d, hidden).init(dev),
             proj: LinearConfig::new(hidden, d).init(dev),
             drop: DropoutConfig::new(dropout).init(),
+            precision,
         }
     }
 
     /// Applies it.
     pub fn forward<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
-        self.drop.forward(self.proj.forward(gelu(self.fc.forward(x))))
+        let p = self.precision;
+        self.drop
+            .forward(linear(&self.proj, gelu(linear(&self.fc, x, p)), p))
     }
 }
 
@@ -53,17 +59,19 @@ pub struct MultiHead<B: Backend> {
     proj: Linear<B>,
     drop: Dropout,
     heads: usize,
+    precision: Precision,
 }
 
 impl<B: Backend> MultiHead<B> {
-    /// Attention of width `d` with `heads` heads.
-    pub fn new(d: usize, heads: usize, dropout: f64, dev: &B::Device) -> Self {
+    /// Attention of width `d` with `heads` heads, its products in `precision`.
+    pub fn new(d: usize, heads: usize, dropout: f64, precision: Precision, dev: &B::Device) -> Self {
         Self {
             q: LinearConfig::new(d, d).init(dev),
             kv: LinearConfig::new(d, 2 * d).init(dev),
             proj: LinearConfig::new(d, d).init(dev),
             drop: DropoutConfig::new(dropout).init(),
             heads,
+            precision,
         }
     }
 
@@ -76,13 +84,14 @@ impl<B: Backend> MultiHead<B> {
         mask: Option<Tensor<B, 4, Bool>>,
         causal: bool,
     ) -> Tensor<B, 3> {
-        let q = split_heads(self.q.forward(x), self.heads);
-        let kv = self.kv.forward(ctx);
+        let p = self.precision;
+        let q = split_heads(linear(&self.q, x, p), self.heads);
+        let kv = linear(&self.kv, ctx, p);
         let d = kv.dims()[2] / 2;
         let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
         let v = split_heads(kv.narrow(2, d, d), self.heads);
-        let y = crate::attention::attend(q, k, v, mask, causal);
-        self.drop.forward(self.proj.forward(merge_heads(y)))
+        let y = crate::attention::attend(q, k, v, mask, causal, p);
+        self.drop.forward(linear(&self.proj, merge_heads(y), p))
     }
 
     /// Heads.
@@ -97,8 +106,9 @@ impl<B: Backend> MultiHead<B> {
         x: Tensor<B, 3>,
         cache: &mut Option<(Tensor<B, 4>, Tensor<B, 4>)>,
     ) -> Tensor<B, 3> {
-        let q = split_heads(self.q.forward(x.clone()), self.heads);
-        let kv = self.kv.forward(x);
+        let p = self.precision;
+        let q = split_heads(linear(&self.q, x.clone(), p), self.heads);
+        let kv = linear(&self.kv, x, p);
         let d = kv.dims()[2] / 2;
         let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
         let v = split_heads(kv.narrow(2, d, d), self.heads);
@@ -108,7 +118,7 @@ impl<B: Backend> MultiHead<B> {
         };
         *cache = Some((k.clone(), v.clone()));
         let y = attention(q, k, v, None, None, AttentionModuleOptions::default());
-        self.drop.forward(self.proj.forward(merge_heads(y)))
+        self.drop.forward(linear(&self.proj, merge_heads(y), p))
     }
 }
 
@@ -122,13 +132,20 @@ pub struct SelfBlock<B: Backend> {
 }
 
 impl<B: Backend> SelfBlock<B> {
-    /// A layer of width `d`.
-    pub fn new(d: usize, heads: usize, ratio: usize, dropout: f64, dev: &B::Device) -> Self {
+    /// A layer of width `d`, its products in `precision`.
+    pub fn new(
+        d: usize,
+        heads: usize,
+        ratio: usize,
+        dropout: f64,
+        precision: Precision,
+        dev: &B::Device,
+    ) -> Self {
         Self {
             ln1: LayerNormConfig::new(d).init(dev),
-            attn: MultiHead::new(d, heads, dropout, dev),
+            attn: MultiHead::new(d, heads, dropout, precision, dev),
             ln2: LayerNormConfig::new(d).init(dev),
-            mlp: Mlp::new(d, ratio * d, dropout, dev),
+            mlp: Mlp::new(d, ratio * d, dropout, precision, dev),
         }
     }
 
@@ -162,14 +179,21 @@ pub struct CrossBlock<B: Backend> {
 }
 
 impl<B: Backend> CrossBlock<B> {
-    /// A layer of width `d`.
-    pub fn new(d: usize, heads: usize, ratio: usize, dropout: f64, dev: &B::Device) -> Self {
+    /// A layer of width `d`, its products in `precision`.
+    pub fn new(
+        d: usize,
+        heads: usize,
+        ratio: usize,
+        dropout: f64,
+        precision: Precision,
+        dev: &B::Device,
+    ) -> Self {
         Self {
             ln_q: LayerNormConfig::new(d).init(dev),
             ln_ctx: LayerNormConfig::new(d).init(dev),
-            attn: MultiHead::new(d, heads, dropout, dev),
+            attn: MultiHead::new(d, heads, dropout, precision, dev),
             ln2: LayerNormConfig::new(d).init(dev),
-            mlp: Mlp::new(d, ratio * d, dropout, dev),
+            mlp: Mlp::new(d, ratio * d, dropout, precision, dev),
         }
     }
 

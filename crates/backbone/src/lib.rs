@@ -16,6 +16,9 @@
 //! 6. scores both with heads whose logits cover only each modality's own vocabulary; the loss is
 //!    CE(OAR) + CE(TAR) + CE(ego), reported per modality.
 //!
+//! Matrix products run in f32 or, with [`Precision::Bf16`], on bf16 operands with f32 master weights
+//! (`precision.rs`); training attention over long sequences is tiled ([`attention`]).
+//!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
 mod ama;
@@ -28,10 +31,11 @@ mod error;
 mod heads;
 mod layers;
 mod model;
+mod precision;
 mod spec;
 
 pub use ama::align;
-pub use config::BackboneConfig;
+pub use config::{BackboneConfig, Precision};
 pub use decode::{OarCache, Slot, VanillaAr};
 pub use ego::{EgoModule, EgoSizes};
 pub use embed::FrameEmbedding;

@@ -69,7 +69,7 @@ impl<B: Backend> Backbone<B> {
     pub fn new(cfg: &BackboneConfig, spec: &BackboneSpec, dev: &B::Device) -> Result<Self> {
         spec.validate(cfg)?;
         let d = cfg.d_model;
-        let block = |_| SelfBlock::new(d, cfg.heads, cfg.mlp_ratio, cfg.dropout, dev);
+        let block = |_| SelfBlock::new(d, cfg.heads, cfg.mlp_ratio, cfg.dropout, cfg.precision, dev);
         let ego = spec.action.as_ref().map(|a| {
             let s = &spec.segments[a.segment];
             let sizes = EgoSizes {
@@ -79,6 +79,7 @@ impl<B: Backend> Backbone<B> {
                 dropout: cfg.dropout,
                 hist: cfg.ego_hist_layers,
                 env: cfg.ego_env_layers,
+                precision: cfg.precision,
             };
             EgoModule::new(sizes, s.tokens, s.vocab, [s.block_start, s.block_len], dev)
         });
@@ -88,7 +89,7 @@ impl<B: Backend> Backbone<B> {
             s.codebook = None;
         }
         Ok(Self {
-            embed: FrameEmbedding::new(spec, cfg.embed(), d, cfg.dropout, dev),
+            embed: FrameEmbedding::new(spec, cfg.embed(), d, cfg.dropout, cfg.precision, dev),
             time: Param::from_tensor(Tensor::random(
                 [cfg.max_frames, d],
                 Distribution::Normal(0.0, 0.02),
@@ -105,8 +106,8 @@ impl<B: Backend> Backbone<B> {
             oar_bos: Param::from_tensor(Tensor::random([d], Distribution::Normal(0.0, 0.02), dev)),
             oar: (0..cfg.oar_layers).map(block).collect(),
             ln_oar: LayerNormConfig::new(d).init(dev),
-            tar_heads: Heads::new(&spec.segments, d, dev),
-            oar_heads: Heads::new(&spec.segments, d, dev),
+            tar_heads: Heads::new(&spec.segments, d, cfg.precision, dev),
+            oar_heads: Heads::new(&spec.segments, d, cfg.precision, dev),
             spec: light,
         })
     }

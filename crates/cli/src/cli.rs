@@ -398,6 +398,37 @@ pub struct BenchAttentionArgs {
     /// Timed forward+backward passes per case and path (the median is reported).
     #[arg(long, default_value_t = 5)]
     pub iters: usize,
+    /// Number format of the tiled path's matrix products (the decomposed reference stays f32).
+    #[arg(long, value_enum, default_value = "f32")]
+    pub precision: PrecisionArg,
+}
+
+/// `--precision` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PrecisionArg {
+    /// f32 (TF32 on CUDA tensor cores).
+    F32,
+    /// bf16 operands, f32 results.
+    Bf16,
+}
+
+impl PrecisionArg {
+    /// The value as written on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+        }
+    }
+}
+
+impl From<PrecisionArg> for umgen::backbone::Precision {
+    fn from(p: PrecisionArg) -> Self {
+        match p {
+            PrecisionArg::F32 => Self::F32,
+            PrecisionArg::Bf16 => Self::Bf16,
+        }
+    }
 }
 
 /// Arguments of `umgen bench generate`.

@@ -45,6 +45,7 @@ fn model() -> Backbone<F> {
         max_frames: 8,
         action: None,
         align: None,
+        precision: Default::default(),
     };
     F::seed(&Default::default(), 9);
     Backbone::new(&cfg, &spec, &Default::default()).unwrap()

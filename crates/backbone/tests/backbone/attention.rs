@@ -6,6 +6,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::module::attention_fallback;
 use burn::tensor::ops::AttentionModuleOptions;
 use burn::tensor::{Distribution, Tensor};
+use umgen_backbone::Precision;
 use umgen_backbone::attention::{tiled_autodiff, tiled_backward, tiled_for, tiled_forward};
 
 fn random<B: Backend>(shape: [usize; 4], seed: u64) -> Tensor<B, 4> {
@@ -43,7 +44,7 @@ fn forward_matches_the_decomposed_attention() {
         let k = random::<F>([2, 3, lk, 16], 10 * i as u64 + 1);
         let v = random::<F>([2, 3, lk, 8], 10 * i as u64 + 2);
         let want = reference(q.clone(), k.clone(), v.clone(), causal);
-        let (got, lse) = tiled_forward(q, k, v, causal, rows);
+        let (got, lse) = tiled_forward(q, k, v, causal, rows, Precision::F32);
         assert_eq!(got.dims(), [2, 3, lq, 8]);
         assert_eq!(lse.dims(), [2, 3, lq, 1]);
         let err = max_abs_diff(got, want);
@@ -67,7 +68,7 @@ fn reference_grads(
         Tensor::<A, 4>::from_inner(v).require_grad(),
     );
     let y = if tiled {
-        tiled_autodiff(q.clone(), k.clone(), v.clone(), causal)
+        tiled_autodiff(q.clone(), k.clone(), v.clone(), causal, Precision::F32)
     } else {
         reference(q.clone(), k.clone(), v.clone(), causal)
     };
@@ -84,8 +85,8 @@ fn backward_matches_autodiff_of_the_decomposed_attention() {
         let v = random::<F>([2, 2, lk, 8], s + 2);
         let w = random::<F>([2, 2, lq, 8], s + 3);
         let want = reference_grads(q.clone(), k.clone(), v.clone(), w.clone(), causal, false);
-        let (out, lse) = tiled_forward(q.clone(), k.clone(), v.clone(), causal, rows);
-        let got = tiled_backward(q, k, v, out, lse, w, causal, rows);
+        let (out, lse) = tiled_forward(q.clone(), k.clone(), v.clone(), causal, rows, Precision::F32);
+        let got = tiled_backward(q, k, v, out, lse, w, causal, rows, Precision::F32);
         for (name, g, r) in [
             ("q", got.0, &want[0]),
             ("k", got.1, &want[1]),
@@ -138,7 +139,7 @@ fn attend_on_the_training_backend_gives_the_decomposed_values_and_gradients() {
         Tensor::<A, 4>::from_inner(k.clone()).require_grad(),
         Tensor::<A, 4>::from_inner(v.clone()).require_grad(),
     );
-    let y = attend(qa.clone(), ka.clone(), va.clone(), None, true);
+    let y = attend(qa.clone(), ka.clone(), va.clone(), None, true, Precision::F32);
     let err = max_abs_diff(y.clone().inner(), reference(q, k, v, true));
     assert!(err < 1e-5, "output max |Δ| {err}");
     let grads = (y * Tensor::from_inner(w)).sum().backward();
@@ -146,5 +147,40 @@ fn attend_on_the_training_backend_gives_the_decomposed_values_and_gradients() {
     for (g, r) in got.into_iter().zip(want) {
         let err = max_abs_diff(g, r);
         assert!(err < 1e-4, "gradient max |Δ| {err}");
+    }
+}
+
+/// max |a − b| / max |b|.
+fn rel_err(a: Tensor<F, 4>, b: Tensor<F, 4>) -> f32 {
+    use burn::tensor::ElementConversion;
+    let scale: f32 = b.clone().abs().max().into_scalar().elem();
+    max_abs_diff(a, b) / scale
+}
+
+#[test]
+fn bf16_products_stay_within_bf16_tolerance_of_f32_and_return_f32() {
+    for (i, &(lq, lk, causal, rows)) in CASES.iter().enumerate() {
+        let s = 300 + 10 * i as u64;
+        let q = random::<F>([2, 2, lq, 16], s);
+        let k = random::<F>([2, 2, lk, 16], s + 1);
+        let v = random::<F>([2, 2, lk, 8], s + 2);
+        let w = random::<F>([2, 2, lq, 8], s + 3);
+        let want_out = reference(q.clone(), k.clone(), v.clone(), causal);
+        let want = reference_grads(q.clone(), k.clone(), v.clone(), w.clone(), causal, false);
+        let (out, lse) = tiled_forward(q.clone(), k.clone(), v.clone(), causal, rows, Precision::Bf16);
+        assert_eq!(out.dtype(), burn::tensor::DType::F32);
+        // bf16 has 8 significant bits (relative step 2⁻⁸ ≈ 3.9e-3); the error is a few steps, never zero.
+        let err = rel_err(out.clone(), want_out);
+        assert!(err > 1e-5 && err < 2e-2, "case {i}: output relative error {err}");
+        let got = tiled_backward(q, k, v, out, lse, w, causal, rows, Precision::Bf16);
+        for (name, g, r) in [
+            ("q", got.0, &want[0]),
+            ("k", got.1, &want[1]),
+            ("v", got.2, &want[2]),
+        ] {
+            assert_eq!(g.dtype(), burn::tensor::DType::F32);
+            let err = rel_err(g, r.clone());
+            assert!(err < 3e-2, "case {i}: d{name} relative error {err}");
+        }
     }
 }

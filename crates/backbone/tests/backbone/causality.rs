@@ -72,7 +72,12 @@ fn tar_and_ego_outputs_of_a_frame_ignore_later_frames() {
 
 #[test]
 fn oar_logits_at_a_position_ignore_that_token_and_later_ones() {
-    let m = model::<F>();
+    for precision in [Precision::F32, Precision::Bf16] {
+        oar_causality(&model_in::<F>(precision));
+    }
+}
+
+fn oar_causality(m: &Backbone<F>) {
     let (f, n) = (3, spec().n);
     let ids = tokens(&spec(), 1, f, 12);
     let run = |ids: &[i64]| -> Vec<Vec<f32>> {

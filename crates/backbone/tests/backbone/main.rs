@@ -6,11 +6,12 @@ mod attention;
 mod causality;
 mod decode;
 mod heads;
+mod precision;
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
-use umgen_backbone::{ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec};
+use umgen_backbone::{ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, Precision, SegmentSpec};
 
 pub type F = burn::backend::Flex;
 pub type A = burn::backend::Autodiff<F>;
@@ -81,6 +82,7 @@ pub fn config() -> BackboneConfig {
         max_frames: 8,
         action: None,
         align: None,
+        precision: Default::default(),
     }
 }
 
@@ -103,8 +105,17 @@ pub fn tensor<B: Backend>(ids: &[i64], b: usize, f: usize, n: usize) -> Tensor<B
 }
 
 pub fn model<B: Backend>() -> Backbone<B> {
+    model_in(Precision::F32)
+}
+
+/// The test model with its products in `precision` (the same parameters whatever the precision).
+pub fn model_in<B: Backend>(precision: Precision) -> Backbone<B> {
     B::seed(&Default::default(), 3);
-    Backbone::new(&config(), &spec(), &Default::default()).unwrap()
+    let cfg = BackboneConfig {
+        precision,
+        ..config()
+    };
+    Backbone::new(&cfg, &spec(), &Default::default()).unwrap()
 }
 
 #[test]

@@ -10,6 +10,7 @@ use burn::tensor::ops::AttentionModuleOptions;
 use burn::tensor::{Distribution, ElementConversion, Tensor};
 use std::io::Write;
 use std::time::Instant;
+use umgen::backbone::Precision;
 use umgen::backbone::attention::tiled_for;
 
 /// One measured shape.
@@ -60,7 +61,7 @@ struct Run<B: Backend> {
 
 fn measure<B: AutodiffBackend>(
     c: &Case,
-    tiled: bool,
+    tiled: Option<Precision>,
     iters: usize,
     device: Device,
     dev: &B::Device,
@@ -81,9 +82,9 @@ fn measure<B: AutodiffBackend>(
             Tensor::<B, 4>::from_inner(k.clone()).require_grad(),
             Tensor::<B, 4>::from_inner(v.clone()).require_grad(),
         );
-        let y = if tiled {
+        let y = if let Some(precision) = tiled {
             let f = tiled_for::<B>().context("no tiled attention for this backend")?;
-            f(qa.clone(), ka.clone(), va.clone(), c.causal)
+            f(qa.clone(), ka.clone(), va.clone(), c.causal, precision)
         } else {
             let opts = AttentionModuleOptions {
                 is_causal: c.causal,
@@ -126,9 +127,11 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
-        "attention forward+backward on {}, f32; err = max|Δ| / max|decomposed|; GiB = memory pool after \
-         the path (the pool only grows: the decomposed figure includes the tiled one's)",
-        a.device
+        "attention forward+backward on {}, tiled products in {}, decomposed in f32; err = max|Δ| / \
+         max|decomposed|; GiB = memory pool after the path (the pool only grows: the decomposed figure \
+         includes the tiled one's)",
+        a.device,
+        a.precision.name()
     )?;
     writeln!(
         out,
@@ -139,8 +142,8 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     for (c, name) in cases.iter().zip(&a.cases) {
         let row = crate::with_autodiff!(device, |B, dev| {
             // Tiled first: the pool only grows, so the decomposed path's figure includes what it added.
-            let t = measure::<B>(c, true, a.iters, device, &dev)?;
-            let d = measure::<B>(c, false, a.iters, device, &dev)?;
+            let t = measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev)?;
+            let d = measure::<B>(c, None, a.iters, device, &dev)?;
             let [tq, tk, tv] = t.grads;
             let [dq, dk, dv] = d.grads;
             let errs = [

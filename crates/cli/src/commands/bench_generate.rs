@@ -69,7 +69,15 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
         let sync = || <I as Backend>::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         <I as Backend>::seed(&dev, 0);
         let model = Backbone::<I>::new(cfg, &spec, &dev)?;
-        let vanilla = VanillaAr::<I>::new(cfg.d_model, cfg.heads, cfg.mlp_ratio, depth, vocab, &dev);
+        let vanilla = VanillaAr::<I>::new(
+            cfg.d_model,
+            cfg.heads,
+            cfg.mlp_ratio,
+            depth,
+            vocab,
+            cfg.precision,
+            &dev,
+        );
         let slots = model.slots();
         let sampling = vec![Sampling::default(); spec.segments.len()];
         let mut rows = Vec::new();

@@ -1,0 +1,88 @@
+//! Mixed precision: matrix products in bf16, everything else in f32.
+//!
+//! burn 0.21 has no autocast, and a bf16 backend (`Cuda<bf16>`) would make the parameters, their gradients
+//! and AdamW's moments bf16 too. With `backbone.precision = "bf16"` the parameters stay f32 (master
+//! weights) and only the operands of each linear layer and attention product are cast to bf16; the product
+//! is cast back to f32. burn's cast is differentiable, so the gradients reaching the parameters are f32 and
+//! the optimizer never sees bf16. Layer norms, softmax statistics, the residual stream and the losses stay
+//! f32: what PyTorch's bf16 autocast does for the same operations.
+
+use crate::config::Precision;
+use burn::nn::Linear;
+use burn::tensor::backend::Backend;
+use burn::tensor::{FloatDType, Tensor};
+
+/// `x` in the format products are computed in: bf16 for [`Precision::Bf16`], unchanged otherwise.
+pub fn operand<B: Backend, const D: usize>(x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
+    match p {
+        Precision::F32 => x,
+        Precision::Bf16 => x.cast(FloatDType::BF16),
+    }
+}
+
+/// A product's result back in f32 (a no-op for f32 operands).
+fn widen<B: Backend, const D: usize>(x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
+    match p {
+        Precision::F32 => x,
+        Precision::Bf16 => x.cast(FloatDType::F32),
+    }
+}
+
+/// `a · b` with both operands in `p`'s format, the result in f32. Operands already cast by [`operand`]
+/// are not cast again.
+pub fn matmul<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
+    widen(operand(a, p).matmul(operand(b, p)), p)
+}
+
+/// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32.
+pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
+    match p {
+        Precision::F32 => layer.forward(x),
+        Precision::Bf16 => {
+            let y = burn::tensor::module::linear(operand(x, p), operand(layer.weight.val(), p), None);
+            let y = widen(y, p);
+            match &layer.bias {
+                Some(bias) => y + bias.val().unsqueeze::<D>(),
+                None => y,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::{Autodiff, Flex};
+    use burn::nn::LinearConfig;
+    use burn::tensor::{DType, Distribution};
+
+    type A = Autodiff<Flex>;
+
+    fn rel(a: Tensor<Flex, 3>, b: Tensor<Flex, 3>) -> f32 {
+        let scale = b.clone().abs().max().into_scalar();
+        (a - b).abs().max().into_scalar() / scale
+    }
+
+    #[test]
+    fn bf16_linear_is_close_to_f32_and_keeps_f32_gradients() {
+        let dev = Default::default();
+        let layer = LinearConfig::new(48, 24).init::<A>(&dev);
+        let x = Tensor::<A, 3>::random([2, 5, 48], Distribution::Normal(0.0, 1.0), &dev).require_grad();
+        let full = linear(&layer, x.clone(), Precision::F32);
+        let half = linear(&layer, x.clone(), Precision::Bf16);
+        assert_eq!(half.dtype(), DType::F32);
+        let err = rel(half.clone().inner(), full.clone().inner());
+        // bf16 keeps 8 significant bits: products of 48 terms land near 2⁻⁸ relative, never at zero.
+        assert!(err > 1e-5 && err < 2e-2, "relative error {err}");
+        let g_half = half.sum().backward();
+        let g_full = full.sum().backward();
+        let w = layer.weight.val();
+        let (gw_half, gw_full) = (w.grad(&g_half).expect("grad"), w.grad(&g_full).expect("grad"));
+        assert_eq!(gw_half.dtype(), DType::F32);
+        let err = rel(gw_half.unsqueeze(), gw_full.unsqueeze());
+        assert!(err < 2e-2, "weight gradient relative error {err}");
+        let bias = layer.bias.as_ref().expect("bias").val();
+        assert_eq!(bias.grad(&g_half).expect("bias grad").dtype(), DType::F32);
+        assert_eq!(x.grad(&g_half).expect("input grad").dtype(), DType::F32);
+    }
+}

@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Training speed on one GPU, side by side with the PyTorch reference (docs/performance.md), in one run.
+#
+#   launchers/speed.sh [GPU] [TORCH_UMGEN_PY]       # default GPU 0; the reference is skipped without a path
+#
+# Runs, each under its own time limit so that one slow case cannot eat the others: the reference for the
+# `small` and `paper` presets, `umgen bench train` for both presets in f32 and bf16 (`--set
+# backbone.precision=bf16`), and `umgen bench attention` in both precisions. Prints the lines that matter
+# at the end; full outputs go to $OUT (default ./speed-out). UMGEN names the binary (default: umgen).
+set -uo pipefail
+gpu=${1:-0}
+torch_py=${2:-}
+umgen=${UMGEN:-umgen}
+out=${OUT:-speed-out}
+limit=${LIMIT:-240}
+here=$(cd "$(dirname "$0")" && pwd)
+# shellcheck source=/dev/null
+[ -f "$here/gpu-env.sh" ] && source "$here/gpu-env.sh" >/dev/null
+mkdir -p "$out"
+run() { # name command...
+    local name=$1 t0
+    shift
+    t0=$(date +%s)
+    timeout "$limit" "$@" >"$out/$name.txt" 2>&1
+    echo "== $name: exit $? after $(($(date +%s) - t0)) s" | tee -a "$out/summary.txt"
+}
+if [ -n "$torch_py" ]; then
+    for p in small paper; do
+        CUDA_VISIBLE_DEVICES=$gpu run "torch-$p" python3 "$torch_py" train --preset "$p" --device cuda
+    done
+fi
+for p in small paper; do
+    for prec in f32 bf16; do
+        run "umgen-$p-$prec" "$umgen" bench train --preset "$p" --device "cuda:$gpu" --steps 10 --warmup 2 \
+            --phases --set "backbone.precision=$prec"
+    done
+done
+for prec in f32 bf16; do
+    run "attention-$prec" "$umgen" bench attention --device "cuda:$gpu" --precision "$prec"
+done
+echo
+for f in "$out"/torch-*.txt; do [ -f "$f" ] && echo "$(basename "$f" .txt): $(grep -h '{' "$f" | tail -1)"; done
+for f in "$out"/umgen-*.txt; do
+    echo "$(basename "$f" .txt): $(grep -h -E '^(first step|step|throughput|peak memory)' "$f" | tr -s ' ' | paste -sd ';' -)"
+done
+for f in "$out"/attention-*.txt; do echo "-- $(basename "$f" .txt)"; grep -v INFO "$f" | tail -n 5; done
