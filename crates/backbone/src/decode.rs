@@ -114,7 +114,16 @@ impl<B: Backend> VanillaAr<B> {
     ) -> Self {
         Self {
             blocks: (0..depth)
-                .map(|_| crate::layers::SelfBlock::new(d, heads, ratio, 0.0, precision, dev))
+                .map(|_| {
+                    let sizes = crate::layers::LayerSizes {
+                        d,
+                        heads,
+                        ratio,
+                        dropout: 0.0,
+                        precision,
+                    };
+                    crate::layers::SelfBlock::new(sizes, dev)
+                })
                 .collect(),
             ln: burn::nn::LayerNormConfig::new(d).init(dev),
             head: burn::nn::LinearConfig::new(d, vocab).with_bias(false).init(dev),

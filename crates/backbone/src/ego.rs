@@ -2,7 +2,7 @@
 //! current environment (CA_env), and predict the next frame's action tokens.
 
 use crate::config::Precision;
-use crate::layers::CrossBlock;
+use crate::layers::{CrossBlock, LayerSizes};
 use crate::precision::linear;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
@@ -25,44 +25,32 @@ pub struct EgoModule<B: Backend> {
 /// Sizes of an [`EgoModule`].
 #[derive(Debug, Clone, Copy)]
 pub struct EgoSizes {
-    /// Width.
-    pub d: usize,
-    /// Attention heads.
-    pub heads: usize,
-    /// MLP ratio.
-    pub ratio: usize,
-    /// Dropout.
-    pub dropout: f64,
+    /// Sizes of each cross-attention layer.
+    pub layer: LayerSizes,
     /// CA_hist layers.
     pub hist: usize,
     /// CA_env layers.
     pub env: usize,
-    /// Number format of the products.
-    pub precision: Precision,
 }
 
 impl<B: Backend> EgoModule<B> {
     /// A module predicting `queries` tokens of vocabulary `vocab` from the action block `block`
     /// (`[start, len]` positions, boundary tokens included).
     pub fn new(s: EgoSizes, queries: usize, vocab: usize, block: [usize; 2], dev: &B::Device) -> Self {
-        let blocks = |n: usize| {
-            (0..n)
-                .map(|_| CrossBlock::new(s.d, s.heads, s.ratio, s.dropout, s.precision, dev))
-                .collect()
-        };
+        let blocks = |n: usize| (0..n).map(|_| CrossBlock::new(s.layer, dev)).collect();
         Self {
             queries: Param::from_tensor(Tensor::random(
-                [queries, s.d],
+                [queries, s.layer.d],
                 Distribution::Normal(0.0, 0.02),
                 dev,
             )),
             hist: blocks(s.hist),
             env: blocks(s.env),
-            ln: LayerNormConfig::new(s.d).init(dev),
-            head: LinearConfig::new(s.d, vocab).with_bias(false).init(dev),
-            heads: s.heads,
+            ln: LayerNormConfig::new(s.layer.d).init(dev),
+            head: LinearConfig::new(s.layer.d, vocab).with_bias(false).init(dev),
+            heads: s.layer.heads,
             block,
-            precision: s.precision,
+            precision: s.layer.precision,
         }
     }
 

@@ -122,6 +122,31 @@ impl<B: Backend> MultiHead<B> {
     }
 }
 
+/// What sizes one transformer layer: width, heads, MLP ratio, dropout and the precision of its products.
+#[derive(Debug, Clone, Copy)]
+pub struct LayerSizes {
+    /// Width d.
+    pub d: usize,
+    /// Attention heads.
+    pub heads: usize,
+    /// MLP hidden width as a multiple of d.
+    pub ratio: usize,
+    /// Dropout on the attention and MLP outputs.
+    pub dropout: f64,
+    /// Number format of the products.
+    pub precision: Precision,
+}
+
+impl LayerSizes {
+    fn attention<B: Backend>(&self, dev: &B::Device) -> MultiHead<B> {
+        MultiHead::new(self.d, self.heads, self.dropout, self.precision, dev)
+    }
+
+    fn mlp<B: Backend>(&self, dev: &B::Device) -> Mlp<B> {
+        Mlp::new(self.d, self.ratio * self.d, self.dropout, self.precision, dev)
+    }
+}
+
 /// A pre-norm self-attention layer: `x + attn(ln(x))`, then `x + mlp(ln(x))`.
 #[derive(Module, Debug)]
 pub struct SelfBlock<B: Backend> {
@@ -132,20 +157,13 @@ pub struct SelfBlock<B: Backend> {
 }
 
 impl<B: Backend> SelfBlock<B> {
-    /// A layer of width `d`, its products in `precision`.
-    pub fn new(
-        d: usize,
-        heads: usize,
-        ratio: usize,
-        dropout: f64,
-        precision: Precision,
-        dev: &B::Device,
-    ) -> Self {
+    /// A layer of `sizes`.
+    pub fn new(sizes: LayerSizes, dev: &B::Device) -> Self {
         Self {
-            ln1: LayerNormConfig::new(d).init(dev),
-            attn: MultiHead::new(d, heads, dropout, precision, dev),
-            ln2: LayerNormConfig::new(d).init(dev),
-            mlp: Mlp::new(d, ratio * d, dropout, precision, dev),
+            ln1: LayerNormConfig::new(sizes.d).init(dev),
+            attn: sizes.attention(dev),
+            ln2: LayerNormConfig::new(sizes.d).init(dev),
+            mlp: sizes.mlp(dev),
         }
     }
 
@@ -179,21 +197,14 @@ pub struct CrossBlock<B: Backend> {
 }
 
 impl<B: Backend> CrossBlock<B> {
-    /// A layer of width `d`, its products in `precision`.
-    pub fn new(
-        d: usize,
-        heads: usize,
-        ratio: usize,
-        dropout: f64,
-        precision: Precision,
-        dev: &B::Device,
-    ) -> Self {
+    /// A layer of `sizes`.
+    pub fn new(sizes: LayerSizes, dev: &B::Device) -> Self {
         Self {
-            ln_q: LayerNormConfig::new(d).init(dev),
-            ln_ctx: LayerNormConfig::new(d).init(dev),
-            attn: MultiHead::new(d, heads, dropout, precision, dev),
-            ln2: LayerNormConfig::new(d).init(dev),
-            mlp: Mlp::new(d, ratio * d, dropout, precision, dev),
+            ln_q: LayerNormConfig::new(sizes.d).init(dev),
+            ln_ctx: LayerNormConfig::new(sizes.d).init(dev),
+            attn: sizes.attention(dev),
+            ln2: LayerNormConfig::new(sizes.d).init(dev),
+            mlp: sizes.mlp(dev),
         }
     }
 

@@ -41,6 +41,6 @@ pub use ego::{EgoModule, EgoSizes};
 pub use embed::FrameEmbedding;
 pub use error::{BackboneError, Result};
 pub use heads::Heads;
-pub use layers::{CrossBlock, Mlp, MultiHead, SelfBlock};
+pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
 pub use model::{Backbone, Losses, TarBlock};
 pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec};

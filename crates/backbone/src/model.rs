@@ -6,7 +6,7 @@ use crate::ego::{EgoModule, EgoSizes};
 use crate::embed::FrameEmbedding;
 use crate::error::{BackboneError, Result};
 use crate::heads::Heads;
-use crate::layers::SelfBlock;
+use crate::layers::{LayerSizes, SelfBlock};
 use crate::spec::BackboneSpec;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig};
@@ -69,17 +69,20 @@ impl<B: Backend> Backbone<B> {
     pub fn new(cfg: &BackboneConfig, spec: &BackboneSpec, dev: &B::Device) -> Result<Self> {
         spec.validate(cfg)?;
         let d = cfg.d_model;
-        let block = |_| SelfBlock::new(d, cfg.heads, cfg.mlp_ratio, cfg.dropout, cfg.precision, dev);
+        let layer = LayerSizes {
+            d,
+            heads: cfg.heads,
+            ratio: cfg.mlp_ratio,
+            dropout: cfg.dropout,
+            precision: cfg.precision,
+        };
+        let block = |_| SelfBlock::new(layer, dev);
         let ego = spec.action.as_ref().map(|a| {
             let s = &spec.segments[a.segment];
             let sizes = EgoSizes {
-                d,
-                heads: cfg.heads,
-                ratio: cfg.mlp_ratio,
-                dropout: cfg.dropout,
+                layer,
                 hist: cfg.ego_hist_layers,
                 env: cfg.ego_env_layers,
-                precision: cfg.precision,
             };
             EgoModule::new(sizes, s.tokens, s.vocab, [s.block_start, s.block_len], dev)
         });
