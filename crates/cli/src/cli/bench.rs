@@ -1,0 +1,200 @@
+//! Arguments of `umgen bench …`.
+
+use super::{ConfigArgs, DistArgs};
+use clap::{Args, Subcommand};
+use std::path::PathBuf;
+
+/// `umgen bench …`
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Windows per second read from a dataset (and rendered, with --render).
+    Data(BenchDataArgs),
+    /// Training step time, tokens/s, model FLOPs utilisation and peak memory on random tokens. Under
+    /// `umgen launch` it measures data-parallel steps (gradients averaged over the ranks).
+    Train(BenchTrainArgs),
+    /// All-reduce bandwidth through the process group, run under `umgen launch`.
+    Allreduce(BenchAllreduceArgs),
+    /// Per-token generation latency and memory as the history grows: the TAR/OAR model against a vanilla
+    /// autoregressive transformer of the same width and depth over all frames' tokens (paper Fig. 7).
+    Generate(BenchGenerateArgs),
+    /// The backbone's tiled attention against burn's decomposed attention: agreement of outputs and
+    /// gradients, forward+backward time and memory, at the shapes of the `small` and `paper` presets.
+    Attention(BenchAttentionArgs),
+}
+
+/// Arguments of `umgen bench attention`.
+#[derive(Debug, Args)]
+pub struct BenchAttentionArgs {
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Cases as `SEQS×HEADS×LQ×LK×DH` with a trailing `c` for causal, comma-separated (default: the OAR and
+    /// spatial-TAR attention of `--preset small`, the OAR of `--preset paper`, the temporal TAR of `small`).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "32x6x2199x2199x64c,32x6x2199x2199x64,20x12x2199x2199x64c,70352x6x8x8x64c"
+    )]
+    pub cases: Vec<String>,
+    /// Timed forward+backward passes per case and path (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub iters: usize,
+    /// Number format of the tiled path's matrix products (the decomposed reference stays f32).
+    #[arg(long, value_enum, default_value = "f32")]
+    pub precision: PrecisionArg,
+}
+
+/// `--precision` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PrecisionArg {
+    /// f32 (TF32 on CUDA tensor cores).
+    F32,
+    /// bf16 operands, f32 results.
+    Bf16,
+}
+
+impl PrecisionArg {
+    /// The value as written on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+        }
+    }
+}
+
+impl From<PrecisionArg> for umgen::backbone::Precision {
+    fn from(p: PrecisionArg) -> Self {
+        match p {
+            PrecisionArg::F32 => Self::F32,
+            PrecisionArg::Bf16 => Self::Bf16,
+        }
+    }
+}
+
+/// Arguments of `umgen bench generate`.
+#[derive(Debug, Args)]
+pub struct BenchGenerateArgs {
+    /// The config whose layout and backbone are measured (random weights; tokenizers are not needed).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// History lengths T (frames); each must fit `backbone.max_frames`.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,20")]
+    pub history: Vec<usize>,
+    /// Scenes per batch.
+    #[arg(long, default_value_t = 1)]
+    pub batch: usize,
+    /// Tokens timed per vanilla-AR measurement.
+    #[arg(long, default_value_t = 64)]
+    pub tokens: usize,
+}
+
+/// Arguments of `umgen bench allreduce`.
+#[derive(Debug, Args)]
+pub struct BenchAllreduceArgs {
+    /// `cpu`, or `cuda` (each rank uses the GPU of its `LOCAL_RANK`).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Buffer sizes in MiB.
+    #[arg(long, value_delimiter = ',', default_value = "1,16,64,256")]
+    pub mib: Vec<f64>,
+    /// Timed all-reduces per size (the median is reported).
+    #[arg(long, default_value_t = 20)]
+    pub iters: usize,
+    /// Data-parallel settings.
+    #[command(flatten)]
+    pub dist: DistArgs,
+}
+
+/// Arguments of `umgen bench train`.
+#[derive(Debug, Args)]
+pub struct BenchTrainArgs {
+    /// The config whose layout and backbone are measured (tokenizers are not needed); default with
+    /// `--preset`: `configs/<preset>.toml`.
+    #[arg(short, long, value_name = "FILE", required_unless_present = "preset")]
+    pub config: Option<PathBuf>,
+    /// Override a config key (applied after the preset's).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// The sizes of `torch_umgen.py`'s preset of this name, for side-by-side timing (docs/performance.md):
+    /// N = 2199 (60 agents, no boundary tokens), no dropout; `small` batch 4 × T 8, `paper` batch 1 × T 20.
+    #[arg(long, value_enum)]
+    pub preset: Option<BenchPreset>,
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Timed steps (the median is reported).
+    #[arg(long, default_value_t = 10)]
+    pub steps: usize,
+    /// Untimed warm-up steps (kernel compilation and autotuning happen here).
+    #[arg(long, default_value_t = 3)]
+    pub warmup: usize,
+    /// Also time each phase of the step (forward, backward, gradient all-reduce, optimizer) with a device
+    /// sync after each; the syncs remove overlap between phases, so the step is timed separately.
+    #[arg(long)]
+    pub phases: bool,
+    /// Peak dense throughput of the device in TFLOP/s, for MFU (default: 989, an H100/H200's bf16).
+    #[arg(long, default_value_t = 989.0)]
+    pub peak_tflops: f64,
+    /// Data-parallel settings.
+    #[command(flatten)]
+    pub dist: DistArgs,
+}
+
+/// The reference sizes `umgen bench train --preset` knows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BenchPreset {
+    /// D 384, 4 layers per stack, batch 4 × T 8.
+    Small,
+    /// D 768, the paper's depths, batch 1 × T 20.
+    Paper,
+}
+
+impl BenchPreset {
+    /// Its name (also the stem of its config under `configs/`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Small => "small",
+            Self::Paper => "paper",
+        }
+    }
+
+    /// Config overrides that give the PyTorch reference's sizes.
+    pub fn overrides(self) -> Vec<String> {
+        let (batch, frames) = match self {
+            Self::Small => (4, 8),
+            Self::Paper => (1, 20),
+        };
+        [
+            "layout.boundary_tokens=false".to_string(),
+            "modality.agent.max_agents=60".into(),
+            "backbone.dropout=0.0".into(),
+            format!("train.batch_size={batch}"),
+            format!("train.frames={frames}"),
+        ]
+        .into()
+    }
+}
+
+/// Arguments of `umgen bench data`.
+#[derive(Debug, Args)]
+pub struct BenchDataArgs {
+    /// Dataset directory.
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Frames per window (T + 1).
+    #[arg(long, default_value_t = 21)]
+    pub frames: usize,
+    /// Sampling gap.
+    #[arg(long, default_value_t = 1)]
+    pub gap: usize,
+    /// Seconds to run each measurement.
+    #[arg(long, default_value_t = 3.0)]
+    pub seconds: f64,
+    /// Also render the map raster and camera image of every frame.
+    #[arg(long)]
+    pub render: bool,
+}
