@@ -21,6 +21,7 @@ mod blocks;
 mod coder;
 mod config;
 mod conv;
+mod conv_op;
 mod error;
 mod loss;
 mod metrics;
