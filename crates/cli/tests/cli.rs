@@ -222,6 +222,31 @@ fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
         // Output and the three gradients agree to f32 rounding.
         assert!(cols[2..6].iter().all(|&e| e < 1e-5), "{row}");
     }
+    // bf16 products on the tiled side: close to the f32 reference, but not equal to it.
+    let out = umgen(&[
+        "bench",
+        "attention",
+        "--cases",
+        "2x2x300x300x8c",
+        "--iters",
+        "1",
+        "--precision",
+        "bf16",
+    ]);
+    let table = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(table.contains("tiled products in bf16"), "{table}");
+    let row = table
+        .lines()
+        .find(|l| l.starts_with("2x2x300x300x8c"))
+        .unwrap_or_else(|| panic!("no bf16 row: {table}"));
+    let errs: Vec<f64> = row
+        .split_whitespace()
+        .skip(3)
+        .take(4)
+        .map(|c| c.parse().unwrap())
+        .collect();
+    assert!(errs.iter().all(|&e| e > 1e-6 && e < 3e-2), "{row}");
     let err = failure(&["bench", "attention", "--cases", "2x2x30x20x8c"], &[]);
     assert!(err.contains("2x2x30x20x8c") && err.contains("LK ≥ LQ"), "{err}");
 }
@@ -297,4 +322,17 @@ fn bench_train_times_the_phases_of_the_step() {
         ms[0] > 0.0 && ms[1] > 0.0,
         "forward and backward take time: {line}"
     );
+    // The first step is reported apart: its total and its four phases, which add up to it.
+    let line = report
+        .lines()
+        .find(|l| l.starts_with("first step"))
+        .unwrap_or_else(|| panic!("no first-step line: {report}"));
+    let s: Vec<f64> = line
+        .replace(['(', ')', ',', ':'], " ")
+        .split_whitespace()
+        .filter_map(|w| w.parse::<f64>().ok())
+        .collect();
+    assert_eq!(s.len(), 5, "{line}");
+    assert!(s[1] > 0.0 && s[2] > 0.0, "{line}");
+    assert!((s[0] - s[1..].iter().sum::<f64>()).abs() <= 0.25, "{line}");
 }
