@@ -5,8 +5,10 @@
 #
 # Runs, each under its own time limit so that one slow case cannot eat the others: the reference for the
 # `small` and `paper` presets, `umgen bench train` for both presets in f32 and bf16 (`--set
-# backbone.precision=bf16`), and `umgen bench attention` in both precisions. Prints the lines that matter
-# at the end; full outputs go to $OUT (default ./speed-out). UMGEN names the binary (default: umgen).
+# backbone.precision=bf16`), `umgen bench attention` in both precisions, and 30 training steps of the
+# `small` map and image VQ tokenizers on the bundled sample (their rasters/s). Prints the lines that
+# matter at the end; full outputs go to $OUT (default ./speed-out). UMGEN names the binary (default:
+# umgen); run from the repository root.
 set -uo pipefail
 gpu=${1:-0}
 torch_py=${2:-}
@@ -38,9 +40,16 @@ done
 for prec in f32 bf16; do
     run "attention-$prec" "$umgen" bench attention --device "cuda:$gpu" --precision "$prec"
 done
+for m in map image; do
+    rm -rf "$out/vq-$m"
+    run "vq-$m" "$umgen" tokenizer train --config configs/small.toml --modality "$m" --data data/sumo-sample \
+        --out "$out/vq-$m" --device "cuda:$gpu" --set "modality.$m.vq_train.steps=30" \
+        --set "modality.$m.vq_train.log_every=10" --set "modality.$m.vq_train.checkpoint_every=100000"
+done
 echo
 for f in "$out"/torch-*.txt; do [ -f "$f" ] && echo "$(basename "$f" .txt): $(grep -h '{' "$f" | tail -1)"; done
 for f in "$out"/umgen-*.txt; do
     echo "$(basename "$f" .txt): $(grep -h -E '^(first step|step|throughput|peak memory)' "$f" | tr -s ' ' | paste -sd ';' -)"
 done
 for f in "$out"/attention-*.txt; do echo "-- $(basename "$f" .txt)"; grep -v INFO "$f" | tail -n 5; done
+for m in map image; do echo "vq-$m: $(grep -o 'step [0-9]*/30.*rasters_per_s [0-9.]*' "$out/vq-$m.txt" | sed 's/:.*rasters_per_s/: rasters\/s/' | tr '\n' ';')"; done
