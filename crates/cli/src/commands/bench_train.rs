@@ -99,10 +99,11 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         let phase_steps = if a.phases { a.steps } else { 0 };
         for i in 0..a.warmup + a.steps + phase_steps {
             let split = i >= a.warmup + a.steps;
+            let synced = split || i == 0;
             let mut mark = Instant::now();
             let t0 = mark;
             let mut lap = |k: usize| -> anyhow::Result<()> {
-                if split || i == 0 {
+                if synced {
                     sync()?;
                     let s = mark.elapsed().as_secs_f64();
                     if i == 0 {
@@ -116,7 +117,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             };
             let losses = model.loss(batch.clone(), tc.ego_loss_weight)?;
             let loss = losses.total.clone();
-            if split || i == 0 {
+            if synced {
                 // Only a read of the loss makes the lazy graph run before the backward pass.
                 drop(loss.clone().into_data());
             }
