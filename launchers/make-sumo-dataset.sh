@@ -54,12 +54,13 @@ if [ ! -x "$VENV/bin/sumo" ]; then
   python3 -m venv "$VENV" || die "python3 -m venv failed"
   "$VENV/bin/pip" install -q "eclipse-sumo==$VERSION" || die "pip install eclipse-sumo==$VERSION failed (no network?)"
 fi
+VENV=$(cd "$VENV" && pwd)
 export SUMO_HOME
 SUMO_HOME=$("$VENV/bin/python" -c 'import sumo, os; print(os.path.dirname(sumo.__file__))')
 PY="$VENV/bin/python"; BIN="$VENV/bin"; TOOLS="$SUMO_HOME/tools"
 
 if [ -z "$WORK" ]; then WORK=$(mktemp -d); trap 'rm -rf "$WORK"' EXIT; fi
-mkdir -p "$WORK"
+mkdir -p "$WORK"; WORK=$(cd "$WORK" && pwd)  # absolute: randomTrips runs inside it
 
 # Vehicle mix with explicit sizes (m), so nothing depends on SUMO's class defaults.
 cat > "$WORK/vtypes.add.xml" <<'XML'
@@ -94,7 +95,8 @@ for gen in $NETWORKS; do
   # shellcheck disable=SC2086
   "$BIN/netgenerate" $args $COMMON --seed "$seed" -o "$w/net.net.xml" >"$w/netgenerate.log" 2>&1 || die "netgenerate failed: $w/netgenerate.log"
   echo "make-sumo-dataset: $name: demand" >&2
-  trips() { "$PY" "$TOOLS/randomTrips.py" -n "$w/net.net.xml" --additional-files "$WORK/vtypes.add.xml" -b 0 -e "$END" "$@" >>"$w/trips.log" 2>&1 || die "randomTrips failed: $w/trips.log"; }
+  # randomTrips --validate leaves routes.rou.xml in the working directory: run it in the network's folder.
+  trips() { (cd "$w" && "$PY" "$TOOLS/randomTrips.py" -n "$w/net.net.xml" --additional-files "$WORK/vtypes.add.xml" -b 0 -e "$END" "$@" >>"$w/trips.log" 2>&1) || die "randomTrips failed: $w/trips.log"; }
   trips -o "$w/veh.trips.xml" --seed "$seed" -p "$(period 1.2)" --prefix v --fringe-factor 5 --validate --trip-attributes 'type="u_vehicles"'
   trips -o "$w/bike.trips.xml" --seed $((seed + 1000)) -p "$(period 8)" --prefix b --vclass bicycle --validate --trip-attributes 'type="u_bike"'
   trips -o "$w/ped.trips.xml" --seed $((seed + 2000)) -p "$(period 3)" --prefix p --pedestrians --max-distance 800 --trip-attributes 'type="u_walker"'
