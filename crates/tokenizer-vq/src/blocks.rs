@@ -1,6 +1,7 @@
 //! Building blocks: residual blocks, down/upsampling, spatial self-attention.
 
 use crate::conv::conv2d;
+use crate::norm::group_norm;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{GroupNorm, GroupNormConfig, PaddingConfig2d};
@@ -36,7 +37,7 @@ impl<B: Backend> NormAct<B> {
 
     /// Applies it.
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
-        silu(self.norm.forward(x))
+        silu(group_norm(&self.norm, x))
     }
 }
 
@@ -142,7 +143,7 @@ impl<B: Backend> Attention<B> {
     /// Applies it (residual included).
     pub fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let [b, c, h, w] = x.dims();
-        let qkv = conv2d(&self.qkv, self.norm.forward(x.clone())).reshape([b, 3, c, h * w]);
+        let qkv = conv2d(&self.qkv, group_norm(&self.norm, x.clone())).reshape([b, 3, c, h * w]);
         let q = qkv.clone().narrow(1, 0, 1).reshape([b, c, h * w]).swap_dims(1, 2);
         let k = qkv.clone().narrow(1, 1, 1).reshape([b, c, h * w]);
         let v = qkv.narrow(1, 2, 1).reshape([b, c, h * w]).swap_dims(1, 2);

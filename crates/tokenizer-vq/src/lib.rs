@@ -8,7 +8,7 @@
 //!   (BCE/focal + Dice for binary map layers; L1 + L2 for colour images); checkpoints, TensorBoard scalars
 //!   (losses, codebook usage, perplexity) and exact resume.
 //! - Convolutions run as im2col matrix products on CUDA (feature `cuda`), burn's own kernel elsewhere
-//!   (`conv.rs` says why).
+//!   (`conv.rs` says why); group normalisation sums its statistics in two stages (`norm.rs`).
 //! - [`VqTokenizer`]: a trained tokenizer (`vq.json` + `vq.safetensors`): rasters ↔ code ids, codebook.
 //! - [`IouCounter`], [`PsnrCounter`], [`code_stats`]: reconstruction quality.
 //!
@@ -27,6 +27,7 @@ mod loss;
 mod metrics;
 mod modality;
 mod model;
+mod norm;
 mod quantizer;
 mod source;
 mod tokenizer;
