@@ -87,6 +87,24 @@ impl Geometry {
         })
     }
 
+    /// For stride 1 (and padding below the kernel size on every side): the geometry in which convolving
+    /// the output gradient `[b, out_channels, ho, wo]` with the flipped, transposed kernel gives the input
+    /// gradient, so that the backward pass gathers columns like the forward pass instead of folding them.
+    pub(crate) fn transposed(&self, out_channels: usize) -> Option<Self> {
+        let ([kh, kw], [t, l, b, r]) = (self.kernel, self.pad);
+        if self.stride != [1, 1] || t >= kh || b >= kh || l >= kw || r >= kw {
+            return None;
+        }
+        let [n, _, h, w] = self.input;
+        Some(Self {
+            kernel: self.kernel,
+            stride: [1, 1],
+            pad: [kh - 1 - t, kw - 1 - l, kh - 1 - b, kw - 1 - r],
+            input: [n, out_channels, self.out[0], self.out[1]],
+            out: [h, w],
+        })
+    }
+
     /// Input size `[b, c, h, w]`.
     pub(crate) fn input(&self) -> [usize; 4] {
         self.input

@@ -3,8 +3,10 @@
 //! Differentiated op by op, the matrix-product convolution would keep its columns (`kh·kw` copies of the
 //! input) until the backward pass: about 2.4 GB for each full-resolution 3×3 convolution of the `small`
 //! map tokenizer at batch 16, tens of GB per step. This operation rebuilds them in the backward pass
-//! instead, where the weight gradient is `dy · colsᵀ` and the input gradient folds `Wᵀ · dy` back onto the
-//! input ([`fold`]).
+//! instead, where the weight gradient is `dy · colsᵀ`. The input gradient of a stride-1 convolution is the
+//! convolution of `dy` with the flipped, transposed kernel (gathered like the forward pass, which the
+//! profile showed cheaper than folding: no copy of the padded input per tap); strided convolutions fold
+//! `Wᵀ · dy` back onto the input ([`fold`]).
 //!
 //! Dispatch mirrors the backbone's tiled attention: the model is generic over `B: Backend`, so the
 //! training backends that take this operation are recognised by comparing function-pointer types through
@@ -77,9 +79,19 @@ impl<B: Backend> Backward<B, 2> for GemmConv {
             grads.register::<B>(node.id, dw.into_primitive().tensor());
         }
         if let Some(node) = node_x {
-            let k = c * kh * kw;
-            let wt = w.reshape([o, k]).transpose().unsqueeze::<3>().expand([b, k, o]);
-            let dx = fold(wt.matmul(dy), &g);
+            let dx = match g.transposed(o) {
+                // Stride 1: a convolution of dy with the flipped kernel, gathered like the forward pass.
+                Some(gt) => product(
+                    w.swap_dims(0, 1).flip([2, 3]),
+                    columns(dy.reshape([b, o, ho, wo]), &gt),
+                    &gt,
+                ),
+                None => {
+                    let k = c * kh * kw;
+                    let wt = w.reshape([o, k]).transpose().unsqueeze::<3>().expand([b, k, o]);
+                    fold(wt.matmul(dy), &g)
+                }
+            };
             grads.register::<B>(node.id, dx.into_primitive().tensor());
         }
     }
