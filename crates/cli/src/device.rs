@@ -67,21 +67,38 @@ macro_rules! with_autodiff {
     };
 }
 
-/// Bytes the device's memory pool holds now (0 on the CPU or when unknown).
-pub fn memory_in_use(device: Device) -> u64 {
+/// A reading of the device's memory pool, in bytes (zeros on the CPU or when unknown).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Memory {
+    /// Held by live tensors (with their alignment padding).
+    pub in_use: u64,
+    /// Reserved from the driver by the pool; it only grows, so it is the peak of the pool.
+    pub reserved: u64,
+}
+
+/// The device's memory pool now.
+pub fn memory(device: Device) -> Memory {
     match device {
-        Device::Cpu => 0,
+        Device::Cpu => Memory::default(),
         #[cfg(feature = "cuda")]
         Device::Cuda(i) => {
             use burn::cubecl::Runtime;
             let dev = burn::backend::cuda::CudaDevice::new(i);
             burn::cubecl::cuda::CudaRuntime::client(&dev)
                 .memory_usage()
-                .map_or(0, |m| m.bytes_reserved)
+                .map_or(Memory::default(), |m| Memory {
+                    in_use: m.bytes_in_use + m.bytes_padding,
+                    reserved: m.bytes_reserved,
+                })
         }
         #[cfg(not(feature = "cuda"))]
-        Device::Cuda(_) => 0,
+        Device::Cuda(_) => Memory::default(),
     }
+}
+
+/// Bytes the device's memory pool holds now (0 on the CPU or when unknown).
+pub fn memory_in_use(device: Device) -> u64 {
+    memory(device).reserved
 }
 
 /// Where compiled CUDA kernels are kept between processes: `$UMGEN_KERNEL_CACHE` (`off` for nowhere), else

@@ -93,7 +93,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
-        let mut peak = 0u64;
+        let (mut peak, mut live) = (0u64, 0u64);
         let sync = || B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         // Timed steps first, then (with --phases) as many steps with a sync after every phase.
         let phase_steps = if a.phases { a.steps } else { 0 };
@@ -105,6 +105,10 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             let mut lap = |k: usize| -> anyhow::Result<()> {
                 if synced {
                     sync()?;
+                    // Live memory peaks when the forward pass has saved everything the backward pass needs.
+                    if k == 0 {
+                        live = live.max(crate::device::memory(device).in_use);
+                    }
                     let s = mark.elapsed().as_secs_f64();
                     if i == 0 {
                         first[k] = s;
@@ -130,7 +134,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             lap(3)?;
             // Wait for the step's work on the device before reading the clock.
             sync()?;
-            peak = peak.max(crate::device::memory_in_use(device));
+            peak = peak.max(crate::device::memory(device).reserved);
             let took = t0.elapsed().as_secs_f64();
             if env.rank == 0 {
                 tracing::info!(
@@ -150,7 +154,13 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             p.sort_by(f64::total_cmp);
             p.get(p.len() / 2).copied()
         });
-        (times[times.len() / 2], peak, group.backend(), phases, first)
+        (
+            times[times.len() / 2],
+            (peak, live),
+            group.backend(),
+            phases,
+            first,
+        )
     });
     if env.rank != 0 {
         return Ok(());
@@ -220,11 +230,14 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         100.0 * flops / median / (a.peak_tflops * 1e12 * world as f64),
         a.peak_tflops
     )?;
+    let (peak, live) = peak;
     if peak > 0 {
+        let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
         writeln!(
             out,
-            "peak memory   {:.2} GiB reserved",
-            peak as f64 / (1u64 << 30) as f64
+            "peak memory   {:.2} GiB reserved, {:.2} GiB live after the forward pass (first and synced steps)",
+            gib(peak),
+            gib(live)
         )?;
     } else {
         writeln!(out, "peak memory   not measured on this device")?;
