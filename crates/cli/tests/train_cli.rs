@@ -98,6 +98,18 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
         "{err}"
     );
 
+    // A non-positive AdamW ε is refused by name, before any checkpoint is touched.
+    let out = umgen(&[
+        "train",
+        "--config",
+        cfg_b35.to_str().unwrap(),
+        "--resume",
+        "--set",
+        "train.eps=0",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("train.eps = 0"), "{err}");
+
     // TensorBoard's own reader loads the scalars (CI sets UMGEN_TB_PYTHON to a Python with tensorboard).
     let tb = fx.run_dir("a").join("tb");
     python_check(

@@ -27,6 +27,9 @@ pub struct TrainConfig {
     pub beta1: f64,
     /// AdamW β2.
     pub beta2: f64,
+    /// AdamW ε, added to √v. Far above the gradients' size (e.g. 1) it makes AdamW a momentum SGD whose
+    /// update is linear in the gradient, which is how data-parallel equivalence is measured (docs/training.md).
+    pub eps: f64,
     /// Global gradient-norm clip (0 = none).
     pub grad_clip: f64,
     /// History frames T (windows hold T + 1 frames).
@@ -66,6 +69,7 @@ impl Default for TrainConfig {
             weight_decay: 0.01,
             beta1: 0.9,
             beta2: 0.95,
+            eps: 1e-8,
             grad_clip: 1.0,
             frames: 20,
             gap: 1,
@@ -99,6 +103,10 @@ impl TrainConfig {
                 "bucket_mib",
             ] {
                 o.remove(k);
+            }
+            // Runs from before ε was a setting used the default: their checkpoints stay resumable.
+            if self.eps == Self::default().eps {
+                o.remove("eps");
             }
         }
         v

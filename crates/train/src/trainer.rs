@@ -120,6 +120,12 @@ pub fn train<B: AutodiffBackend>(
             tc.gap, tc.split
         )));
     }
+    if !(tc.eps > 0.0 && (tc.eps as f32).is_finite() && tc.eps as f32 > 0.0) {
+        return Err(TrainError::Setup(format!(
+            "train.eps = {} must be a positive number that f32 holds",
+            tc.eps
+        )));
+    }
     if f > run.backbone.max_frames {
         return Err(TrainError::Setup(format!(
             "windows of {f} frames exceed backbone.max_frames = {}",
@@ -131,7 +137,7 @@ pub fn train<B: AutodiffBackend>(
     let mut optim = AdamWConfig::new()
         .with_beta_1(tc.beta1 as f32)
         .with_beta_2(tc.beta2 as f32)
-        .with_epsilon(1e-8)
+        .with_epsilon(tc.eps as f32)
         .with_weight_decay(tc.weight_decay as f32)
         .init();
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
