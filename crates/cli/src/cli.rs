@@ -159,7 +159,7 @@ pub struct LaunchArgs {
     pub command: Vec<String>,
 }
 
-/// How ranks of a data-parallel run talk (read by `train` and `bench train`).
+/// How ranks of a data-parallel run talk (read by `train`, `tokenizer train` and `bench train`).
 #[derive(Debug, Clone, Args)]
 pub struct DistArgs {
     /// Seconds after which a dead, stopped or hung rank fails every rank (also the rendezvous timeout).
@@ -221,9 +221,13 @@ pub struct TokenizerTrainArgs {
     /// run with the same `--out` resumes), for machines lent for a fixed time.
     #[arg(long, value_name = "MINUTES", value_parser = positive_minutes)]
     pub time_limit: Option<f64>,
-    /// `cpu`, or `cuda:N` in builds with the `cuda` feature.
+    /// `cpu`, or `cuda:N` in builds with the `cuda` feature (`cuda` under a launcher: the GPU of
+    /// `LOCAL_RANK`).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// Data-parallel settings (under `umgen launch`, torchrun or SLURM).
+    #[command(flatten)]
+    pub dist: DistArgs,
 }
 
 /// Arguments of `umgen tokenizer eval`.

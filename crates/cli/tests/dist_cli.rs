@@ -1,9 +1,10 @@
 //! `umgen launch` on the CPU: 2 and 3 ranks over TCP end with the parameters of one rank training on the
-//! same global batch; a killed or stopped rank makes the launcher fail within the timeout.
+//! same global batch (the backbone, and a VQ tokenizer with its moving-average codebook); a killed or
+//! stopped rank makes the launcher fail within the timeout.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{free_port, umgen};
+use common::{free_port, largest_difference, safetensors_f32, umgen};
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
@@ -49,24 +50,11 @@ fn config_with(
 /// Every tensor of the newest checkpoint's weights.
 fn weights(run: &Path) -> BTreeMap<String, Vec<f32>> {
     let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
-    let bytes = std::fs::read(
-        run.join("checkpoints")
+    safetensors_f32(
+        &run.join("checkpoints")
             .join(latest.trim())
             .join("model.safetensors"),
     )
-    .unwrap();
-    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
-    st.tensors()
-        .into_iter()
-        .map(|(name, view)| {
-            let v = view
-                .data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect();
-            (name, v)
-        })
-        .collect()
 }
 
 #[test]
@@ -77,19 +65,7 @@ fn ranks_over_tcp_match_one_rank_on_the_same_global_batch() {
     let out = umgen(&["train", "--config", one.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let reference = weights(&dir.path().join("one"));
-    let largest_difference = |got: &BTreeMap<String, Vec<f32>>| {
-        assert_eq!(
-            got.keys().collect::<Vec<_>>(),
-            reference.keys().collect::<Vec<_>>()
-        );
-        let mut worst = 0f32;
-        for (k, want) in &reference {
-            for (a, b) in got[k].iter().zip(want) {
-                worst = worst.max((a - b).abs());
-            }
-        }
-        worst
-    };
+    let largest_difference = |got: &BTreeMap<String, Vec<f32>>| largest_difference(got, &reference);
     // The yardstick: one rank on half the batch (other data) ends far from the reference.
     let half = config_with(dir.path(), &data, "half", 4, 3, 1, true);
     assert!(
@@ -223,6 +199,78 @@ fn wait_failed(child: &mut std::process::Child, within: Duration) -> Duration {
         );
         std::thread::sleep(Duration::from_millis(50));
     }
+}
+
+/// `umgen tokenizer train` of the tiny image tokenizer: 2 ranks × 2 rasters against one rank × 4, in the
+/// linear regime (AdamW ε = 1), every weight and codebook tensor of the written tokenizer. (The image
+/// losses are means over pixels, so ranks average to the global loss exactly; the map tokenizer's Dice
+/// term is a ratio of sums over each rank's batch, as under PyTorch's DDP.)
+#[test]
+fn tokenizer_ranks_match_one_rank_on_the_same_global_batch() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 40).unwrap();
+    let tiny = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml");
+    let run = |name: &str, world: usize, batch: usize| {
+        let out = dir.path().join(name);
+        let mut args: Vec<String> = Vec::new();
+        let port = free_port();
+        if world > 1 {
+            args.extend(
+                [
+                    "launch",
+                    "--nproc-per-node",
+                    &world.to_string(),
+                    "--master-port",
+                    &port,
+                    "--",
+                ]
+                .map(String::from),
+            );
+        }
+        args.extend(
+            [
+                "tokenizer",
+                "train",
+                "--config",
+                tiny.to_str().unwrap(),
+                "--modality",
+                "image",
+            ]
+            .map(String::from),
+        );
+        args.extend([
+            "--data".into(),
+            data.display().to_string(),
+            "--out".into(),
+            out.display().to_string(),
+        ]);
+        for kv in [
+            "steps=4".to_string(),
+            format!("batch_size={batch}"),
+            "eps=1.0".into(),
+            "lr=0.3".into(),
+            "warmup=1".into(),
+            "log_every=1".into(),
+            "threads=1".into(),
+        ] {
+            args.extend(["--set".into(), format!("modality.image.vq_train.{kv}")]);
+        }
+        let out_ = umgen(&args.iter().map(String::as_str).collect::<Vec<_>>());
+        let log = String::from_utf8_lossy(&out_.stderr).into_owned();
+        assert!(out_.status.success(), "{name}: {log}");
+        if world > 1 {
+            assert!(log.contains(&format!("{world} ranks over tcp")), "{log}");
+            let metrics = std::fs::read_to_string(out.join("metrics.jsonl")).unwrap();
+            assert_eq!(metrics.lines().count(), 4, "only rank 0 writes metrics");
+        }
+        safetensors_f32(&out.join("vq.safetensors"))
+    };
+    let reference = run("one", 1, 4);
+    let other_data = largest_difference(&run("half", 1, 2), &reference);
+    let ranks = largest_difference(&run("ranks2", 2, 2), &reference);
+    eprintln!("tokenizer, 2 ranks: largest difference {ranks:e} (other data: {other_data:e})");
+    assert!(other_data > 1e-4, "{other_data}");
+    assert!(ranks < 1e-3 * other_data, "2 ranks: largest difference {ranks}");
 }
 
 #[test]

@@ -141,10 +141,12 @@ impl Default for LossConfig {
 pub struct VqTrainConfig {
     /// Optimisation steps.
     pub steps: u64,
-    /// Rasters per step.
+    /// Rasters per step and process: a data-parallel run's global batch is `batch_size × world size`.
     pub batch_size: usize,
     /// Peak learning rate (AdamW).
     pub lr: f64,
+    /// AdamW ε (1 makes the update linear in the gradient; see `train.eps`).
+    pub eps: f64,
     /// Linear warm-up steps.
     pub warmup: u64,
     /// AdamW weight decay.
@@ -175,6 +177,7 @@ impl Default for VqTrainConfig {
             steps: 20_000,
             batch_size: 16,
             lr: 2e-4,
+            eps: 1e-8,
             warmup: 500,
             weight_decay: 0.0,
             grad_clip: 1.0,

@@ -30,6 +30,9 @@ pub enum VqError {
     /// Checkpoint I/O.
     #[error(transparent)]
     Checkpoint(#[from] umgen_checkpoint::CheckpointError),
+    /// A collective of a data-parallel run failed.
+    #[error(transparent)]
+    Dist(#[from] umgen_dist::DistError),
     /// Metric file I/O.
     #[error("metrics in {path}: {error}")]
     Metrics {

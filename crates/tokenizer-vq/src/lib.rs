@@ -36,7 +36,7 @@ mod train;
 pub use arch::VqArch;
 pub use config::{LossConfig, Output, VqConfig, VqTrainConfig};
 pub use error::{Result, VqError};
-pub use metrics::{IouCounter, PsnrCounter, code_stats};
+pub use metrics::{IouCounter, PsnrCounter, code_stats, count_stats};
 pub use modality::{
     Codec, CodecLoader, CodecOn, RasterView, VqBuild, VqModality, VqModalityConfig, cpu_loader, vq_factory,
 };
@@ -44,4 +44,4 @@ pub use model::{Forward, VqModel};
 pub use quantizer::{Quantized, Quantizer, normalize};
 pub use source::{MemorySource, RasterSource, batch_indices, render};
 pub use tokenizer::{CONFIG_FILE, TokenizerInfo, VqTokenizer, WEIGHTS_FILE};
-pub use train::{KIND, StepReport, restart_dead, train};
+pub use train::{KIND, StepReport, restart_dead, train, train_on};

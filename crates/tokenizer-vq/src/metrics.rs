@@ -71,18 +71,23 @@ impl PsnrCounter {
 /// Codebook statistics of a set of code ids: the fraction of entries used, and the perplexity
 /// `exp(entropy)` of their frequencies (the effective number of codes in use).
 pub fn code_stats(ids: &[u32], codebook_size: usize) -> (f64, f64) {
-    let mut counts = vec![0u64; codebook_size];
+    let mut counts = vec![0f64; codebook_size];
     for &i in ids {
         if let Some(c) = counts.get_mut(i as usize) {
-            *c += 1;
+            *c += 1.0;
         }
     }
-    let n = ids.len().max(1) as f64;
-    let used = counts.iter().filter(|&&c| c > 0).count() as f64 / codebook_size.max(1) as f64;
+    count_stats(&counts)
+}
+
+/// [`code_stats`] from a histogram: uses per code (one entry per codebook entry).
+pub fn count_stats(counts: &[f64]) -> (f64, f64) {
+    let n = counts.iter().sum::<f64>().max(1.0);
+    let used = counts.iter().filter(|&&c| c > 0.0).count() as f64 / counts.len().max(1) as f64;
     let entropy: f64 = counts
         .iter()
-        .filter(|&&c| c > 0)
-        .map(|&c| -(c as f64 / n) * (c as f64 / n).ln())
+        .filter(|&&c| c > 0.0)
+        .map(|&c| -(c / n) * (c / n).ln())
         .sum();
     (used, entropy.exp())
 }

@@ -23,6 +23,17 @@ pub struct VqModel<B: Backend> {
     pub decoder: Decoder<B>,
 }
 
+/// The parameters that gradients train: all but the codebook, which moves by moving averages. They are
+/// what data-parallel ranks average (averaging the codebook's absent gradients as zeros would hand it to
+/// the optimizer).
+#[derive(Module, Debug)]
+pub struct Trainable<B: Backend> {
+    encoder: Encoder<B>,
+    quant_conv: Conv2d<B>,
+    post_quant_conv: Conv2d<B>,
+    decoder: Decoder<B>,
+}
+
 /// One training forward pass.
 #[derive(Debug, Clone)]
 pub struct Forward<B: Backend> {
@@ -41,6 +52,16 @@ impl<B: Backend> VqModel<B> {
             quantizer: Quantizer::new(cfg.codebook_size, cfg.embed_dim, dev),
             post_quant_conv: conv1(cfg.embed_dim, cfg.embed_dim, dev),
             decoder: Decoder::new(cfg, dev),
+        }
+    }
+
+    /// The gradient-trained parameters (sharing this model's tensors and ids).
+    pub fn trainable(&self) -> Trainable<B> {
+        Trainable {
+            encoder: self.encoder.clone(),
+            quant_conv: self.quant_conv.clone(),
+            post_quant_conv: self.post_quant_conv.clone(),
+            decoder: self.decoder.clone(),
         }
     }
 

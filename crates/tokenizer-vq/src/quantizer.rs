@@ -90,17 +90,33 @@ impl<B: Backend> Quantizer<B> {
 
     /// One moving-average step towards the mean of the (detached, unit) vectors assigned to each code.
     pub fn ema_update(self, z: Tensor<B, 2>, indices: Tensor<B, 1, Int>, decay: f64) -> Self {
+        let stats = self.assignment(z, indices);
+        self.ema_apply(stats, decay)
+    }
+
+    /// What a batch contributes to the moving averages, flat so that ranks can sum it in one collective:
+    /// `[K]` assignment counts, then the `[K, D]` sums of the (detached, unit) vectors assigned to each code.
+    pub fn assignment(&self, z: Tensor<B, 2>, indices: Tensor<B, 1, Int>) -> Tensor<B, 1> {
         let [n, d] = z.dims();
         let k = self.size();
         let dev = z.device();
-        let z = z.detach();
         let counts = Tensor::<B, 1>::zeros([k], &dev).select_assign(
             0,
             indices.clone(),
             Tensor::ones([n], &dev),
             IndexingUpdateOp::Add,
         );
-        let sums = Tensor::<B, 2>::zeros([k, d], &dev).select_assign(0, indices, z, IndexingUpdateOp::Add);
+        let sums =
+            Tensor::<B, 2>::zeros([k, d], &dev).select_assign(0, indices, z.detach(), IndexingUpdateOp::Add);
+        Tensor::cat(vec![counts, sums.reshape([k * d])], 0)
+    }
+
+    /// One moving-average step from [`Quantizer::assignment`]'s statistics (of one batch, or summed over
+    /// the ranks' batches).
+    pub fn ema_apply(self, stats: Tensor<B, 1>, decay: f64) -> Self {
+        let [k, d] = self.embed.dims();
+        let counts = stats.clone().narrow(0, 0, k);
+        let sums = stats.narrow(0, k, k * d).reshape([k, d]);
         let cluster = self.cluster_size.val().detach().mul_scalar(decay) + counts.mul_scalar(1.0 - decay);
         let embed_sum = self.embed_sum.val().detach().mul_scalar(decay) + sums.mul_scalar(1.0 - decay);
         self.replace(normalize(embed_sum.clone()), embed_sum, cluster)

@@ -1,10 +1,11 @@
 //! Training a VQ tokenizer: AdamW with warm-up + cosine, global-norm clipping, EMA codebook with dead-code
-//! restarts, checkpoints and TensorBoard scalars; resumable from the last good checkpoint.
+//! restarts, checkpoints and TensorBoard scalars; resumable from the last good checkpoint; alone or
+//! data-parallel over a process group.
 
 use crate::config::{VqConfig, VqTrainConfig};
 use crate::error::{Result, VqError};
 use crate::loss::{commitment, reconstruction};
-use crate::metrics::code_stats;
+use crate::metrics::count_stats;
 use crate::model::VqModel;
 use crate::source::{RasterSource, batch_indices, render};
 use crate::tokenizer::{TokenizerInfo, VqTokenizer};
@@ -20,6 +21,7 @@ use umgen_checkpoint::CheckpointDir;
 use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
 };
+use umgen_dist::{ProcessGroup, Single, all_reduce_grads, broadcast_module};
 use umgen_metrics::MetricLog;
 use umgen_optim::{Schedule, clip_grad_norm};
 
@@ -27,6 +29,10 @@ use umgen_optim::{Schedule, clip_grad_norm};
 pub const KIND: &str = "vq-tokenizer";
 /// Steps between checks for dead codes.
 const RESTART_CHECK: u64 = 10;
+/// Steps whose code histograms make the logged usage and perplexity.
+const RECENT: usize = 8;
+/// Gradient all-reduce buckets.
+const BUCKET_BYTES: usize = 25 << 20;
 
 /// What one training step did; `values` only on logging steps.
 #[derive(Debug, Clone)]
@@ -51,8 +57,34 @@ pub fn train<B: AutodiffBackend>(
     source: &dyn RasterSource,
     out: &Path,
     device: &B::Device,
+    on_step: impl FnMut(&StepReport) -> ControlFlow<()>,
+) -> Result<VqTokenizer<B::InnerBackend>> {
+    train_on::<B>(config, tc, source, out, device, &mut Single, on_step)
+}
+
+/// [`train`] as one rank of a data-parallel job over `group`. Each rank draws its own slice of every
+/// step's `batch_size × world size` rasters (rank 0's slice is what a single process would draw); all
+/// ranks start from rank 0's parameters and codebook; gradients are averaged (the codebook's moving
+/// averages are fed the sums of every rank's assignments), so every rank holds the same model. Dead
+/// codes restart from rank 0's encoder outputs. Only rank 0 writes metrics, checkpoints and the
+/// tokenizer, and only its `on_step` decides when to stop.
+pub fn train_on<B: AutodiffBackend>(
+    config: &VqConfig,
+    tc: &VqTrainConfig,
+    source: &dyn RasterSource,
+    out: &Path,
+    device: &B::Device,
+    group: &mut dyn ProcessGroup<B::InnerBackend>,
     mut on_step: impl FnMut(&StepReport) -> ControlFlow<()>,
 ) -> Result<VqTokenizer<B::InnerBackend>> {
+    let (rank, world) = (group.rank(), group.world_size());
+    let lead = rank == 0;
+    if !(tc.eps > 0.0 && tc.eps as f32 > 0.0 && (tc.eps as f32).is_finite()) {
+        return Err(VqError::Config {
+            key: "vq_train.eps".into(),
+            message: format!("{} is not a positive number that f32 holds", tc.eps),
+        });
+    }
     config.validate("vq")?;
     let [c, h, w] = source.shape();
     if c != config.channels
@@ -71,7 +103,7 @@ pub fn train<B: AutodiffBackend>(
     let mut model = stable_param_ids(VqModel::<B>::new(config, device));
     let mut optim = AdamWConfig::new()
         .with_beta_2(0.95)
-        .with_epsilon(1e-8)
+        .with_epsilon(tc.eps as f32)
         .with_weight_decay(tc.weight_decay as f32)
         .init();
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
@@ -95,15 +127,28 @@ pub fn train<B: AutodiffBackend>(
         step = l.manifest.step;
         last_used = serde_json::from_value(l.manifest.meta["last_used"].clone())
             .map_err(|e| mismatch(&l.dir, e.to_string()))?;
-        tracing::info!(
-            "resuming tokenizer training from {} (step {step})",
-            l.dir.display()
-        );
+        let saved_world = l.manifest.meta["world_size"].as_u64().unwrap_or(1);
+        if lead && saved_world != world as u64 {
+            tracing::warn!(
+                "{} was written by {saved_world} rank(s), this run has {world}: the model continues, but the batches from here on differ from an uninterrupted run",
+                l.dir.display()
+            );
+        }
+        if lead {
+            tracing::info!(
+                "resuming tokenizer training from {} (step {step})",
+                l.dir.display()
+            );
+        }
     }
-    let mut log = MetricLog::open(out).map_err(|error| VqError::Metrics {
-        path: out.into(),
-        error,
-    })?;
+    let mut log = if lead {
+        Some(MetricLog::open(out).map_err(|error| VqError::Metrics {
+            path: out.into(),
+            error,
+        })?)
+    } else {
+        None
+    };
     let schedule = Schedule {
         peak: tc.lr,
         warmup: tc.warmup,
@@ -115,20 +160,23 @@ pub fn train<B: AutodiffBackend>(
     } else {
         tc.threads
     };
-    let batch = |s: u64| -> Result<Tensor<B, 4>> {
-        let data = render(
-            source,
-            &batch_indices(source.len(), tc.seed, s, tc.batch_size),
-            threads,
-        )?;
+    let rasters = |ids: &[usize]| -> Result<Tensor<B, 4>> {
+        let data = render(source, ids, threads)?;
         Ok(Tensor::from_data(
-            TensorData::new(data, [tc.batch_size, c, h, w]),
+            TensorData::new(data, [ids.len(), c, h, w]),
             device,
         ))
     };
-    if step == 0 {
-        // Start the codebook on encoder outputs of the first batch, so that every code is near data.
-        let (rows, _) = model.encode_rows(batch(0)?);
+    let global = |s: u64| batch_indices(source.len(), tc.seed, s, tc.batch_size * world);
+    let batch = |s: u64| rasters(&global(s)[rank * tc.batch_size..(rank + 1) * tc.batch_size]);
+    if step == 0 && lead {
+        // Start the codebook on encoder outputs of the first global batch (encoded a rank's batch at a
+        // time), so that every code is near data and the start does not depend on the world size.
+        let rows = global(0)
+            .chunks(tc.batch_size.max(1))
+            .map(|ids| Ok(model.encode_rows(rasters(ids)?).0.detach()))
+            .collect::<Result<Vec<_>>>()?;
+        let rows = Tensor::cat(rows, 0);
         let n = rows.dims()[0];
         let mut rng = StdRng::seed_from_u64(tc.seed ^ 0x5eed);
         let pick: Vec<i64> = (0..k).map(|_| rng.random_range(0..n) as i64).collect();
@@ -144,7 +192,9 @@ pub fn train<B: AutodiffBackend>(
         let all = Tensor::<B, 1, Int>::arange(0..k as i64, device);
         model.quantizer = model.quantizer.restart(all, vectors);
     }
-    let mut recent: Vec<u32> = Vec::new();
+    // Rank 0's parameters and codebook everywhere (also after a resume, whatever the file system).
+    model = broadcast_module(model, group, BUCKET_BYTES)?;
+    let mut recent: std::collections::VecDeque<Vec<f64>> = std::collections::VecDeque::new();
     while step < tc.steps {
         let t0 = Instant::now();
         let x = batch(step)?;
@@ -152,33 +202,36 @@ pub fn train<B: AutodiffBackend>(
         let rec = reconstruction(config.output, &tc.loss, fwd.recon, x);
         let commit = commitment(fwd.quantized.z.clone(), fwd.quantized.z_q.clone());
         let loss = rec.total.clone() + commit.clone().mul_scalar(tc.loss.commitment);
-        let mut grads = GradientsParams::from_grads(loss.backward(), &model);
+        let grads = GradientsParams::from_grads(loss.backward(), &model);
+        let mut grads = all_reduce_grads(&model.trainable(), grads, group, BUCKET_BYTES)?;
         let grad_norm = clip_grad_norm::<B, _>(&model, &mut grads, tc.grad_clip);
         let lr = schedule.lr(step);
         model = optim.step(lr, model, grads);
         let z = fwd.quantized.z.detach();
-        let ids: Vec<u32> = fwd
-            .quantized
-            .indices
-            .clone()
-            .into_data()
-            .iter::<i64>()
-            .map(|i| i as u32)
-            .collect();
-        model.quantizer = model
+        // Every rank's assignments feed the moving averages, summed (a mean times the world size).
+        let mut stats = model
             .quantizer
-            .ema_update(z.clone(), fwd.quantized.indices, tc.ema_decay);
+            .assignment(z.clone(), fwd.quantized.indices)
+            .inner();
+        if world > 1 {
+            stats = group.all_reduce_mean(stats)?.mul_scalar(world as f64);
+        }
+        let counts: Vec<f64> = stats.clone().narrow(0, 0, k).into_data().iter::<f64>().collect();
+        model.quantizer = model.quantizer.ema_apply(Tensor::from_inner(stats), tc.ema_decay);
         step += 1;
-        for &i in &ids {
-            last_used[i as usize] = step;
+        for (i, _) in counts.iter().enumerate().filter(|(_, c)| **c > 0.0) {
+            last_used[i] = step;
         }
         if step.is_multiple_of(RESTART_CHECK) {
-            model.quantizer = restart_dead(model.quantizer, &last_used, step, tc, z, device);
+            let restarted;
+            (model.quantizer, restarted) = restart_dead(model.quantizer, &last_used, step, tc, z, device);
+            if restarted > 0 {
+                model.quantizer = broadcast_module(model.quantizer, group, BUCKET_BYTES)?;
+            }
         }
-        recent.extend_from_slice(&ids);
-        let keep = 8 * ids.len();
-        if recent.len() > keep {
-            recent.drain(..recent.len() - keep);
+        recent.push_back(counts);
+        if recent.len() > RECENT {
+            recent.pop_front();
         }
         let logging = step.is_multiple_of(tc.log_every.max(1)) || step == tc.steps;
         let values = if logging {
@@ -192,9 +245,13 @@ pub fn train<B: AutodiffBackend>(
             parts.push(commit);
             // The gradient norm rides along in the same transfer, last.
             parts.push(Tensor::from_inner(grad_norm));
-            let mut got: Vec<f64> = Tensor::cat(parts, 0).into_data().iter::<f64>().collect();
+            let mut logged = Tensor::cat(parts, 0).inner();
+            if world > 1 {
+                logged = group.all_reduce_mean(logged)?;
+            }
+            let mut got: Vec<f64> = logged.into_data().iter::<f64>().collect();
             let grad_norm = got.pop().unwrap_or(f64::NAN);
-            let (usage, ppl) = code_stats(&recent, k);
+            let (usage, ppl) = count_stats(&histogram(&recent, k));
             let secs = t0.elapsed().as_secs_f64();
             let mut v: Vec<(&'static str, f64)> = names.into_iter().zip(got).collect();
             v.extend([
@@ -202,27 +259,40 @@ pub fn train<B: AutodiffBackend>(
                 ("codebook/perplexity", ppl),
                 ("lr", lr),
                 ("grad_norm", grad_norm),
-                ("rasters_per_s", tc.batch_size as f64 / secs),
+                ("rasters_per_s", (tc.batch_size * world) as f64 / secs),
             ]);
-            log.log(step, &v)
-                .and_then(|()| log.flush())
-                .map_err(|error| VqError::Metrics {
-                    path: out.into(),
-                    error,
-                })?;
+            if let Some(log) = log.as_mut() {
+                log.log(step, &v)
+                    .and_then(|()| log.flush())
+                    .map_err(|error| VqError::Metrics {
+                        path: out.into(),
+                        error,
+                    })?;
+            }
             Some(v)
         } else {
             None
         };
-        let stop = on_step(&StepReport {
+        let mut stop = on_step(&StepReport {
             step,
             steps: tc.steps,
             seconds: t0.elapsed().as_secs_f64(),
             values,
         })
         .is_break();
-        if stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps {
-            let meta = serde_json::json!({"config": config, "train": tc, "last_used": last_used});
+        if world > 1 {
+            // Rank 0 decides (a time limit reads each rank's own clock).
+            let flag = Tensor::<B::InnerBackend, 1>::from_floats([f32::from(u8::from(stop))], device);
+            stop = group
+                .broadcast(flag)?
+                .into_data()
+                .iter::<f64>()
+                .next()
+                .unwrap_or(0.0)
+                > 0.5;
+        }
+        if lead && (stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps) {
+            let meta = serde_json::json!({"config": config, "train": tc, "last_used": last_used, "world_size": world});
             let w = weights_to_bytes(&model)?;
             let o = optimizer_to_bytes::<B, _, _>(&optim)?;
             ckpts.save(
@@ -233,11 +303,13 @@ pub fn train<B: AutodiffBackend>(
             )?;
         }
         if stop {
-            tracing::info!("tokenizer training stopped at step {step} of {}", tc.steps);
+            if lead {
+                tracing::info!("tokenizer training stopped at step {step} of {}", tc.steps);
+            }
             break;
         }
     }
-    let (usage, perplexity) = code_stats(&recent, k);
+    let (usage, perplexity) = count_stats(&histogram(&recent, k));
     let info = TokenizerInfo {
         format: "umgen-vq".into(),
         version: 1,
@@ -248,8 +320,22 @@ pub fn train<B: AutodiffBackend>(
         perplexity,
     };
     let tokenizer = VqTokenizer::new(info, model.valid(), device.clone());
-    tokenizer.save(out)?;
+    if lead {
+        tokenizer.save(out)?;
+    }
+    group.barrier()?;
     Ok(tokenizer)
+}
+
+/// Uses per code over the recent steps.
+fn histogram(recent: &std::collections::VecDeque<Vec<f64>>, k: usize) -> Vec<f64> {
+    let mut h = vec![0.0; k];
+    for counts in recent {
+        for (a, c) in h.iter_mut().zip(counts) {
+            *a += c;
+        }
+    }
+    h
 }
 
 fn mismatch(dir: &Path, reason: String) -> VqError {
@@ -267,18 +353,21 @@ pub fn restart_dead<B: AutodiffBackend>(
     tc: &VqTrainConfig,
     z: Tensor<B, 2>,
     device: &B::Device,
-) -> crate::quantizer::Quantizer<B> {
+) -> (crate::quantizer::Quantizer<B>, usize) {
     let dead: Vec<i64> = (0..last_used.len())
         .filter(|&i| step.saturating_sub(last_used[i]) >= tc.restart_after)
         .map(|i| i as i64)
         .collect();
     if dead.is_empty() {
-        return q;
+        return (q, 0);
     }
     let n = z.dims()[0];
     let mut rng = StdRng::seed_from_u64(tc.seed ^ step.wrapping_mul(0x2545_f491_4f6c_dd1d));
     let rows: Vec<i64> = dead.iter().map(|_| rng.random_range(0..n) as i64).collect();
     let m = dead.len();
     let vectors = z.select(0, Tensor::from_data(TensorData::new(rows, [m]), device));
-    q.restart(Tensor::from_data(TensorData::new(dead, [m]), device), vectors)
+    (
+        q.restart(Tensor::from_data(TensorData::new(dead, [m]), device), vectors),
+        m,
+    )
 }

@@ -153,7 +153,7 @@ fn a_dead_code_is_restarted_from_the_batch() {
         restart_after: 5,
         ..VqTrainConfig::default()
     };
-    let q = restart_dead(
+    let (q, restarted) = restart_dead(
         q,
         &[10, 10, 10, 0],
         10,
@@ -161,6 +161,7 @@ fn a_dead_code_is_restarted_from_the_batch() {
         umgen_tokenizer_vq::normalize(rows.clone()),
         &dev,
     );
+    assert_eq!(restarted, 1, "only code 3 was unused for 5 steps");
     let after: Vec<i64> = q
         .nearest(umgen_tokenizer_vq::normalize(rows))
         .into_data()

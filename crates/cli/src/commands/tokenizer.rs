@@ -2,12 +2,15 @@
 
 use crate::cli::{TokenizerCommand, TokenizerEvalArgs, TokenizerTrainArgs};
 use crate::device::Device;
+use crate::dist::{DistBackend, rank_device};
 use anyhow::Context;
+use burn::tensor::backend::AutodiffBackend;
 use std::io::Write;
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 use umgen::data::Dataset;
-use umgen::tokenizer_vq::{IouCounter, Output, PsnrCounter, RasterSource, code_stats, train};
+use umgen::dist::DistEnv;
+use umgen::tokenizer_vq::{IouCounter, Output, PsnrCounter, RasterSource, code_stats, train_on};
 use umgen::{DatasetRasters, UmgenConfig, vq_target};
 
 /// Runs a tokenizer subcommand.
@@ -19,6 +22,8 @@ pub fn run(command: TokenizerCommand) -> anyhow::Result<()> {
 }
 
 fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
+    let env = DistEnv::from_env()?;
+    let lead = env.rank == 0;
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
     let target = vq_target(&config, &a.modality)?;
     let data = Dataset::open(&a.data)?;
@@ -35,35 +40,62 @@ fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|| PathBuf::from(format!("runs/tokenizer-{}", a.modality)));
     let [c, h, w] = source.shape();
     tracing::info!(
-        "training the `{}` tokenizer on {} rasters of {c}×{h}×{w} from {} ({} steps of {}) into {}",
+        "training the `{}` tokenizer on {} rasters of {c}×{h}×{w} from {} ({} steps of {} × {} rank(s)) into {}",
         a.modality,
         source.len(),
         a.data.display(),
         target.train.steps,
         target.train.batch_size,
+        env.world_size,
         out.display()
     );
-    let bar = indicatif::ProgressBar::new(target.train.steps);
-    bar.set_style(indicatif::ProgressStyle::with_template(
-        "{bar:30} {pos}/{len} {msg} [{elapsed_precise} < {eta_precise}]",
-    )?);
-    let device = Device::parse(&a.device)?;
+    let bar = if lead {
+        crate::progress::bar(target.train.steps, "steps")?
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let device = Device::parse(&rank_device(&a.device, &env))?;
+    // Ranks must train the same tokenizer: the digest covers what shapes the run.
+    let identity = umgen::checkpoint::sha256(
+        serde_json::json!({"modality": a.modality, "vq": target.vq, "train": target.train, "raster": [c, h, w]})
+            .to_string()
+            .as_bytes(),
+    );
     let started = std::time::Instant::now();
     let info = crate::with_autodiff!(device, |B, dev| {
-        let tok = train::<B>(&target.vq, &target.train, &source, &out, &dev, |r| {
-            bar.set_position(r.step);
-            if let Some(v) = &r.values {
-                let line: Vec<String> = v.iter().map(|(k, x)| format!("{k} {x:.4}")).collect();
-                bar.set_message(format!("loss {:.4}", v[0].1));
-                bar.suspend(|| tracing::info!("step {}/{}: {}", r.step, r.steps, line.join(", ")));
-            }
-            let limit = a.time_limit.map(|m| std::time::Duration::from_secs_f64(60.0 * m));
-            if limit.is_some_and(|l| started.elapsed() >= l) {
-                bar.suspend(|| tracing::info!("time limit reached at step {}", r.step));
-                return ControlFlow::Break(());
-            }
-            ControlFlow::Continue(())
-        })?;
+        let mut group =
+            <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
+        if env.world_size > 1 {
+            tracing::info!(
+                "{} ranks over {} (rendezvous {})",
+                env.world_size,
+                group.backend(),
+                env.master()
+            );
+        }
+        let tok = train_on::<B>(
+            &target.vq,
+            &target.train,
+            &source,
+            &out,
+            &dev,
+            group.as_mut(),
+            |r| {
+                bar.set_position(r.step);
+                if let Some(v) = &r.values {
+                    let line: Vec<String> = v.iter().map(|(k, x)| format!("{k} {x:.4}")).collect();
+                    bar.set_message(format!("loss {:.4}", v[0].1));
+                    bar.suspend(|| tracing::info!("step {}/{}: {}", r.step, r.steps, line.join(", ")));
+                }
+                let limit = a.time_limit.map(|m| std::time::Duration::from_secs_f64(60.0 * m));
+                if limit.is_some_and(|l| started.elapsed() >= l) {
+                    bar.suspend(|| tracing::info!("time limit reached at step {}", r.step));
+                    return ControlFlow::Break(());
+                }
+                ControlFlow::Continue(())
+            },
+        )?;
+        group.finish();
         tok.info().clone()
     });
     bar.finish_and_clear();

@@ -1,6 +1,8 @@
 //! Helpers shared by the CLI test files (each test file is its own crate and uses some of them).
 #![allow(dead_code, clippy::unwrap_used, clippy::panic)]
 
+use std::collections::BTreeMap;
+use std::path::Path;
 use std::process::{Command, Output};
 
 /// Runs the `umgen` binary under test with plain (uncoloured, default-level) logs.
@@ -46,4 +48,34 @@ pub fn python_check(script: &str, args: &[&std::ffi::OsStr]) {
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+/// Every f32 tensor of a safetensors file, by name.
+pub fn safetensors_f32(path: &Path) -> BTreeMap<String, Vec<f32>> {
+    let bytes = std::fs::read(path).unwrap();
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    st.tensors()
+        .into_iter()
+        .map(|(name, view)| {
+            let v = view
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            (name, v)
+        })
+        .collect()
+}
+
+/// The largest |a − b| over tensors of the same names (which must match).
+pub fn largest_difference(a: &BTreeMap<String, Vec<f32>>, b: &BTreeMap<String, Vec<f32>>) -> f32 {
+    assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+    let mut worst = 0f32;
+    for (k, want) in b {
+        assert_eq!(a[k].len(), want.len(), "{k}");
+        for (x, y) in a[k].iter().zip(want) {
+            worst = worst.max((x - y).abs());
+        }
+    }
+    worst
 }
