@@ -68,6 +68,20 @@ impl DistBackend for burn::backend::Cuda {
     }
 }
 
+/// [`DistBackend::join`], saying on rank 0 how the ranks meet when there are several.
+pub fn join<B: DistBackend>(env: &DistEnv, identity: &str, args: &DistArgs) -> anyhow::Result<BoxedGroup<B>> {
+    let group = B::join(env, identity, args)?;
+    if env.world_size > 1 {
+        tracing::info!(
+            "{} ranks over {} (rendezvous {})",
+            env.world_size,
+            group.backend(),
+            env.master()
+        );
+    }
+    Ok(group)
+}
+
 /// The device of this rank: under a launcher, `cuda` means the GPU of `LOCAL_RANK`.
 pub fn rank_device(device: &str, env: &DistEnv) -> String {
     if device == "cuda" && env.world_size > 1 {

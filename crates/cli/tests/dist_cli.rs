@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{free_port, largest_difference, safetensors_f32, umgen};
+use common::{free_port, largest_difference, launch_args, safetensors_f32, umgen};
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
@@ -79,18 +79,9 @@ fn ranks_over_tcp_match_one_rank_on_the_same_global_batch() {
     for (world, batch, accum) in [(2, 3, 1), (3, 2, 1), (2, 1, 3)] {
         let name = format!("ranks{world}-accum{accum}");
         let cfg = config_with(dir.path(), &data, &name, 4, batch, accum, true);
-        let port = free_port();
-        let out = umgen(&[
-            "launch",
-            "--nproc-per-node",
-            &world.to_string(),
-            "--master-port",
-            &port,
-            "--",
-            "train",
-            "--config",
-            cfg.to_str().unwrap(),
-        ]);
+        let mut args = launch_args(world);
+        args.extend(["train".into(), "--config".into(), cfg.display().to_string()]);
+        let out = umgen(&args.iter().map(String::as_str).collect::<Vec<_>>());
         let log = String::from_utf8_lossy(&out.stderr);
         assert!(out.status.success(), "{log}");
         assert!(log.contains(&format!("{world} ranks over tcp")), "{log}");
@@ -212,21 +203,7 @@ fn tokenizer_ranks_match_one_rank_on_the_same_global_batch() {
     let tiny = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml");
     let run = |name: &str, world: usize, batch: usize| {
         let out = dir.path().join(name);
-        let mut args: Vec<String> = Vec::new();
-        let port = free_port();
-        if world > 1 {
-            args.extend(
-                [
-                    "launch",
-                    "--nproc-per-node",
-                    &world.to_string(),
-                    "--master-port",
-                    &port,
-                    "--",
-                ]
-                .map(String::from),
-            );
-        }
+        let mut args = if world > 1 { launch_args(world) } else { Vec::new() };
         args.extend(
             [
                 "tokenizer",

@@ -79,36 +79,25 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
         "{log}"
     );
 
+    // Resuming run b with overrides that must be refused: the failure's log.
+    let refused = |sets: &[&str]| {
+        let mut args = vec!["train", "--config", cfg_b35.to_str().unwrap(), "--resume"];
+        for kv in sets {
+            args.extend(["--set", kv]);
+        }
+        let out = umgen(&args);
+        assert!(!out.status.success(), "{sets:?} was accepted");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
     // Another model refuses the checkpoints and names the difference.
-    let out = umgen(&[
-        "train",
-        "--config",
-        cfg_b35.to_str().unwrap(),
-        "--resume",
-        "--set",
-        "backbone.d_model=48",
-        "--set",
-        "backbone.heads=3",
-    ]);
-    let err = String::from_utf8_lossy(&out.stderr);
+    let err = refused(&["backbone.d_model=48", "backbone.heads=3"]);
     assert!(
-        !out.status.success()
-            && err.contains("does not match this run")
-            && err.contains("backbone (d_model, heads)"),
+        err.contains("does not match this run") && err.contains("backbone (d_model, heads)"),
         "{err}"
     );
-
     // A non-positive AdamW ε is refused by name, before any checkpoint is touched.
-    let out = umgen(&[
-        "train",
-        "--config",
-        cfg_b35.to_str().unwrap(),
-        "--resume",
-        "--set",
-        "train.eps=0",
-    ]);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("train.eps = 0"), "{err}");
+    let err = refused(&["train.eps=0"]);
+    assert!(err.contains("train.eps = 0"), "{err}");
 
     // TensorBoard's own reader loads the scalars (CI sets UMGEN_TB_PYTHON to a Python with tensorboard).
     let tb = fx.run_dir("a").join("tb");

@@ -2,7 +2,7 @@
 
 use crate::cli::{TokenizerCommand, TokenizerEvalArgs, TokenizerTrainArgs};
 use crate::device::Device;
-use crate::dist::{DistBackend, rank_device};
+use crate::dist::rank_device;
 use anyhow::Context;
 use burn::tensor::backend::AutodiffBackend;
 use std::io::Write;
@@ -63,16 +63,7 @@ fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
     );
     let started = std::time::Instant::now();
     let info = crate::with_autodiff!(device, |B, dev| {
-        let mut group =
-            <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
-        if env.world_size > 1 {
-            tracing::info!(
-                "{} ranks over {} (rendezvous {})",
-                env.world_size,
-                group.backend(),
-                env.master()
-            );
-        }
+        let mut group = crate::dist::join::<<B as AutodiffBackend>::InnerBackend>(&env, &identity, &a.dist)?;
         let tok = train_on::<B>(
             &target.vq,
             &target.train,

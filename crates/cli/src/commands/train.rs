@@ -2,7 +2,7 @@
 
 use crate::cli::TrainArgs;
 use crate::device::Device;
-use crate::dist::{DistBackend, rank_device};
+use crate::dist::rank_device;
 use anyhow::Context;
 use burn::tensor::backend::AutodiffBackend;
 use std::ops::ControlFlow;
@@ -93,16 +93,7 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
     };
     let identity = run.identity_digest();
     let summary = crate::with_autodiff!(device, |B, dev| {
-        let mut group =
-            <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
-        if env.world_size > 1 {
-            tracing::info!(
-                "{} ranks over {} (rendezvous {})",
-                env.world_size,
-                group.backend(),
-                env.master()
-            );
-        }
+        let mut group = crate::dist::join::<<B as AutodiffBackend>::InnerBackend>(&env, &identity, &a.dist)?;
         train::<B>(&run, &tokens, &dev, a.resume, group.as_mut(), |r| {
             bar.set_position(r.step);
             if let Some(v) = &r.values {

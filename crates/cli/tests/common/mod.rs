@@ -32,6 +32,21 @@ pub fn free_port() -> String {
         .to_string()
 }
 
+/// `umgen launch` of `world` local ranks meeting on a free port, up to the `--` before the command.
+pub fn launch_args(world: usize) -> Vec<String> {
+    let port = free_port();
+    [
+        "launch",
+        "--nproc-per-node",
+        &world.to_string(),
+        "--master-port",
+        &port,
+        "--",
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
 /// Runs `tests/python/<script>` with `args` in the Python of `UMGEN_TB_PYTHON` (CI's venv with tensorboard
 /// and safetensors) and asserts success; skipped without that variable.
 pub fn python_check(script: &str, args: &[&std::ffi::OsStr]) {
