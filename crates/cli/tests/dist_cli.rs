@@ -192,17 +192,16 @@ fn wait_failed(child: &mut std::process::Child, within: Duration) -> Duration {
     }
 }
 
-/// `umgen tokenizer train` of the tiny image tokenizer: 2 ranks × 2 rasters against one rank × 4, in the
-/// linear regime (AdamW ε = 1), every weight and codebook tensor of the written tokenizer. (The image
-/// losses are means over pixels, so ranks average to the global loss exactly; the map tokenizer's Dice
-/// term is a ratio of sums over each rank's batch, as under PyTorch's DDP.)
+/// `umgen tokenizer train` of the tiny image and map tokenizers: 2 ranks × 2 rasters against one rank × 4,
+/// in the linear regime (AdamW ε = 1), every weight and codebook tensor of the written tokenizer. The map
+/// tokenizer's Dice term is a ratio of sums over the batch, which the ranks complete with each other's.
 #[test]
 fn tokenizer_ranks_match_one_rank_on_the_same_global_batch() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_dataset(dir.path(), 40).unwrap();
     let tiny = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml");
-    let run = |name: &str, world: usize, batch: usize| {
-        let out = dir.path().join(name);
+    let run = |modality: &str, name: &str, world: usize, batch: usize| {
+        let out = dir.path().join(format!("{modality}-{name}"));
         let mut args = if world > 1 { launch_args(world) } else { Vec::new() };
         args.extend(
             [
@@ -211,7 +210,7 @@ fn tokenizer_ranks_match_one_rank_on_the_same_global_batch() {
                 "--config",
                 tiny.to_str().unwrap(),
                 "--modality",
-                "image",
+                modality,
             ]
             .map(String::from),
         );
@@ -230,7 +229,7 @@ fn tokenizer_ranks_match_one_rank_on_the_same_global_batch() {
             "log_every=1".into(),
             "threads=1".into(),
         ] {
-            args.extend(["--set".into(), format!("modality.image.vq_train.{kv}")]);
+            args.extend(["--set".into(), format!("modality.{modality}.vq_train.{kv}")]);
         }
         let out_ = umgen(&args.iter().map(String::as_str).collect::<Vec<_>>());
         let log = String::from_utf8_lossy(&out_.stderr).into_owned();
@@ -242,12 +241,17 @@ fn tokenizer_ranks_match_one_rank_on_the_same_global_batch() {
         }
         safetensors_f32(&out.join("vq.safetensors"))
     };
-    let reference = run("one", 1, 4);
-    let other_data = largest_difference(&run("half", 1, 2), &reference);
-    let ranks = largest_difference(&run("ranks2", 2, 2), &reference);
-    eprintln!("tokenizer, 2 ranks: largest difference {ranks:e} (other data: {other_data:e})");
-    assert!(other_data > 1e-4, "{other_data}");
-    assert!(ranks < 1e-3 * other_data, "2 ranks: largest difference {ranks}");
+    for modality in ["image", "map"] {
+        let reference = run(modality, "one", 1, 4);
+        let other_data = largest_difference(&run(modality, "half", 1, 2), &reference);
+        let ranks = largest_difference(&run(modality, "ranks2", 2, 2), &reference);
+        eprintln!("{modality} tokenizer, 2 ranks: largest difference {ranks:e} (other data: {other_data:e})");
+        assert!(other_data > 1e-4, "{modality}: {other_data}");
+        assert!(
+            ranks < 1e-3 * other_data,
+            "{modality}, 2 ranks: largest difference {ranks}"
+        );
+    }
 }
 
 #[test]

@@ -4,7 +4,7 @@
 
 use crate::config::{VqConfig, VqTrainConfig};
 use crate::error::{Result, VqError};
-use crate::loss::{commitment, reconstruction};
+use crate::loss::{commitment, reconstruction_over};
 use crate::metrics::count_stats;
 use crate::model::VqModel;
 use crate::source::{RasterSource, batch_indices, render};
@@ -199,10 +199,14 @@ pub fn train_on<B: AutodiffBackend>(
         let t0 = Instant::now();
         let x = batch(step)?;
         let fwd = model.forward(x.clone());
-        let rec = reconstruction(config.output, &tc.loss, fwd.recon, x);
+        let rec = reconstruction_over(config.output, &tc.loss, fwd.recon, x, world, |sums| {
+            let mean = group.all_reduce_mean(sums.inner())?;
+            Ok::<_, VqError>(Tensor::from_inner(mean.mul_scalar(world as f64)))
+        })?;
         let commit = commitment(fwd.quantized.z.clone(), fwd.quantized.z_q.clone());
         let loss = rec.total.clone() + commit.clone().mul_scalar(tc.loss.commitment);
-        let grads = GradientsParams::from_grads(loss.backward(), &model);
+        let objective = rec.objective + commit.clone().mul_scalar(tc.loss.commitment);
+        let grads = GradientsParams::from_grads(objective.backward(), &model);
         let mut grads = all_reduce_grads(&model.trainable(), grads, group, BUCKET_BYTES)?;
         let grad_norm = clip_grad_norm::<B, _>(&model, &mut grads, tc.grad_clip);
         let lr = schedule.lr(step);
