@@ -41,6 +41,18 @@ pub enum DistError {
         /// Why (names the peer when known).
         reason: String,
     },
+    /// Ranks disagree on something they must share (e.g. the step a resumed run starts from).
+    #[error("rank {rank}: {what} is {value} here but {rank0} on rank 0")]
+    Disagree {
+        /// This process's rank.
+        rank: usize,
+        /// What was compared, and what usually causes a difference.
+        what: String,
+        /// This rank's value.
+        value: u64,
+        /// Rank 0's value.
+        rank0: u64,
+    },
     /// NCCL or CUDA reported an error.
     #[error("rank {rank}: NCCL: {reason}")]
     Nccl {

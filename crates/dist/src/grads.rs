@@ -1,12 +1,13 @@
 //! Data-parallel steps on a module: broadcast its parameters from rank 0, and average gradients over
-//! ranks in buckets (one collective per ~`bucket_bytes`, not per tensor).
+//! ranks in buckets (one collective per ~`bucket_bytes`, not per tensor); check that ranks agree on a
+//! value.
 
-use crate::error::Result;
+use crate::error::{DistError, Result};
 use crate::group::ProcessGroup;
 use burn::module::{AutodiffModule, ModuleMapper, ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;
 use burn::tensor::Tensor;
-use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::backend::{AutodiffBackend, Backend};
 
 /// Float parameters in module order: ids and shapes.
 struct Shapes {
@@ -44,7 +45,7 @@ fn buckets(sizes: &[usize], bucket_elems: usize) -> Vec<std::ops::Range<usize>> 
 }
 
 /// Runs `op` on the flattened parts in buckets and returns the parts, reshaped to their sizes.
-fn bucketed<B: burn::tensor::backend::Backend>(
+fn bucketed<B: Backend>(
     parts: Vec<Tensor<B, 1>>,
     bucket_bytes: usize,
     mut op: impl FnMut(Tensor<B, 1>) -> Result<Tensor<B, 1>>,
@@ -103,10 +104,7 @@ fn take_flat<B: AutodiffBackend>(
     id: ParamId,
     d: usize,
 ) -> Option<Tensor<B::InnerBackend, 1>> {
-    fn flat<B: burn::tensor::backend::Backend, const D: usize>(
-        g: &mut GradientsParams,
-        id: ParamId,
-    ) -> Option<Tensor<B, 1>> {
+    fn flat<B: Backend, const D: usize>(g: &mut GradientsParams, id: ParamId) -> Option<Tensor<B, 1>> {
         g.remove::<B, D>(id).map(|t| t.flatten::<1>(0, D - 1))
     }
     match d {
@@ -186,6 +184,40 @@ pub fn broadcast_module<B: AutodiffBackend, M: AutodiffModule<B>>(
     Ok(model.map(&mut Replace::<B> {
         values: values.into_iter(),
     }))
+}
+
+/// Checks that every rank holds the same `value` (below 2^48), e.g. the step a resumed run starts from.
+/// Every rank learns whether any differs, so all fail together (a rank that differs names its value and
+/// rank 0's) instead of drifting into mismatched collectives that only a timeout ends.
+pub fn same_on_all_ranks<B: Backend>(
+    group: &mut dyn ProcessGroup<B>,
+    value: u64,
+    what: &str,
+    device: &B::Device,
+) -> Result<()> {
+    if group.world_size() == 1 {
+        return Ok(());
+    }
+    // Two 24-bit halves: exact in f32.
+    let halves = [(value >> 24) as f32, (value & 0xff_ffff) as f32];
+    let mine = Tensor::<B, 1>::from_floats(halves, device);
+    let first = group.broadcast(mine.clone())?;
+    let spread = group.all_reduce_mean((mine - first.clone()).abs().sum())?;
+    let spread = spread.into_data().iter::<f64>().next().unwrap_or(0.0);
+    let rank0: Vec<f64> = first.into_data().iter::<f64>().collect();
+    let rank0 = match rank0.as_slice() {
+        [hi, lo] => ((*hi as u64) << 24) | *lo as u64,
+        _ => value,
+    };
+    if spread > 0.0 {
+        return Err(DistError::Disagree {
+            rank: group.rank(),
+            what: what.into(),
+            value,
+            rank0,
+        });
+    }
+    Ok(())
 }
 
 #[cfg(test)]

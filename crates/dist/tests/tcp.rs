@@ -12,6 +12,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use umgen_dist::{
     DistEnv, Group, ProcessGroup, Session, SessionOptions, TcpGroup, all_reduce_grads, broadcast_module,
+    same_on_all_ranks,
 };
 
 type B = Flex;
@@ -168,6 +169,33 @@ impl burn::module::ModuleMapper<AB> for Shift {
         let s = self.0;
         p.map(|t| Tensor::from_inner(t.inner().add_scalar(s)).require_grad())
     }
+}
+
+#[test]
+fn ranks_that_disagree_on_a_value_all_fail_and_name_it() {
+    // Equal everywhere, beyond f32's 24-bit mantissa: accepted.
+    let big = (1u64 << 40) + 3;
+    let out = on_ranks(3, move |_, mut g| {
+        let r = same_on_all_ranks::<B>(&mut g, big, "the step", &Default::default());
+        g.finish();
+        r.is_ok()
+    });
+    assert_eq!(out, vec![true; 3]);
+    // Rank 2 differs by one in the low bits: every rank fails, rank 2 names both values.
+    let out = on_ranks(3, move |r, mut g| {
+        let v = if r == 2 { big + 1 } else { big };
+        let e = same_on_all_ranks::<B>(&mut g, v, "the step", &Default::default())
+            .err()
+            .map(|e| e.to_string());
+        g.finish();
+        e
+    });
+    assert!(out.iter().all(Option::is_some), "{out:?}");
+    let two = out[2].as_deref().unwrap_or_default();
+    assert!(
+        two.contains("rank 2") && two.contains(&(big + 1).to_string()) && two.contains(&big.to_string()),
+        "{two}"
+    );
 }
 
 #[test]

@@ -21,7 +21,7 @@ use umgen_checkpoint::CheckpointDir;
 use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
 };
-use umgen_dist::{ProcessGroup, Single, all_reduce_grads, broadcast_module};
+use umgen_dist::{ProcessGroup, Single, all_reduce_grads, broadcast_module, same_on_all_ranks};
 use umgen_metrics::MetricLog;
 use umgen_optim::{Schedule, clip_grad_norm};
 
@@ -141,6 +141,12 @@ pub fn train_on<B: AutodiffBackend>(
             );
         }
     }
+    same_on_all_ranks(
+        group,
+        step,
+        "the step this run starts from (ranks need the run directory on a shared file system)",
+        device,
+    )?;
     let mut log = if lead {
         Some(MetricLog::open(out).map_err(|error| VqError::Metrics {
             path: out.into(),

@@ -15,7 +15,7 @@ use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
 };
 use umgen_data::{TokenSet, Window};
-use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module};
+use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module, same_on_all_ranks};
 use umgen_metrics::MetricLog;
 use umgen_optim::{Schedule, clip_grad_norm};
 
@@ -180,6 +180,12 @@ pub fn train<B: AutodiffBackend>(
     // Rank 0's parameters everywhere (also after a resume: all ranks loaded the same checkpoint, but a
     // broadcast makes that a guarantee rather than an assumption about the file system).
     model = broadcast_module(model, group, bucket)?;
+    same_on_all_ranks(
+        group,
+        step,
+        "the step this run starts from (ranks need train.out_dir on a shared file system)",
+        device,
+    )?;
     let mut log = if lead {
         Some(MetricLog::open(out).map_err(|error| TrainError::Metrics {
             path: out.clone(),
