@@ -88,12 +88,6 @@ impl<B: Backend> Quantizer<B> {
         Quantized { z, z_q, indices }
     }
 
-    /// One moving-average step towards the mean of the (detached, unit) vectors assigned to each code.
-    pub fn ema_update(self, z: Tensor<B, 2>, indices: Tensor<B, 1, Int>, decay: f64) -> Self {
-        let stats = self.assignment(z, indices);
-        self.ema_apply(stats, decay)
-    }
-
     /// What a batch contributes to the moving averages, flat so that ranks can sum it in one collective:
     /// `[K]` assignment counts, then the `[K, D]` sums of the (detached, unit) vectors assigned to each code.
     pub fn assignment(&self, z: Tensor<B, 2>, indices: Tensor<B, 1, Int>) -> Tensor<B, 1> {
@@ -111,8 +105,8 @@ impl<B: Backend> Quantizer<B> {
         Tensor::cat(vec![counts, sums.reshape([k * d])], 0)
     }
 
-    /// One moving-average step from [`Quantizer::assignment`]'s statistics (of one batch, or summed over
-    /// the ranks' batches).
+    /// One moving-average step towards the mean of the vectors assigned to each code, from
+    /// [`Quantizer::assignment`]'s statistics (of one batch, or summed over the ranks' batches).
     pub fn ema_apply(self, stats: Tensor<B, 1>, decay: f64) -> Self {
         let [k, d] = self.embed.dims();
         let counts = stats.clone().narrow(0, 0, k);
