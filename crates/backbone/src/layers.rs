@@ -84,14 +84,26 @@ impl<B: Backend> MultiHead<B> {
         mask: Option<Tensor<B, 4, Bool>>,
         causal: bool,
     ) -> Tensor<B, 3> {
+        let (q, k, v) = self.project(x, ctx);
+        let y = crate::attention::attend(q, k, v, mask, causal, self.precision);
+        self.output(y)
+    }
+
+    /// Queries of `x` and keys and values of `ctx`, split into heads `[b, heads, l, dh]`.
+    fn project(&self, x: Tensor<B, 3>, ctx: Tensor<B, 3>) -> (Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>) {
         let p = self.precision;
         let q = split_heads(linear(&self.q, x, p), self.heads);
         let kv = linear(&self.kv, ctx, p);
         let d = kv.dims()[2] / 2;
         let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
         let v = split_heads(kv.narrow(2, d, d), self.heads);
-        let y = crate::attention::attend(q, k, v, mask, causal, p);
-        self.drop.forward(linear(&self.proj, merge_heads(y), p))
+        (q, k, v)
+    }
+
+    /// Heads merged, projected back to width d, dropout.
+    fn output(&self, y: Tensor<B, 4>) -> Tensor<B, 3> {
+        self.drop
+            .forward(linear(&self.proj, merge_heads(y), self.precision))
     }
 
     /// Heads.
@@ -106,19 +118,14 @@ impl<B: Backend> MultiHead<B> {
         x: Tensor<B, 3>,
         cache: &mut Option<(Tensor<B, 4>, Tensor<B, 4>)>,
     ) -> Tensor<B, 3> {
-        let p = self.precision;
-        let q = split_heads(linear(&self.q, x.clone(), p), self.heads);
-        let kv = linear(&self.kv, x, p);
-        let d = kv.dims()[2] / 2;
-        let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
-        let v = split_heads(kv.narrow(2, d, d), self.heads);
+        let (q, k, v) = self.project(x.clone(), x);
         let (k, v) = match cache.take() {
             Some((k0, v0)) => (Tensor::cat(vec![k0, k], 2), Tensor::cat(vec![v0, v], 2)),
             None => (k, v),
         };
         *cache = Some((k.clone(), v.clone()));
         let y = attention(q, k, v, None, None, AttentionModuleOptions::default());
-        self.drop.forward(linear(&self.proj, merge_heads(y), p))
+        self.output(y)
     }
 }
 
