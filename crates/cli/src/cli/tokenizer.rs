@@ -13,9 +13,9 @@ pub enum TokenizerCommand {
     Eval(TokenizerEvalArgs),
 }
 
-/// Arguments of `umgen tokenizer train`.
+/// Which tokenizer, and the data it is trained or measured on (shared by `tokenizer train` and `eval`).
 #[derive(Debug, Args)]
-pub struct TokenizerTrainArgs {
+pub struct TokenizerTarget {
     /// The config (its `[modality.<name>]` table sets the architecture and `vq_train`).
     #[command(flatten)]
     pub config: ConfigArgs,
@@ -25,6 +25,14 @@ pub struct TokenizerTrainArgs {
     /// Dataset directory.
     #[arg(long, value_name = "DIR")]
     pub data: PathBuf,
+}
+
+/// Arguments of `umgen tokenizer train`.
+#[derive(Debug, Args)]
+pub struct TokenizerTrainArgs {
+    /// Config, modality and dataset.
+    #[command(flatten)]
+    pub target: TokenizerTarget,
     /// Run directory (checkpoints, TensorBoard, the tokenizer); default `runs/tokenizer-<modality>`.
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
@@ -50,15 +58,9 @@ pub struct TokenizerTrainArgs {
 /// Arguments of `umgen tokenizer eval`.
 #[derive(Debug, Args)]
 pub struct TokenizerEvalArgs {
-    /// The config.
+    /// Config, modality and dataset.
     #[command(flatten)]
-    pub config: ConfigArgs,
-    /// Which modality's tokenizer.
-    #[arg(long)]
-    pub modality: String,
-    /// Dataset directory.
-    #[arg(long, value_name = "DIR")]
-    pub data: PathBuf,
+    pub target: TokenizerTarget,
     /// Tokenizer directory (default: the config's `tokenizer`).
     #[arg(long, value_name = "DIR")]
     pub tokenizer: Option<PathBuf>,

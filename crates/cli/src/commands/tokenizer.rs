@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use umgen::data::Dataset;
 use umgen::dist::DistEnv;
 use umgen::tokenizer_vq::{IouCounter, Output, PsnrCounter, RasterSource, code_stats, train_on};
-use umgen::{DatasetRasters, UmgenConfig, vq_target};
+use umgen::{DatasetRasters, UmgenConfig, VqTarget, vq_target};
 
 /// Runs a tokenizer subcommand.
 pub fn run(command: TokenizerCommand) -> anyhow::Result<()> {
@@ -21,29 +21,41 @@ pub fn run(command: TokenizerCommand) -> anyhow::Result<()> {
     }
 }
 
+/// The rasters of `split` (every `stride`-th frame), refused when there are none.
+fn split_rasters<'a>(
+    data: &'a Dataset,
+    target: &'a VqTarget,
+    dir: &std::path::Path,
+    split: &str,
+    stride: usize,
+) -> anyhow::Result<DatasetRasters<'a>> {
+    let source = DatasetRasters::new(data, target.view.as_ref(), Some(split), stride);
+    anyhow::ensure!(
+        !source.is_empty(),
+        "{}: no frames in split `{split}`",
+        dir.display()
+    );
+    Ok(source)
+}
+
 fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
     let env = DistEnv::from_env()?;
     let lead = env.rank == 0;
-    let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
-    let target = vq_target(&config, &a.modality)?;
-    let data = Dataset::open(&a.data)?;
-    let source = DatasetRasters::new(&data, target.view.as_ref(), Some(&a.split), a.stride);
-    anyhow::ensure!(
-        !source.is_empty(),
-        "{}: no frames in split `{}`",
-        a.data.display(),
-        a.split
-    );
+    let t = &a.target;
+    let config = UmgenConfig::load(&t.config.config, &t.config.set)?;
+    let target = vq_target(&config, &t.modality)?;
+    let data = Dataset::open(&t.data)?;
+    let source = split_rasters(&data, &target, &t.data, &a.split, a.stride)?;
     let out = a
         .out
         .clone()
-        .unwrap_or_else(|| PathBuf::from(format!("runs/tokenizer-{}", a.modality)));
+        .unwrap_or_else(|| PathBuf::from(format!("runs/tokenizer-{}", t.modality)));
     let [c, h, w] = source.shape();
     tracing::info!(
         "training the `{}` tokenizer on {} rasters of {c}×{h}×{w} from {} ({} steps of {} × {} rank(s)) into {}",
-        a.modality,
+        t.modality,
         source.len(),
-        a.data.display(),
+        t.data.display(),
         target.train.steps,
         target.train.batch_size,
         env.world_size,
@@ -57,7 +69,7 @@ fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
     let device = Device::parse(&rank_device(&a.device, &env))?;
     // Ranks must train the same tokenizer: the digest covers what shapes the run.
     let identity = umgen::checkpoint::sha256(
-        serde_json::json!({"modality": a.modality, "vq": target.vq, "train": target.train, "raster": [c, h, w]})
+        serde_json::json!({"modality": t.modality, "vq": target.vq, "train": target.train, "raster": [c, h, w]})
             .to_string()
             .as_bytes(),
     );
@@ -97,15 +109,16 @@ fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64(),
         100.0 * info.usage,
         info.perplexity,
-        a.modality,
+        t.modality,
         out.display()
     );
     Ok(())
 }
 
 fn eval(a: &TokenizerEvalArgs) -> anyhow::Result<()> {
-    let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
-    let target = vq_target(&config, &a.modality)?;
+    let t = &a.target;
+    let config = UmgenConfig::load(&t.config.config, &t.config.set)?;
+    let target = vq_target(&config, &t.modality)?;
     let dir = a
         .tokenizer
         .clone()
@@ -113,17 +126,11 @@ fn eval(a: &TokenizerEvalArgs) -> anyhow::Result<()> {
         .with_context(|| {
             format!(
                 "no tokenizer: pass --tokenizer or set `modality.{}.tokenizer`",
-                a.modality
+                t.modality
             )
         })?;
-    let data = Dataset::open(&a.data)?;
-    let source = DatasetRasters::new(&data, target.view.as_ref(), Some(&a.split), 1);
-    anyhow::ensure!(
-        !source.is_empty(),
-        "{}: no frames in split `{}`",
-        a.data.display(),
-        a.split
-    );
+    let data = Dataset::open(&t.data)?;
+    let source = split_rasters(&data, &target, &t.data, &a.split, 1)?;
     let codec = Device::parse(&a.device)?.codec_loader()(&dir)?;
     let [c, h, w] = source.shape();
     let f = target.vq.downsampling();
@@ -159,17 +166,17 @@ fn eval(a: &TokenizerEvalArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let (usage, perplexity) = code_stats(&ids_all, target.vq.codebook_size);
     let mut report = serde_json::json!({
-        "modality": a.modality, "tokenizer": dir, "data": a.data, "split": a.split, "frames": n,
+        "modality": t.modality, "tokenizer": dir, "data": t.data, "split": a.split, "frames": n,
         "codebook_usage": usage, "perplexity": perplexity,
     });
     let mut stdout = std::io::stdout().lock();
     writeln!(
         stdout,
         "{} tokenizer {} on {} frames of {} `{}`",
-        a.modality,
+        t.modality,
         dir.display(),
         n,
-        a.data.display(),
+        t.data.display(),
         a.split
     )?;
     match target.vq.output {
