@@ -12,7 +12,8 @@ pub use tokenizer::*;
 #[derive(Debug, Parser)]
 #[command(name = "umgen", version, about, long_about = None, propagate_version = true)]
 pub struct Cli {
-    /// More log output (-v debug, -vv trace). `UMGEN_LOG` (e.g. `umgen=debug`) overrides it.
+    /// More log output (-v debug, -vv trace). `UMGEN_LOG` (e.g. `umgen=debug`) overrides it. Ranks other
+    /// than 0 of a data-parallel job log warnings only, unless `UMGEN_LOG_ALL_RANKS=1`.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
     pub verbose: u8,
     /// What to do.
