@@ -36,7 +36,7 @@ mod train;
 pub use arch::VqArch;
 pub use config::{LossConfig, Output, VqConfig, VqTrainConfig};
 pub use error::{Result, VqError};
-pub use metrics::{IouCounter, PsnrCounter, code_stats, count_stats};
+pub use metrics::{IouCounter, NearScores, PsnrCounter, code_stats, count_stats};
 pub use modality::{
     Codec, CodecLoader, CodecOn, RasterView, VqBuild, VqModality, VqModalityConfig, cpu_loader, vq_factory,
 };

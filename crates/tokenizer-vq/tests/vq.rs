@@ -116,7 +116,7 @@ fn a_tiny_vq_overfits_a_handful_of_rasters() {
     let ids = tok.encode(data.clone(), 4, [S, S]).unwrap();
     let pred = tok.decode(&ids, 4, [4, 4]).unwrap();
     let mut iou = IouCounter::default();
-    iou.add(2, S * S, &pred, &data);
+    iou.add(2, [S, S], &pred, &data);
     for (c, v) in iou.iou().into_iter().enumerate() {
         let v = v.unwrap();
         assert!(v > 0.95, "channel {c}: IoU {v:.3}");

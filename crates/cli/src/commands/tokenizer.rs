@@ -145,7 +145,7 @@ fn eval(a: &TokenizerEvalArgs) -> anyhow::Result<()> {
         let ids = codec.encode(input.clone(), chunk.len(), [h, w])?;
         let recon = codec.decode(&ids, chunk.len(), [h / f, w / f])?;
         match target.vq.output {
-            Output::Binary => iou.add(c, h * w, &recon, &input),
+            Output::Binary => iou.add(c, [h, w], &recon, &input),
             Output::Rgb => psnr.add(&recon, &input),
         }
         if b == 0 {
@@ -181,15 +181,25 @@ fn eval(a: &TokenizerEvalArgs) -> anyhow::Result<()> {
     )?;
     match target.vq.output {
         Output::Binary => {
-            let per: Vec<serde_json::Value> = iou
-                .iou()
-                .iter()
-                .zip(iou.positives())
-                .map(|(v, p)| serde_json::json!({"iou": v, "positive_pixels": p}))
-                .collect();
-            for (k, (v, p)) in iou.iou().iter().zip(iou.positives()).enumerate() {
+            let (exact, near) = (iou.iou(), iou.near());
+            let mut per = Vec::new();
+            for (k, ((v, n), p)) in exact.iter().zip(&near).zip(iou.positives()).enumerate() {
                 let shown = v.map_or_else(|| "absent".to_string(), |x| format!("{x:.4}"));
-                writeln!(stdout, "  channel {k}: IoU {shown}  ({p} positive pixels)")?;
+                let within = n.map_or_else(String::new, |n| {
+                    format!(
+                        "; within 1 px: precision {:.4}, recall {:.4}, F1 {:.4}",
+                        n.precision, n.recall, n.f1
+                    )
+                });
+                writeln!(
+                    stdout,
+                    "  channel {k}: IoU {shown}  ({p} positive pixels){within}"
+                )?;
+                per.push(serde_json::json!({
+                    "iou": v,
+                    "positive_pixels": p,
+                    "within_1px": n.map(|n| serde_json::json!({"precision": n.precision, "recall": n.recall, "f1": n.f1})),
+                }));
             }
             report["channels"] = per.into();
         }
