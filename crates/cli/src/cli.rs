@@ -185,6 +185,10 @@ pub struct TrainArgs {
     /// Continue from the newest good checkpoint in `train.out_dir`.
     #[arg(long)]
     pub resume: bool,
+    /// Stop after this many minutes, with a checkpoint (`--resume` continues), for machines lent for a
+    /// fixed time. Checked on logging steps (`train.log_every`).
+    #[arg(long, value_name = "MINUTES", value_parser = tokenizer::positive_minutes)]
+    pub time_limit: Option<f64>,
     /// Data-parallel settings.
     #[command(flatten)]
     pub dist: DistArgs,

@@ -132,6 +132,18 @@ fn ranks_over_tcp_match_one_rank_on_the_same_global_batch() {
         a == b,
         "a resumed 2-rank run repeats the uninterrupted one exactly"
     );
+
+    // A time limit stops both ranks at the same logging step (step 1 logs), with a checkpoint from which
+    // the run finishes exactly as the uninterrupted one.
+    let cfg = config(dir.path(), &data, "limited", 30, 3);
+    let out = launch(&cfg, &["--time-limit", "1e-6"]).output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{log}");
+    assert!(log.contains("time limit reached at step 1"), "{log}");
+    assert!(dir.path().join("limited/checkpoints/step-000000001").exists());
+    let out = launch(&cfg, &["--resume"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(weights(&dir.path().join("limited")) == a);
 }
 
 /// Starts a long 2-rank run and returns the launcher and the pid of rank 1.

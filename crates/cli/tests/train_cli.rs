@@ -1,6 +1,6 @@
 //! `umgen train` end to end on a tiny imported SUMO fixture: the loss falls, a run killed with SIGKILL and
-//! resumed repeats the uninterrupted run's losses exactly, damaged checkpoints fall back, other configs
-//! are refused, and TensorBoard reads the event files.
+//! resumed repeats the uninterrupted run's losses exactly, a time limit stops with a checkpoint, damaged
+//! checkpoints fall back, other configs are refused, and TensorBoard reads the event files.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
@@ -59,6 +59,19 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
         a, b,
         "the resumed run's losses equal the uninterrupted run's, step by step"
     );
+
+    // A time limit stops at the next logging step (every step here) with a checkpoint to resume from.
+    let cfg_c = fx.config("c", 30).unwrap();
+    let log = ok(umgen(&[
+        "train",
+        "--config",
+        cfg_c.to_str().unwrap(),
+        "--time-limit",
+        "1e-6",
+    ]));
+    assert!(log.contains("time limit reached at step 1"), "{log}");
+    assert!(fx.run_dir("c").join("checkpoints/step-000000001").exists());
+    assert_eq!(losses(&fx.run_dir("c")), BTreeMap::from([(1, a[&1])]));
 
     // A damaged newest checkpoint is detected and the previous one is used.
     let newest = fx.run_dir("b").join("checkpoints/step-000000030");

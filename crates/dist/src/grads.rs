@@ -220,6 +220,21 @@ pub fn same_on_all_ranks<B: Backend>(
     Ok(())
 }
 
+/// Rank 0's decision to stop, on every rank (a time limit reads each rank's own clock, so ranks may
+/// disagree on it). One rank's decision stands alone.
+pub fn rank0_decides<B: Backend>(
+    group: &mut dyn ProcessGroup<B>,
+    stop: bool,
+    device: &B::Device,
+) -> Result<bool> {
+    if group.world_size() == 1 {
+        return Ok(stop);
+    }
+    let flag = Tensor::<B, 1>::from_floats([f32::from(u8::from(stop))], device);
+    let first = group.broadcast(flag)?.into_data();
+    Ok(first.iter::<f64>().next().unwrap_or(0.0) > 0.5)
+}
+
 #[cfg(test)]
 mod tests {
     use super::buckets;

@@ -21,7 +21,7 @@ mod wire;
 
 pub use env::{DEFAULT_PORT, DistEnv, first_host};
 pub use error::{DistError, Result};
-pub use grads::{all_reduce_grads, broadcast_module, same_on_all_ranks};
+pub use grads::{all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks};
 pub use group::{Group, ProcessGroup, Single, TcpGroup};
 #[cfg(feature = "cuda")]
 pub use nccl::{NcclGroup, nccl_id};

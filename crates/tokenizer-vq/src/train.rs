@@ -21,7 +21,9 @@ use umgen_checkpoint::CheckpointDir;
 use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
 };
-use umgen_dist::{ProcessGroup, Single, all_reduce_grads, broadcast_module, same_on_all_ranks};
+use umgen_dist::{
+    ProcessGroup, Single, all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks,
+};
 use umgen_metrics::MetricLog;
 use umgen_optim::{Schedule, clip_grad_norm};
 
@@ -283,24 +285,14 @@ pub fn train_on<B: AutodiffBackend>(
         } else {
             None
         };
-        let mut stop = on_step(&StepReport {
+        let stop = on_step(&StepReport {
             step,
             steps: tc.steps,
             seconds: t0.elapsed().as_secs_f64(),
             values,
         })
         .is_break();
-        if world > 1 {
-            // Rank 0 decides (a time limit reads each rank's own clock).
-            let flag = Tensor::<B::InnerBackend, 1>::from_floats([f32::from(u8::from(stop))], device);
-            stop = group
-                .broadcast(flag)?
-                .into_data()
-                .iter::<f64>()
-                .next()
-                .unwrap_or(0.0)
-                > 0.5;
-        }
+        let stop = rank0_decides(group, stop, device)?;
         if lead && (stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps) {
             let meta = serde_json::json!({"config": config, "train": tc, "last_used": last_used, "world_size": world});
             let w = weights_to_bytes(&model)?;

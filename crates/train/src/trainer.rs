@@ -15,7 +15,7 @@ use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
 };
 use umgen_data::{TokenSet, Window};
-use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module, same_on_all_ranks};
+use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks};
 use umgen_metrics::MetricLog;
 use umgen_optim::{Schedule, clip_grad_norm};
 
@@ -92,7 +92,8 @@ fn mix(seed: u64, step: u64) -> u64 {
 /// newest good checkpoint (which must belong to the same run); without it, refuses a directory that
 /// already holds checkpoints. Every step is reseeded from (seed, step) and the data order is a function of
 /// (seed, epoch), so a resumed run repeats the uninterrupted one. `on_step` may stop the run
-/// (`ControlFlow::Break`) after a checkpoint; with several ranks it must decide alike on all of them.
+/// (`ControlFlow::Break`) after a checkpoint; with several ranks, rank 0's answer on logging steps
+/// counts (the others are ignored), so every rank stops at the same step.
 ///
 /// Data parallel over `group`: every rank starts from rank 0's parameters, reads its own slice of each
 /// step's samples, and averages gradients (in buckets of `bucket_mib`) once per step, after the
@@ -259,6 +260,12 @@ pub fn train<B: AutodiffBackend>(
             values,
         })
         .is_break();
+        // Exchanged only where the loss averaging has already made the ranks wait for each other, so
+        // other steps keep the host ahead of the device.
+        let stop = match world {
+            1 => stop,
+            _ => logging && rank0_decides(group, stop, device)?,
+        };
         let due = stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps;
         if due && lead {
             let meta =

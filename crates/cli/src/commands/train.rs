@@ -92,6 +92,8 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         indicatif::ProgressBar::hidden()
     };
     let identity = run.identity_digest();
+    let limit = a.time_limit.map(|m| Duration::from_secs_f64(60.0 * m));
+    let started = std::time::Instant::now();
     let summary = crate::with_autodiff!(device, |B, dev| {
         let mut group = crate::dist::join::<<B as AutodiffBackend>::InnerBackend>(&env, &identity, &a.dist)?;
         train::<B>(&run, &tokens, &dev, a.resume, group.as_mut(), |r| {
@@ -108,6 +110,10 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
                         line.join(", ")
                     )
                 });
+            }
+            if r.values.is_some() && limit.is_some_and(|l| started.elapsed() >= l) {
+                bar.suspend(|| tracing::info!("time limit reached at step {}", r.step));
+                return ControlFlow::Break(());
             }
             ControlFlow::Continue(())
         })?
