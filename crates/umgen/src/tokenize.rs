@@ -17,23 +17,35 @@ pub struct TokenizeReport {
 }
 
 /// Tokenizes the clips of `split` (all when `None`) into `out`, one shard per log, using `threads`
-/// threads (clips in parallel). Shards the index already lists for this layout are skipped; a cache made
+/// threads (clips in parallel). Thread k uses `registries[k % len]`: one registry per device spreads the
+/// tokenizers' work over several GPUs; every registry must hold the same modalities (the first one's
+/// layout names the cache). Shards the index already lists for this layout are skipped; a cache made
 /// for another layout is refused. `progress(done, total)` counts clips.
 pub fn tokenize_dataset(
-    registry: &ModalityRegistry,
+    registries: &[ModalityRegistry],
     data: &Dataset,
     out: &Path,
     split: Option<&str>,
     threads: usize,
     mut progress: impl FnMut(usize, usize) + Send,
 ) -> Result<TokenizeReport> {
-    let layout = registry.layout()?;
     let fail = |message: String| {
         UmgenError::Data(umgen_data::DataError::Request {
             path: out.into(),
             message,
         })
     };
+    let Some(registry) = registries.first() else {
+        return Err(fail("no modality registry to tokenize with".into()));
+    };
+    let layout = registry.layout()?;
+    for other in &registries[1..] {
+        if other.layout()?.fingerprint() != layout.fingerprint() {
+            return Err(fail(
+                "the registries of the devices differ in their layouts".into(),
+            ));
+        }
+    }
     let mut index = match TokenIndex::load(out)? {
         Some(i) if i.fingerprint != layout.fingerprint() => {
             return Err(fail(
@@ -60,7 +72,7 @@ pub fn tokenize_dataset(
             progress(done, total);
             continue;
         }
-        let per_clip = tokenize_clips(registry, data, &clips, threads, |n| progress(done + n, total))?;
+        let per_clip = tokenize_clips(registries, data, &clips, threads, |n| progress(done + n, total))?;
         let (mut rows, mut entries) = (Vec::new(), Vec::new());
         for (&c, clip_rows) in clips.iter().zip(per_clip) {
             let e = &data.clips()[c];
@@ -78,16 +90,18 @@ pub fn tokenize_dataset(
         done += clips.len();
         progress(done, total);
     }
-    for m in registry.modalities() {
-        for c in m.clamp_report().iter().filter(|c| c.below + c.above > 0) {
-            tracing::warn!(
-                "{}: `{}` clamped {} values below and {} above its range",
-                m.spec().name,
-                c.field,
-                c.below,
-                c.above
-            );
+    // Each device's modalities counted their own clamps; the log gives the sums.
+    let mut clamped: std::collections::BTreeMap<(String, String), (u64, u64)> = Default::default();
+    for m in registries.iter().flat_map(|r| r.modalities()) {
+        for c in m.clamp_report() {
+            let e = clamped
+                .entry((m.spec().name.clone(), c.field.clone()))
+                .or_default();
+            (e.0, e.1) = (e.0 + c.below, e.1 + c.above);
         }
+    }
+    for ((modality, field), (below, above)) in clamped.into_iter().filter(|(_, (b, a))| b + a > 0) {
+        tracing::warn!("{modality}: `{field}` clamped {below} values below and {above} above its range");
     }
     Ok(report)
 }
@@ -95,9 +109,9 @@ pub fn tokenize_dataset(
 /// The token rows of one clip, tagged with its position in the work list.
 type ClipRows = (usize, Vec<Vec<u32>>);
 
-/// Rows of each clip, clips spread over threads.
+/// Rows of each clip, clips spread over threads (thread k on `registries[k % len]`).
 fn tokenize_clips(
-    registry: &ModalityRegistry,
+    registries: &[ModalityRegistry],
     data: &Dataset,
     clips: &[usize],
     threads: usize,
@@ -108,8 +122,10 @@ fn tokenize_clips(
     let progress = std::sync::Mutex::new(progress);
     let results: Vec<Result<Vec<ClipRows>>> = std::thread::scope(|s| {
         let workers: Vec<_> = (0..threads.clamp(1, clips.len().max(1)))
-            .map(|_| {
-                s.spawn(|| {
+            .map(|k| {
+                let registry = &registries[k % registries.len()];
+                let (next, finished, progress) = (&next, &finished, &progress);
+                s.spawn(move || {
                     let mut mine = Vec::new();
                     loop {
                         let k = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);

@@ -37,15 +37,33 @@ fn a_dataset_tokenizes_reads_back_and_decodes() {
     let layout = registry.layout().unwrap();
     assert_eq!(layout.len(), 5 + 18 + 46 + 10);
     let out = dir.path().join("tokens");
-    let first = tokenize_dataset(&registry, &data, &out, None, 2, |_, _| {}).unwrap();
+    let first = tokenize_dataset(std::slice::from_ref(&registry), &data, &out, None, 2, |_, _| {}).unwrap();
     let frames: usize = data.clips().iter().map(|c| c.frames).sum();
     assert_eq!((first.written, first.skipped, first.frames), (1, 0, frames));
-    let again = tokenize_dataset(&registry, &data, &out, None, 2, |_, _| {}).unwrap();
+    let again = tokenize_dataset(std::slice::from_ref(&registry), &data, &out, None, 2, |_, _| {}).unwrap();
     assert_eq!(
         (again.written, again.skipped),
         (0, 1),
         "finished shards are skipped"
     );
+    // Two registries (one per device) share the threads and write the same cache as one.
+    let out2 = dir.path().join("tokens-2");
+    let two = [
+        cfg.registry(&builtin_catalog().unwrap()).unwrap(),
+        cfg.registry(&builtin_catalog().unwrap()).unwrap(),
+    ];
+    tokenize_dataset(&two, &data, &out2, None, 2, |_, _| {}).unwrap();
+    let shards = |d: &std::path::Path| -> Vec<(std::ffi::OsString, Vec<u8>)> {
+        let mut v: Vec<_> = std::fs::read_dir(d.join("shards"))
+            .unwrap()
+            .map(|e| e.unwrap())
+            .map(|e| (e.file_name(), std::fs::read(e.path()).unwrap()))
+            .collect();
+        v.sort();
+        v
+    };
+    assert!(!shards(&out).is_empty());
+    assert_eq!(shards(&out), shards(&out2));
     let set = TokenSet::open(&out, layout.fingerprint()).unwrap();
     let windows = set.windows(3, 1, Some("train"));
     assert_eq!(windows.len(), data.windows(3, 1, Some("train")).len());
@@ -72,8 +90,13 @@ fn a_dataset_tokenizes_reads_back_and_decodes() {
         .unwrap()
         .registry(&builtin_catalog().unwrap())
         .unwrap();
-    let err = tokenize_dataset(&other, &data, &out, None, 1, |_, _| {})
+    let err = tokenize_dataset(std::slice::from_ref(&other), &data, &out, None, 1, |_, _| {})
         .unwrap_err()
         .to_string();
     assert!(err.contains("another layout"), "{err}");
+    let mixed = [registry, other];
+    let err = tokenize_dataset(&mixed, &data, &dir.path().join("tokens-3"), None, 2, |_, _| {})
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("differ in their layouts"), "{err}");
 }

@@ -96,7 +96,8 @@ pub struct TokenizeArgs {
     /// Threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Where VQ tokenizers run: `cpu`, or `cuda:N`.
+    /// Where VQ tokenizers run: `cpu`, `cuda:N`, or several devices separated by commas
+    /// (`cuda:0,cuda:1,cuda:2,cuda:3`), over which the threads are spread.
     #[arg(long, default_value = "cpu")]
     pub device: String,
 }

@@ -8,14 +8,22 @@ use umgen::{UmgenConfig, builtin_catalog_with, tokenize_dataset};
 /// Tokenizes the dataset.
 pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
-    let loader = Device::parse(&a.device)?.codec_loader();
-    let registry = config.registry(&builtin_catalog_with(loader)?)?;
+    // One registry (tokenizers loaded once) per device.
+    let registries = a
+        .device
+        .split(',')
+        .map(|d| {
+            let loader = Device::parse(d.trim())?.codec_loader();
+            Ok(config.registry(&builtin_catalog_with(loader)?)?)
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let registry = &registries[0];
     let data = Dataset::open(&a.data)?;
     let threads = a
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let started = std::time::Instant::now();
-    let report = with_progress(&registry, &data, &a.out, a.split.as_deref(), threads)?;
+    let report = with_progress(&registries, &data, &a.out, a.split.as_deref(), threads)?;
     tracing::info!(
         "{}: {} shards written ({} frames), {} already there, in {:.1} s; layout {} (N = {})",
         a.out.display(),
@@ -31,14 +39,14 @@ pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
 
 /// [`tokenize_dataset`] under a progress bar of clips.
 pub fn with_progress(
-    registry: &umgen::modality::ModalityRegistry,
+    registries: &[umgen::modality::ModalityRegistry],
     data: &Dataset,
     out: &std::path::Path,
     split: Option<&str>,
     threads: usize,
 ) -> anyhow::Result<umgen::TokenizeReport> {
     let bar = crate::progress::bar(0, "clips tokenized")?;
-    let report = tokenize_dataset(registry, data, out, split, threads, |done, total| {
+    let report = tokenize_dataset(registries, data, out, split, threads, |done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;

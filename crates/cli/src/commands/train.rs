@@ -41,7 +41,13 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         // Tokenize what is missing; finished shards are skipped.
         let data = Dataset::open(data_dir)?;
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let r = super::tokenize::with_progress(&registry, &data, &tc.tokens, Some(&tc.split), threads)?;
+        let r = super::tokenize::with_progress(
+            std::slice::from_ref(&registry),
+            &data,
+            &tc.tokens,
+            Some(&tc.split),
+            threads,
+        )?;
         if r.written > 0 {
             tracing::info!(
                 "{}: tokenized {} frames of {}",
