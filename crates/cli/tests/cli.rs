@@ -132,6 +132,24 @@ fn config_errors_name_the_key_and_fail() {
     std::fs::write(&bad, "[layout]\norder = [\"ego\"]\nordr = 1\n").unwrap();
     let err = failure(&["layout", "--config", bad.to_str().unwrap()], &[]);
     assert!(err.contains("`layout.ordr`") && err.contains("bad.toml"), "{err}");
+    // A tokenize device list is split and a bad device named.
+    let tiny = config("tiny.toml");
+    let out = dir.path().join("tokens");
+    let err = failure(
+        &[
+            "tokenize",
+            "--config",
+            tiny.to_str().unwrap(),
+            "--data",
+            "no-data",
+            "--out",
+            out.to_str().unwrap(),
+            "--device",
+            "gpu7,cpu",
+        ],
+        &[],
+    );
+    assert!(err.contains("device `gpu7`"), "{err}");
 }
 
 #[test]
