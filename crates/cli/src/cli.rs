@@ -77,9 +77,17 @@ pub struct GenerateArgs {
     #[arg(long, value_name = "DIR")]
     pub bundle: PathBuf,
     /// History to continue: `DATASET:CLIP` or `DATASET:CLIP:FRAMES` (its first FRAMES frames; default:
-    /// the window).
+    /// the window). Repeat it to continue several clips in one batch (`--scenes` each).
     #[arg(long, value_name = "DATA:CLIP[:FRAMES]", conflicts_with = "from_scratch")]
-    pub context: Option<String>,
+    pub context: Vec<String>,
+    /// Continue COUNT clips of a split, spread evenly over it (`data/sumo-sample:test:64:8`), in one
+    /// batch; with `--context`, after those.
+    #[arg(
+        long,
+        value_name = "DATA:SPLIT:COUNT[:FRAMES]",
+        conflicts_with = "from_scratch"
+    )]
+    pub contexts: Option<String>,
     /// Start from nothing: the first frame is generated without history (TAR off).
     #[arg(long)]
     pub from_scratch: bool,

@@ -6,7 +6,7 @@
 mod common;
 use common::{ok, python_check, umgen};
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use umgen::data::Dataset;
 use umgen_tests::run_fixture::Fixture;
 
@@ -249,6 +249,81 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         assert!(report["mmd"][g].as_f64().is_some(), "{g}: {report}");
     }
     assert!(g4.join("eval/report.md").exists() && g4.join("eval/l2.png").exists());
+
+    // Several contexts in one batch (clips of the bundled SUMO sample, whose motion varies): --context,
+    // then --contexts' clips of a split; eval pools them, and its constant-velocity baselines (no model in
+    // them) are the means of the contexts' own.
+    let json =
+        |p: PathBuf| -> serde_json::Value { serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap() };
+    let sample = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data/sumo-sample");
+    let sample = sample.to_str().unwrap();
+    let run_gen = |out: &str, contexts: &[&str]| {
+        let out = fx.dir.path().join(out);
+        let mut args = vec![
+            "generate",
+            "--bundle",
+            bf16_dir.to_str().unwrap(),
+            "--frames",
+            "2",
+        ];
+        args.extend(contexts);
+        args.extend(["--out", out.to_str().unwrap()]);
+        ok(umgen(&args));
+        let dir = out.to_str().unwrap();
+        ok(umgen(&[
+            "eval",
+            "--generated",
+            dir,
+            "--reference",
+            sample,
+            "--split",
+            "test",
+            "--stride",
+            "50",
+        ]));
+        out
+    };
+    let (one, many) = (format!("{sample}:rand-s3/v0:0:2"), format!("{sample}:test:2:2"));
+    let multi = run_gen("gen-multi", &["--context", &one, "--contexts", &many]);
+    let meta = json(multi.join("meta.json"));
+    let ids: Vec<String> = meta["contexts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["clip"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(ids.len(), 3, "{meta}");
+    assert_eq!(ids[0], "rand-s3/v0:0");
+    let tokens = json(multi.join("tokens.json"));
+    assert_eq!(tokens["context_of"], serde_json::json!([0, 1, 2]));
+    let report = json(multi.join("eval/report.json"));
+    assert_eq!(report["contexts"], 3);
+    let singles: Vec<serde_json::Value> = ids
+        .iter()
+        .enumerate()
+        .map(|(k, id)| {
+            let one = format!("{sample}:{id}:2");
+            let out = run_gen(&format!("gen-one-{k}"), &["--context", &one]);
+            // The same clip's context rows as in the batch.
+            let rows = |t: &serde_json::Value, s: usize| t["scenes"][s].as_array().unwrap()[..2].to_vec();
+            assert_eq!(rows(&json(out.join("tokens.json")), 0), rows(&tokens, k));
+            json(out.join("eval/report.json"))
+        })
+        .collect();
+    for h in 0..2 {
+        for key in ["ego_constant_velocity", "agents_constant_velocity"] {
+            let cv: Vec<f64> = singles
+                .iter()
+                .map(|r| r["l2"][h][key].as_f64().unwrap())
+                .collect();
+            assert!(cv.iter().any(|v| (v - cv[0]).abs() > 1e-6), "{key}: {cv:?}");
+            let pooled = report["l2"][h][key].as_f64().unwrap();
+            assert!(
+                (pooled - cv.iter().sum::<f64>() / 3.0).abs() < 1e-9,
+                "{key}: {pooled} vs {cv:?}"
+            );
+        }
+    }
     let g3 = generate(&bf16_dir, "gen3", "4");
     assert_ne!(
         std::fs::read(g1.join("tokens.json")).unwrap(),

@@ -36,6 +36,51 @@ fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
+/// What a context clip really did after its context frames.
+struct Truth {
+    /// The last context frame.
+    last: Frame,
+    /// Its agents as the bundle's tokens decode them (slot ids as track ids).
+    last_agents: Vec<Agent>,
+    /// Real ego poses of the following frames.
+    poses: Vec<umgen::scene::EgoPose>,
+    /// Real agents (decoded like `last_agents`) of the following frames.
+    agents: Vec<Vec<Agent>>,
+    /// Constant-velocity ego error at each following frame.
+    cv_ego: Vec<f64>,
+}
+
+/// The ground truth of `context` (`{"clip", "frames"}` of meta.json) for up to `k` frames after it.
+fn ground_truth(
+    ds: &Dataset,
+    registry: &ModalityRegistry,
+    context: &serde_json::Value,
+    k: usize,
+    dt: f64,
+) -> anyhow::Result<Truth> {
+    let clip_id = context["clip"].as_str().context("meta.json: contexts[].clip")?;
+    let n = context["frames"].as_u64().unwrap_or(1) as usize;
+    let idx = ds.find_clip(clip_id)?;
+    let k = k.min(ds.clips()[idx].frames.saturating_sub(n));
+    anyhow::ensure!(
+        n >= 1 && k >= 1,
+        "clip `{clip_id}` has no ground truth after its {n} context frames"
+    );
+    let gt = ds.read_window(idx, 0, n + k, 1)?;
+    let mut decoded = decode_rows(registry, &registry.tokenize_clip(&gt)?)?;
+    let agents = decoded.split_off(n);
+    let last = gt.frames[n - 1].clone();
+    let poses: Vec<_> = gt.frames[n..n + k].iter().map(|f| f.ego).collect();
+    let cv_ego = ego_l2(&constant_velocity_ego(&last.ego, &last.action, dt, k), &poses);
+    Ok(Truth {
+        last_agents: decoded.pop().unwrap_or_default(),
+        last,
+        poses,
+        agents,
+        cv_ego,
+    })
+}
+
 /// Evaluates.
 pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     let (meta, _bundle, registry) = super::scenes::open_output(&a.generated)?;
@@ -79,68 +124,56 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     let mut md = String::new();
     writeln!(md, "# Evaluation of {}\n", a.generated.display())?;
     let (mut l2_rows, mut mmd_rows) = (Vec::new(), Vec::new());
-    match meta["context"].as_object() {
-        Some(ctx) => {
-            let clip_id = ctx
-                .get("clip")
-                .and_then(|v| v.as_str())
-                .context("meta.json: context.clip")?;
-            let n = ctx.get("frames").and_then(serde_json::Value::as_u64).unwrap_or(1) as usize;
-            let idx = ds.find_clip(clip_id)?;
-            let k = scenes[0]
-                .frames
-                .len()
-                .min(ds.clips()[idx].frames.saturating_sub(n));
-            anyhow::ensure!(
-                n >= 1 && k >= 1,
-                "clip `{clip_id}` has no ground truth after its {n} context frames"
-            );
-            let gt = ds.read_window(idx, 0, n + k, 1)?;
-            let truth = decode_rows(&registry, &registry.tokenize_clip(&gt)?)?;
-            let last = &gt.frames[n - 1];
-            let cv_ego = constant_velocity_ego(&last.ego, &last.action, dt, k);
-            let truth_poses: Vec<_> = gt.frames[n..n + k].iter().map(|f| f.ego).collect();
-            let cv_ego_err = ego_l2(&cv_ego, &truth_poses);
-            for h in 1..=k {
-                let t = &gt.frames[n + h - 1];
-                let true_pos = positions(&t.ego, &truth[n + h - 1]);
-                let model_ego: Vec<f64> = scenes
-                    .iter()
-                    .map(|s| ego_l2(&[s.frames[h - 1].ego], &[t.ego])[0])
-                    .collect();
-                let model_agents: Vec<f64> = scenes
-                    .iter()
-                    .filter_map(|s| {
-                        agent_l2(
-                            &positions(&s.frames[h - 1].ego, &s.frames[h - 1].agents),
-                            &true_pos,
-                        )
-                    })
-                    .map(|(d, _)| d)
-                    .collect();
-                let cv_agents = agent_l2(
-                    &constant_velocity_agents(&last.ego, &truth[n - 1], dt, h),
-                    &true_pos,
+    let contexts = meta["contexts"].as_array().cloned().unwrap_or_default();
+    if contexts.is_empty() {
+        // Initial scenes (TrafficGen's setting): generated first frames against real first frames.
+        let generated: Vec<&Agent> = scenes.iter().flat_map(|s| s.frames[0].agents.iter()).collect();
+        let real: Vec<&Agent> = initial.iter().collect();
+        mmd_rows.push(serde_json::json!({"frame": 1, "mmd": mmd_groups(&generated, &real)}));
+    } else {
+        let per = meta["scenes_per_context"].as_u64().unwrap_or(1) as usize;
+        anyhow::ensure!(
+            per >= 1 && scenes.len() == per * contexts.len(),
+            "{}: {} scenes for {} contexts × {per}",
+            a.generated.display(),
+            scenes.len(),
+            contexts.len()
+        );
+        let truths = contexts
+            .iter()
+            .map(|c| ground_truth(&ds, &registry, c, scenes[0].frames.len(), dt))
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let k = truths.iter().map(|t| t.poses.len()).min().unwrap_or(0);
+        for h in 1..=k {
+            let (mut model_ego, mut model_agents, mut cv_ego, mut cv_agents) =
+                (vec![], vec![], vec![], vec![]);
+            let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
+            for (c, t) in truths.iter().enumerate() {
+                let true_pos = positions(&t.poses[h - 1], &t.agents[h - 1]);
+                for s in &scenes[c * per..(c + 1) * per] {
+                    let f = &s.frames[h - 1];
+                    model_ego.push(ego_l2(&[f.ego], &[t.poses[h - 1]])[0]);
+                    model_agents.extend(agent_l2(&positions(&f.ego, &f.agents), &true_pos).map(|(d, _)| d));
+                    generated.extend(f.agents.iter());
+                }
+                cv_ego.push(t.cv_ego[h - 1]);
+                cv_agents.extend(
+                    agent_l2(
+                        &constant_velocity_agents(&t.last.ego, &t.last_agents, dt, h),
+                        &true_pos,
+                    )
+                    .map(|(d, _)| d),
                 );
-                l2_rows.push(serde_json::json!({
-                    "horizon": h, "seconds": dt * h as f64,
-                    "ego_model": mean(&model_ego), "ego_constant_velocity": cv_ego_err[h - 1],
-                    "agents_model": mean(&model_agents), "agents_constant_velocity": cv_agents.map(|x| x.0),
-                }));
-                let generated: Vec<&Agent> = scenes
-                    .iter()
-                    .flat_map(|s| s.frames[h - 1].agents.iter())
-                    .collect();
-                let real: Vec<&Agent> = truth[n + h - 1].iter().collect();
-                mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
+                real.extend(t.agents[h - 1].iter());
             }
+            l2_rows.push(serde_json::json!({
+                "horizon": h, "seconds": dt * h as f64,
+                "ego_model": mean(&model_ego), "ego_constant_velocity": mean(&cv_ego),
+                "agents_model": mean(&model_agents), "agents_constant_velocity": mean(&cv_agents),
+            }));
+            mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }
-        None => {
-            // Initial scenes (TrafficGen's setting): generated first frames against real first frames.
-            let generated: Vec<&Agent> = scenes.iter().flat_map(|s| s.frames[0].agents.iter()).collect();
-            let real: Vec<&Agent> = initial.iter().collect();
-            mmd_rows.push(serde_json::json!({"frame": 1, "mmd": mmd_groups(&generated, &real)}));
-        }
+        report["contexts"] = contexts.len().into();
     }
     let mut mmd_mean = serde_json::Map::new();
     for g in Group::ALL {
@@ -158,6 +191,9 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     std::fs::write(out.join("report.json"), serde_json::to_vec_pretty(&report)?)?;
     let f = |v: &serde_json::Value| v.as_f64().map_or("-".to_string(), |x| format!("{x:.4}"));
     writeln!(md, "| measure | value |\n|---|---|")?;
+    if let Some(n) = report["contexts"].as_u64() {
+        writeln!(md, "| contexts (clips continued) | {n} |")?;
+    }
     writeln!(
         md,
         "| collision rate, generated | {} |",

@@ -28,11 +28,14 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             .as_ref()
             .map_or(String::new(), |p| p.display().to_string())
     })?;
-    let (context, interval) = context_clip(a)?;
-    let context_rows = match &context {
-        Some(c) => registry.tokenize_clip(&c.clip)?,
-        None => Vec::new(),
-    };
+    let (contexts, interval) = context_clips(a)?;
+    let context_rows = contexts
+        .iter()
+        .map(|c| registry.tokenize_clip(&c.clip))
+        .collect::<Result<Vec<_>, _>>()?;
+    // Scene s continues context s / --scenes (each context's scenes are consecutive).
+    let total = a.scenes * contexts.len().max(1);
+    let context_of = |s: usize| (!contexts.is_empty()).then_some(s / a.scenes);
     let sampling = Sampling {
         top_k: a.top_k,
         top_p: a.top_p,
@@ -54,7 +57,9 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             w
         });
         let mut g = Generator::new(&model, vec![sampling; spec.segments.len()], window, a.seed)?;
-        let mut history = vec![context_rows.clone(); a.scenes];
+        let mut history: Vec<Vec<Vec<u32>>> = (0..total)
+            .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
+            .collect();
         let bar = crate::progress::bar(a.frames as u64, "frames")?;
         for k in 0..a.frames {
             let forced = bins.and_then(|b| control.action_at(k, &b));
@@ -74,7 +79,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
                 }
             };
             let fc = FrameControl {
-                action: forced.map(|(ids, _)| vec![ids; a.scenes]),
+                action: forced.map(|(ids, _)| vec![ids; total]),
                 tokens: placed,
                 below,
                 keep,
@@ -90,30 +95,31 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         history
     });
     let elapsed = started.elapsed().as_secs_f64();
-    let tokens = (a.frames * a.scenes * spec.n) as f64;
+    let tokens = (a.frames * total * spec.n) as f64;
     tracing::info!(
         "generated {} frame(s) × {} scene(s) in {elapsed:.1} s ({:.0} tokens/s, {:.2} frames/s)",
         a.frames,
-        a.scenes,
+        total,
         tokens / elapsed,
-        (a.frames * a.scenes) as f64 / elapsed
+        (a.frames * total) as f64 / elapsed
     );
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let n_context = context_rows.len();
+    let n_context = context_rows.first().map_or(0, Vec::len);
+    let context_index: Vec<Option<usize>> = (0..total).map(context_of).collect();
     std::fs::write(
         a.out.join("tokens.json"),
         serde_json::to_vec(&serde_json::json!({
-            "n": spec.n, "context_frames": n_context, "fingerprint": bundle.manifest.fingerprint, "scenes": scenes,
+            "n": spec.n, "context_frames": n_context, "fingerprint": bundle.manifest.fingerprint,
+            "context_of": context_index, "scenes": scenes,
         }))?,
     )?;
-    let start = context
-        .as_ref()
-        .and_then(|c| c.clip.frames.last().cloned())
-        .unwrap_or_default();
     let mut decoded = Vec::with_capacity(scenes.len());
     let mut malformed = 0;
-    for rows in &scenes {
-        let (clip, bad) = super::scenes::decode(&registry, &rows[n_context..], &start, interval)?;
+    for (s, rows) in scenes.iter().enumerate() {
+        let context = context_of(s).map(|c| &contexts[c].clip);
+        let start = context.and_then(|c| c.frames.last().cloned()).unwrap_or_default();
+        let (mut clip, bad) = super::scenes::decode(&registry, &rows[n_context..], &start, interval)?;
+        clip.network = context.and_then(|c| c.network.clone());
         malformed += bad;
         decoded.push(clip);
     }
@@ -129,19 +135,20 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         })
         .collect();
     std::fs::write(a.out.join("scenes.json"), serde_json::to_vec(&light)?)?;
-    let network = context.as_ref().and_then(|c| c.clip.network.clone());
-    write_dataset(&a.out.join("dataset"), light, network)?;
+    write_dataset(&a.out.join("dataset"), light)?;
     // What `umgen eval` needs to find the ground truth and the tokenizers.
-    let context_meta = context
-        .as_ref()
-        .map(|c| serde_json::json!({"data": c.data, "clip": c.id, "frames": n_context}));
+    let context_meta: Vec<serde_json::Value> = contexts
+        .iter()
+        .map(|c| serde_json::json!({"data": c.data, "clip": c.id, "frames": n_context}))
+        .collect();
     std::fs::write(
         a.out.join("meta.json"),
         serde_json::to_vec_pretty(&serde_json::json!({
             "bundle": std::fs::canonicalize(&a.bundle).unwrap_or_else(|_| a.bundle.clone()),
-            "context": context_meta,
+            "contexts": context_meta,
             "frames": a.frames,
-            "scenes": a.scenes,
+            "scenes": total,
+            "scenes_per_context": a.scenes,
             "seed": a.seed,
             "interval": interval,
         }))?,
@@ -162,17 +169,10 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The decoded scenes as a umgen dataset in `dir` (replacing one from an earlier run), on the context clip's
-/// road network: ego and agent tracks in world coordinates, one clip per scene, split `generated`. Generated
-/// map and image tokens are not part of it (a dataset derives those from its network).
-fn write_dataset(
-    dir: &Path,
-    mut scenes: Vec<SceneClip>,
-    network: Option<std::sync::Arc<umgen::scene::RoadNetwork>>,
-) -> anyhow::Result<()> {
-    for c in &mut scenes {
-        c.network = network.clone();
-    }
+/// The decoded scenes as a umgen dataset in `dir` (replacing one from an earlier run), each on its context
+/// clip's road network: ego and agent tracks in world coordinates, one clip per scene, split `generated`.
+/// Generated map and image tokens are not part of it (a dataset derives those from its network).
+fn write_dataset(dir: &Path, scenes: Vec<SceneClip>) -> anyhow::Result<()> {
     let partial = dir.with_extension("partial");
     if partial.exists() {
         std::fs::remove_dir_all(&partial).with_context(|| format!("removing {}", partial.display()))?;
@@ -195,22 +195,44 @@ fn read_control(p: &Path) -> anyhow::Result<Control> {
     Ok(c)
 }
 
-/// The context (`--context DATA:CLIP[:FRAMES]`): its frames, and the dataset and clip id for `meta.json`.
+/// A context: its frames, and the dataset and clip id for `meta.json`.
 struct ContextClip {
     clip: SceneClip,
     data: String,
     id: String,
 }
 
-/// The context clip, if any, and the frame interval.
-fn context_clip(a: &GenerateArgs) -> anyhow::Result<(Option<ContextClip>, f64)> {
-    let Some(spec) = &a.context else {
+/// The contexts of `--context` and `--contexts` in batch order, and the frame interval; none from scratch.
+fn context_clips(a: &GenerateArgs) -> anyhow::Result<(Vec<ContextClip>, f64)> {
+    let mut out = Vec::new();
+    for spec in &a.context {
+        out.push(one_context(spec, a.window)?);
+    }
+    if let Some(spec) = &a.contexts {
+        out.extend(split_contexts(spec, a.window)?);
+    }
+    let Some(first) = out.first() else {
         anyhow::ensure!(
             a.from_scratch,
-            "give --context DATA:CLIP[:FRAMES] or --from-scratch"
+            "give --context DATA:CLIP[:FRAMES], --contexts DATA:SPLIT:COUNT[:FRAMES] or --from-scratch"
         );
-        return Ok((None, 0.5));
+        return Ok((out, 0.5));
     };
+    let (frames, interval, id) = (first.clip.len(), first.clip.interval, first.id.clone());
+    for c in &out {
+        anyhow::ensure!(
+            c.clip.len() == frames && (c.clip.interval - interval).abs() < 1e-9,
+            "context `{}` has {} frames at {} s, `{id}` {frames} at {interval} s: the contexts of one batch need the same length and interval",
+            c.id,
+            c.clip.len(),
+            c.clip.interval
+        );
+    }
+    Ok((out, interval))
+}
+
+/// `--context DATA:CLIP[:FRAMES]`.
+fn one_context(spec: &str, window: Option<usize>) -> anyhow::Result<ContextClip> {
     // Clip ids may hold ':' themselves (`rand-s3/v0:2`): a numeric suffix is a frame count only when
     // the whole rest is not a clip id.
     let (data, rest) = spec
@@ -224,18 +246,49 @@ fn context_clip(a: &GenerateArgs) -> anyhow::Result<(Option<ContextClip>, f64)> 
             _ => return Err(e.into()),
         },
     };
-    let available = ds.clips()[index].frames;
-    let n = frames.unwrap_or(a.window.unwrap_or(20)).min(available);
+    let n = frames
+        .unwrap_or(window.unwrap_or(20))
+        .min(ds.clips()[index].frames);
     anyhow::ensure!(n > 0, "--context {spec}: the clip has no frames");
-    let clip = ds.read_window(index, 0, n, 1)?;
-    let interval = clip.interval;
-    let id = ds.clips()[index].id.clone();
-    Ok((
-        Some(ContextClip {
-            clip,
-            data: data.to_string(),
-            id,
-        }),
-        interval,
-    ))
+    read_context(&ds, data, index, n)
+}
+
+/// `--contexts DATA:SPLIT:COUNT[:FRAMES]`: COUNT clips of SPLIT with at least FRAMES frames (default: the
+/// window), evenly spaced over the split.
+fn split_contexts(spec: &str, window: Option<usize>) -> anyhow::Result<Vec<ContextClip>> {
+    let bad = || format!("--contexts {spec}: expected DATA:SPLIT:COUNT or DATA:SPLIT:COUNT:FRAMES");
+    let number = |s: &str| s.parse::<usize>().ok();
+    let (head, frames) = match spec.rsplit_once(':') {
+        Some((h, f))
+            if number(f).is_some() && h.rsplit_once(':').is_some_and(|(_, c)| number(c).is_some()) =>
+        {
+            (h, number(f))
+        }
+        _ => (spec, None),
+    };
+    let (rest, count) = head.rsplit_once(':').with_context(bad)?;
+    let count = number(count).filter(|&c| c > 0).with_context(bad)?;
+    let (data, split) = rest.rsplit_once(':').with_context(bad)?;
+    let n = frames.unwrap_or(window.unwrap_or(20));
+    let ds = Dataset::open(Path::new(data))?;
+    let eligible: Vec<usize> = (0..ds.clips().len())
+        .filter(|&i| ds.clips()[i].split == split && ds.clips()[i].frames >= n)
+        .collect();
+    anyhow::ensure!(
+        eligible.len() >= count && n > 0,
+        "--contexts {spec}: split `{split}` of {data} has {} clip(s) of at least {n} frames",
+        eligible.len()
+    );
+    (0..count)
+        .map(|k| read_context(&ds, data, eligible[k * eligible.len() / count], n))
+        .collect()
+}
+
+/// The first `n` frames of clip `index` of `ds` (opened from `data`).
+fn read_context(ds: &Dataset, data: &str, index: usize, n: usize) -> anyhow::Result<ContextClip> {
+    Ok(ContextClip {
+        clip: ds.read_window(index, 0, n, 1)?,
+        data: data.to_string(),
+        id: ds.clips()[index].id.clone(),
+    })
 }
