@@ -10,6 +10,7 @@ mod boxes;
 mod control;
 mod error;
 mod rollout;
+mod rules;
 mod sampling;
 
 pub use boxes::GroupBoxes;

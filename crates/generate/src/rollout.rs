@@ -4,6 +4,7 @@
 //! placed at its positions (the OAR still reads it, as in training).
 
 use crate::error::{GenerateError, Result};
+use crate::rules::{Allowed, Rules, allowed};
 use crate::sampling::Sampling;
 use burn::module::Module;
 use burn::tensor::backend::Backend;
@@ -59,6 +60,7 @@ pub struct Generator<'a, B: Backend> {
     window: usize,
     rng: StdRng,
     slots: Vec<Slot>,
+    on_device: bool,
 }
 
 impl<'a, B: Backend> Generator<'a, B> {
@@ -87,7 +89,17 @@ impl<'a, B: Backend> Generator<'a, B> {
             window,
             rng: StdRng::seed_from_u64(seed),
             slots: model.slots(),
+            on_device: false,
         })
+    }
+
+    /// Draw the positions without rules (map and image codes) on the model's device
+    /// ([`Sampling::draw_rows`]) and read them back once per frame, instead of reading every position's
+    /// logits to the host. For GPUs, where each read waits for the device; on the CPU the host draw is
+    /// cheaper. Either way, a seed gives the same frames each run.
+    pub fn draw_on_device(mut self, yes: bool) -> Self {
+        self.on_device = yes;
+        self
     }
 
     /// The next frame `[m][N]` of each of `m` scenes, from their histories `[m][t][N]` (all of one length
@@ -283,10 +295,15 @@ impl<'a, B: Backend> Generator<'a, B> {
         let mut cache = self.model.oar_cache();
         let ego = rules.groups.iter().find_map(|g| g.boxes.as_ref().map(|b| b.ego));
         let mut boxes = crate::boxes::FrameBoxes::new(m, ego.unwrap_or([0.0, 0.0]));
+        // Positions without rules (map and image codes) are drawn on the device and read back once, at the
+        // end of the frame: their ids feed the next step where they are, with no host synchronisation.
+        let (mut pending, mut on_device) = (Vec::new(), None);
         for p in 0..n {
             let prev = (p > 0).then(|| {
-                let ids: Vec<i64> = out.iter().map(|r| i64::from(r[p - 1])).collect();
-                Tensor::<B, 1, Int>::from_data(TensorData::new(ids, [m]), dev)
+                on_device.take().unwrap_or_else(|| {
+                    let ids: Vec<i64> = out.iter().map(|r| i64::from(r[p - 1])).collect();
+                    Tensor::<B, 1, Int>::from_data(TensorData::new(ids, [m]), dev)
+                })
             });
             let w = self
                 .model
@@ -308,6 +325,11 @@ impl<'a, B: Backend> Generator<'a, B> {
                         }
                     } else if let Some(id) = rules.placed[p] {
                         out.iter_mut().for_each(|r| r[p] = id);
+                    } else if self.on_device && rules.free(p) {
+                        let ids =
+                            self.sampling[s].draw_rows(self.model.logits_at(s, o, false), &mut self.rng);
+                        on_device = Some(ids.clone());
+                        pending.push((p, ids));
                     } else {
                         let rows = host_rows(self.model.logits_at(s, o, false));
                         let smp = self.sampling[s];
@@ -363,53 +385,16 @@ impl<'a, B: Backend> Generator<'a, B> {
                 }
             }
         }
-        out
-    }
-}
-
-/// Per-position rules of one frame's decoding.
-struct Rules<'a> {
-    placed: &'a [Option<u32>],
-    limits: &'a [Option<usize>],
-    keep: &'a [Option<(u32, Vec<bool>)>],
-    /// Per position: the group's first position, the index in the group, the run in `groups`.
-    group: &'a [Option<(usize, usize, usize)>],
-    /// The caller's group runs.
-    groups: &'a [TokenGroups],
-    /// Per scene and position: the position's group was empty in the newest frame.
-    newborn: &'a [Vec<bool>],
-}
-
-/// What may be drawn at a position.
-enum Allowed {
-    /// Nothing to draw: this id.
-    Only(u32),
-    /// Any id passing the test.
-    Ids(Box<dyn Fn(u32) -> bool>),
-}
-
-/// The ids allowed at `p` of a scene whose frame so far is `row` (with `limited`, also below the position's
-/// limit; the TAR redraw of a kept agent ignores limits, which only shape OAR draws).
-fn allowed(rules: &Rules<'_>, p: usize, row: &[u32], limited: bool) -> Allowed {
-    let limit = match (limited, rules.limits[p]) {
-        (true, Some(k)) => k as u32,
-        _ => u32::MAX,
-    };
-    match &rules.group[p] {
-        None => Allowed::Ids(Box::new(move |id| id < limit)),
-        Some((start, j, gi)) => {
-            let g = &rules.groups[*gi];
-            let (pad, values, last) = (g.pad, g.values, g.last.clone());
-            if *j == 0 {
-                Allowed::Ids(Box::new(move |id| id < limit && (id < values || id == pad)))
-            } else if row[*start] == pad {
-                Allowed::Only(pad)
-            } else if *j + 1 == g.size {
-                Allowed::Ids(Box::new(move |id| last.contains(&id)))
-            } else {
-                Allowed::Ids(Box::new(move |id| id < values && id < limit))
+        if !pending.is_empty() {
+            let (positions, ids): (Vec<usize>, Vec<_>) = pending.into_iter().unzip();
+            let drawn: Vec<i64> = Tensor::stack::<2>(ids, 1).into_data().iter::<i64>().collect();
+            for (row, got) in out.iter_mut().zip(drawn.chunks(positions.len())) {
+                for (&p, &id) in positions.iter().zip(got) {
+                    row[p] = id as u32;
+                }
             }
         }
+        out
     }
 }
 

@@ -1,6 +1,9 @@
 //! Drawing a token from logits: temperature, top-k and top-p (nucleus), seeded.
 
 use crate::error::{GenerateError, Result};
+use burn::tensor::activation::softmax;
+use burn::tensor::backend::Backend;
+use burn::tensor::{Int, Tensor, TensorData};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -100,6 +103,52 @@ impl Sampling {
     }
 }
 
+impl Sampling {
+    /// One draw per row of `logits` (`[m, v]`) on their device, with the distribution of [`Self::draw`]
+    /// (top-k, temperature, top-p; −∞ is never drawn; rows must hold no NaN). Nothing is read back to
+    /// the host, so the ids can feed the next decoding step directly. Gumbel-max: the argmax of the
+    /// filtered, tempered logits plus Gumbel noise is a draw from their softmax. The uniform numbers come
+    /// from `rng` and are uploaded (`m × min(top_k, v)` of them), not from the backend's generator, which
+    /// is one per process: draws stay a function of the seed whatever else runs.
+    pub fn draw_rows<B: Backend>(&self, logits: Tensor<B, 2>, rng: &mut impl Rng) -> Tensor<B, 1, Int> {
+        let [m, v] = logits.dims();
+        let device = logits.device();
+        let k = if self.top_k == 0 { v } else { self.top_k.min(v) };
+        // Most likely first where a filter needs the order; ids are positions in `ids` then.
+        let (values, ids) = match (k < v, self.top_p < 1.0) {
+            (true, _) => {
+                let (x, i) = logits.topk_with_indices(k, 1);
+                (x, Some(i))
+            }
+            (false, true) => {
+                let (x, i) = logits.sort_descending_with_indices(1);
+                (x, Some(i))
+            }
+            (false, false) => (logits, None),
+        };
+        let width = values.dims()[1];
+        let top = values.clone().max_dim(1);
+        let mut scaled = (values - top).div_scalar(self.temperature);
+        if self.top_p < 1.0 {
+            let probs = softmax(scaled.clone(), 1);
+            // Keep an id while the more likely ones hold less than top_p (the first to reach it stays).
+            let before = probs.clone().cumsum(1) - probs;
+            scaled = scaled.mask_fill(before.greater_equal_elem(self.top_p), f32::NEG_INFINITY);
+        }
+        // u in (0, 1): both logarithms stay finite.
+        let u: Vec<f32> = (0..m * width)
+            .map(|_| rng.random_range(f32::MIN_POSITIVE..1.0))
+            .collect();
+        let u = Tensor::<B, 2>::from_data(TensorData::new(u, [m, width]), &device);
+        let gumbel = u.log().neg().log().neg();
+        let pick = (scaled + gumbel).argmax(1);
+        match ids {
+            Some(ids) => ids.gather(1, pick).reshape([m]),
+            None => pick.reshape([m]),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -193,6 +242,67 @@ mod tests {
                 assert_eq!(s.draw(&logits, &mut a), draw_by_full_sort(&s, &logits, &mut b));
             }
         }
+    }
+
+    /// Counts of `draws` device draws from one row of logits (all rows in one batch).
+    fn device_counts(s: Sampling, logits: &[f32], draws: usize) -> Vec<usize> {
+        type F = burn::backend::Flex;
+        let rows: Vec<f32> = (0..draws).flat_map(|_| logits.iter().copied()).collect();
+        let t = Tensor::<F, 2>::from_data(TensorData::new(rows, [draws, logits.len()]), &Default::default());
+        let mut c = vec![0; logits.len()];
+        for id in s
+            .draw_rows(t, &mut StdRng::seed_from_u64(3))
+            .into_data()
+            .iter::<i64>()
+        {
+            c[id as usize] += 1;
+        }
+        c
+    }
+
+    #[test]
+    fn device_draws_follow_the_softmax_and_the_filters() {
+        // As the host test, with −∞ (masked) in place of NaN.
+        let logits = [
+            0.0f32,
+            (2.0f32).ln(),
+            (3.0f32).ln(),
+            f32::NEG_INFINITY,
+            (4.0f32).ln(),
+        ];
+        let all = Sampling {
+            top_k: 0,
+            top_p: 1.0,
+            temperature: 1.0,
+        };
+        let c = device_counts(all, &logits, 100_000);
+        for (i, want) in [(0, 0.1), (1, 0.2), (2, 0.3), (4, 0.4)] {
+            let got = c[i] as f64 / 100_000.0;
+            assert!((got - want).abs() < 0.01, "id {i}: {got} vs {want}");
+        }
+        assert_eq!(c[3], 0, "masked ids are never drawn");
+        let c = device_counts(Sampling { top_k: 2, ..all }, &logits, 50_000);
+        assert_eq!(c[0] + c[1] + c[3], 0);
+        assert!((c[4] as f64 / 50_000.0 - 4.0 / 7.0).abs() < 0.01, "{c:?}");
+        // top-p 0.5 keeps ids 4 and 2, renormalised 4:3; top-p 0.3 keeps id 4 alone.
+        let c = device_counts(Sampling { top_p: 0.5, ..all }, &logits, 50_000);
+        assert_eq!(c[0] + c[1] + c[3], 0);
+        assert!((c[4] as f64 / 50_000.0 - 4.0 / 7.0).abs() < 0.01, "{c:?}");
+        assert_eq!(
+            device_counts(Sampling { top_p: 0.3, ..all }, &logits, 1_000)[4],
+            1_000
+        );
+        // Temperature 0.5 squares the odds: 1:4:9:16.
+        let c = device_counts(
+            Sampling {
+                temperature: 0.5,
+                ..all
+            },
+            &logits,
+            100_000,
+        );
+        assert!((c[4] as f64 / 100_000.0 - 16.0 / 30.0).abs() < 0.01, "{c:?}");
+        assert_eq!(device_counts(Sampling::greedy(), &logits, 100)[4], 100);
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! The rollout against the training forward pass: greedy frames are the argmax of the teacher-forced
-//! logits at every position; tokens stay in their vocabularies; seeds, forced actions and initial scenes.
+//! logits at every position (drawn on the host or on the device); tokens stay in their vocabularies;
+//! seeds, forced actions and initial scenes.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use burn::tensor::backend::Backend;
@@ -87,11 +88,16 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
     let m = model();
     let n = m.spec().n;
     let history = vec![frame(&m, 1), frame(&m, 2)];
-    let mut g = Generator::new(&m, vec![Sampling::greedy(); 3], 8, 0).unwrap();
-    let z = g
-        .next_frame(std::slice::from_ref(&history), &FrameControl::default())
-        .unwrap()
-        .remove(0);
+    let greedy = |on_device| {
+        let mut g = Generator::new(&m, vec![Sampling::greedy(); 3], 8, 0)
+            .unwrap()
+            .draw_on_device(on_device);
+        g.next_frame(std::slice::from_ref(&history), &FrameControl::default())
+            .unwrap()
+            .remove(0)
+    };
+    let z = greedy(false);
+    assert_eq!(z, greedy(true), "drawn on the host or on the device");
 
     // The ego module's argmax is the action.
     let e = m.embed.forward(ids(&history, n));
@@ -123,8 +129,10 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
 fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
     let m = model();
     let history = vec![vec![frame(&m, 1)], vec![frame(&m, 4)]];
-    let run = |seed| {
-        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 8, seed).unwrap();
+    let run = |seed, on_device| {
+        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 8, seed)
+            .unwrap()
+            .draw_on_device(on_device);
         let mut h = history.clone();
         for _ in 0..3 {
             let next = g.next_frame(&h, &FrameControl::default()).unwrap();
@@ -134,10 +142,13 @@ fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
         }
         h
     };
-    let a = run(5);
-    assert_eq!(a, run(5), "same seed, same scenes");
-    assert_ne!(a, run(6), "another seed, other scenes");
-    for scene in &a {
+    let a = run(5, false);
+    assert_eq!(a, run(5, false), "same seed, same scenes");
+    assert_ne!(a, run(6, false), "another seed, other scenes");
+    let d = run(5, true);
+    assert_eq!(d, run(5, true), "same seed, same scenes (device draws)");
+    assert_ne!(d, run(6, true), "another seed, other scenes (device draws)");
+    for scene in a.iter().chain(&d) {
         for f in scene {
             for (p, s) in m.slots().iter().enumerate() {
                 match *s {

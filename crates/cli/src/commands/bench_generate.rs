@@ -50,6 +50,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
     let spec = backbone_spec(&registry, &config.backbone)?;
     let cfg = &config.backbone;
     let device = Device::parse(&a.device)?;
+    let on_gpu = matches!(device, Device::Cuda(_));
     let n = spec.n;
     // "Same total depth" as the PyTorch reference counts it: every attention layer of the model.
     let depth = cfg.ego_hist_layers + cfg.ego_env_layers + 2 * cfg.tar_layers + cfg.oar_layers;
@@ -83,7 +84,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
         let mut rows = Vec::new();
         for &t in &a.history {
             let h = history(&spec, &slots, a.batch, t);
-            let mut g = Generator::new(&model, sampling.clone(), t, 0)?;
+            let mut g = Generator::new(&model, sampling.clone(), t, 0)?.draw_on_device(on_gpu);
             // The first frame compiles kernels (CUDA) and warms caches.
             g.next_frame(&h, &FrameControl::default())?;
             sync()?;

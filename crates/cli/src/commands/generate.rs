@@ -56,7 +56,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             }
             w
         });
-        let mut g = Generator::new(&model, vec![sampling; spec.segments.len()], window, a.seed)?;
+        let mut g = Generator::new(&model, vec![sampling; spec.segments.len()], window, a.seed)?
+            .draw_on_device(matches!(device, Device::Cuda(_)));
         let mut history: Vec<Vec<Vec<u32>>> = (0..total)
             .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
             .collect();
