@@ -8,3 +8,26 @@ pub fn bar(len: u64, what: &str) -> anyhow::Result<indicatif::ProgressBar> {
     )?);
     Ok(bar)
 }
+
+/// A `--time-limit` in minutes (none: no limit), counted from when it is made.
+pub struct TimeLimit {
+    end: Option<std::time::Instant>,
+}
+
+impl TimeLimit {
+    /// Starts counting `minutes`.
+    pub fn minutes(minutes: Option<f64>) -> Self {
+        Self {
+            end: minutes.map(|m| std::time::Instant::now() + std::time::Duration::from_secs_f64(60.0 * m)),
+        }
+    }
+
+    /// Whether the limit has passed at `step`; says so above `bar` when it has.
+    pub fn reached(&self, bar: &indicatif::ProgressBar, step: u64) -> bool {
+        let reached = self.end.is_some_and(|e| std::time::Instant::now() >= e);
+        if reached {
+            bar.suspend(|| tracing::info!("time limit reached at step {step}"));
+        }
+        reached
+    }
+}

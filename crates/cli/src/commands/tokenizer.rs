@@ -74,6 +74,7 @@ fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
             .as_bytes(),
     );
     let started = std::time::Instant::now();
+    let limit = crate::progress::TimeLimit::minutes(a.time_limit);
     let info = crate::with_autodiff!(device, |B, dev| {
         let mut group = crate::dist::join::<<B as AutodiffBackend>::InnerBackend>(&env, &identity, &a.dist)?;
         let tok = train_on::<B>(
@@ -90,9 +91,7 @@ fn train_cmd(a: &TokenizerTrainArgs) -> anyhow::Result<()> {
                     bar.set_message(format!("loss {:.4}", v[0].1));
                     bar.suspend(|| tracing::info!("step {}/{}: {}", r.step, r.steps, line.join(", ")));
                 }
-                let limit = a.time_limit.map(|m| std::time::Duration::from_secs_f64(60.0 * m));
-                if limit.is_some_and(|l| started.elapsed() >= l) {
-                    bar.suspend(|| tracing::info!("time limit reached at step {}", r.step));
+                if limit.reached(&bar, r.step) {
                     return ControlFlow::Break(());
                 }
                 ControlFlow::Continue(())

@@ -98,8 +98,7 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         indicatif::ProgressBar::hidden()
     };
     let identity = run.identity_digest();
-    let limit = a.time_limit.map(|m| Duration::from_secs_f64(60.0 * m));
-    let started = std::time::Instant::now();
+    let limit = crate::progress::TimeLimit::minutes(a.time_limit);
     let summary = crate::with_autodiff!(device, |B, dev| {
         let mut group = crate::dist::join::<<B as AutodiffBackend>::InnerBackend>(&env, &identity, &a.dist)?;
         train::<B>(&run, &tokens, &dev, a.resume, group.as_mut(), |r| {
@@ -117,8 +116,8 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
                     )
                 });
             }
-            if r.values.is_some() && limit.is_some_and(|l| started.elapsed() >= l) {
-                bar.suspend(|| tracing::info!("time limit reached at step {}", r.step));
+            // Checked on logging steps, where several ranks exchange rank 0's decision.
+            if r.values.is_some() && limit.reached(&bar, r.step) {
                 return ControlFlow::Break(());
             }
             ControlFlow::Continue(())
