@@ -4,6 +4,7 @@
 //!   (and flat after it: unlike burn's cosine scheduler it never restarts).
 //! - [`clip_grad_norm`]: scales all gradients so that their global L2 norm is at most a bound (burn's own
 //!   clipping works per parameter), without a device-to-host transfer.
+//! - [`adam_epsilon`]: a configured AdamW ε as the f32 the optimizer takes, or nothing if it is not usable.
 
 use burn::module::{AutodiffModule, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
@@ -104,6 +105,13 @@ pub fn clip_grad_norm<B: AutodiffBackend, M: AutodiffModule<B>>(
     norm
 }
 
+/// AdamW's ε as the f32 burn's optimizer takes, when it is positive and stays positive and finite in f32
+/// (1e-50 would round to 0, 1e300 to infinity); `None` otherwise, for the caller to refuse by its key.
+pub fn adam_epsilon(eps: f64) -> Option<f32> {
+    let e = eps as f32;
+    (eps > 0.0 && e > 0.0 && e.is_finite()).then_some(e)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -169,6 +177,15 @@ mod tests {
             let before: f64 = clip_grad_norm::<B, _>(&m, &mut g, bound).into_scalar().elem();
             let now: f64 = grad_norm::<B, _>(&m, &g).into_scalar().elem();
             assert!((before - now).abs() < 1e-7, "bound {bound}: {before} -> {now}");
+        }
+    }
+
+    #[test]
+    fn adam_epsilon_keeps_what_f32_holds() {
+        assert_eq!(adam_epsilon(1e-8), Some(1e-8));
+        assert_eq!(adam_epsilon(1.0), Some(1.0));
+        for bad in [0.0, -1e-8, 1e-50, 1e300, f64::NAN, f64::INFINITY] {
+            assert_eq!(adam_epsilon(bad), None, "{bad}");
         }
     }
 }

@@ -25,7 +25,7 @@ use umgen_dist::{
     ProcessGroup, Single, all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks,
 };
 use umgen_metrics::MetricLog;
-use umgen_optim::{Schedule, clip_grad_norm};
+use umgen_optim::{Schedule, adam_epsilon, clip_grad_norm};
 
 /// Checkpoint kind of tokenizer runs.
 pub const KIND: &str = "vq-tokenizer";
@@ -81,12 +81,12 @@ pub fn train_on<B: AutodiffBackend>(
 ) -> Result<VqTokenizer<B::InnerBackend>> {
     let (rank, world) = (group.rank(), group.world_size());
     let lead = rank == 0;
-    if !(tc.eps > 0.0 && tc.eps as f32 > 0.0 && (tc.eps as f32).is_finite()) {
+    let Some(eps) = adam_epsilon(tc.eps) else {
         return Err(VqError::Config {
             key: "vq_train.eps".into(),
             message: format!("{} is not a positive number that f32 holds", tc.eps),
         });
-    }
+    };
     config.validate("vq")?;
     let [c, h, w] = source.shape();
     if c != config.channels
@@ -105,7 +105,7 @@ pub fn train_on<B: AutodiffBackend>(
     let mut model = stable_param_ids(VqModel::<B>::new(config, device));
     let mut optim = AdamWConfig::new()
         .with_beta_2(0.95)
-        .with_epsilon(tc.eps as f32)
+        .with_epsilon(eps)
         .with_weight_decay(tc.weight_decay as f32)
         .init();
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);

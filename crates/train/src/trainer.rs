@@ -17,7 +17,7 @@ use umgen_checkpoint::burn_io::{
 use umgen_data::{TokenSet, Window};
 use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks};
 use umgen_metrics::MetricLog;
-use umgen_optim::{Schedule, clip_grad_norm};
+use umgen_optim::{Schedule, adam_epsilon, clip_grad_norm};
 
 /// Checkpoint kind of backbone runs.
 pub const KIND: &str = "backbone";
@@ -121,12 +121,12 @@ pub fn train<B: AutodiffBackend>(
             tc.gap, tc.split
         )));
     }
-    if !(tc.eps > 0.0 && (tc.eps as f32).is_finite() && tc.eps as f32 > 0.0) {
+    let Some(eps) = adam_epsilon(tc.eps) else {
         return Err(TrainError::Setup(format!(
             "train.eps = {} must be a positive number that f32 holds",
             tc.eps
         )));
-    }
+    };
     if f > run.backbone.max_frames {
         return Err(TrainError::Setup(format!(
             "windows of {f} frames exceed backbone.max_frames = {}",
@@ -138,7 +138,7 @@ pub fn train<B: AutodiffBackend>(
     let mut optim = AdamWConfig::new()
         .with_beta_1(tc.beta1 as f32)
         .with_beta_2(tc.beta2 as f32)
-        .with_epsilon(tc.eps as f32)
+        .with_epsilon(eps)
         .with_weight_decay(tc.weight_decay as f32)
         .init();
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
