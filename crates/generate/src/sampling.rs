@@ -101,9 +101,7 @@ impl Sampling {
         }
         order[order.len() - 1] as u32
     }
-}
 
-impl Sampling {
     /// One draw per row of `logits` (`[m, v]`) on their device, with the distribution of [`Self::draw`]
     /// (top-k, temperature, top-p; −∞ is never drawn; rows must hold no NaN). Nothing is read back to
     /// the host, so the ids can feed the next decoding step directly. Gumbel-max: the argmax of the

@@ -122,8 +122,8 @@ fn tokenize_clips(
     let progress = std::sync::Mutex::new(progress);
     let results: Vec<Result<Vec<ClipRows>>> = std::thread::scope(|s| {
         let workers: Vec<_> = (0..threads.clamp(1, clips.len().max(1)))
-            .map(|k| {
-                let registry = &registries[k % registries.len()];
+            .map(|w| {
+                let registry = &registries[w % registries.len()];
                 let (next, finished, progress) = (&next, &finished, &progress);
                 s.spawn(move || {
                     let mut mine = Vec::new();
