@@ -1,28 +1,64 @@
 //! Incremental decoding for generation: the OAR one position at a time over a key/value cache, so that a
 //! frame of N tokens costs N small steps instead of N forward passes over growing prefixes.
 
+use crate::error::BackboneError;
 use crate::model::Backbone;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
 
-/// Keys and values of the positions decoded so far, per OAR layer.
+/// Keys and values of the positions decoded so far, per layer, in tensors of a fixed capacity (allocated
+/// on the first step), so that every decoding step has the same shapes.
 #[derive(Debug, Clone)]
 pub struct OarCache<B: Backend> {
     pub(crate) layers: Vec<Option<(Tensor<B, 4>, Tensor<B, 4>)>>,
+    len: usize,
+    capacity: usize,
 }
 
 impl<B: Backend> OarCache<B> {
+    /// An empty cache of `layers` layers with room for `capacity` positions.
+    fn new(layers: usize, capacity: usize) -> Self {
+        Self {
+            layers: vec![None; layers],
+            len: 0,
+            capacity,
+        }
+    }
+
     /// Positions cached.
     pub fn len(&self) -> usize {
-        self.layers
-            .first()
-            .and_then(|l| l.as_ref())
-            .map_or(0, |(k, _)| k.dims()[2])
+        self.len
     }
 
     /// Whether nothing is cached yet.
     pub fn is_empty(&self) -> bool {
-        self.len() == 0
+        self.len == 0
+    }
+
+    /// Positions it has room for.
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// Takes the next position: its index and the additive mask `[1, 1, 1, capacity]` of the keys it
+    /// may not see (0 up to it, −1e30 after, so that no −∞ meets a zero and makes a NaN). Built on the
+    /// device from a comparison with a scalar: nothing is uploaded per step.
+    pub(crate) fn advance(&mut self, dev: &B::Device) -> Result<(usize, Tensor<B, 4>), BackboneError> {
+        let pos = self.len;
+        if pos >= self.capacity {
+            return Err(BackboneError::Input(format!(
+                "the decoding cache holds {} positions and is full",
+                self.capacity
+            )));
+        }
+        self.len += 1;
+        let keys = Tensor::<B, 1, Int>::arange(0..self.capacity as i64, dev);
+        let hidden =
+            keys.greater_elem(pos as i64)
+                .float()
+                .mul_scalar(-1e30)
+                .reshape([1, 1, 1, self.capacity]);
+        Ok((pos, hidden))
     }
 }
 
@@ -38,11 +74,9 @@ pub enum Slot {
 }
 
 impl<B: Backend> Backbone<B> {
-    /// An empty cache for one frame.
+    /// An empty cache for one frame (N positions).
     pub fn oar_cache(&self) -> OarCache<B> {
-        OarCache {
-            layers: vec![None; self.oar_layers()],
-        }
+        OarCache::new(self.oar_layers(), self.spec().n)
     }
 
     /// The OAR input at position `p` of a frame: the learned start vector (p = 0) or the embedding of the
@@ -58,10 +92,12 @@ impl<B: Backend> Backbone<B> {
     }
 
     /// The OAR output `[m, d]` of the next position, given its input `w` `[m, d]`; updates `cache`.
-    pub fn oar_step(&self, w: Tensor<B, 2>, cache: &mut OarCache<B>) -> Tensor<B, 2> {
+    /// Fails when the cache is full (more than N steps on one frame's cache).
+    pub fn oar_step(&self, w: Tensor<B, 2>, cache: &mut OarCache<B>) -> Result<Tensor<B, 2>, BackboneError> {
         let [m, d] = w.dims();
-        let x = self.oar_blocks_step(w.reshape([m, 1, d]), &mut cache.layers);
-        x.reshape([m, d])
+        let (pos, hidden) = cache.advance(&w.device())?;
+        let x = self.oar_blocks_step(w.reshape([m, 1, d]), &mut cache.layers, pos, hidden);
+        Ok(x.reshape([m, d]))
     }
 
     /// Logits `[m, vocab]` of content slot of segment `s` from OAR (or TAR) features `[m, d]`.
@@ -131,28 +167,38 @@ impl<B: Backend> VanillaAr<B> {
     }
 
     /// A cache holding `len` earlier positions of `m` sequences (random keys and values: the cost of a
-    /// step does not depend on them).
-    pub fn filled_cache(&self, m: usize, len: usize, heads: usize, dev: &B::Device) -> OarCache<B> {
+    /// step does not depend on them) with room for `room` more.
+    pub fn filled_cache(
+        &self,
+        m: usize,
+        len: usize,
+        room: usize,
+        heads: usize,
+        dev: &B::Device,
+    ) -> OarCache<B> {
         let d = self.ln.gamma.val().dims()[0];
         let kv = || {
             Tensor::<B, 4>::random(
-                [m, heads, len, d / heads],
+                [m, heads, len + room, d / heads],
                 burn::tensor::Distribution::Normal(0.0, 1.0),
                 dev,
             )
         };
-        OarCache {
-            layers: self.blocks.iter().map(|_| Some((kv(), kv()))).collect(),
-        }
+        let mut cache = OarCache::new(self.blocks.len(), len + room);
+        cache.layers = self.blocks.iter().map(|_| Some((kv(), kv()))).collect();
+        cache.len = len;
+        cache
     }
 
-    /// Logits `[m, vocab]` of the next position from input features `[m, d]`; updates `cache`.
-    pub fn step(&self, x: Tensor<B, 2>, cache: &mut OarCache<B>) -> Tensor<B, 2> {
+    /// Logits `[m, vocab]` of the next position from input features `[m, d]`; updates `cache`. Fails
+    /// when the cache is full.
+    pub fn step(&self, x: Tensor<B, 2>, cache: &mut OarCache<B>) -> Result<Tensor<B, 2>, BackboneError> {
         let [m, d] = x.dims();
+        let (pos, hidden) = cache.advance(&x.device())?;
         let mut h = x.reshape([m, 1, d]);
         for (blk, c) in self.blocks.iter().zip(cache.layers.iter_mut()) {
-            h = blk.forward_step(h, c);
+            h = blk.forward_step(h, c, pos, hidden.clone());
         }
-        self.head.forward(self.ln.forward(h).reshape([m, d]))
+        Ok(self.head.forward(self.ln.forward(h).reshape([m, d])))
     }
 }

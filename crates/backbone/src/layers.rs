@@ -4,10 +4,8 @@ use crate::config::Precision;
 use crate::precision::linear;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
-use burn::tensor::activation::gelu;
+use burn::tensor::activation::{gelu, softmax};
 use burn::tensor::backend::Backend;
-use burn::tensor::module::attention;
-use burn::tensor::ops::AttentionModuleOptions;
 use burn::tensor::{Bool, Tensor};
 
 /// `Linear(d → r·d), GELU, Linear(r·d → d)`, dropout on the output.
@@ -111,21 +109,34 @@ impl<B: Backend> MultiHead<B> {
         self.heads
     }
 
-    /// Self-attention of the newest position `x` `[m, 1, d]` over itself and the cached earlier positions
-    /// (causal by construction); appends its key and value to `cache` (`[m, heads, len, dh]` each).
+    /// Self-attention of the newest position `x` `[m, 1, d]`, written at position `pos` of `cache` (keys and
+    /// values `[m, heads, capacity, dh]`, allocated at full size on the first step), over itself and the
+    /// positions before it; `hidden` `[1, 1, 1, capacity]` is 0 where a key may be seen and a large negative
+    /// number past `pos`. Every step thus has the same shapes: a cache that grew by one position per step
+    /// gave each step new shapes, which on CUDA can mean new kernels to compile or tune, and a copy of the
+    /// whole cache per step.
     pub(crate) fn forward_step(
         &self,
         x: Tensor<B, 3>,
         cache: &mut Option<(Tensor<B, 4>, Tensor<B, 4>)>,
+        pos: usize,
+        hidden: Tensor<B, 4>,
     ) -> Tensor<B, 3> {
         let (q, k, v) = self.project(x.clone(), x);
-        let (k, v) = match cache.take() {
-            Some((k0, v0)) => (Tensor::cat(vec![k0, k], 2), Tensor::cat(vec![v0, v], 2)),
-            None => (k, v),
-        };
+        let [m, h, _, dh] = k.dims();
+        let capacity = hidden.dims()[3];
+        let (k0, v0) = cache.take().unwrap_or_else(|| {
+            let dev = k.device();
+            (
+                Tensor::zeros([m, h, capacity, dh], &dev),
+                Tensor::zeros([m, h, capacity, dh], &dev),
+            )
+        });
+        let at = [0..m, 0..h, pos..pos + 1, 0..dh];
+        let (k, v) = (k0.slice_assign(at.clone(), k), v0.slice_assign(at, v));
         *cache = Some((k.clone(), v.clone()));
-        let y = attention(q, k, v, None, None, AttentionModuleOptions::default());
-        self.output(y)
+        let scores = q.matmul(k.swap_dims(2, 3)).mul_scalar((dh as f64).sqrt().recip()) + hidden;
+        self.output(softmax(scores, 3).matmul(v))
     }
 }
 
@@ -187,8 +198,10 @@ impl<B: Backend> SelfBlock<B> {
         &self,
         x: Tensor<B, 3>,
         cache: &mut Option<(Tensor<B, 4>, Tensor<B, 4>)>,
+        pos: usize,
+        hidden: Tensor<B, 4>,
     ) -> Tensor<B, 3> {
-        let x = x.clone() + self.attn.forward_step(self.ln1.forward(x), cache);
+        let x = x.clone() + self.attn.forward_step(self.ln1.forward(x), cache, pos, hidden);
         x.clone() + self.mlp.forward(self.ln2.forward(x))
     }
 }

@@ -216,10 +216,12 @@ impl<B: Backend> Backbone<B> {
         &self,
         x: Tensor<B, 3>,
         caches: &mut [Option<(Tensor<B, 4>, Tensor<B, 4>)>],
+        pos: usize,
+        hidden: Tensor<B, 4>,
     ) -> Tensor<B, 3> {
         let mut x = x;
         for (blk, cache) in self.oar.iter().zip(caches.iter_mut()) {
-            x = blk.forward_step(x, cache);
+            x = blk.forward_step(x, cache, pos, hidden.clone());
         }
         self.ln_oar.forward(x)
     }

@@ -106,10 +106,14 @@ pub struct GenerateArgs {
     /// Control file (TOML or JSON), see docs/control.md.
     #[arg(long, value_name = "FILE")]
     pub control: Option<PathBuf>,
-    /// Frames of history the TAR sees (older ones slide out); default 20, or the model's
-    /// `backbone.max_frames` when smaller.
+    /// Frames of history the TAR sees (older ones slide out); default: the history the model was trained
+    /// on (`train.frames`), at most 20 and `backbone.max_frames`.
     #[arg(long)]
     pub window: Option<usize>,
+    /// Window frames the ego module and the TAR process at once (scenes × window frames; bounds their
+    /// memory, the frames drawn do not depend on it).
+    #[arg(long, value_name = "FRAMES", default_value_t = umgen::generate::DEFAULT_PASS_FRAMES)]
+    pub pass_frames: usize,
     /// Keep the k most likely ids (0 = all), every modality.
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,

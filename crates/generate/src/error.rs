@@ -9,6 +9,9 @@ pub enum GenerateError {
     /// History frames that do not fit the model.
     #[error("history: {0}")]
     History(String),
+    /// The model refused a decoding step.
+    #[error(transparent)]
+    Model(#[from] umgen_backbone::BackboneError),
 }
 
 /// Result with [`GenerateError`].

@@ -16,5 +16,5 @@ mod sampling;
 pub use boxes::GroupBoxes;
 pub use control::{AgentControl, Control, EgoControl};
 pub use error::{GenerateError, Result};
-pub use rollout::{FrameControl, Generator, TokenGroups};
+pub use rollout::{DEFAULT_PASS_FRAMES, FrameControl, Generator, TokenGroups};
 pub use sampling::Sampling;

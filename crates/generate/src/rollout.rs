@@ -52,6 +52,10 @@ pub struct TokenGroups {
     pub boxes: Option<crate::boxes::GroupBoxes>,
 }
 
+/// Window frames per pass of the ego module and the TAR by default: 64 frames of the paper's layout are
+/// about 144k tokens, four times a `small` training batch per GPU, without the backward pass.
+pub const DEFAULT_PASS_FRAMES: usize = 64;
+
 /// Generates frames with a backbone.
 #[derive(Debug)]
 pub struct Generator<'a, B: Backend> {
@@ -61,6 +65,7 @@ pub struct Generator<'a, B: Backend> {
     rng: StdRng,
     slots: Vec<Slot>,
     on_device: bool,
+    pass_frames: usize,
 }
 
 impl<'a, B: Backend> Generator<'a, B> {
@@ -90,7 +95,16 @@ impl<'a, B: Backend> Generator<'a, B> {
             rng: StdRng::seed_from_u64(seed),
             slots: model.slots(),
             on_device: false,
+            pass_frames: DEFAULT_PASS_FRAMES,
         })
+    }
+
+    /// Run the window pass (ego module and TAR) over at most `frames` window frames at a time (at least one
+    /// scene): its activations grow with scenes × window × N, while the OAR's per-token state is small.
+    /// The frames drawn do not depend on it.
+    pub fn pass_frames(mut self, frames: usize) -> Self {
+        self.pass_frames = frames.max(1);
+        self
     }
 
     /// Draw the positions without rules (map and image codes) on the model's device
@@ -123,24 +137,13 @@ impl<'a, B: Backend> Generator<'a, B> {
             .action
             .as_ref()
             .map_or(0, |a| spec.segments[a.segment].tokens);
-        // The history window, embedded once for the ego module and the TAR.
-        let window = (t > 0).then(|| {
-            let tokens = self.window_tensor(history, &dev);
-            let e = self.model.embed.forward(tokens.clone());
-            (tokens, e)
-        });
-        let action = match (&control.action, &window) {
-            (Some(a), _) => {
-                if a.len() != m || a.iter().any(|x| x.len() != q) {
-                    return Err(GenerateError::Settings(format!(
-                        "a forced action needs {q} tokens for each of the {m} scenes"
-                    )));
-                }
-                Some(a.clone())
-            }
-            (None, None) => None,
-            (None, Some((_, e))) => self.predict_action(e.clone()),
-        };
+        if let Some(a) = &control.action
+            && (a.len() != m || a.iter().any(|x| x.len() != q))
+        {
+            return Err(GenerateError::Settings(format!(
+                "a forced action needs {q} tokens for each of the {m} scenes"
+            )));
+        }
         let mut forced = vec![None; n];
         for &(p, id) in &control.tokens {
             match self.slots.get(p) {
@@ -195,10 +198,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                     .collect()
             })
             .collect();
-        let h = match &window {
-            Some((tokens, e)) => self.prior(tokens.clone(), e.clone(), action.as_ref(), &dev),
-            None => Tensor::zeros([m, n, self.model.embed_width()], &dev),
-        };
+        let (action, h) = self.window_pass(history, control.action.as_ref(), &dev);
         let rules = Rules {
             newborn: &newborn,
             placed: &forced,
@@ -207,7 +207,42 @@ impl<'a, B: Backend> Generator<'a, B> {
             group: &group,
             groups: &control.groups,
         };
-        Ok(self.decode(h, action.as_ref(), &rules, m, &dev))
+        self.decode(h, action.as_ref(), &rules, m, &dev)
+    }
+
+    /// The next frame's action (`forced`, or drawn from the ego module) and TAR prior `[m, N, d]`, from the
+    /// windows of `history`, embedded once for both, a group of scenes at a time (`pass_frames`). Scenes
+    /// are taken in order, so the action draws come in the same order whatever the group size.
+    fn window_pass(
+        &mut self,
+        history: &[Vec<Vec<u32>>],
+        forced: Option<&Vec<Vec<u32>>>,
+        dev: &B::Device,
+    ) -> (Option<Vec<Vec<u32>>>, Tensor<B, 3>) {
+        let (m, n) = (history.len(), self.model.spec().n);
+        let t = history[0].len();
+        if t == 0 {
+            // An initial scene: no history, no TAR (as in the paper).
+            let h = Tensor::zeros([m, n, self.model.embed_width()], dev);
+            return (forced.cloned(), h);
+        }
+        let per = (self.pass_frames / t.min(self.window)).max(1);
+        let (mut drawn, mut priors) = (Vec::new(), Vec::new());
+        for start in (0..m).step_by(per) {
+            let part = &history[start..(start + per).min(m)];
+            let tokens = self.window_tensor(part, dev);
+            let e = self.model.embed.forward(tokens.clone());
+            let action = match forced {
+                Some(a) => Some(a[start..start + part.len()].to_vec()),
+                None => self.predict_action(e.clone()),
+            };
+            priors.push(self.prior(tokens, e, action.as_ref(), dev));
+            if forced.is_none() {
+                drawn.extend(action.into_iter().flatten());
+            }
+        }
+        let action = forced.cloned().or((!drawn.is_empty()).then_some(drawn));
+        (action, Tensor::cat(priors, 0))
     }
 
     /// The last `window` frames as a tensor `[m, w, N]`.
@@ -287,7 +322,7 @@ impl<'a, B: Backend> Generator<'a, B> {
         rules: &Rules<'_>,
         m: usize,
         dev: &B::Device,
-    ) -> Vec<Vec<u32>> {
+    ) -> Result<Vec<Vec<u32>>> {
         let spec = self.model.spec();
         let n = spec.n;
         let d = h.dims()[2];
@@ -308,7 +343,7 @@ impl<'a, B: Backend> Generator<'a, B> {
             let w = self
                 .model
                 .oar_input_at(p, prev, h.clone().narrow(1, p, 1).reshape([m, d]));
-            let o = self.model.oar_step(w, &mut cache);
+            let o = self.model.oar_step(w, &mut cache)?;
             match self.slots[p] {
                 Slot::Start(s) => out.iter_mut().for_each(|r| r[p] = spec.segments[s].vocab as u32),
                 Slot::End(s) => out
@@ -394,7 +429,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                 }
             }
         }
-        out
+        Ok(out)
     }
 }
 

@@ -3,7 +3,7 @@
 use crate::error::{GenerateError, Result};
 use burn::tensor::activation::softmax;
 use burn::tensor::backend::Backend;
-use burn::tensor::{Int, Tensor, TensorData};
+use burn::tensor::{IndexingUpdateOp, Int, Tensor, TensorData};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -115,9 +115,10 @@ impl Sampling {
         // Most likely first where a filter needs the order; ids are positions in `ids` then.
         let (values, ids) = match (k < v, self.top_p < 1.0) {
             (true, _) => {
-                let (x, i) = logits.topk_with_indices(k, 1);
+                let (x, i) = top_k_rows(logits, k);
                 (x, Some(i))
             }
+            // Sorts on the host (burn has no device sort): only top-p without top-k comes here.
             (false, true) => {
                 let (x, i) = logits.sort_descending_with_indices(1);
                 (x, Some(i))
@@ -145,6 +146,24 @@ impl Sampling {
             None => pick.reshape([m]),
         }
     }
+}
+
+/// The `k` largest entries of each row of `x` `[m, v]` and their ids `[m, k]`, largest first, found on the
+/// device: `k` rounds of argmax, gather and masking the id found. (burn's `topk_with_indices` sorts
+/// every row on the host, a read-back and a sort of `m × v` values per decoded token.) Rows with fewer
+/// than `k` finite entries repeat −∞ entries, which are never drawn.
+fn top_k_rows<B: Backend>(x: Tensor<B, 2>, k: usize) -> (Tensor<B, 2>, Tensor<B, 2, Int>) {
+    let [m, _] = x.dims();
+    let hide = Tensor::<B, 2>::full([m, 1], f32::NEG_INFINITY, &x.device());
+    let (mut values, mut ids) = (Vec::with_capacity(k), Vec::with_capacity(k));
+    let mut rest = x;
+    for _ in 0..k {
+        let i = rest.clone().argmax(1);
+        values.push(rest.clone().gather(1, i.clone()));
+        rest = rest.scatter(1, i.clone(), hide.clone(), IndexingUpdateOp::Add);
+        ids.push(i);
+    }
+    (Tensor::cat(values, 1), Tensor::cat(ids, 1))
 }
 
 #[cfg(test)]
@@ -301,6 +320,48 @@ mod tests {
         );
         assert!((c[4] as f64 / 100_000.0 - 16.0 / 30.0).abs() < 0.01, "{c:?}");
         assert_eq!(device_counts(Sampling::greedy(), &logits, 100)[4], 100);
+        // top-k and top-p together: top-k 3 keeps 4, 2, 1; top-p 0.5 of those (4/9, 3/9, 2/9) keeps 4, 2.
+        let c = device_counts(
+            Sampling {
+                top_k: 3,
+                top_p: 0.5,
+                ..all
+            },
+            &logits,
+            50_000,
+        );
+        assert_eq!(c[0] + c[1] + c[3], 0, "{c:?}");
+        assert!((c[4] as f64 / 50_000.0 - 4.0 / 7.0).abs() < 0.01, "{c:?}");
+    }
+
+    #[test]
+    fn device_top_k_equals_a_host_sort() {
+        type F = burn::backend::Flex;
+        let mut rng = StdRng::seed_from_u64(9);
+        let (m, v, k) = (5, 40, 7);
+        let mut rows: Vec<f32> = (0..m * v).map(|_| rng.random_range(-3.0f32..3.0)).collect();
+        // The last row has only 3 finite entries: the other 4 places hold −∞.
+        for (j, x) in rows[(m - 1) * v..].iter_mut().enumerate() {
+            if j % 13 != 0 {
+                *x = f32::NEG_INFINITY;
+            }
+        }
+        let t = Tensor::<F, 2>::from_data(TensorData::new(rows.clone(), [m, v]), &Default::default());
+        let (values, ids) = top_k_rows(t, k);
+        let values: Vec<f32> = values.into_data().iter::<f32>().collect();
+        let ids: Vec<i64> = ids.into_data().iter::<i64>().collect();
+        for r in 0..m {
+            let row = &rows[r * v..(r + 1) * v];
+            let mut order: Vec<usize> = (0..v).collect();
+            order.sort_by(|&a, &b| row[b].total_cmp(&row[a]));
+            for j in 0..k {
+                let want = row[order[j]];
+                assert_eq!(values[r * k + j], want, "row {r}, place {j}");
+                if want.is_finite() {
+                    assert_eq!(ids[r * k + j] as usize, order[j], "row {r}, place {j}");
+                }
+            }
+        }
     }
 
     #[test]

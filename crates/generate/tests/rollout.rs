@@ -128,11 +128,12 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
 #[test]
 fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
     let m = model();
-    let history = vec![vec![frame(&m, 1)], vec![frame(&m, 4)]];
-    let run = |seed, on_device| {
+    let history = vec![vec![frame(&m, 1)], vec![frame(&m, 4)], vec![frame(&m, 2)]];
+    let run_in = |seed, on_device, pass_frames| {
         let mut g = Generator::new(&m, vec![Sampling::default(); 3], 8, seed)
             .unwrap()
-            .draw_on_device(on_device);
+            .draw_on_device(on_device)
+            .pass_frames(pass_frames);
         let mut h = history.clone();
         for _ in 0..3 {
             let next = g.next_frame(&h, &FrameControl::default()).unwrap();
@@ -142,12 +143,21 @@ fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
         }
         h
     };
+    let run = |seed, on_device| run_in(seed, on_device, umgen_generate::DEFAULT_PASS_FRAMES);
     let a = run(5, false);
     assert_eq!(a, run(5, false), "same seed, same scenes");
     assert_ne!(a, run(6, false), "another seed, other scenes");
     let d = run(5, true);
     assert_eq!(d, run(5, true), "same seed, same scenes (device draws)");
     assert_ne!(d, run(6, true), "another seed, other scenes (device draws)");
+    // The window pass one scene at a time (2 frames of history by the last step, so 2 frames per pass
+    // are still one scene) draws the same frames as all scenes at once.
+    assert_eq!(a, run_in(5, false, 1), "window pass a scene at a time");
+    assert_eq!(
+        d,
+        run_in(5, true, 2),
+        "window pass a scene at a time (device draws)"
+    );
     for scene in a.iter().chain(&d) {
         for f in scene {
             for (p, s) in m.slots().iter().enumerate() {

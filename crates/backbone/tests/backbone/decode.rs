@@ -25,13 +25,18 @@ fn cached_oar_steps_equal_the_full_causal_pass() {
     for p in 0..n {
         let prev = (p > 0).then(|| flat.clone().narrow(1, p - 1, 1).reshape([b]));
         let w = m.oar_input_at(p, prev, h.clone().narrow(1, p, 1).reshape([b, 32]));
-        let step = m.oar_step(w, &mut cache);
+        let step = m.oar_step(w, &mut cache).unwrap();
         let want = full.clone().narrow(1, p, 1).reshape([b, 32]);
         let diff: f32 = (step - want).abs().max().into_scalar();
         worst = worst.max(diff);
     }
     assert_eq!(cache.len(), n);
+    assert_eq!(cache.capacity(), n);
     assert!(worst < 1e-4, "largest difference {worst}");
+    // A frame's cache has room for N positions, no more.
+    let w = m.oar_input_at(0, None, h.narrow(1, 0, 1).reshape([b, 32]));
+    let err = m.oar_step(w, &mut cache).unwrap_err().to_string();
+    assert!(err.contains("full"), "{err}");
 }
 
 #[test]

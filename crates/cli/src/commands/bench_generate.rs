@@ -103,14 +103,14 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             let mut rng = StdRng::seed_from_u64(3);
             let step = |cache: &mut _, rng: &mut StdRng| -> anyhow::Result<()> {
                 let x = Tensor::<I, 2>::random([a.batch, cfg.d_model], Distribution::Normal(0.0, 1.0), &dev);
-                let logits = vanilla.step(x, cache);
+                let logits = vanilla.step(x, cache)?;
                 let host: Vec<f32> = logits.into_data().iter::<f32>().collect();
                 for row in host.chunks(vocab) {
                     Sampling::default().draw(row, rng);
                 }
                 Ok(())
             };
-            let mut cache = vanilla.filled_cache(a.batch, t * n, cfg.heads, &dev);
+            let mut cache = vanilla.filled_cache(a.batch, t * n, 1 + 5 * a.tokens, cfg.heads, &dev);
             step(&mut cache, &mut rng)?;
             sync()?;
             let mut times = Vec::new();

@@ -28,7 +28,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             .as_ref()
             .map_or(String::new(), |p| p.display().to_string())
     })?;
-    let (contexts, interval) = context_clips(a)?;
+    let window = history_window(a.window, &bundle.config);
+    let (contexts, interval) = context_clips(a, window)?;
     let context_rows = contexts
         .iter()
         .map(|c| registry.tokenize_clip(&c.clip))
@@ -49,15 +50,9 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         type I = <B as AutodiffBackend>::InnerBackend;
         let model = Backbone::<I>::new(&bundle.config.backbone, &spec, &dev)?;
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
-        let window = a.window.unwrap_or_else(|| {
-            let w = 20.min(model.max_frames());
-            if w < 20 {
-                tracing::info!("conditioning on {w} frames (backbone.max_frames)");
-            }
-            w
-        });
         let mut g = Generator::new(&model, vec![sampling; spec.segments.len()], window, a.seed)?
-            .draw_on_device(matches!(device, Device::Cuda(_)));
+            .draw_on_device(matches!(device, Device::Cuda(_)))
+            .pass_frames(a.pass_frames);
         let mut history: Vec<Vec<Vec<u32>>> = (0..total)
             .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
             .collect();
@@ -196,6 +191,21 @@ fn read_control(p: &Path) -> anyhow::Result<Control> {
     Ok(c)
 }
 
+/// The frames of history the TAR sees: `--window`, else the longest history the model was trained on
+/// (`train.frames`; its time embeddings past that never received a gradient), at most the paper's 20 and
+/// `backbone.max_frames`.
+fn history_window(asked: Option<usize>, config: &umgen::UmgenConfig) -> usize {
+    asked.unwrap_or_else(|| {
+        let w = 20.min(config.backbone.max_frames).min(config.train.frames.max(1));
+        if w < 20 {
+            tracing::info!(
+                "conditioning on at most {w} frames (the history the model was trained on; --window to change)"
+            );
+        }
+        w
+    })
+}
+
 /// A context: its frames, and the dataset and clip id for `meta.json`.
 struct ContextClip {
     clip: SceneClip,
@@ -204,13 +214,13 @@ struct ContextClip {
 }
 
 /// The contexts of `--context` and `--contexts` in batch order, and the frame interval; none from scratch.
-fn context_clips(a: &GenerateArgs) -> anyhow::Result<(Vec<ContextClip>, f64)> {
+fn context_clips(a: &GenerateArgs, window: usize) -> anyhow::Result<(Vec<ContextClip>, f64)> {
     let mut out = Vec::new();
     for spec in &a.context {
-        out.push(one_context(spec, a.window)?);
+        out.push(one_context(spec, window)?);
     }
     if let Some(spec) = &a.contexts {
-        out.extend(split_contexts(spec, a.window)?);
+        out.extend(split_contexts(spec, window)?);
     }
     let Some(first) = out.first() else {
         anyhow::ensure!(
@@ -233,7 +243,7 @@ fn context_clips(a: &GenerateArgs) -> anyhow::Result<(Vec<ContextClip>, f64)> {
 }
 
 /// `--context DATA:CLIP[:FRAMES]`.
-fn one_context(spec: &str, window: Option<usize>) -> anyhow::Result<ContextClip> {
+fn one_context(spec: &str, window: usize) -> anyhow::Result<ContextClip> {
     // Clip ids may hold ':' themselves (`rand-s3/v0:2`): a numeric suffix is a frame count only when
     // the whole rest is not a clip id.
     let (data, rest) = spec
@@ -247,16 +257,14 @@ fn one_context(spec: &str, window: Option<usize>) -> anyhow::Result<ContextClip>
             _ => return Err(e.into()),
         },
     };
-    let n = frames
-        .unwrap_or(window.unwrap_or(20))
-        .min(ds.clips()[index].frames);
+    let n = frames.unwrap_or(window).min(ds.clips()[index].frames);
     anyhow::ensure!(n > 0, "--context {spec}: the clip has no frames");
     read_context(&ds, data, index, n)
 }
 
 /// `--contexts DATA:SPLIT:COUNT[:FRAMES]`: COUNT clips of SPLIT with at least FRAMES frames (default: the
 /// window), evenly spaced over the split.
-fn split_contexts(spec: &str, window: Option<usize>) -> anyhow::Result<Vec<ContextClip>> {
+fn split_contexts(spec: &str, window: usize) -> anyhow::Result<Vec<ContextClip>> {
     let bad = || format!("--contexts {spec}: expected DATA:SPLIT:COUNT or DATA:SPLIT:COUNT:FRAMES");
     let number = |s: &str| s.parse::<usize>().ok();
     let (head, frames) = match spec.rsplit_once(':') {
@@ -270,7 +278,7 @@ fn split_contexts(spec: &str, window: Option<usize>) -> anyhow::Result<Vec<Conte
     let (rest, count) = head.rsplit_once(':').with_context(bad)?;
     let count = number(count).filter(|&c| c > 0).with_context(bad)?;
     let (data, split) = rest.rsplit_once(':').with_context(bad)?;
-    let n = frames.unwrap_or(window.unwrap_or(20));
+    let n = frames.unwrap_or(window);
     let ds = Dataset::open(Path::new(data))?;
     let eligible: Vec<usize> = (0..ds.clips().len())
         .filter(|&i| ds.clips()[i].split == split && ds.clips()[i].frames >= n)
@@ -292,4 +300,28 @@ fn read_context(ds: &Dataset, data: &str, index: usize, n: usize) -> anyhow::Res
         data: data.to_string(),
         id: ds.clips()[index].id.clone(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::history_window;
+    use umgen::UmgenConfig;
+
+    #[test]
+    fn the_default_window_is_the_trained_history() {
+        let config = |frames: usize, max_frames: usize| {
+            let text = format!(
+                "[layout]\norder = [\"ego\"]\n[backbone]\nmax_frames = {max_frames}\n[train]\nframes = {frames}\n"
+            );
+            UmgenConfig::from_toml_str(&text).unwrap()
+        };
+        // Trained on 8 frames of history: later time embeddings never learned anything.
+        assert_eq!(history_window(None, &config(8, 32)), 8);
+        // The paper's 20 at most, and never past the model's time embeddings.
+        assert_eq!(history_window(None, &config(24, 32)), 20);
+        assert_eq!(history_window(None, &config(16, 12)), 12);
+        // An explicit --window wins.
+        assert_eq!(history_window(Some(3), &config(8, 32)), 3);
+    }
 }
