@@ -93,7 +93,8 @@ pub struct TokenizeArgs {
     /// Only this split.
     #[arg(long)]
     pub split: Option<String>,
-    /// Threads (default: all cores).
+    /// Threads (default: all cores on the CPU; 2 per GPU, since each thread keeps its own device
+    /// stream and memory pool).
     #[arg(long)]
     pub threads: Option<usize>,
     /// Where VQ tokenizers run: `cpu`, `cuda:N`, or several devices separated by commas
