@@ -19,13 +19,14 @@
 #   --umgen CMD         the umgen command (default: cargo run --release -q -p umgen-cli --)
 #   --work DIR          keep SUMO's files here (default: a temporary directory, removed afterwards)
 #   --force             replace OUT if it exists
+#   --append            add the networks to the dataset already in OUT (new names: pick another --seed)
 # Environment: UMGEN_SUMO_VENV (default ~/.cache/umgen/sumo-venv), UMGEN_SUMO_VERSION (default 1.28.0).
 set -euo pipefail
 
 die() { echo "make-sumo-dataset: $*" >&2; exit 1; }
 [ $# -ge 1 ] || die "usage: $0 OUT [--seed N] [--duration S] [--networks \"grid spider rand\"] ..."
 OUT=$1; shift
-SEED=1 DURATION=300 WARMUP=60 NETWORKS="grid spider rand" TEST="" DEMAND=1.0 EGO_EVERY=1 WORK="" FORCE=0
+SEED=1 DURATION=300 WARMUP=60 NETWORKS="grid spider rand" TEST="" DEMAND=1.0 EGO_EVERY=1 WORK="" FORCE=0 APPEND=0
 UMGEN="cargo run --release -q -p umgen-cli --"
 while [ $# -gt 0 ]; do
   case $1 in
@@ -39,11 +40,15 @@ while [ $# -gt 0 ]; do
     --umgen) UMGEN=$2; shift 2 ;;
     --work) WORK=$2; shift 2 ;;
     --force) FORCE=1; shift ;;
+    --append) APPEND=1; shift ;;
     *) die "unknown option $1" ;;
   esac
 done
-if [ -e "$OUT" ]; then
-  [ "$FORCE" = 1 ] || die "$OUT exists (use --force to replace it)"
+if [ "$APPEND" = 1 ]; then
+  [ "$FORCE" = 0 ] || die "--append and --force exclude each other"
+  [ -f "$OUT/index.json" ] || die "--append: $OUT holds no dataset (no index.json)"
+elif [ -e "$OUT" ]; then
+  [ "$FORCE" = 1 ] || die "$OUT exists (use --force to replace it, --append to add to it)"
   rm -rf "$OUT"
 fi
 
