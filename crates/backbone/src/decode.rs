@@ -13,6 +13,8 @@ pub struct OarCache<B: Backend> {
     pub(crate) layers: Vec<Option<(Tensor<B, 4>, Tensor<B, 4>)>>,
     len: usize,
     capacity: usize,
+    /// `0..capacity` as `[1, 1, 1, capacity]`, uploaded once: each step's mask is a comparison with it.
+    keys: Option<Tensor<B, 4>>,
 }
 
 impl<B: Backend> OarCache<B> {
@@ -22,6 +24,7 @@ impl<B: Backend> OarCache<B> {
             layers: vec![None; layers],
             len: 0,
             capacity,
+            keys: None,
         }
     }
 
@@ -41,8 +44,8 @@ impl<B: Backend> OarCache<B> {
     }
 
     /// Takes the next position: its index and the additive mask `[1, 1, 1, capacity]` of the keys it
-    /// may not see (0 up to it, −1e30 after, so that no −∞ meets a zero and makes a NaN). Built on the
-    /// device from a comparison with a scalar: nothing is uploaded per step.
+    /// may not see (0 up to it, −1e30 after, so that no −∞ meets a zero and makes a NaN): a comparison of
+    /// the key positions, uploaded once, with a scalar, so nothing is uploaded per step.
     pub(crate) fn advance(&mut self, dev: &B::Device) -> Result<(usize, Tensor<B, 4>), BackboneError> {
         let pos = self.len;
         if pos >= self.capacity {
@@ -52,12 +55,13 @@ impl<B: Backend> OarCache<B> {
             )));
         }
         self.len += 1;
-        let keys = Tensor::<B, 1, Int>::arange(0..self.capacity as i64, dev);
-        let hidden =
-            keys.greater_elem(pos as i64)
+        let capacity = self.capacity;
+        let keys = self.keys.get_or_insert_with(|| {
+            Tensor::<B, 1, Int>::arange(0..capacity as i64, dev)
                 .float()
-                .mul_scalar(-1e30)
-                .reshape([1, 1, 1, self.capacity]);
+                .reshape([1, 1, 1, capacity])
+        });
+        let hidden = keys.clone().greater_elem(pos as f64).float().mul_scalar(-1e30);
         Ok((pos, hidden))
     }
 }
