@@ -4,21 +4,52 @@ use crate::cli::EvalArgs;
 use anyhow::Context;
 use std::fmt::Write as _;
 use umgen::data::Dataset;
-use umgen::modality::ModalityRegistry;
+use umgen::modality::{Modality, ModalityRegistry};
+use umgen::modality_agent::{ATTRIBUTES, KIND, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{agent_l2, constant_velocity_agents, constant_velocity_ego, ego_l2, positions};
 use umgen_eval::mmd::{Group, mmd};
 
-/// Decoded agents (slot ids as track ids, binned values) of every row.
-fn decode_rows(registry: &ModalityRegistry, rows: &[Vec<u32>]) -> anyhow::Result<Vec<Vec<Agent>>> {
-    rows.iter()
-        .map(|r| {
+/// The model's agent modality and its slot count; `None` when the layout has none.
+fn agent_modality(registry: &ModalityRegistry) -> anyhow::Result<Option<(&dyn Modality, usize)>> {
+    let layout = registry.layout()?;
+    let found = registry
+        .modalities()
+        .iter()
+        .zip(layout.segments())
+        .find(|(_, seg)| seg.kind == KIND);
+    Ok(found.map(|(m, seg)| (m.as_ref(), seg.tokens / ATTRIBUTES)))
+}
+
+/// Agents of every frame of `clip` as the model's agent tokens decode them (slot ids as track ids, binned
+/// values). Only the agent modality runs: the map and image tokenizers are not needed here, and on a CPU
+/// their encoders take seconds per frame.
+fn decoded_agents(agent: &dyn Modality, clip: &SceneClip) -> anyhow::Result<Vec<Vec<Agent>>> {
+    agent
+        .tokenize_clip(clip)?
+        .iter()
+        .map(|ids| {
             let mut f = Frame::default();
-            registry.detokenize(r, &mut f)?;
+            agent.detokenize(ids, &mut f)?;
             Ok(f.agents)
         })
         .collect()
+}
+
+/// `clip` with only the tracks that the slot plan of its first `n` frames keeps, in every frame. Generation
+/// tokenized those `n` context frames alone, so their slots are the generated scene's; tokenizing the
+/// whole clip instead would give tracks first seen after the context slots of their own (which the model's
+/// new agents would then be compared with) and, in crowded clips, keep other tracks.
+fn context_tracks_only(clip: &SceneClip, n: usize, slots: usize) -> anyhow::Result<SceneClip> {
+    let mut context = clip.clone();
+    context.frames.truncate(n);
+    let plan = SlotPlan::new(&context, slots)?;
+    let mut out = clip.clone();
+    for f in &mut out.frames {
+        f.agents.retain(|a| plan.slot(a.track_id).is_some());
+    }
+    Ok(out)
 }
 
 /// MMD per attribute group between two agent sets.
@@ -44,7 +75,10 @@ struct Truth {
     last_agents: Vec<Agent>,
     /// Real ego poses of the following frames.
     poses: Vec<umgen::scene::EgoPose>,
-    /// Real agents (decoded like `last_agents`) of the following frames.
+    /// Real agents of the following frames, decoded like `last_agents`: the context's tracks in the
+    /// context's slots, for position errors.
+    tracked: Vec<Vec<Agent>>,
+    /// Every real agent of the following frames (decoded), for MMD.
     agents: Vec<Vec<Agent>>,
     /// Constant-velocity ego error at each following frame.
     cv_ego: Vec<f64>,
@@ -67,15 +101,25 @@ fn ground_truth(
         "clip `{clip_id}` has no ground truth after its {n} context frames"
     );
     let gt = ds.read_window(idx, 0, n + k, 1)?;
-    let mut decoded = decode_rows(registry, &registry.tokenize_clip(&gt)?)?;
-    let agents = decoded.split_off(n);
+    let (mut tracked, agents) = match agent_modality(registry)? {
+        Some((m, slots)) => {
+            let mut all = decoded_agents(m, &gt)?;
+            (
+                decoded_agents(m, &context_tracks_only(&gt, n, slots)?)?,
+                all.split_off(n),
+            )
+        }
+        None => (vec![Vec::new(); n + k], vec![Vec::new(); k]),
+    };
+    let future = tracked.split_off(n);
     let last = gt.frames[n - 1].clone();
     let poses: Vec<_> = gt.frames[n..n + k].iter().map(|f| f.ego).collect();
     let cv_ego = ego_l2(&constant_velocity_ego(&last.ego, &last.action, dt, k), &poses);
     Ok(Truth {
-        last_agents: decoded.pop().unwrap_or_default(),
+        last_agents: tracked.pop().unwrap_or_default(),
         last,
         poses,
+        tracked: future,
         agents,
         cv_ego,
     })
@@ -149,7 +193,7 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                 (vec![], vec![], vec![], vec![]);
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
             for (c, t) in truths.iter().enumerate() {
-                let true_pos = positions(&t.poses[h - 1], &t.agents[h - 1]);
+                let true_pos = positions(&t.poses[h - 1], &t.tracked[h - 1]);
                 for s in &scenes[c * per..(c + 1) * per] {
                     let f = &s.frames[h - 1];
                     model_ego.push(ego_l2(&[f.ego], &[t.poses[h - 1]])[0]);
@@ -233,4 +277,78 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         if l2_rows.is_empty() { "" } else { ", l2.png" }
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use umgen::scene::AgentCategory;
+
+    fn at(track_id: u64, x: f64) -> Agent {
+        Agent {
+            track_id,
+            category: AgentCategory::Vehicle,
+            x,
+            y: 0.0,
+            z: 0.0,
+            vx: 0.0,
+            vy: 0.0,
+            vz: 0.0,
+            heading: 0.0,
+            length: 4.0,
+            width: 2.0,
+            height: 1.5,
+        }
+    }
+
+    fn clip(frames: Vec<Vec<Agent>>) -> SceneClip {
+        let frames = frames
+            .into_iter()
+            .enumerate()
+            .map(|(t, agents)| Frame {
+                time: 0.5 * t as f64,
+                agents,
+                ..Frame::default()
+            })
+            .collect();
+        SceneClip::new("c", 0.5, frames).unwrap()
+    }
+
+    fn tracks(c: &SceneClip) -> Vec<Vec<u64>> {
+        c.frames
+            .iter()
+            .map(|f| f.agents.iter().map(|a| a.track_id).collect())
+            .collect()
+    }
+
+    #[test]
+    fn ground_truth_keeps_the_context_tracks_in_their_slots() {
+        // Two context frames with tracks 7 (20 m) and 3 (10 m); track 9 appears after the context; track 7
+        // comes to 1 m after it.
+        let gt = clip(vec![
+            vec![at(7, 20.0), at(3, 10.0)],
+            vec![at(7, 20.0), at(3, 10.0)],
+            vec![at(7, 1.0), at(3, 10.0), at(9, 5.0)],
+        ]);
+        // The new track goes: the model's new agents have no real identity to be compared with.
+        assert_eq!(tracks(&context_tracks_only(&gt, 2, 4).unwrap())[2], vec![7, 3]);
+        // One slot: the context keeps track 3 (nearest in the context), the whole clip would keep track 7
+        // (nearest over all frames). The context's choice holds in every frame.
+        let one = context_tracks_only(&gt, 2, 1).unwrap();
+        assert_eq!(tracks(&one), vec![vec![3], vec![3], vec![3]]);
+        assert_eq!(SlotPlan::new(&gt, 1).unwrap().slot(7), Some(0));
+        // Tokenized alone, the restricted clip gives the context's slots.
+        let context = SceneClip::new("c", 0.5, gt.frames[..2].to_vec()).unwrap();
+        let (plan, whole) = (
+            SlotPlan::new(&context, 4).unwrap(),
+            SlotPlan::new(&gt, 4).unwrap(),
+        );
+        let kept = SlotPlan::new(&context_tracks_only(&gt, 2, 4).unwrap(), 4).unwrap();
+        for track in [7, 3] {
+            assert_eq!(kept.slot(track), plan.slot(track));
+            assert_eq!(whole.slot(track), plan.slot(track));
+        }
+        assert_eq!((kept.slot(9), whole.slot(9)), (None, Some(2)));
+    }
 }
