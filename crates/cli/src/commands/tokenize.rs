@@ -8,28 +8,19 @@ use umgen::{UmgenConfig, builtin_catalog_with, tokenize_dataset};
 /// Tokenizes the dataset.
 pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
-    // One registry (tokenizers loaded once) per device.
-    let registries = a
+    let devices = a
         .device
         .split(',')
-        .map(|d| {
-            let loader = Device::parse(d.trim())?.codec_loader();
-            Ok(config.registry(&builtin_catalog_with(loader)?)?)
-        })
+        .map(|d| Device::parse(d.trim()))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    // One registry (tokenizers loaded once) per device.
+    let registries = devices
+        .iter()
+        .map(|d| Ok(config.registry(&builtin_catalog_with(d.codec_loader())?)?))
         .collect::<anyhow::Result<Vec<_>>>()?;
     let registry = &registries[0];
     let data = Dataset::open(&a.data)?;
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let gpus = a
-        .device
-        .split(',')
-        .filter(|d| d.trim().starts_with("cuda"))
-        .count();
-    // Each thread encodes on its own device stream with its own memory pool: 16 threads per H200 (64 cores,
-    // 4 GPUs) ran out of device memory; 2 per GPU tokenized 388 frames/s on 4 H200s.
-    let threads = a
-        .threads
-        .unwrap_or(if gpus > 0 { cores.min(2 * gpus) } else { cores });
+    let threads = a.threads.unwrap_or_else(|| default_threads(&devices));
     let started = std::time::Instant::now();
     let report = with_progress(&registries, &data, &a.out, a.split.as_deref(), threads)?;
     tracing::info!(
@@ -43,6 +34,15 @@ pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
         registry.layout()?.len()
     );
     Ok(())
+}
+
+/// Tokenizing threads unless told: one per core on the CPU, at most 2 per GPU. Each thread encodes on its
+/// own device stream with its own memory pool: 16 threads per H200 (64 cores, 4 GPUs) ran out of device
+/// memory; 2 per GPU tokenized 388 frames/s on 4 H200s.
+pub fn default_threads(devices: &[Device]) -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let gpus = devices.iter().filter(|d| matches!(d, Device::Cuda(_))).count();
+    if gpus > 0 { cores.min(2 * gpus) } else { cores }
 }
 
 /// [`tokenize_dataset`] under a progress bar of clips.

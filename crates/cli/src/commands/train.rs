@@ -40,7 +40,7 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
     } else if let Some(data_dir) = &tc.data {
         // Tokenize what is missing; finished shards are skipped.
         let data = Dataset::open(data_dir)?;
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let threads = super::tokenize::default_threads(&[device]);
         let r = super::tokenize::with_progress(
             std::slice::from_ref(&registry),
             &data,
