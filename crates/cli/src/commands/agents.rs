@@ -4,7 +4,7 @@
 use anyhow::Context;
 use umgen::Bundle;
 use umgen::generate::{Control, GroupBoxes, TokenGroups};
-use umgen::modality::{ModalityRegistry, ScalarBins};
+use umgen::modality::{Modality, ModalityRegistry, ScalarBins, Segment};
 use umgen::modality_agent::{ATTRIBUTES, AgentConfig, VALUE_FIELDS};
 use umgen::scene::AgentCategory;
 
@@ -21,15 +21,21 @@ pub struct AgentSlots {
     bins: Vec<ScalarBins>,
 }
 
+/// The registry's agent modality and its segment of the frame layout; `None` when the layout has none.
+pub fn agent_modality(registry: &ModalityRegistry) -> anyhow::Result<Option<(&dyn Modality, &Segment)>> {
+    let layout = registry.layout()?;
+    let found = registry
+        .modalities()
+        .iter()
+        .zip(layout.segments())
+        .find(|(_, seg)| seg.kind == umgen::modality_agent::KIND);
+    Ok(found.map(|(m, seg)| (m.as_ref(), seg)))
+}
+
 impl AgentSlots {
     /// The model's agent modality (`None` without one), from the bundle's config.
     pub fn of(bundle: &Bundle, registry: &ModalityRegistry) -> anyhow::Result<Option<Self>> {
-        let layout = registry.layout()?;
-        let Some(seg) = layout
-            .segments()
-            .iter()
-            .find(|s| s.kind == umgen::modality_agent::KIND)
-        else {
+        let Some((_, seg)) = agent_modality(registry)? else {
             return Ok(None);
         };
         let table = bundle

@@ -1,26 +1,16 @@
 //! `umgen eval`: the paper's measures on the output of `umgen generate` (docs/results.md explains them).
 
+use super::agents::agent_modality;
 use crate::cli::EvalArgs;
 use anyhow::Context;
 use std::fmt::Write as _;
 use umgen::data::Dataset;
 use umgen::modality::{Modality, ModalityRegistry};
-use umgen::modality_agent::{ATTRIBUTES, KIND, SlotPlan};
+use umgen::modality_agent::{ATTRIBUTES, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{agent_l2, constant_velocity_agents, constant_velocity_ego, ego_l2, positions};
 use umgen_eval::mmd::{Group, mmd};
-
-/// The model's agent modality and its slot count; `None` when the layout has none.
-fn agent_modality(registry: &ModalityRegistry) -> anyhow::Result<Option<(&dyn Modality, usize)>> {
-    let layout = registry.layout()?;
-    let found = registry
-        .modalities()
-        .iter()
-        .zip(layout.segments())
-        .find(|(_, seg)| seg.kind == KIND);
-    Ok(found.map(|(m, seg)| (m.as_ref(), seg.tokens / ATTRIBUTES)))
-}
 
 /// Agents of every frame of `clip` as the model's agent tokens decode them (slot ids as track ids, binned
 /// values). Only the agent modality runs: the map and image tokenizers are not needed here, and on a CPU
@@ -102,7 +92,8 @@ fn ground_truth(
     );
     let gt = ds.read_window(idx, 0, n + k, 1)?;
     let (mut tracked, agents) = match agent_modality(registry)? {
-        Some((m, slots)) => {
+        Some((m, seg)) => {
+            let slots = seg.tokens / ATTRIBUTES;
             let mut all = decoded_agents(m, &gt)?;
             (
                 decoded_agents(m, &context_tracks_only(&gt, n, slots)?)?,
@@ -144,7 +135,7 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     // The real data's collision rate over a sample of the split (raw agents).
     let mut real_frames: Vec<Vec<Agent>> = Vec::new();
     let mut initial: Vec<Agent> = Vec::new();
-    for (i, c) in ds.clips().iter().enumerate().filter(|(_, c)| c.split == a.split) {
+    for i in (0..ds.clips().len()).filter(|&i| ds.clips()[i].split == a.split) {
         let clip = ds.read_clip(i)?;
         initial.extend(clip.frames.first().map(|f| f.agents.clone()).unwrap_or_default());
         real_frames.extend(
@@ -153,7 +144,6 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                 .step_by(a.stride.max(1))
                 .map(|f| f.agents.clone()),
         );
-        let _ = c;
     }
     let generated_frames: Vec<&[Agent]> = scenes
         .iter()
