@@ -67,6 +67,32 @@ macro_rules! with_autodiff {
     };
 }
 
+/// Runs `$body` with `$B` bound to the inference backend of `$device` and `$dev` to its burn device. On CUDA
+/// that is the plain cubecl backend, without burn's fusion: fusion keeps an execution plan per sequence of
+/// operations it has seen, with the operations that followed each one as triggers, and token-by-token decoding
+/// (a slice at a new position every step) grows those lists without end, so its host thread spent minutes
+/// matching plans while the GPU sat idle (`docs/perf-notes.md`, sixth session). Plain kernels launch at once.
+#[macro_export]
+macro_rules! with_inference {
+    ($device:expr, |$B:ident, $dev:ident| $body:block) => {
+        match $device {
+            $crate::device::Device::Cpu => {
+                type $B = burn::backend::Flex;
+                let $dev: burn::backend::flex::FlexDevice = Default::default();
+                $body
+            }
+            #[cfg(feature = "cuda")]
+            $crate::device::Device::Cuda(i) => {
+                type $B = burn_cubecl::CubeBackend<burn::cubecl::cuda::CudaRuntime, f32, i32, u8>;
+                let $dev = burn::backend::cuda::CudaDevice::new(i);
+                $body
+            }
+            #[cfg(not(feature = "cuda"))]
+            $crate::device::Device::Cuda(_) => anyhow::bail!("built without CUDA"),
+        }
+    };
+}
+
 /// A reading of the device's memory pool, in bytes (zeros on the CPU or when unknown).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Memory {

@@ -3,7 +3,7 @@
 
 use crate::cli::BenchGenerateArgs;
 use crate::device::{Device, memory_in_use};
-use burn::tensor::backend::{AutodiffBackend, Backend};
+use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Tensor};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
@@ -65,8 +65,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             cfg.max_frames
         );
     }
-    let rows = crate::with_autodiff!(device, |B, dev| {
-        type I = <B as AutodiffBackend>::InnerBackend;
+    let rows = crate::with_inference!(device, |I, dev| {
         let sync = || <I as Backend>::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         <I as Backend>::seed(&dev, 0);
         let model = Backbone::<I>::new(cfg, &spec, &dev)?;
@@ -86,8 +85,10 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             let h = history(&spec, &slots, a.batch, t);
             let mut g = Generator::new(&model, sampling.clone(), t, 0)?.draw_on_device(on_gpu);
             // The first frame compiles kernels (CUDA) and warms caches.
+            let t0 = Instant::now();
             g.next_frame(&h, &FrameControl::default())?;
             sync()?;
+            tracing::info!("T = {t}: first frame (compiles kernels) {:.1} s", t0.elapsed().as_secs_f64());
             // The median of a few frames: single frames of a small model are noisy on a shared CPU.
             let mut times = Vec::new();
             for _ in 0..5 {
@@ -99,6 +100,8 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             times.sort_by(f64::total_cmp);
             let ours_ms = times[times.len() / 2];
             let ours_peak = memory_in_use(device);
+            // Logged as measured, so that a run cut short still tells what it got.
+            tracing::info!("T = {t}: TAR/OAR {ours_ms:.3} ms/token");
             // The vanilla model decodes frame t + 1 after t·N cached tokens.
             let mut rng = StdRng::seed_from_u64(3);
             let step = |cache: &mut _, rng: &mut StdRng| -> anyhow::Result<()> {
@@ -130,6 +133,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             times.sort_by(f64::total_cmp);
             let vanilla_ms = times[times.len() / 2];
             let vanilla_peak = memory_in_use(device);
+            tracing::info!("T = {t}: vanilla AR {vanilla_ms:.3} ms/token");
             let vanilla_cache = (depth * 2 * a.batch * (t * n + a.tokens) * cfg.d_model * 4) as u64;
             rows.push(Row {
                 t,

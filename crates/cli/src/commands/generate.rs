@@ -4,7 +4,6 @@
 use crate::cli::GenerateArgs;
 use crate::device::Device;
 use anyhow::Context;
-use burn::tensor::backend::AutodiffBackend;
 use std::path::Path;
 use umgen::backbone::Backbone;
 use umgen::checkpoint::burn_io::weights_from_bytes;
@@ -46,8 +45,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
     let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
     let started = std::time::Instant::now();
-    let scenes = crate::with_autodiff!(device, |B, dev| {
-        type I = <B as AutodiffBackend>::InnerBackend;
+    let scenes = crate::with_inference!(device, |I, dev| {
         let model = Backbone::<I>::new(&bundle.config.backbone, &spec, &dev)?;
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
         let mut g = Generator::new(&model, vec![sampling; spec.segments.len()], window, a.seed)?
@@ -81,11 +79,21 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
                 keep,
                 groups: groups.clone(),
             };
+            let frame_start = std::time::Instant::now();
             let next = g.next_frame(&history, &fc)?;
             for (h, f) in history.iter_mut().zip(next) {
                 h.push(f);
             }
             bar.inc(1);
+            // Without a terminal the bar is hidden; a line per frame tells a log reader how far it got.
+            if bar.is_hidden() {
+                tracing::info!(
+                    "frame {}/{}: {:.2} s",
+                    k + 1,
+                    a.frames,
+                    frame_start.elapsed().as_secs_f64()
+                );
+            }
         }
         bar.finish_and_clear();
         history
