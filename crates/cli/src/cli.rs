@@ -114,6 +114,10 @@ pub struct GenerateArgs {
     /// memory, the frames drawn do not depend on it).
     #[arg(long, value_name = "FRAMES", default_value_t = umgen::generate::DEFAULT_PASS_FRAMES)]
     pub pass_frames: usize,
+    /// Stop generating after this many minutes (the frame under way is finished) and write the frames
+    /// made so far, for machines lent for a fixed time.
+    #[arg(long, value_name = "MINUTES", value_parser = tokenizer::positive_minutes)]
+    pub time_limit: Option<f64>,
     /// Keep the k most likely ids (0 = all), every modality.
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,

@@ -330,6 +330,31 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         std::fs::read(g3.join("tokens.json")).unwrap()
     );
 
+    // A time limit that has passed after the first frame: that frame is written, and the metadata says 1.
+    let cut = fx.dir.path().join("gen-cut");
+    let out = umgen(&[
+        "generate",
+        "--bundle",
+        bf16_dir.to_str().unwrap(),
+        "--from-scratch",
+        "--frames",
+        "3",
+        "--time-limit",
+        "0.000001",
+        "--out",
+        cut.to_str().unwrap(),
+    ]);
+    let log = ok(out);
+    assert!(log.contains("1 of 3 frame(s) generated"), "{log}");
+    assert_eq!(json(cut.join("meta.json"))["frames"], 1);
+    assert_eq!(
+        json(cut.join("tokens.json"))["scenes"][0]
+            .as_array()
+            .unwrap()
+            .len(),
+        1
+    );
+
     // A missing or replaced file is refused, naming it; so is an existing output directory.
     std::fs::remove_file(bf16_dir.join("tokenizers/image/vq.json")).unwrap();
     let e = umgen::Bundle::open(&bf16_dir).unwrap_err().to_string();

@@ -88,7 +88,10 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             let t0 = Instant::now();
             g.next_frame(&h, &FrameControl::default())?;
             sync()?;
-            tracing::info!("T = {t}: first frame (compiles kernels) {:.1} s", t0.elapsed().as_secs_f64());
+            tracing::info!(
+                "T = {t}: first frame (compiles kernels) {:.1} s",
+                t0.elapsed().as_secs_f64()
+            );
             // The median of a few frames: single frames of a small model are noisy on a shared CPU.
             let mut times = Vec::new();
             for _ in 0..5 {

@@ -55,7 +55,15 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
             .collect();
         let bar = crate::progress::bar(a.frames as u64, "frames")?;
+        let limit = crate::progress::TimeLimit::minutes(a.time_limit);
         for k in 0..a.frames {
+            if k > 0 && limit.reached(&bar, k as u64) {
+                tracing::warn!(
+                    "time limit: {k} of {} frame(s) generated; writing those",
+                    a.frames
+                );
+                break;
+            }
             let forced = bins.and_then(|b| control.action_at(k, &b));
             if let Some((_, clamped)) = &forced
                 && *clamped > 0
@@ -99,16 +107,17 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         history
     });
     let elapsed = started.elapsed().as_secs_f64();
-    let tokens = (a.frames * total * spec.n) as f64;
+    let n_context = context_rows.first().map_or(0, Vec::len);
+    // Fewer than --frames when --time-limit stopped the rollout.
+    let frames = scenes.first().map_or(0, |s| s.len() - n_context);
+    let tokens = (frames * total * spec.n) as f64;
     tracing::info!(
-        "generated {} frame(s) × {} scene(s) in {elapsed:.1} s ({:.0} tokens/s, {:.2} frames/s)",
-        a.frames,
+        "generated {frames} frame(s) × {} scene(s) in {elapsed:.1} s ({:.0} tokens/s, {:.2} frames/s)",
         total,
         tokens / elapsed,
-        (a.frames * total) as f64 / elapsed
+        (frames * total) as f64 / elapsed
     );
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let n_context = context_rows.first().map_or(0, Vec::len);
     let context_index: Vec<Option<usize>> = (0..total).map(context_of).collect();
     std::fs::write(
         a.out.join("tokens.json"),
@@ -150,7 +159,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         serde_json::to_vec_pretty(&serde_json::json!({
             "bundle": std::fs::canonicalize(&a.bundle).unwrap_or_else(|_| a.bundle.clone()),
             "contexts": context_meta,
-            "frames": a.frames,
+            "frames": frames,
             "scenes": total,
             "scenes_per_context": a.scenes,
             "seed": a.seed,
@@ -168,7 +177,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         "{}: tokens.json, scenes.json, dataset/, rollout.gif ({} context + {} generated frames)",
         a.out.display(),
         n_context,
-        a.frames
+        frames
     );
     Ok(())
 }
