@@ -121,6 +121,10 @@ pub struct GenerateArgs {
     /// Keep the k most likely ids (0 = all), every modality.
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,
+    /// Top-k of one modality instead of `--top-k` (repeatable), e.g. `--top-k-of agent=5`; the authors'
+    /// evaluation uses `ego=5`, `map=5`, `agent=5` and 16 for the image.
+    #[arg(long = "top-k-of", value_name = "MODALITY=K", value_parser = modality_top_k)]
+    pub top_k_of: Vec<(String, usize)>,
     /// Nucleus mass (1 = off), every modality.
     #[arg(long, default_value_t = 1.0)]
     pub top_p: f64,
@@ -318,4 +322,15 @@ pub struct LayoutArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+/// `MODALITY=K` of `--top-k-of`.
+fn modality_top_k(s: &str) -> Result<(String, usize), String> {
+    match s.split_once('=') {
+        Some((name, k)) if !name.is_empty() => k
+            .parse()
+            .map(|k| (name.to_string(), k))
+            .map_err(|_| format!("`{s}`: K must be a whole number (0 = all ids)")),
+        _ => Err(format!("`{s}`: expected MODALITY=K, e.g. agent=5")),
+    }
 }

@@ -341,12 +341,30 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         "3",
         "--time-limit",
         "0.000001",
+        "--top-k-of",
+        "agent=5",
         "--out",
         cut.to_str().unwrap(),
     ]);
     let log = ok(out);
     assert!(log.contains("1 of 3 frame(s) generated"), "{log}");
-    assert_eq!(json(cut.join("meta.json"))["frames"], 1);
+    let meta = json(cut.join("meta.json"));
+    assert_eq!(meta["frames"], 1);
+    // Per-modality top-k is recorded; an unknown modality is refused by name.
+    assert_eq!(meta["sampling"]["agent"]["top_k"], 5);
+    assert_eq!(meta["sampling"]["map"]["top_k"], 16);
+    let out = umgen(&[
+        "generate",
+        "--bundle",
+        bf16_dir.to_str().unwrap(),
+        "--from-scratch",
+        "--top-k-of",
+        "lidar=5",
+        "--out",
+        fx.dir.path().join("gen-bad").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("`lidar`"), "{err}");
     assert_eq!(
         json(cut.join("tokens.json"))["scenes"][0]
             .as_array()

@@ -39,6 +39,23 @@ impl Sampling {
         }
     }
 
+    /// One sampling per segment (`labels`, in frame order): `self`, with the top-k of the segments named in
+    /// `top_k` replaced (the authors' evaluation draws ego, map and agents from their top 5, the image
+    /// from its top 16). A name that is not a segment is refused, naming the segments there are.
+    pub fn per_segment(self, top_k: &[(String, usize)], labels: &[&str]) -> Result<Vec<Self>> {
+        let mut out = vec![self; labels.len()];
+        for (name, k) in top_k {
+            let i = labels.iter().position(|l| l == name).ok_or_else(|| {
+                GenerateError::Settings(format!(
+                    "top-k for `{name}`: this model has no such modality (it has {})",
+                    labels.join(", ")
+                ))
+            })?;
+            out[i].top_k = *k;
+        }
+        Ok(out)
+    }
+
     /// Refuses settings that cannot sample; `what` names them in the error (e.g. `sampling.map`).
     pub fn validate(&self, what: &str) -> Result<()> {
         if !(self.temperature > 0.0 && self.temperature.is_finite()) {
@@ -171,6 +188,29 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use rand::{SeedableRng, rngs::StdRng};
+
+    #[test]
+    fn per_segment_top_k_replaces_named_segments_and_refuses_unknown_ones() {
+        let labels = ["ego", "map", "agent", "image"];
+        let base = Sampling::default();
+        let got = base
+            .per_segment(&[("map".into(), 5), ("agent".into(), 5)], &labels)
+            .unwrap();
+        let ks: Vec<usize> = got.iter().map(|s| s.top_k).collect();
+        assert_eq!(ks, [16, 5, 5, 16]);
+        assert!(
+            got.iter()
+                .all(|s| s.temperature == base.temperature && s.top_p == base.top_p)
+        );
+        let e = base
+            .per_segment(&[("lidar".into(), 5)], &labels)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("`lidar`") && e.contains("ego, map, agent, image"),
+            "{e}"
+        );
+    }
 
     fn counts(s: Sampling, logits: &[f32], draws: usize) -> Vec<usize> {
         let mut rng = StdRng::seed_from_u64(1);

@@ -41,6 +41,14 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         top_p: a.top_p,
         temperature: a.temperature,
     };
+    let labels: Vec<&str> = spec.segments.iter().map(|s| s.label.as_str()).collect();
+    let samplings = sampling.per_segment(&a.top_k_of, &labels)?;
+    // Recorded in meta.json: what each modality was drawn with.
+    let sampling_meta: serde_json::Map<String, serde_json::Value> = labels
+        .iter()
+        .zip(&samplings)
+        .map(|(l, s)| Ok((l.to_string(), serde_json::to_value(s)?)))
+        .collect::<Result<_, serde_json::Error>>()?;
     let bins = spec.action.as_ref().map(|x| x.bins);
     let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
     let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
@@ -48,7 +56,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let scenes = crate::with_inference!(device, |I, dev| {
         let model = Backbone::<I>::new(&bundle.config.backbone, &spec, &dev)?;
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
-        let mut g = Generator::new(&model, vec![sampling; spec.segments.len()], window, a.seed)?
+        let mut g = Generator::new(&model, samplings, window, a.seed)?
             .draw_on_device(matches!(device, Device::Cuda(_)))
             .pass_frames(a.pass_frames);
         let mut history: Vec<Vec<Vec<u32>>> = (0..total)
@@ -163,6 +171,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             "scenes": total,
             "scenes_per_context": a.scenes,
             "seed": a.seed,
+            "sampling": sampling_meta,
             "interval": interval,
         }))?,
     )?;
