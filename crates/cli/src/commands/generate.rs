@@ -117,7 +117,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let elapsed = started.elapsed().as_secs_f64();
     let n_context = context_rows.first().map_or(0, Vec::len);
     // Fewer than --frames when --time-limit stopped the rollout.
-    let frames = scenes.first().map_or(0, |s| s.len() - n_context);
+    let frames = scenes.first().map_or(0, |s| s.len().saturating_sub(n_context));
     let tokens = (frames * total * spec.n) as f64;
     tracing::info!(
         "generated {frames} frame(s) × {} scene(s) in {elapsed:.1} s ({:.0} tokens/s, {:.2} frames/s)",
