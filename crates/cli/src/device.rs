@@ -45,25 +45,39 @@ impl Device {
     }
 }
 
-/// Runs `$body` with `$B` bound to the autodiff backend of `$device` and `$dev` to its burn device.
+/// Runs `$body` with `$B` bound to `$cpu` or `$cuda` (as `$device` says) and `$dev` to its burn device;
+/// `with_autodiff!` and `with_inference!` name the backends.
 #[macro_export]
-macro_rules! with_autodiff {
-    ($device:expr, |$B:ident, $dev:ident| $body:block) => {
+macro_rules! with_backend {
+    ($device:expr, $cpu:ty, $cuda:ty, |$B:ident, $dev:ident| $body:block) => {
         match $device {
             $crate::device::Device::Cpu => {
-                type $B = burn::backend::Autodiff<burn::backend::Flex>;
+                type $B = $cpu;
                 let $dev: burn::backend::flex::FlexDevice = Default::default();
                 $body
             }
             #[cfg(feature = "cuda")]
             $crate::device::Device::Cuda(i) => {
-                type $B = burn::backend::Autodiff<burn::backend::Cuda>;
+                type $B = $cuda;
                 let $dev = burn::backend::cuda::CudaDevice::new(i);
                 $body
             }
             #[cfg(not(feature = "cuda"))]
             $crate::device::Device::Cuda(_) => anyhow::bail!("built without CUDA"),
         }
+    };
+}
+
+/// Runs `$body` with `$B` bound to the autodiff backend of `$device` and `$dev` to its burn device.
+#[macro_export]
+macro_rules! with_autodiff {
+    ($device:expr, |$B:ident, $dev:ident| $body:block) => {
+        $crate::with_backend!(
+            $device,
+            burn::backend::Autodiff<burn::backend::Flex>,
+            burn::backend::Autodiff<burn::backend::Cuda>,
+            |$B, $dev| $body
+        )
     };
 }
 
@@ -75,21 +89,12 @@ macro_rules! with_autodiff {
 #[macro_export]
 macro_rules! with_inference {
     ($device:expr, |$B:ident, $dev:ident| $body:block) => {
-        match $device {
-            $crate::device::Device::Cpu => {
-                type $B = burn::backend::Flex;
-                let $dev: burn::backend::flex::FlexDevice = Default::default();
-                $body
-            }
-            #[cfg(feature = "cuda")]
-            $crate::device::Device::Cuda(i) => {
-                type $B = burn_cubecl::CubeBackend<burn::cubecl::cuda::CudaRuntime, f32, i32, u8>;
-                let $dev = burn::backend::cuda::CudaDevice::new(i);
-                $body
-            }
-            #[cfg(not(feature = "cuda"))]
-            $crate::device::Device::Cuda(_) => anyhow::bail!("built without CUDA"),
-        }
+        $crate::with_backend!(
+            $device,
+            burn::backend::Flex,
+            burn_cubecl::CubeBackend<burn::cubecl::cuda::CudaRuntime, f32, i32, u8>,
+            |$B, $dev| $body
+        )
     };
 }
 
