@@ -42,5 +42,5 @@ pub use embed::FrameEmbedding;
 pub use error::{BackboneError, Result};
 pub use heads::Heads;
 pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
-pub use model::{Backbone, Losses, TarBlock};
+pub use model::{Backbone, LossOptions, Losses, TarBlock};
 pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec};

@@ -44,6 +44,16 @@ pub struct Losses<B: Backend> {
     pub parts: Vec<(String, Tensor<B, 1>)>,
 }
 
+/// Options of [`Backbone::loss_with`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LossOptions {
+    /// Weight of the ego-action cross-entropy.
+    pub ego_weight: f64,
+    /// Probability that a predicted frame's OAR is trained without its TAR prior, which is how
+    /// `umgen generate --from-scratch` runs it (0 = never).
+    pub prior_drop: f64,
+}
+
 /// The TAR/OAR backbone.
 #[derive(Module, Debug)]
 pub struct Backbone<B: Backend> {
@@ -238,6 +248,26 @@ impl<B: Backend> Backbone<B> {
     /// The teacher-forced training loss of windows `[b, t + 1, N]`: frames `0..t` condition, frame
     /// `i + 1` is the target of frame `i`, all `t` predictions at once.
     pub fn loss(&self, tokens: Tensor<B, 3, Int>, ego_weight: f64) -> Result<Losses<B>> {
+        self.loss_with(
+            tokens,
+            LossOptions {
+                ego_weight,
+                prior_drop: 0.0,
+            },
+        )
+    }
+
+    /// [`Backbone::loss`] with every option: with `prior_drop` > 0, each predicted frame's OAR input
+    /// goes without its TAR prior (zeros, as in initial-scene generation) with that probability, drawn on
+    /// the device from the backend's seed. The TAR's own loss always sees its output.
+    pub fn loss_with(&self, tokens: Tensor<B, 3, Int>, opts: LossOptions) -> Result<Losses<B>> {
+        let ego_weight = opts.ego_weight;
+        if !(0.0..=1.0).contains(&opts.prior_drop) {
+            return Err(BackboneError::Input(format!(
+                "prior_drop {} is not a probability",
+                opts.prior_drop
+            )));
+        }
         let [b, f, n] = tokens.dims();
         if f < 2 || n != self.spec.n {
             return Err(BackboneError::Input(format!(
@@ -255,7 +285,18 @@ impl<B: Backend> Backbone<B> {
         });
         let h = self.tar(e.clone(), e_next.clone(), next_action.clone());
         let d = h.dims()[3];
-        let o = self.oar(self.oar_input(e_next.reshape([b * t, n, d]), h.clone().reshape([b * t, n, d])));
+        let prior = h.clone().reshape([b * t, n, d]);
+        let prior = if opts.prior_drop > 0.0 {
+            let keep = Tensor::<B, 3>::random(
+                [b * t, 1, 1],
+                Distribution::Bernoulli(1.0 - opts.prior_drop),
+                &prior.device(),
+            );
+            prior * keep
+        } else {
+            prior
+        };
+        let o = self.oar(self.oar_input(e_next.reshape([b * t, n, d]), prior));
         let flat_target = target.reshape([b * t, n]);
         let mut parts = Vec::new();
         let mut mean = |name: &str, sums: Vec<(Tensor<B, 1>, usize)>| {

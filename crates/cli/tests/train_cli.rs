@@ -111,6 +111,8 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
     // A non-positive AdamW ε is refused by name, before any checkpoint is touched.
     let err = refused(&["train.eps=0"]);
     assert!(err.contains("train.eps = 0"), "{err}");
+    let err = refused(&["train.prior_drop=1.5"]);
+    assert!(err.contains("train.prior_drop = 1.5"), "{err}");
 
     // TensorBoard's own reader loads the scalars (CI sets UMGEN_TB_PYTHON to a Python with tensorboard).
     let tb = fx.run_dir("a").join("tb");

@@ -40,6 +40,10 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Weight of the ego-action cross-entropy.
     pub ego_loss_weight: f64,
+    /// Probability that a predicted frame's OAR trains without its TAR prior, as
+    /// `umgen generate --from-scratch` runs it; a model trained with 0 has never seen that and makes
+    /// poor initial scenes (the authors' `mask_temporal_pro`).
+    pub prior_drop: f64,
     /// Steps between logged metrics.
     pub log_every: u64,
     /// Steps between checkpoints.
@@ -75,6 +79,7 @@ impl Default for TrainConfig {
             gap: 1,
             seed: 0,
             ego_loss_weight: 1.0,
+            prior_drop: 0.0,
             log_every: 10,
             checkpoint_every: 500,
             keep_checkpoints: 3,
@@ -107,6 +112,10 @@ impl TrainConfig {
             // Runs from before ε was a setting used the default: their checkpoints stay resumable.
             if self.eps == Self::default().eps {
                 o.remove("eps");
+            }
+            // Likewise runs from before the prior drop, which trained without it.
+            if self.prior_drop == 0.0 {
+                o.remove("prior_drop");
             }
         }
         v

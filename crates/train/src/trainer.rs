@@ -9,7 +9,7 @@ use burn::tensor::{Int, Tensor, TensorData};
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::time::Instant;
-use umgen_backbone::{Backbone, BackboneConfig, BackboneSpec};
+use umgen_backbone::{Backbone, BackboneConfig, BackboneSpec, LossOptions};
 use umgen_checkpoint::CheckpointDir;
 use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
@@ -127,6 +127,12 @@ pub fn train<B: AutodiffBackend>(
             tc.eps
         )));
     };
+    if !(0.0..=1.0).contains(&tc.prior_drop) {
+        return Err(TrainError::Setup(format!(
+            "train.prior_drop = {} must be a probability (0 to 1)",
+            tc.prior_drop
+        )));
+    }
     if f > run.backbone.max_frames {
         return Err(TrainError::Setup(format!(
             "windows of {f} frames exceed backbone.max_frames = {}",
@@ -216,7 +222,13 @@ pub fn train<B: AutodiffBackend>(
         for micro in 0..tc.grad_accum {
             let picks = sampler.batch(step, micro, tc.grad_accum, tc.batch_size, rank, world);
             let batch = load_batch::<B>(tokens, &windows, &picks, f, tc.gap, n, device)?;
-            let losses = model.loss(batch, tc.ego_loss_weight)?;
+            let losses = model.loss_with(
+                batch,
+                LossOptions {
+                    ego_weight: tc.ego_loss_weight,
+                    prior_drop: tc.prior_drop,
+                },
+            )?;
             let grads = GradientsParams::from_grads(
                 losses.total.clone().div_scalar(tc.grad_accum as f64).backward(),
                 &model,

@@ -77,3 +77,68 @@ fn the_loss_is_the_token_weighted_cross_entropy() {
     let total = f64::from(losses.total.into_scalar());
     assert!((total - (part("oar") + part("tar") + part("ego"))).abs() < 1e-4);
 }
+
+#[test]
+fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
+    use umgen_backbone::LossOptions;
+    let m = model::<F>();
+    let (f, n) = (2, spec().n);
+    let ids = tokens(&spec(), 1, f, 5);
+    // Frame 0 only conditions (frame 1 is the target): its content tokens changed, the action kept.
+    let mut other = ids.clone();
+    for (p, v) in other.iter_mut().enumerate().take(n).skip(5) {
+        if p % 2 == 0 {
+            *v = if *v > 0 { *v - 1 } else { *v + 1 };
+        }
+    }
+    let oar = |ids: &[i64], prior_drop: f64| -> (f32, f32) {
+        let opts = LossOptions {
+            ego_weight: 1.0,
+            prior_drop,
+        };
+        let l = m.loss_with(tensor::<F>(ids, 1, f, n), opts).unwrap();
+        let get = |name: &str| {
+            l.parts
+                .iter()
+                .find(|(k, _)| k == name)
+                .unwrap()
+                .1
+                .clone()
+                .into_scalar()
+        };
+        (get("oar"), get("tar"))
+    };
+    // Without the drop the history reaches the OAR; `loss` is `loss_with` at prior_drop 0.
+    let (kept, tar_kept) = oar(&ids, 0.0);
+    assert_ne!(kept, oar(&other, 0.0).0, "the history should move the OAR loss");
+    let plain = m
+        .loss(tensor::<F>(&ids, 1, f, n), 1.0)
+        .unwrap()
+        .total
+        .into_scalar();
+    let with = m
+        .loss_with(
+            tensor::<F>(&ids, 1, f, n),
+            LossOptions {
+                ego_weight: 1.0,
+                prior_drop: 0.0,
+            },
+        )
+        .unwrap()
+        .total
+        .into_scalar();
+    assert_eq!(plain, with);
+    // Always dropped: the OAR loss ignores the history, the TAR's does not.
+    let (dropped, tar_dropped) = oar(&ids, 1.0);
+    let (dropped_other, tar_other) = oar(&other, 1.0);
+    assert_eq!(dropped, dropped_other);
+    assert_ne!(dropped, kept);
+    assert_eq!(tar_dropped, tar_kept);
+    assert_ne!(tar_dropped, tar_other);
+    let bad = LossOptions {
+        ego_weight: 1.0,
+        prior_drop: 1.5,
+    };
+    let err = m.loss_with(tensor::<F>(&ids, 1, f, n), bad).err().unwrap();
+    assert!(err.to_string().contains("prior_drop 1.5"), "{err}");
+}
