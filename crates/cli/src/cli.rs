@@ -114,6 +114,9 @@ pub struct GenerateArgs {
     /// memory, the frames drawn do not depend on it).
     #[arg(long, value_name = "FRAMES", default_value_t = umgen::generate::DEFAULT_PASS_FRAMES)]
     pub pass_frames: usize,
+    /// How draws on a CUDA device find the top-k ids (the CPU draws on the host).
+    #[arg(long, value_enum, default_value = "rounds")]
+    pub device_top_k: DeviceTopKArg,
     /// Stop generating after this many minutes (the frame under way is finished) and write the frames
     /// made so far, for machines lent for a fixed time.
     #[arg(long, value_name = "MINUTES", value_parser = tokenizer::positive_minutes)]
@@ -332,5 +335,23 @@ fn modality_top_k(s: &str) -> Result<(String, usize), String> {
             .map(|k| (name.to_string(), k))
             .map_err(|_| format!("`{s}`: K must be a whole number (0 = all ids)")),
         _ => Err(format!("`{s}`: expected MODALITY=K, e.g. agent=5")),
+    }
+}
+
+/// How draws on the GPU find each row's top-k ids.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum DeviceTopKArg {
+    /// k rounds of argmax, gather and masking (about 3k kernels per draw).
+    Rounds,
+    /// burn's `argtopk`: one reduction kernel, then a gather.
+    Reduce,
+}
+
+impl From<DeviceTopKArg> for umgen::generate::DeviceTopK {
+    fn from(a: DeviceTopKArg) -> Self {
+        match a {
+            DeviceTopKArg::Rounds => Self::Rounds,
+            DeviceTopKArg::Reduce => Self::Reduce,
+        }
     }
 }

@@ -181,9 +181,23 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
         "1,3",
         "--tokens",
         "4",
+        "--breakdown",
     ]);
     let table = text(&out.stdout);
     assert!(out.status.success(), "{}", text(&out.stderr));
+    // The parts of a decoding step, each a positive time; the CPU has only the rounds top-k.
+    let parts: Vec<f64> = table
+        .lines()
+        .skip_while(|l| !l.starts_with("parts of one decoding step"))
+        .skip(1)
+        .map(|l| l.split_whitespace().last().unwrap().parse::<f64>().unwrap())
+        .collect();
+    assert_eq!(parts.len(), 5, "{table}");
+    assert!(parts.iter().all(|&ms| ms > 0.0), "{table}");
+    assert!(
+        table.contains("device draw, top-16 by rounds") && !table.contains("by reduce"),
+        "{table}"
+    );
     let rows: Vec<&str> = table
         .lines()
         .filter(|l| l.split_whitespace().next().is_some_and(|w| w == "1" || w == "3"))

@@ -8,6 +8,7 @@
 
 mod boxes;
 mod control;
+mod device_draw;
 mod error;
 mod rollout;
 mod rules;
@@ -15,6 +16,7 @@ mod sampling;
 
 pub use boxes::GroupBoxes;
 pub use control::{AgentControl, Control, EgoControl};
+pub use device_draw::DeviceTopK;
 pub use error::{GenerateError, Result};
-pub use rollout::{DEFAULT_PASS_FRAMES, FrameControl, Generator, TokenGroups};
+pub use rollout::{DEFAULT_PASS_FRAMES, DEFAULT_UNIFORM_BLOCK, FrameControl, Generator, TokenGroups};
 pub use sampling::Sampling;

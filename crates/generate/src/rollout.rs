@@ -3,8 +3,10 @@
 //! modality's sampling settings. Start and end tokens are placed, not drawn; a known ego action is
 //! placed at its positions (the OAR still reads it, as in training).
 
+use crate::device_draw::DeviceTopK;
 use crate::error::{GenerateError, Result};
 use crate::rules::{Allowed, Rules, allowed};
+pub use crate::rules::{FrameControl, TokenGroups};
 use crate::sampling::Sampling;
 use burn::module::Module;
 use burn::tensor::backend::Backend;
@@ -12,47 +14,13 @@ use burn::tensor::{Int, Tensor, TensorData};
 use rand::{SeedableRng, rngs::StdRng};
 use umgen_backbone::{Backbone, Slot};
 
+mod uniforms;
 mod window;
 
-/// What the caller imposes on one new frame.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct FrameControl {
-    /// Action tokens (dx, dy, dθ ids) per scene of the batch, replacing the ego module's prediction.
-    pub action: Option<Vec<Vec<u32>>>,
-    /// Content tokens placed instead of drawn: frame position and the id for every scene. The OAR reads
-    /// them like drawn ones, so the tokens after them react.
-    pub tokens: Vec<(usize, u32)>,
-    /// Positions whose drawn id must be below a limit (e.g. the value bins of a controlled agent slot,
-    /// so that its other attributes are values, not pad or category ids).
-    pub below: Vec<(usize, u32)>,
-    /// Positions `(p, pad id, per scene)` where, for the scenes marked true, a drawn pad id is replaced by a
-    /// draw from the TAR head with pad excluded: an agent present in the previous frame does not vanish
-    /// on one OAR draw; the TAR, which sees the history, decides (the official code's heuristic).
-    pub keep: Vec<(usize, u32, Vec<bool>)>,
-    /// Runs of token groups that must each come out whole (agent slots: all pad, or values then a
-    /// category).
-    pub groups: Vec<TokenGroups>,
-}
-
-/// `count` groups of `size` tokens from position `first`. A group's first token is a value or pad; after a
-/// pad the rest is pad; otherwise the middle tokens are values and the last one is from `last`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct TokenGroups {
-    /// First position of the first group.
-    pub first: usize,
-    /// Tokens per group.
-    pub size: usize,
-    /// Groups.
-    pub count: usize,
-    /// The pad id.
-    pub pad: u32,
-    /// Value ids are `0..values`.
-    pub values: u32,
-    /// Ids of a group's last token (e.g. the categories).
-    pub last: std::ops::Range<u32>,
-    /// How to read a box from a group, for the new-agent rule (`None`: no rule).
-    pub boxes: Option<crate::boxes::GroupBoxes>,
-}
+/// Uniform numbers uploaded at once for the device draws of a frame, by default (16 MiB of f32): a
+/// frame of the paper's layout at top-k 16 needs 1,536 × 16 per scene, so up to 170 scenes take one
+/// upload per frame.
+pub const DEFAULT_UNIFORM_BLOCK: usize = 1 << 22;
 
 /// Window frames per pass of the ego module and the TAR by default: 64 frames of the paper's layout are
 /// about 144k tokens, four times a `small` training batch per GPU, without the backward pass.
@@ -65,9 +33,13 @@ pub struct Generator<'a, B: Backend> {
     sampling: Vec<Sampling>,
     window: usize,
     rng: StdRng,
+    /// The device draws' own generator (their numbers are drawn ahead, a block at a time).
+    device_rng: StdRng,
     slots: Vec<Slot>,
     on_device: bool,
     pass_frames: usize,
+    uniform_block: usize,
+    top_k: DeviceTopK,
 }
 
 impl<'a, B: Backend> Generator<'a, B> {
@@ -95,9 +67,12 @@ impl<'a, B: Backend> Generator<'a, B> {
             sampling,
             window,
             rng: StdRng::seed_from_u64(seed),
+            device_rng: StdRng::seed_from_u64(seed ^ 0x9e37_79b9_7f4a_7c15),
             slots: model.slots(),
             on_device: false,
             pass_frames: DEFAULT_PASS_FRAMES,
+            uniform_block: DEFAULT_UNIFORM_BLOCK,
+            top_k: DeviceTopK::default(),
         })
     }
 
@@ -106,6 +81,19 @@ impl<'a, B: Backend> Generator<'a, B> {
     /// The frames drawn do not depend on it.
     pub fn pass_frames(mut self, frames: usize) -> Self {
         self.pass_frames = frames.max(1);
+        self
+    }
+
+    /// Upload the uniform numbers of the device draws at most `floats` at a time (at least one position's
+    /// worth), drawn ahead in position order: the frames drawn do not depend on it.
+    pub fn uniform_block(mut self, floats: usize) -> Self {
+        self.uniform_block = floats.max(1);
+        self
+    }
+
+    /// How device draws find the top-k ([`DeviceTopK::Reduce`] only on backends with `argtopk`).
+    pub fn device_top_k(mut self, top_k: DeviceTopK) -> Self {
+        self.top_k = top_k;
         self
     }
 
@@ -212,6 +200,24 @@ impl<'a, B: Backend> Generator<'a, B> {
         self.decode(h, action.as_ref(), &rules, m, &dev)
     }
 
+    /// Per position of a frame: drawn on the device (content positions without rules, when device draws
+    /// are on), in the decoding loop's own terms.
+    fn device_drawn(&self, action: Option<&Vec<Vec<u32>>>, rules: &Rules<'_>) -> Vec<bool> {
+        let spec = self.model.spec();
+        self.slots
+            .iter()
+            .enumerate()
+            .map(|(p, slot)| match *slot {
+                Slot::Content(s, i) => {
+                    let forced = matches!((&spec.action, action),
+                        (Some(a), Some(act)) if a.segment == s && i < act[0].len());
+                    self.on_device && !forced && rules.placed[p].is_none() && rules.free(p)
+                }
+                _ => false,
+            })
+            .collect()
+    }
+
     /// The OAR pass over the new frame.
     fn decode(
         &mut self,
@@ -225,6 +231,15 @@ impl<'a, B: Backend> Generator<'a, B> {
         let n = spec.n;
         let d = h.dims()[2];
         let mut out = vec![vec![0u32; n]; m];
+        let drawn_on_device = self.device_drawn(action, rules);
+        let sizes = (0..n)
+            .filter(|&p| drawn_on_device[p])
+            .filter_map(|p| match self.slots[p] {
+                Slot::Content(s, _) => Some(m * self.sampling[s].draw_width(spec.segments[s].vocab)),
+                _ => None,
+            })
+            .collect();
+        let mut uniforms = uniforms::UniformBlocks::<B>::new(sizes, self.uniform_block);
         let mut cache = self.model.oar_cache();
         let ego = rules.groups.iter().find_map(|g| g.boxes.as_ref().map(|b| b.ego));
         let mut boxes = crate::boxes::FrameBoxes::new(m, ego.unwrap_or([0.0, 0.0]));
@@ -258,11 +273,19 @@ impl<'a, B: Backend> Generator<'a, B> {
                         }
                     } else if let Some(id) = rules.placed[p] {
                         out.iter_mut().for_each(|r| r[p] = id);
-                    } else if self.on_device && rules.free(p) {
-                        let ids =
-                            self.sampling[s].draw_rows(self.model.logits_at(s, o, false), &mut self.rng);
+                    } else if drawn_on_device[p] {
+                        let logits = self.model.logits_at(s, o, false);
+                        let width = self.sampling[s].draw_width(logits.dims()[1]);
+                        let u = uniforms.take(m, width, &mut self.device_rng, dev);
+                        let ids = self.sampling[s].draw_rows_with(logits, u, self.top_k);
                         on_device = Some(ids.clone());
                         pending.push((p, ids));
+                    } else if let Some(ids) = known_ids(rules, p, &out) {
+                        // Nothing to draw in any scene (the rest of an empty agent slot): no logits, and
+                        // so no wait for the device.
+                        for (r, id) in out.iter_mut().zip(ids) {
+                            r[p] = id;
+                        }
                     } else {
                         let rows = host_rows(self.model.logits_at(s, o, false));
                         let smp = self.sampling[s];
@@ -329,6 +352,20 @@ impl<'a, B: Backend> Generator<'a, B> {
         }
         Ok(out)
     }
+}
+
+/// The ids of position `p` in every scene when the rules leave nothing to draw in any of them (and no
+/// keep rule may redraw them from the TAR).
+fn known_ids(rules: &Rules<'_>, p: usize, out: &[Vec<u32>]) -> Option<Vec<u32>> {
+    if rules.keep[p].is_some() {
+        return None;
+    }
+    out.iter()
+        .map(|r| match allowed(rules, p, r, true) {
+            Allowed::Only(id) => Some(id),
+            Allowed::Ids(_) => None,
+        })
+        .collect()
 }
 
 /// Rows of a `[r, v]` tensor on the host.

@@ -1,7 +1,45 @@
-//! The rules of one frame's decoding: what may be drawn at each position (limits, token groups, keep
-//! redraws), from the caller's [`FrameControl`](crate::FrameControl).
+//! What the caller imposes on a frame ([`FrameControl`]) and the rules of its decoding that follow: what
+//! may be drawn at each position (limits, token groups, keep redraws).
 
-use crate::rollout::TokenGroups;
+/// What the caller imposes on one new frame.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameControl {
+    /// Action tokens (dx, dy, dθ ids) per scene of the batch, replacing the ego module's prediction.
+    pub action: Option<Vec<Vec<u32>>>,
+    /// Content tokens placed instead of drawn: frame position and the id for every scene. The OAR reads
+    /// them like drawn ones, so the tokens after them react.
+    pub tokens: Vec<(usize, u32)>,
+    /// Positions whose drawn id must be below a limit (e.g. the value bins of a controlled agent slot,
+    /// so that its other attributes are values, not pad or category ids).
+    pub below: Vec<(usize, u32)>,
+    /// Positions `(p, pad id, per scene)` where, for the scenes marked true, a drawn pad id is replaced by a
+    /// draw from the TAR head with pad excluded: an agent present in the previous frame does not vanish
+    /// on one OAR draw; the TAR, which sees the history, decides (the official code's heuristic).
+    pub keep: Vec<(usize, u32, Vec<bool>)>,
+    /// Runs of token groups that must each come out whole (agent slots: all pad, or values then a
+    /// category).
+    pub groups: Vec<TokenGroups>,
+}
+
+/// `count` groups of `size` tokens from position `first`. A group's first token is a value or pad; after a
+/// pad the rest is pad; otherwise the middle tokens are values and the last one is from `last`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TokenGroups {
+    /// First position of the first group.
+    pub first: usize,
+    /// Tokens per group.
+    pub size: usize,
+    /// Groups.
+    pub count: usize,
+    /// The pad id.
+    pub pad: u32,
+    /// Value ids are `0..values`.
+    pub values: u32,
+    /// Ids of a group's last token (e.g. the categories).
+    pub last: std::ops::Range<u32>,
+    /// How to read a box from a group, for the new-agent rule (`None`: no rule).
+    pub boxes: Option<crate::boxes::GroupBoxes>,
+}
 
 /// Per-position rules of one frame's decoding.
 pub(crate) struct Rules<'a> {

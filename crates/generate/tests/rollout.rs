@@ -129,11 +129,12 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
 fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
     let m = model();
     let history = vec![vec![frame(&m, 1)], vec![frame(&m, 4)], vec![frame(&m, 2)]];
-    let run_in = |seed, on_device, pass_frames| {
+    let run_with = |seed, on_device, pass_frames, block| {
         let mut g = Generator::new(&m, vec![Sampling::default(); 3], 8, seed)
             .unwrap()
             .draw_on_device(on_device)
-            .pass_frames(pass_frames);
+            .pass_frames(pass_frames)
+            .uniform_block(block);
         let mut h = history.clone();
         for _ in 0..3 {
             let next = g.next_frame(&h, &FrameControl::default()).unwrap();
@@ -142,6 +143,14 @@ fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
             }
         }
         h
+    };
+    let run_in = |seed, on_device, pass_frames| {
+        run_with(
+            seed,
+            on_device,
+            pass_frames,
+            umgen_generate::DEFAULT_UNIFORM_BLOCK,
+        )
     };
     let run = |seed, on_device| run_in(seed, on_device, umgen_generate::DEFAULT_PASS_FRAMES);
     let a = run(5, false);
@@ -158,6 +167,10 @@ fn tokens_stay_in_their_vocabularies_and_seeds_repeat() {
         run_in(5, true, 2),
         "window pass a scene at a time (device draws)"
     );
+    // The device draws' uniform numbers uploaded one position at a time, or a few positions at a time,
+    // give the frames of one upload per frame.
+    assert_eq!(d, run_with(5, true, 64, 1), "one position per upload");
+    assert_eq!(d, run_with(5, true, 64, 100), "a few positions per upload");
     for scene in a.iter().chain(&d) {
         for f in scene {
             for (p, s) in m.slots().iter().enumerate() {

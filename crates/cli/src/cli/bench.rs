@@ -90,6 +90,13 @@ pub struct BenchGenerateArgs {
     /// Tokens timed per vanilla-AR measurement.
     #[arg(long, default_value_t = 64)]
     pub tokens: usize,
+    /// How draws on a CUDA device find the top-k ids.
+    #[arg(long, value_enum, default_value = "rounds")]
+    pub device_top_k: super::DeviceTopKArg,
+    /// Also time the parts of a decoding step one by one (input, OAR layers, head, device draw with
+    /// each top-k method, host read-back), at the first history length.
+    #[arg(long)]
+    pub breakdown: bool,
 }
 
 /// Arguments of `umgen bench allreduce`.

@@ -58,7 +58,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
         let mut g = Generator::new(&model, samplings, window, a.seed)?
             .draw_on_device(matches!(device, Device::Cuda(_)))
-            .pass_frames(a.pass_frames);
+            .pass_frames(a.pass_frames)
+            .device_top_k(a.device_top_k.into());
         let mut history: Vec<Vec<Vec<u32>>> = (0..total)
             .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
             .collect();

@@ -3,6 +3,7 @@
 mod agents;
 mod bench;
 mod bench_attention;
+mod bench_decode;
 mod bench_generate;
 mod bench_train;
 mod data;
