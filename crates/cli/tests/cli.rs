@@ -181,6 +181,8 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
         "1,3",
         "--tokens",
         "4",
+        "--frames",
+        "2",
         "--breakdown",
     ]);
     let table = text(&out.stdout);

@@ -90,6 +90,10 @@ pub struct BenchGenerateArgs {
     /// Tokens timed per vanilla-AR measurement.
     #[arg(long, default_value_t = 64)]
     pub tokens: usize,
+    /// New frames timed per TAR/OAR measurement (the median is reported); a frame of the paper layout
+    /// takes seconds on a GPU, so a quick look can ask for 1.
+    #[arg(long, default_value_t = 5)]
+    pub frames: usize,
     /// How draws on a CUDA device find the top-k ids.
     #[arg(long, value_enum, default_value = "rounds")]
     pub device_top_k: super::DeviceTopKArg,

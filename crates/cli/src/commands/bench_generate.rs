@@ -56,8 +56,8 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
     let depth = cfg.ego_hist_layers + cfg.ego_env_layers + 2 * cfg.tar_layers + cfg.oar_layers;
     let vocab = spec.segments.iter().map(|s| s.vocab).max().unwrap_or(1);
     anyhow::ensure!(
-        a.batch >= 1 && a.tokens >= 1,
-        "--batch and --tokens must be at least 1"
+        a.batch >= 1 && a.tokens >= 1 && a.frames >= 1,
+        "--batch, --tokens and --frames must be at least 1"
     );
     if let Some(t) = a.history.iter().find(|t| **t == 0 || **t > cfg.max_frames) {
         anyhow::bail!(
@@ -97,7 +97,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             );
             // The median of a few frames: single frames of a small model are noisy on a shared CPU.
             let mut times = Vec::new();
-            for _ in 0..5 {
+            for _ in 0..a.frames {
                 let t0 = Instant::now();
                 g.next_frame(&h, &FrameControl::default())?;
                 sync()?;
@@ -200,7 +200,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
     }
     writeln!(
         out,
-        "ms/tok: median of 5 new frames of N tokens (ego action, TAR over T frames, N OAR steps with sampling) / N; vanilla: median of 5 runs of --tokens decode steps after T·N cached tokens, with sampling. mem: device pool after the measurement (CUDA only)."
+        "ms/tok: median of --frames new frames of N tokens (ego action, TAR over T frames, N OAR steps with sampling) / N; vanilla: median of 5 runs of --tokens decode steps after T·N cached tokens, with sampling. mem: device pool after the measurement (CUDA only)."
     )?;
     if let Some((parts, agree)) = parts {
         writeln!(

@@ -3,8 +3,14 @@
 use std::path::Path;
 use umgen_viz::{Rgb, text, write_png};
 
-/// Curves of ego and agent L2 (model solid colours, constant velocity darker) over the horizon.
+/// Curves of ego and agent L2 (model solid colours, constant velocity lighter) over the horizon, as a PNG.
 pub fn l2_plot(rows: &[serde_json::Value], path: &Path) -> anyhow::Result<()> {
+    write_png(path, &l2_picture(rows))?;
+    Ok(())
+}
+
+/// The picture of [`l2_plot`].
+fn l2_picture(rows: &[serde_json::Value]) -> Rgb {
     let (w, h, m) = (480usize, 320usize, 40.0);
     let mut img = Rgb::filled(w, h, [255, 255, 255]);
     let series = [
@@ -36,16 +42,60 @@ pub fn l2_plot(rows: &[serde_json::Value], path: &Path) -> anyhow::Result<()> {
         for p in pts.windows(2) {
             img.line(p[0], p[1], 2.0, *colour);
         }
-        text(&mut img, 6 + 12 * s, w - 150, 1, label, *colour);
+        // A swatch of the curve's colour, then the name in white on the label's darkened box (the
+        // light constant-velocity colours do not read on the dark box themselves).
+        let y = 6.0 + 12.0 * s as f64 + 5.0;
+        img.line([w as f64 - 172.0, y], [w as f64 - 156.0, y], 3.0, *colour);
+        text(&mut img, 6 + 12 * s, w - 150, 1, label, [255, 255, 255]);
     }
+    let secs = |r: Option<&serde_json::Value>| r.and_then(|r| r["seconds"].as_f64()).unwrap_or(0.0);
+    text(
+        &mut img,
+        h - 30,
+        m as usize,
+        1,
+        &format!("HORIZON {:.1} TO {:.1} S", secs(rows.first()), secs(rows.last())),
+        [255, 255, 255],
+    );
     text(
         &mut img,
         6,
         46,
         1,
         &format!("L2 (M) OVER HORIZON, MAX {top:.2}"),
-        [0, 0, 0],
+        [255, 255, 255],
     );
-    write_png(path, &img)?;
-    Ok(())
+    img
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn the_plot_has_a_swatch_per_series_and_the_curves_reach_the_top() {
+        let rows: Vec<serde_json::Value> = (1..=4)
+            .map(|h| {
+                serde_json::json!({"horizon": h, "seconds": 0.5 * h as f64, "ego_model": 1.0 * h as f64,
+                    "ego_constant_velocity": 0.5, "agents_model": 8.0, "agents_constant_velocity": null})
+            })
+            .collect();
+        let img = l2_picture(&rows);
+        if let Some(p) = std::env::var_os("UMGEN_KEEP_PLOT") {
+            write_png(Path::new(&p), &img).unwrap();
+        }
+        let (w, h) = (img.width, img.height);
+        assert_eq!((w, h), (480, 320));
+        let px = |c: usize, r: usize| img.pixels[r * w + c];
+        // Swatches at the legend rows, in the series' colours.
+        for (s, colour) in [[200, 40, 40], [240, 160, 160], [40, 80, 200], [150, 170, 240]]
+            .iter()
+            .enumerate()
+        {
+            assert_eq!(px(w - 164, 6 + 12 * s + 5), *colour, "swatch {s}");
+        }
+        // The largest value (agents, 8 m) is drawn at the top margin (y = 40), in the agents' colour.
+        assert!((36..=44).any(|y| px(240, y) == [40, 80, 200]));
+    }
 }
