@@ -117,7 +117,7 @@ impl Sampling {
     }
 }
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use rand::{SeedableRng, rngs::StdRng};
@@ -154,40 +154,55 @@ mod tests {
         c
     }
 
-    #[test]
-    fn frequencies_follow_the_softmax_and_the_filters() {
-        let logits = [0.0f32, (2.0f32).ln(), (3.0f32).ln(), f32::NAN, (4.0f32).ln()];
+    /// Checks a way of drawing (`count(s, logits, n)`: how often each id came out of `n` draws) against
+    /// the softmax of logits 0, ln 2, ln 3, `masked`, ln 4 under each filter: probabilities 1:2:3:4, the
+    /// masked id never.
+    pub(crate) fn check_draw_frequencies(count: impl Fn(Sampling, &[f32], usize) -> Vec<usize>, masked: f32) {
+        let logits = [0.0f32, (2.0f32).ln(), (3.0f32).ln(), masked, (4.0f32).ln()];
         let all = Sampling {
             top_k: 0,
             top_p: 1.0,
             temperature: 1.0,
         };
-        let c = counts(all, &logits, 100_000);
-        // Probabilities 1:2:3:4 over the finite logits.
+        let share = |c: &[usize], i: usize, n: usize| c[i] as f64 / n as f64;
+        let c = count(all, &logits, 100_000);
         for (i, want) in [(0, 0.1), (1, 0.2), (2, 0.3), (4, 0.4)] {
-            let got = c[i] as f64 / 100_000.0;
+            let got = share(&c, i, 100_000);
             assert!((got - want).abs() < 0.01, "id {i}: {got} vs {want}");
         }
-        assert_eq!(c[3], 0, "NaN never drawn");
-        // top-k 2 keeps ids 4 and 2 (4:3).
-        let c = counts(Sampling { top_k: 2, ..all }, &logits, 50_000);
-        assert_eq!(c[0] + c[1], 0);
-        assert!((c[4] as f64 / 50_000.0 - 4.0 / 7.0).abs() < 0.01);
-        // top-p 0.5: 0.4 alone is not enough, 0.4 + 0.3 is: ids 4 and 2.
-        let c = counts(Sampling { top_p: 0.5, ..all }, &logits, 20_000);
-        assert_eq!(c[0] + c[1], 0);
-        assert!(c[2] > 0 && c[4] > 0);
-        // A low temperature is nearly greedy; greedy is exactly.
-        let c = counts(
+        assert_eq!(c[3], 0, "the masked id is never drawn");
+        // top-k 2 keeps ids 4 and 2 (4:3); top-p 0.5 too (0.4 alone is not enough, 0.4 + 0.3 is);
+        // top-p 0.3 keeps id 4 alone; top-k 3 keeps 4, 2, 1 and top-p 0.5 of those (4/9, 3/9) 4 and 2.
+        for s in [
+            Sampling { top_k: 2, ..all },
+            Sampling { top_p: 0.5, ..all },
             Sampling {
-                temperature: 0.05,
+                top_k: 3,
+                top_p: 0.5,
+                ..all
+            },
+        ] {
+            let c = count(s, &logits, 50_000);
+            assert_eq!(c[0] + c[1] + c[3], 0, "{s:?}: {c:?}");
+            assert!((share(&c, 4, 50_000) - 4.0 / 7.0).abs() < 0.01, "{s:?}: {c:?}");
+        }
+        assert_eq!(count(Sampling { top_p: 0.3, ..all }, &logits, 1_000)[4], 1_000);
+        // Temperature 0.5 squares the odds (1:4:9:16); greedy is always the most likely id.
+        let c = count(
+            Sampling {
+                temperature: 0.5,
                 ..all
             },
             &logits,
-            2_000,
+            100_000,
         );
-        assert!(c[4] > 1_990);
-        assert_eq!(counts(Sampling::greedy(), &logits, 100)[4], 100);
+        assert!((share(&c, 4, 100_000) - 16.0 / 30.0).abs() < 0.01, "{c:?}");
+        assert_eq!(count(Sampling::greedy(), &logits, 100)[4], 100);
+    }
+
+    #[test]
+    fn frequencies_follow_the_softmax_and_the_filters() {
+        check_draw_frequencies(counts, f32::NAN);
     }
 
     /// The draw as first written: sort every id, then cut to the top k.
