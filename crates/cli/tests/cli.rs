@@ -212,6 +212,10 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
             cols[1].parse::<f64>().unwrap() > 0.0 && cols[3].parse::<f64>().unwrap() > 0.0,
             "{r}"
         );
+        // Frames per second of the batch (1 scene) is 1000 / (ms/token × N), N = 171 for tiny.
+        let fps = cols[6].parse::<f64>().unwrap();
+        let want = 1e3 / (cols[1].parse::<f64>().unwrap() * 171.0);
+        assert!((fps - want).abs() <= 0.002 * want + 0.001, "{r}");
     }
     let err = failure(
         &[

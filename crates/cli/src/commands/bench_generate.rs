@@ -175,13 +175,19 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
     writeln!(out, "device   {}, batch {}", a.device, a.batch)?;
     writeln!(
         out,
-        "{:>4} {:>16} {:>18} {:>16} {:>18} {:>16}",
-        "T", "TAR/OAR ms/tok", "TAR/OAR mem GiB", "vanilla ms/tok", "vanilla mem GiB", "vanilla KV GiB"
+        "{:>4} {:>16} {:>18} {:>16} {:>18} {:>16} {:>16}",
+        "T",
+        "TAR/OAR ms/tok",
+        "TAR/OAR mem GiB",
+        "vanilla ms/tok",
+        "vanilla mem GiB",
+        "vanilla KV GiB",
+        "TAR/OAR frames/s"
     )?;
     for r in rows {
         writeln!(
             out,
-            "{:>4} {:>16.3} {:>18} {:>16.3} {:>18} {:>16.3}",
+            "{:>4} {:>16.3} {:>18} {:>16.3} {:>18} {:>16.3} {:>16.3}",
             r.t,
             r.ours_ms,
             if r.ours_peak > 0 {
@@ -195,12 +201,14 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             } else {
                 "-".into()
             },
-            gib(r.vanilla_cache)
+            gib(r.vanilla_cache),
+            // A new frame for every scene of the batch takes N steps.
+            1e3 * a.batch as f64 / (r.ours_ms * n as f64)
         )?;
     }
     writeln!(
         out,
-        "ms/tok: median of --frames new frames of N tokens (ego action, TAR over T frames, N OAR steps with sampling) / N; vanilla: median of 5 runs of --tokens decode steps after T·N cached tokens, with sampling. mem: device pool after the measurement (CUDA only)."
+        "ms/tok: median of --frames new frames of N tokens (ego action, TAR over T frames, N OAR steps with sampling) / N; vanilla: median of 5 runs of --tokens decode steps after T·N cached tokens, with sampling. mem: device pool after the measurement (CUDA only). frames/s: new frames of the whole batch per second."
     )?;
     if let Some((parts, agree)) = parts {
         writeln!(
