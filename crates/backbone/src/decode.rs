@@ -64,6 +64,43 @@ impl<B: Backend> OarCache<B> {
         let hidden = keys.clone().greater_elem(pos as f64).float().mul_scalar(-1e30);
         Ok((pos, hidden))
     }
+
+    /// Takes the next `l` positions: the first one's index and the mask `[1, 1, l, capacity]` in which
+    /// row i hides the keys after position `pos + i` (causal within the block).
+    pub(crate) fn advance_by(
+        &mut self,
+        l: usize,
+        dev: &B::Device,
+    ) -> Result<(usize, Tensor<B, 4>), BackboneError> {
+        if l <= 1 {
+            return self.advance(dev);
+        }
+        let pos = self.len;
+        if pos + l > self.capacity {
+            return Err(BackboneError::Input(format!(
+                "the decoding cache holds {} positions: no room for {l} more after {pos}",
+                self.capacity
+            )));
+        }
+        self.len += l;
+        let capacity = self.capacity;
+        let keys = self.keys.get_or_insert_with(|| {
+            Tensor::<B, 1, Int>::arange(0..capacity as i64, dev)
+                .float()
+                .reshape([1, 1, 1, capacity])
+        });
+        let rows = Tensor::<B, 1, Int>::arange(pos as i64..(pos + l) as i64, dev)
+            .float()
+            .reshape([1, 1, l, 1]);
+        let hidden = keys.clone().greater(rows).float().mul_scalar(-1e30);
+        Ok((pos, hidden))
+    }
+
+    /// Forgets the positions from `len` on (they stay in the tensors, hidden by the mask, and are
+    /// overwritten when decoded again): how a rejected speculative block is undone.
+    pub fn rewind(&mut self, len: usize) {
+        self.len = self.len.min(len);
+    }
 }
 
 /// What position `p` of a frame holds.
@@ -102,6 +139,14 @@ impl<B: Backend> Backbone<B> {
         let (pos, hidden) = cache.advance(&w.device())?;
         let x = self.oar_blocks_step(w.reshape([m, 1, d]), &mut cache.layers, pos, hidden);
         Ok(x.reshape([m, d]))
+    }
+
+    /// The OAR outputs `[m, l, d]` of the next `l` positions at once, given their inputs `w` `[m, l, d]`
+    /// (causal among them); updates `cache`. Equal to `l` calls of [`oar_step`](Self::oar_step).
+    pub fn oar_steps(&self, w: Tensor<B, 3>, cache: &mut OarCache<B>) -> Result<Tensor<B, 3>, BackboneError> {
+        let l = w.dims()[1];
+        let (pos, hidden) = cache.advance_by(l, &w.device())?;
+        Ok(self.oar_blocks_step(w, &mut cache.layers, pos, hidden))
     }
 
     /// Logits `[m, vocab]` of content slot of segment `s` from OAR (or TAR) features `[m, d]`.

@@ -103,6 +103,28 @@ impl<B: Backend> FrameEmbedding<B> {
         self.mlp(x)
     }
 
+    /// Embeddings `[m, l, d]` of tokens `ids` `[m, l]` at frame positions `p..p + l`, which must lie in one
+    /// segment's block (for decoding several positions at once; equal to those rows of
+    /// [`forward`](Self::forward)). `None` when they do not.
+    pub fn forward_block(&self, p: usize, ids: Tensor<B, 2, Int>) -> Option<Tensor<B, 3>> {
+        let [m, l] = ids.dims();
+        let s = self
+            .blocks
+            .iter()
+            .position(|[start, len]| p >= *start && p + l <= start + len && l > 0)?;
+        let t = &self.tables[s];
+        let x = t.table.forward(ids);
+        let x = match &t.proj {
+            Some(proj) => linear(proj, x, self.precision),
+            None => x,
+        };
+        let e = x.dims()[2];
+        let x = x + self.pos.val().narrow(0, p, l).reshape([1, l, e]);
+        let y = self.mlp(x);
+        debug_assert_eq!(y.dims()[0], m);
+        Some(y)
+    }
+
     /// Embeddings `[b, f, N, d]` of frames of tokens `[b, f, N]`.
     pub fn forward(&self, tokens: Tensor<B, 3, Int>) -> Tensor<B, 4> {
         let [b, f, n] = tokens.dims();

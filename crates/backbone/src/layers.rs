@@ -132,7 +132,7 @@ impl<B: Backend> MultiHead<B> {
                 Tensor::zeros([m, h, capacity, dh], &dev),
             )
         });
-        let at = [0..m, 0..h, pos..pos + 1, 0..dh];
+        let at = [0..m, 0..h, pos..pos + q.dims()[2], 0..dh];
         let (k, v) = (k0.slice_assign(at.clone(), k), v0.slice_assign(at, v));
         *cache = Some((k.clone(), v.clone()));
         let scores = q.matmul(k.swap_dims(2, 3)).mul_scalar((dh as f64).sqrt().recip()) + hidden;

@@ -117,6 +117,10 @@ pub struct GenerateArgs {
     /// How draws on a CUDA device find the top-k ids (the CPU draws on the host).
     #[arg(long, value_enum, default_value = "rounds")]
     pub device_top_k: DeviceTopKArg,
+    /// Decode map and image codes in speculative blocks of up to K positions, drafted by the TAR heads
+    /// and checked by one OAR pass each (same distribution, fewer sequential steps; 0 = off).
+    #[arg(long, value_name = "K", default_value_t = 0)]
+    pub speculate: usize,
     /// Stop generating after this many minutes (the frame under way is finished) and write the frames
     /// made so far, for machines lent for a fixed time.
     #[arg(long, value_name = "MINUTES", value_parser = tokenizer::positive_minutes)]

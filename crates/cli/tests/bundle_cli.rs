@@ -343,6 +343,8 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         "0.000001",
         "--top-k-of",
         "agent=5",
+        "--speculate",
+        "4",
         "--out",
         cut.to_str().unwrap(),
     ]);
@@ -350,6 +352,7 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
     assert!(log.contains("1 of 3 frame(s) generated"), "{log}");
     let meta = json(cut.join("meta.json"));
     assert_eq!(meta["frames"], 1);
+    assert_eq!(meta["speculate"], 4);
     // Per-modality top-k is recorded; an unknown modality is refused by name.
     assert_eq!(meta["sampling"]["agent"]["top_k"], 5);
     assert_eq!(meta["sampling"]["map"]["top_k"], 16);

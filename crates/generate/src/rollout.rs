@@ -14,6 +14,8 @@ use burn::tensor::{Int, Tensor, TensorData};
 use rand::{SeedableRng, rngs::StdRng};
 use umgen_backbone::{Backbone, Slot};
 
+mod settings;
+mod speculate;
 mod uniforms;
 mod window;
 
@@ -40,6 +42,9 @@ pub struct Generator<'a, B: Backend> {
     pass_frames: usize,
     uniform_block: usize,
     top_k: DeviceTopK,
+    speculate: usize,
+    /// Speculative blocks run and the positions they decided, since the generator was made.
+    speculated: (u64, u64),
 }
 
 impl<'a, B: Backend> Generator<'a, B> {
@@ -73,37 +78,9 @@ impl<'a, B: Backend> Generator<'a, B> {
             pass_frames: DEFAULT_PASS_FRAMES,
             uniform_block: DEFAULT_UNIFORM_BLOCK,
             top_k: DeviceTopK::default(),
+            speculate: 0,
+            speculated: (0, 0),
         })
-    }
-
-    /// Run the window pass (ego module and TAR) over at most `frames` window frames at a time (at least one
-    /// scene): its activations grow with scenes × window × N, while the OAR's per-token state is small.
-    /// The frames drawn do not depend on it.
-    pub fn pass_frames(mut self, frames: usize) -> Self {
-        self.pass_frames = frames.max(1);
-        self
-    }
-
-    /// Upload the uniform numbers of the device draws at most `floats` at a time (at least one position's
-    /// worth), drawn ahead in position order: the frames drawn do not depend on it.
-    pub fn uniform_block(mut self, floats: usize) -> Self {
-        self.uniform_block = floats.max(1);
-        self
-    }
-
-    /// How device draws find the top-k ([`DeviceTopK::Reduce`] only on backends with `argtopk`).
-    pub fn device_top_k(mut self, top_k: DeviceTopK) -> Self {
-        self.top_k = top_k;
-        self
-    }
-
-    /// Draw the positions without rules (map and image codes) on the model's device
-    /// ([`Sampling::draw_rows`]) and read them back once per frame, instead of reading every position's
-    /// logits to the host. For GPUs, where each read waits for the device; on the CPU the host draw is
-    /// cheaper. Either way, a seed gives the same frames each run.
-    pub fn draw_on_device(mut self, yes: bool) -> Self {
-        self.on_device = yes;
-        self
     }
 
     /// The next frame `[m][N]` of each of `m` scenes, from their histories `[m][t][N]` (all of one length
@@ -200,9 +177,9 @@ impl<'a, B: Backend> Generator<'a, B> {
         self.decode(h, action.as_ref(), &rules, m, &dev)
     }
 
-    /// Per position of a frame: drawn on the device (content positions without rules, when device draws
-    /// are on), in the decoding loop's own terms.
-    fn device_drawn(&self, action: Option<&Vec<Vec<u32>>>, rules: &Rules<'_>) -> Vec<bool> {
+    /// Per position of a frame: a content position drawn from its logits alone (no forced action, no
+    /// placed id, no rule), which may go to the device or into a speculative block.
+    fn free_draws(&self, action: Option<&Vec<Vec<u32>>>, rules: &Rules<'_>) -> Vec<bool> {
         let spec = self.model.spec();
         self.slots
             .iter()
@@ -211,11 +188,23 @@ impl<'a, B: Backend> Generator<'a, B> {
                 Slot::Content(s, i) => {
                     let forced = matches!((&spec.action, action),
                         (Some(a), Some(act)) if a.segment == s && i < act[0].len());
-                    self.on_device && !forced && rules.placed[p].is_none() && rules.free(p)
+                    !forced && rules.placed[p].is_none() && rules.free(p)
                 }
                 _ => false,
             })
             .collect()
+    }
+
+    /// With speculation on, the block that starts at `p`: its length (at least 2, at most the setting) and
+    /// segment, over free positions of one segment.
+    fn speculative_run(&self, p: usize, free: &[bool]) -> Option<(usize, usize)> {
+        let Slot::Content(s, _) = self.slots[p] else {
+            return None;
+        };
+        let l = (p..free.len().min(p + self.speculate))
+            .take_while(|&q| free[q] && matches!(self.slots[q], Slot::Content(t, _) if t == s))
+            .count();
+        (self.speculate >= 2 && l >= 2).then_some((l, s))
     }
 
     /// The OAR pass over the new frame.
@@ -231,7 +220,11 @@ impl<'a, B: Backend> Generator<'a, B> {
         let n = spec.n;
         let d = h.dims()[2];
         let mut out = vec![vec![0u32; n]; m];
-        let drawn_on_device = self.device_drawn(action, rules);
+        let drawn_on_device: Vec<bool> = if self.on_device {
+            self.free_draws(action, rules)
+        } else {
+            vec![false; n]
+        };
         let sizes = (0..n)
             .filter(|&p| drawn_on_device[p])
             .filter_map(|p| match self.slots[p] {
@@ -246,7 +239,22 @@ impl<'a, B: Backend> Generator<'a, B> {
         // Positions without rules (map and image codes) are drawn on the device and read back once, at the
         // end of the frame: their ids feed the next step where they are, with no host synchronisation.
         let (mut pending, mut on_device) = (Vec::new(), None);
-        for p in 0..n {
+        let free = self.free_draws(action, rules);
+        let mut p = 0;
+        while p < n {
+            if let Some((l, s)) = self.speculative_run(p, &free) {
+                let block = speculate::Block {
+                    p,
+                    l,
+                    s,
+                    prev: on_device.take(),
+                    h: &h,
+                };
+                let decided = self.speculate_block(block, &mut out, &mut cache, dev)?;
+                self.speculated = (self.speculated.0 + 1, self.speculated.1 + decided as u64);
+                p += decided;
+                continue;
+            }
             let prev = (p > 0).then(|| {
                 on_device.take().unwrap_or_else(|| {
                     let ids: Vec<i64> = out.iter().map(|r| i64::from(r[p - 1])).collect();
@@ -340,6 +348,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                     }
                 }
             }
+            p += 1;
         }
         if !pending.is_empty() {
             let (positions, ids): (Vec<usize>, Vec<_>) = pending.into_iter().unzip();

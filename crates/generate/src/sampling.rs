@@ -72,10 +72,27 @@ impl Sampling {
 
     /// Draws an id from `logits` (one row).
     pub fn draw(&self, logits: &[f32], rng: &mut impl Rng) -> u32 {
+        let dist = self.distribution(logits);
+        let Some(&(last, _)) = dist.last() else {
+            return 0;
+        };
+        let mut u: f64 = rng.random();
+        for &(i, p) in &dist {
+            if u < p {
+                return i;
+            }
+            u -= p;
+        }
+        last
+    }
+
+    /// The distribution [`draw`](Self::draw) draws from: ids with their probabilities, most likely first
+    /// (empty when no logit is finite).
+    pub fn distribution(&self, logits: &[f32]) -> Vec<(u32, f64)> {
         // Non-finite logits (NaN, masked −∞) are never drawn.
         let mut order: Vec<usize> = (0..logits.len()).filter(|&i| logits[i].is_finite()).collect();
         if order.is_empty() {
-            return 0;
+            return Vec::new();
         }
         // Most likely first, ties by id: one total order, so the draw does not depend on how it is sorted.
         let most_likely = |a: &usize, b: &usize| logits[*b].total_cmp(&logits[*a]).then(a.cmp(b));
@@ -106,14 +123,7 @@ impl Sampling {
             let total: f64 = probs.iter().sum();
             probs.iter_mut().for_each(|p| *p /= total);
         }
-        let mut u: f64 = rng.random();
-        for (p, &i) in probs.iter().zip(&order) {
-            if u < *p {
-                return i as u32;
-            }
-            u -= p;
-        }
-        order[order.len() - 1] as u32
+        order.into_iter().map(|i| i as u32).zip(probs).collect()
     }
 }
 #[cfg(test)]

@@ -275,3 +275,41 @@ fn forced_actions_initial_scenes_and_bad_settings() {
         .to_string();
     assert!(e.contains("2 sampling settings for 3 modalities"), "{e}");
 }
+
+#[test]
+fn speculative_blocks_keep_greedy_frames() {
+    let m = model();
+    let history = vec![frame(&m, 1), frame(&m, 2)];
+    let greedy = |k| {
+        let mut g = Generator::new(&m, vec![Sampling::greedy(); 3], 8, 0)
+            .unwrap()
+            .speculate(k);
+        g.next_frame(std::slice::from_ref(&history), &FrameControl::default())
+            .unwrap()
+            .remove(0)
+    };
+    // Greedy: a draft is accepted exactly when it is the OAR's argmax, so every block ends as the
+    // position-by-position decoding does.
+    let z = greedy(0);
+    assert_eq!(z, greedy(4), "blocks of 4");
+    assert_eq!(z, greedy(2), "blocks of 2");
+    // Sampling: the draws differ from position-by-position decoding but stay in the vocabularies (the
+    // acceptance rule's distribution is tested in `rollout/speculate.rs`).
+    let sample = |k| {
+        let mut g = Generator::new(&m, vec![Sampling::default(); 3], 8, 1)
+            .unwrap()
+            .speculate(k);
+        g.next_frame(&vec![history.clone(); 8], &FrameControl::default())
+            .unwrap()
+    };
+    let (plain, fast) = (sample(0), sample(4));
+    assert_ne!(plain, fast);
+    assert_eq!(fast, sample(4), "same seed, same frames");
+    for f in &fast {
+        for (p, s) in m.slots().iter().enumerate() {
+            if let Slot::Content(i, _) = *s {
+                assert!(f[p] < m.spec().segments[i].vocab as u32);
+            }
+        }
+    }
+}

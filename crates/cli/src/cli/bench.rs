@@ -97,6 +97,9 @@ pub struct BenchGenerateArgs {
     /// How draws on a CUDA device find the top-k ids.
     #[arg(long, value_enum, default_value = "rounds")]
     pub device_top_k: super::DeviceTopKArg,
+    /// Speculative blocks of up to K positions for the TAR/OAR frames (0 = off; see `umgen generate`).
+    #[arg(long, value_name = "K", default_value_t = 0)]
+    pub speculate: usize,
     /// Also time the parts of a decoding step one by one (input, OAR layers, head, device draw with
     /// each top-k method, host read-back), at the first history length.
     #[arg(long)]

@@ -86,7 +86,8 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             let h = history(&spec, &slots, a.batch, t);
             let mut g = Generator::new(&model, sampling.clone(), t, 0)?
                 .draw_on_device(on_gpu)
-                .device_top_k(a.device_top_k.into());
+                .device_top_k(a.device_top_k.into())
+                .speculate(a.speculate);
             // The first frame compiles kernels (CUDA) and warms caches.
             let t0 = Instant::now();
             g.next_frame(&h, &FrameControl::default())?;

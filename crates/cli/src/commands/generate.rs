@@ -59,7 +59,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         let mut g = Generator::new(&model, samplings, window, a.seed)?
             .draw_on_device(matches!(device, Device::Cuda(_)))
             .pass_frames(a.pass_frames)
-            .device_top_k(a.device_top_k.into());
+            .device_top_k(a.device_top_k.into())
+            .speculate(a.speculate);
         let mut history: Vec<Vec<Vec<u32>>> = (0..total)
             .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
             .collect();
@@ -113,6 +114,13 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             }
         }
         bar.finish_and_clear();
+        let (blocks, decided) = g.speculation();
+        if blocks > 0 {
+            tracing::info!(
+                "speculative decoding: {blocks} blocks decided {decided} positions ({:.2} per OAR pass)",
+                decided as f64 / blocks as f64
+            );
+        }
         history
     });
     let elapsed = started.elapsed().as_secs_f64();
@@ -173,6 +181,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             "scenes_per_context": a.scenes,
             "seed": a.seed,
             "sampling": sampling_meta,
+            // The draws of a seed depend on it (their distribution does not).
+            "speculate": a.speculate,
             "interval": interval,
         }))?,
     )?;
