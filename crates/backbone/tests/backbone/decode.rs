@@ -4,23 +4,53 @@
 use super::*;
 use umgen_backbone::Slot;
 
-#[test]
-fn cached_oar_steps_equal_the_full_causal_pass() {
+/// A model, a frame of 2 scenes (`flat` `[b, n]`), its embedding `e`, a random prior `h` (any prior
+/// works) and the full causal OAR pass over them.
+struct Frame {
+    m: Backbone<F>,
+    b: usize,
+    n: usize,
+    flat: Tensor<F, 2, Int>,
+    e: Tensor<F, 3>,
+    h: Tensor<F, 3>,
+    full: Tensor<F, 3>,
+}
+
+fn frame_with_prior(seed: u64) -> Frame {
     let m = model::<F>();
     let sp = spec();
     let (b, n) = (2, sp.n);
-    let ids = tokens(&sp, b, 1, 11);
-    let frame = tensor::<F>(&ids, b, 1, n);
+    let frame = tensor::<F>(&tokens(&sp, b, 1, seed), b, 1, n);
     let e = m.embed.forward(frame.clone()).reshape([b, n, 32]);
-    // Any prior h works: a fixed random one.
     let h = Tensor::<F, 3>::random(
         [b, n, 32],
         burn::tensor::Distribution::Normal(0.0, 1.0),
         &Default::default(),
     );
-    let full = m.oar(m.oar_input(e, h.clone()));
+    let full = m.oar(m.oar_input(e.clone(), h.clone()));
+    Frame {
+        m,
+        b,
+        n,
+        flat: frame.reshape([b, n]),
+        e,
+        h,
+        full,
+    }
+}
+
+#[test]
+fn cached_oar_steps_equal_the_full_causal_pass() {
+    let Frame {
+        m,
+        b,
+        n,
+        flat,
+        h,
+        full,
+        ..
+    } = frame_with_prior(11);
     let mut cache = m.oar_cache();
-    let flat = frame.reshape([b, n]);
     let mut worst = 0f32;
     for p in 0..n {
         let prev = (p > 0).then(|| flat.clone().narrow(1, p - 1, 1).reshape([b]));
@@ -41,19 +71,15 @@ fn cached_oar_steps_equal_the_full_causal_pass() {
 
 #[test]
 fn blocks_of_positions_equal_single_steps_and_rewinding_redoes_them() {
-    let m = model::<F>();
-    let sp = spec();
-    let (b, n) = (2, sp.n);
-    let ids = tokens(&sp, b, 1, 12);
-    let frame = tensor::<F>(&ids, b, 1, n);
-    let e = m.embed.forward(frame.clone()).reshape([b, n, 32]);
-    let h = Tensor::<F, 3>::random(
-        [b, n, 32],
-        burn::tensor::Distribution::Normal(0.0, 1.0),
-        &Default::default(),
-    );
-    let full = m.oar(m.oar_input(e.clone(), h.clone()));
-    let flat = frame.reshape([b, n]);
+    let Frame {
+        m,
+        b,
+        n,
+        flat,
+        e,
+        h,
+        full,
+    } = frame_with_prior(12);
     // Positions 7..11 lie in segment 1's content; position 7's input embeds token 6 (its first id).
     for l in [2, 3, 4] {
         let p = 7;
