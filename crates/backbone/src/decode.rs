@@ -44,41 +44,24 @@ impl<B: Backend> OarCache<B> {
     }
 
     /// Takes the next position: its index and the additive mask `[1, 1, 1, capacity]` of the keys it
-    /// may not see (0 up to it, −1e30 after, so that no −∞ meets a zero and makes a NaN): a comparison of
-    /// the key positions, uploaded once, with a scalar, so nothing is uploaded per step.
+    /// may not see (0 up to it, −1e30 after, so that no −∞ meets a zero and makes a NaN).
     pub(crate) fn advance(&mut self, dev: &B::Device) -> Result<(usize, Tensor<B, 4>), BackboneError> {
-        let pos = self.len;
-        if pos >= self.capacity {
-            return Err(BackboneError::Input(format!(
-                "the decoding cache holds {} positions and is full",
-                self.capacity
-            )));
-        }
-        self.len += 1;
-        let capacity = self.capacity;
-        let keys = self.keys.get_or_insert_with(|| {
-            Tensor::<B, 1, Int>::arange(0..capacity as i64, dev)
-                .float()
-                .reshape([1, 1, 1, capacity])
-        });
-        let hidden = keys.clone().greater_elem(pos as f64).float().mul_scalar(-1e30);
-        Ok((pos, hidden))
+        self.advance_by(1, dev)
     }
 
     /// Takes the next `l` positions: the first one's index and the mask `[1, 1, l, capacity]` in which
-    /// row i hides the keys after position `pos + i` (causal within the block).
+    /// row i hides the keys after position `pos + i` (causal within the block). The mask compares the key
+    /// positions, uploaded once, with the query positions: for one position a scalar, so a decoding step
+    /// uploads nothing.
     pub(crate) fn advance_by(
         &mut self,
         l: usize,
         dev: &B::Device,
     ) -> Result<(usize, Tensor<B, 4>), BackboneError> {
-        if l <= 1 {
-            return self.advance(dev);
-        }
-        let pos = self.len;
+        let (pos, l) = (self.len, l.max(1));
         if pos + l > self.capacity {
             return Err(BackboneError::Input(format!(
-                "the decoding cache holds {} positions: no room for {l} more after {pos}",
+                "the decoding cache holds {} positions and is full: no room for {l} more after {pos}",
                 self.capacity
             )));
         }
@@ -89,11 +72,15 @@ impl<B: Backend> OarCache<B> {
                 .float()
                 .reshape([1, 1, 1, capacity])
         });
-        let rows = Tensor::<B, 1, Int>::arange(pos as i64..(pos + l) as i64, dev)
-            .float()
-            .reshape([1, 1, l, 1]);
-        let hidden = keys.clone().greater(rows).float().mul_scalar(-1e30);
-        Ok((pos, hidden))
+        let hidden = if l == 1 {
+            keys.clone().greater_elem(pos as f64)
+        } else {
+            let rows = Tensor::<B, 1, Int>::arange(pos as i64..(pos + l) as i64, dev)
+                .float()
+                .reshape([1, 1, l, 1]);
+            keys.clone().greater(rows)
+        };
+        Ok((pos, hidden.float().mul_scalar(-1e30)))
     }
 
     /// Forgets the positions from `len` on (they stay in the tensors, hidden by the mask, and are

@@ -87,31 +87,30 @@ impl<B: Backend> FrameEmbedding<B> {
     /// time; equal to row `p` of [`forward`](Self::forward)).
     pub fn forward_at(&self, p: usize, ids: Tensor<B, 1, Int>) -> Tensor<B, 2> {
         let m = ids.dims()[0];
-        let s = self
-            .blocks
-            .iter()
-            .position(|[start, len]| p >= *start && p < start + len)
-            .unwrap_or(0);
-        let t = &self.tables[s];
-        let x = t.table.forward(ids.reshape([m, 1]));
-        let x = match &t.proj {
-            Some(proj) => linear(proj, x, self.precision),
-            None => x,
-        };
-        let e = x.dims()[2];
-        let x = x.reshape([m, e]) + self.pos.val().narrow(0, p, 1);
-        self.mlp(x)
+        let s = self.segment_of(p, 1).unwrap_or(0);
+        let y = self.rows(s, p, ids.reshape([m, 1]));
+        let d = y.dims()[2];
+        y.reshape([m, d])
     }
 
     /// Embeddings `[m, l, d]` of tokens `ids` `[m, l]` at frame positions `p..p + l`, which must lie in one
     /// segment's block (for decoding several positions at once; equal to those rows of
     /// [`forward`](Self::forward)). `None` when they do not.
     pub fn forward_block(&self, p: usize, ids: Tensor<B, 2, Int>) -> Option<Tensor<B, 3>> {
-        let [m, l] = ids.dims();
-        let s = self
-            .blocks
+        let s = self.segment_of(p, ids.dims()[1])?;
+        Some(self.rows(s, p, ids))
+    }
+
+    /// The segment whose block holds positions `p..p + l` (`l` ≥ 1).
+    fn segment_of(&self, p: usize, l: usize) -> Option<usize> {
+        self.blocks
             .iter()
-            .position(|[start, len]| p >= *start && p + l <= start + len && l > 0)?;
+            .position(|[start, len]| l > 0 && p >= *start && p + l <= start + len)
+    }
+
+    /// Embeddings `[m, l, d]` of `ids` `[m, l]` at positions `p..p + l` of segment `s`'s block.
+    fn rows(&self, s: usize, p: usize, ids: Tensor<B, 2, Int>) -> Tensor<B, 3> {
+        let l = ids.dims()[1];
         let t = &self.tables[s];
         let x = t.table.forward(ids);
         let x = match &t.proj {
@@ -119,10 +118,7 @@ impl<B: Backend> FrameEmbedding<B> {
             None => x,
         };
         let e = x.dims()[2];
-        let x = x + self.pos.val().narrow(0, p, l).reshape([1, l, e]);
-        let y = self.mlp(x);
-        debug_assert_eq!(y.dims()[0], m);
-        Some(y)
+        self.mlp(x + self.pos.val().narrow(0, p, l).reshape([1, l, e]))
     }
 
     /// Embeddings `[b, f, N, d]` of frames of tokens `[b, f, N]`.

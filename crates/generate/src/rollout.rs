@@ -220,11 +220,8 @@ impl<'a, B: Backend> Generator<'a, B> {
         let n = spec.n;
         let d = h.dims()[2];
         let mut out = vec![vec![0u32; n]; m];
-        let drawn_on_device: Vec<bool> = if self.on_device {
-            self.free_draws(action, rules)
-        } else {
-            vec![false; n]
-        };
+        let free = self.free_draws(action, rules);
+        let drawn_on_device: Vec<bool> = free.iter().map(|&f| f && self.on_device).collect();
         let sizes = (0..n)
             .filter(|&p| drawn_on_device[p])
             .filter_map(|p| match self.slots[p] {
@@ -239,7 +236,6 @@ impl<'a, B: Backend> Generator<'a, B> {
         // Positions without rules (map and image codes) are drawn on the device and read back once, at the
         // end of the frame: their ids feed the next step where they are, with no host synchronisation.
         let (mut pending, mut on_device) = (Vec::new(), None);
-        let free = self.free_draws(action, rules);
         let mut p = 0;
         while p < n {
             if let Some((l, s)) = self.speculative_run(p, &free) {
@@ -255,12 +251,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                 p += decided;
                 continue;
             }
-            let prev = (p > 0).then(|| {
-                on_device.take().unwrap_or_else(|| {
-                    let ids: Vec<i64> = out.iter().map(|r| i64::from(r[p - 1])).collect();
-                    Tensor::<B, 1, Int>::from_data(TensorData::new(ids, [m]), dev)
-                })
-            });
+            let prev = (p > 0).then(|| on_device.take().unwrap_or_else(|| ids_at(&out, p - 1, dev)));
             let w = self
                 .model
                 .oar_input_at(p, prev, h.clone().narrow(1, p, 1).reshape([m, d]));
@@ -375,6 +366,12 @@ fn known_ids(rules: &Rules<'_>, p: usize, out: &[Vec<u32>]) -> Option<Vec<u32>> 
             Allowed::Ids(_) => None,
         })
         .collect()
+}
+
+/// The ids of position `p` of every scene, on the device (the input of the next decoding step).
+pub(crate) fn ids_at<B: Backend>(out: &[Vec<u32>], p: usize, dev: &B::Device) -> Tensor<B, 1, Int> {
+    let ids: Vec<i64> = out.iter().map(|r| i64::from(r[p])).collect();
+    Tensor::from_data(TensorData::new(ids, [out.len()]), dev)
 }
 
 /// Rows of a `[r, v]` tensor on the host.

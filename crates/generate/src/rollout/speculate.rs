@@ -8,7 +8,7 @@
 //! al., 2023), while a one-scene rollout takes one OAR pass per accepted run instead of one per token.
 //! With several scenes the block ends where the first scene rejects.
 
-use super::{Generator, host_rows};
+use super::{Generator, host_rows, ids_at};
 use crate::error::{GenerateError, Result};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
@@ -57,7 +57,7 @@ impl<B: Backend> Generator<'_, B> {
         let prev = match (prev, p) {
             (prev @ Some(_), _) => prev,
             (None, 0) => None,
-            (None, _) => Some(ids_tensor(out.iter().map(|r| r[p - 1]), m, dev)),
+            (None, _) => Some(ids_at(out, p - 1, dev)),
         };
         let first = model.oar_input_at(p, prev, hp.clone().narrow(1, 0, 1).reshape([m, d]));
         let drafted = Tensor::<B, 2, Int>::from_data(
@@ -80,25 +80,26 @@ impl<B: Backend> Generator<'_, B> {
         // Accept drafts while every scene accepts; the first position any scene rejects is the last one
         // decided, drawn from the residual where rejected (`None`: every draft accepted).
         let mut rejected_at = None;
-        let mut accepted = vec![true; m];
         for j in 0..l {
-            for b in 0..m {
-                let (pd, qd) = (
-                    smp.distribution(&p_rows[b * l + j]),
-                    smp.distribution(&q_rows[b * l + j]),
-                );
-                accepted[b] = accepts(&pd, &qd, drafts[b][j], &mut self.rng);
-            }
+            let dists: Vec<_> = (0..m)
+                .map(|b| {
+                    let r = b * l + j;
+                    (smp.distribution(&p_rows[r]), smp.distribution(&q_rows[r]))
+                })
+                .collect();
+            let accepted: Vec<bool> = dists
+                .iter()
+                .zip(&drafts)
+                .map(|((pd, qd), draft)| accepts(pd, qd, draft[j], &mut self.rng))
+                .collect();
             if accepted.iter().all(|&a| a) {
                 continue;
             }
-            for b in 0..m {
+            for (b, (pd, qd)) in dists.iter().enumerate() {
                 out[b][p + j] = if accepted[b] {
                     drafts[b][j]
                 } else {
-                    let pd = smp.distribution(&p_rows[b * l + j]);
-                    let qd = smp.distribution(&q_rows[b * l + j]);
-                    residual_draw(&pd, &qd, &mut self.rng)
+                    residual_draw(pd, qd, &mut self.rng)
                 };
             }
             rejected_at = Some(j);
@@ -113,11 +114,6 @@ impl<B: Backend> Generator<'_, B> {
         cache.rewind(p + decided);
         Ok(decided)
     }
-}
-
-/// `ids` of `m` scenes as a device tensor.
-fn ids_tensor<B: Backend>(ids: impl Iterator<Item = u32>, m: usize, dev: &B::Device) -> Tensor<B, 1, Int> {
-    Tensor::from_data(TensorData::new(ids.map(i64::from).collect::<Vec<_>>(), [m]), dev)
 }
 
 /// Whether the draft `x`, drawn from `q`, stands as a draw from `p`: with probability min(1, p(x)/q(x)).
