@@ -20,6 +20,38 @@ pub enum BenchCommand {
     /// The backbone's tiled attention against burn's decomposed attention: agreement of outputs and
     /// gradients, forward+backward time and memory, at the shapes of the `small` and `paper` presets.
     Attention(BenchAttentionArgs),
+    /// The matrix-product kernels cubecl offers (burn's default and the ones its autotuning chooses
+    /// between), each timed and checked against the default on the shapes of the `small` training step.
+    Matmul(BenchMatmulArgs),
+}
+
+/// Arguments of `umgen bench matmul`.
+#[derive(Debug, Args)]
+pub struct BenchMatmulArgs {
+    /// `cuda:N` (the kernels measured are CUDA's).
+    #[arg(long, default_value = "cuda:0")]
+    pub device: String,
+    /// Products as `[BATCHx]MxKxN`, comma-separated. Default: the `small` step's (M = 4 · 8 · 2199 tokens):
+    /// QKV and MLP-up projections, MLP-down, the MLP-up weight gradient, the map head (8192 codes), and
+    /// attention scores and values (32 sequences × 6 heads).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "70368x384x1152,70368x384x1536,70368x1536x384,384x70368x1536,32768x384x8192,192x2199x64x2199,192x2199x2199x64"
+    )]
+    pub shapes: Vec<String>,
+    /// Number formats of operands and output, comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "f32,bf16")]
+    pub dtypes: Vec<PrecisionArg>,
+    /// Only kernels whose printed name contains one of these, comma-separated (default: all).
+    #[arg(long, value_delimiter = ',')]
+    pub kernels: Vec<String>,
+    /// Timed launches per kernel and shape (the median is reported).
+    #[arg(long, default_value_t = 10)]
+    pub iters: usize,
+    /// Starts no new measurement after this many seconds; rows print as they finish.
+    #[arg(long, default_value_t = 600.0)]
+    pub seconds: f64,
 }
 
 /// Arguments of `umgen bench attention`.

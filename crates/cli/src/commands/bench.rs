@@ -14,6 +14,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Allreduce(args) => super::bench_train::allreduce(&args),
         BenchCommand::Generate(args) => super::bench_generate::run(&args),
         BenchCommand::Attention(args) => super::bench_attention::run(&args),
+        BenchCommand::Matmul(args) => super::bench_matmul::run(&args),
     }
 }
 
