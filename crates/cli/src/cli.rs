@@ -115,8 +115,12 @@ pub struct GenerateArgs {
     #[arg(long, value_name = "FRAMES", default_value_t = umgen::generate::DEFAULT_PASS_FRAMES)]
     pub pass_frames: usize,
     /// How draws on a CUDA device find the top-k ids (the CPU draws on the host).
-    #[arg(long, value_enum, default_value = "rounds")]
+    #[arg(long, value_enum, default_value = "reduce")]
     pub device_top_k: DeviceTopKArg,
+    /// Where the map and image codes are drawn: `auto` draws on the host up to
+    /// 16 scenes per batch and on a CUDA device above (the CPU always draws on the host).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub draw: DrawArg,
     /// Decode map and image codes in speculative blocks of up to K positions, drafted by the TAR heads
     /// and checked by one OAR pass each (same distribution, fewer sequential steps; 0 = off).
     #[arg(long, value_name = "K", default_value_t = 0)]
@@ -342,6 +346,34 @@ fn modality_top_k(s: &str) -> Result<(String, usize), String> {
     }
 }
 
+/// Where draws of positions without rules happen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum DrawArg {
+    /// The host up to [`DrawArg::HOST_MAX_SCENES`] scenes per batch, a CUDA device above.
+    Auto,
+    /// Always the host: the logits are read back every step.
+    Host,
+    /// On a CUDA device: top-k, filters and the draw run there, the ids are read back once per frame.
+    Device,
+}
+
+impl DrawArg {
+    /// Largest batch drawn on the host by `auto`. In the eighth session's breakdown (`small`, H200,
+    /// batch 1) reading back 8,192 logits and drawing on the host took 0.085 ms a step, the device
+    /// draw 2.9 ms (`reduce`) to 5.4 ms (`rounds`); the read-back grows with the batch, the device
+    /// draw's kernel count does not.
+    pub const HOST_MAX_SCENES: usize = 16;
+
+    /// Whether a batch of `scenes` draws on the device, on a CUDA device or not.
+    pub fn on_device(self, cuda: bool, scenes: usize) -> bool {
+        cuda && match self {
+            Self::Auto => scenes > Self::HOST_MAX_SCENES,
+            Self::Host => false,
+            Self::Device => true,
+        }
+    }
+}
+
 /// How draws on the GPU find each row's top-k ids.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum DeviceTopKArg {
@@ -356,6 +388,24 @@ impl From<DeviceTopKArg> for umgen::generate::DeviceTopK {
         match a {
             DeviceTopKArg::Rounds => Self::Rounds,
             DeviceTopKArg::Reduce => Self::Reduce,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::DrawArg;
+
+    #[test]
+    fn auto_draws_small_batches_on_the_host_and_the_cpu_never_on_a_device() {
+        let max = DrawArg::HOST_MAX_SCENES;
+        assert!(!DrawArg::Auto.on_device(true, 1));
+        assert!(!DrawArg::Auto.on_device(true, max));
+        assert!(DrawArg::Auto.on_device(true, max + 1));
+        assert!(DrawArg::Device.on_device(true, 1));
+        assert!(!DrawArg::Host.on_device(true, 512));
+        for d in [DrawArg::Auto, DrawArg::Host, DrawArg::Device] {
+            assert!(!d.on_device(false, 512), "{d:?}");
         }
     }
 }

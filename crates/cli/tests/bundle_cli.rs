@@ -353,6 +353,8 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
     let meta = json(cut.join("meta.json"));
     assert_eq!(meta["frames"], 1);
     assert_eq!(meta["speculate"], 4);
+    // The CPU draws on the host whatever --draw says.
+    assert_eq!(meta["draw"], "host");
     // Per-modality top-k is recorded; an unknown modality is refused by name.
     assert_eq!(meta["sampling"]["agent"]["top_k"], 5);
     assert_eq!(meta["sampling"]["map"]["top_k"], 16);

@@ -127,8 +127,11 @@ pub struct BenchGenerateArgs {
     #[arg(long, default_value_t = 5)]
     pub frames: usize,
     /// How draws on a CUDA device find the top-k ids.
-    #[arg(long, value_enum, default_value = "rounds")]
+    #[arg(long, value_enum, default_value = "reduce")]
     pub device_top_k: super::DeviceTopKArg,
+    /// Where the TAR/OAR frames draw (see `umgen generate --draw`).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub draw: super::DrawArg,
     /// Speculative blocks of up to K positions for the TAR/OAR frames (0 = off; see `umgen generate`).
     #[arg(long, value_name = "K", default_value_t = 0)]
     pub speculate: usize,

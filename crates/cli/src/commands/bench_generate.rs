@@ -85,7 +85,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
         for &t in &a.history {
             let h = history(&spec, &slots, a.batch, t);
             let mut g = Generator::new(&model, sampling.clone(), t, 0)?
-                .draw_on_device(on_gpu)
+                .draw_on_device(a.draw.on_device(on_gpu, a.batch))
                 .device_top_k(a.device_top_k.into())
                 .speculate(a.speculate);
             // The first frame compiles kernels (CUDA) and warms caches.

@@ -219,7 +219,16 @@ mod cuda {
                                 format!("{err:.1e}"),
                             )
                         }
-                        Err(e) => (String::from("-"), String::from("-"), e.chars().take(60).collect()),
+                        Err(e) => (
+                            String::from("-"),
+                            String::from("-"),
+                            e.split_whitespace()
+                                .collect::<Vec<_>>()
+                                .join(" ")
+                                .chars()
+                                .take(80)
+                                .collect(),
+                        ),
                     };
                     writeln!(
                         out,

@@ -52,12 +52,13 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let bins = spec.action.as_ref().map(|x| x.bins);
     let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
     let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
+    let on_device = a.draw.on_device(matches!(device, Device::Cuda(_)), total);
     let started = std::time::Instant::now();
     let scenes = crate::with_inference!(device, |I, dev| {
         let model = Backbone::<I>::new(&bundle.config.backbone, &spec, &dev)?;
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
         let mut g = Generator::new(&model, samplings, window, a.seed)?
-            .draw_on_device(matches!(device, Device::Cuda(_)))
+            .draw_on_device(on_device)
             .pass_frames(a.pass_frames)
             .device_top_k(a.device_top_k.into())
             .speculate(a.speculate);
@@ -183,6 +184,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             "sampling": sampling_meta,
             // The draws of a seed depend on it (their distribution does not).
             "speculate": a.speculate,
+            "draw": if on_device { "device" } else { "host" },
             "interval": interval,
         }))?,
     )?;
