@@ -45,6 +45,8 @@ pub struct Generator<'a, B: Backend> {
     speculate: usize,
     /// Speculative blocks run and the positions they decided, since the generator was made.
     speculated: (u64, u64),
+    /// New agents the new-agent rule tested and dropped, since the generator was made.
+    new_agents: (u64, u64),
 }
 
 impl<'a, B: Backend> Generator<'a, B> {
@@ -80,6 +82,7 @@ impl<'a, B: Backend> Generator<'a, B> {
             top_k: DeviceTopK::default(),
             speculate: 0,
             speculated: (0, 0),
+            new_agents: (0, 0),
         })
     }
 
@@ -334,7 +337,14 @@ impl<'a, B: Backend> Generator<'a, B> {
                 && !(*start..=p).any(|q| rules.placed[q].is_some())
             {
                 for (b, row) in out.iter_mut().enumerate() {
-                    if row[*start] != g.pad && boxes.admit(b, &row[*start..=p], spec, rules.newborn[b][p]) {
+                    if row[*start] == g.pad {
+                        continue;
+                    }
+                    let newborn = rules.newborn[b][p];
+                    let dropped = boxes.admit(b, &row[*start..=p], spec, newborn);
+                    self.new_agents.0 += u64::from(newborn);
+                    if dropped {
+                        self.new_agents.1 += 1;
                         row[*start..=p].iter_mut().for_each(|x| *x = g.pad);
                     }
                 }

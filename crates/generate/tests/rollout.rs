@@ -248,6 +248,60 @@ fn forced_actions_initial_scenes_and_bad_settings() {
             );
         }
     }
+    // The new-agent rule with every box decoded at the origin, on the ego: in an initial scene every
+    // group is new, so every agent drawn is dropped, and the generator counts each one.
+    let (mut tested, mut dropped) = (0, 0);
+    for seed in 0..20 {
+        let mut g = Generator::new(
+            &m,
+            vec![
+                Sampling {
+                    top_k: 0,
+                    ..Sampling::default()
+                };
+                3
+            ],
+            4,
+            seed,
+        )
+        .unwrap();
+        let at_origin = |lo: f64, hi: f64| (0, lo, hi, 6);
+        let boxed = FrameControl {
+            groups: vec![umgen_generate::TokenGroups {
+                first: 14,
+                size: 2,
+                count: 2,
+                pad: 8,
+                values: 6,
+                last: 6..8,
+                boxes: Some(umgen_generate::GroupBoxes {
+                    fields: [
+                        at_origin(-0.1, 0.1),
+                        at_origin(-0.1, 0.1),
+                        at_origin(0.0, 0.1),
+                        at_origin(4.0, 4.1),
+                        at_origin(2.0, 2.1),
+                    ],
+                    ego: [5.0, 2.0],
+                    max_boxes: 30,
+                }),
+            }],
+            ..Default::default()
+        };
+        let f = g.next_frame(&[vec![]], &boxed).unwrap();
+        assert!(
+            f[0][14..18].iter().all(|&x| x == 8),
+            "seed {seed}: {:?}",
+            &f[0][14..18]
+        );
+        let (t, d) = g.new_agents();
+        assert_eq!(t, d, "seed {seed}: every new agent is on the ego");
+        (tested, dropped) = (tested + t, dropped + d);
+    }
+    assert!(
+        tested > 0 && tested == dropped,
+        "{tested} tested, {dropped} dropped"
+    );
     // A limit of 1 leaves only id 0 at that position, whatever the draws.
     for seed in 0..5 {
         let mut g = Generator::new(&m, vec![Sampling::default(); 3], 4, seed).unwrap();

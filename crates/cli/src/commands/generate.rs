@@ -122,8 +122,16 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
                 decided as f64 / blocks as f64
             );
         }
-        history
+        let (tested, dropped) = g.new_agents();
+        if tested > 0 {
+            tracing::info!(
+                "new-agent rule: dropped {dropped} of {tested} new agents (overlapping a box decoded before \
+                 them, or over the frame's box budget)"
+            );
+        }
+        (history, (tested, dropped))
     });
+    let (scenes, (new_tested, new_dropped)) = scenes;
     let elapsed = started.elapsed().as_secs_f64();
     let n_context = context_rows.first().map_or(0, Vec::len);
     // Fewer than --frames when --time-limit stopped the rollout.
@@ -185,6 +193,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             // The draws of a seed depend on it (their distribution does not).
             "speculate": a.speculate,
             "draw": if on_device { "device" } else { "host" },
+            "new_agents": {"tested": new_tested, "dropped": new_dropped},
             "interval": interval,
         }))?,
     )?;

@@ -36,6 +36,13 @@ impl<B: Backend> Generator<'_, B> {
         self.speculated
     }
 
+    /// New agents (groups filled in a slot that was empty in the previous frame) that the new-agent rule
+    /// tested so far, and how many of them it dropped for overlapping a box decoded before them or for
+    /// exceeding the frame's box budget.
+    pub fn new_agents(&self) -> (u64, u64) {
+        self.new_agents
+    }
+
     /// How device draws find the top-k ([`DeviceTopK::Reduce`] only on backends with `argtopk`).
     pub fn device_top_k(mut self, top_k: DeviceTopK) -> Self {
         self.top_k = top_k;
