@@ -65,6 +65,32 @@ fn frame(m: &Backbone<F>, k: u32) -> Vec<u32> {
         .collect()
 }
 
+/// A generator drawing from the full softmax (no top-k) for every modality.
+fn unfiltered(m: &Backbone<F>, seed: u64) -> Generator<'_, F> {
+    let all = Sampling {
+        top_k: 0,
+        ..Sampling::default()
+    };
+    Generator::new(m, vec![all; 3], 4, seed).unwrap()
+}
+
+/// The agent segment (positions 14..18, ids 0..9) as 2 groups of 2 with pad 8, values 0..6 and last ids
+/// 6..8, with `boxes` for the new-agent rule.
+fn agent_groups(boxes: Option<umgen_generate::GroupBoxes>) -> FrameControl {
+    FrameControl {
+        groups: vec![umgen_generate::TokenGroups {
+            first: 14,
+            size: 2,
+            count: 2,
+            pad: 8,
+            values: 6,
+            last: 6..8,
+            boxes,
+        }],
+        ..Default::default()
+    }
+}
+
 fn ids(frames: &[Vec<u32>], n: usize) -> Tensor<F, 3, Int> {
     let v: Vec<i64> = frames.iter().flatten().map(|&x| i64::from(x)).collect();
     Tensor::from_data(TensorData::new(v, [1, frames.len(), n]), &Default::default())
@@ -211,34 +237,10 @@ fn forced_actions_initial_scenes_and_bad_settings() {
         assert!(f[0][8] != 0 && f[0][8] < 12, "redrawn: {}", f[0][8]);
         assert_eq!(f[1][8], 0);
     }
-    // Token groups: the agent segment (positions 14..18, ids 0..9) as 2 groups of 2 with pad 8, values
-    // 0..6 and last ids 6..8: every group comes out all-pad or values-then-last.
+    // Token groups (`agent_groups`): every group comes out all-pad or values-then-last.
     for seed in 0..20 {
-        let mut g = Generator::new(
-            &m,
-            vec![
-                Sampling {
-                    top_k: 0,
-                    ..Sampling::default()
-                };
-                3
-            ],
-            4,
-            seed,
-        )
-        .unwrap();
-        let grouped = FrameControl {
-            groups: vec![umgen_generate::TokenGroups {
-                first: 14,
-                size: 2,
-                count: 2,
-                pad: 8,
-                values: 6,
-                last: 6..8,
-                boxes: None,
-            }],
-            ..Default::default()
-        };
+        let mut g = unfiltered(&m, seed);
+        let grouped = agent_groups(None);
         let f = g.next_frame(&[vec![frame(&m, 2)]], &grouped).unwrap();
         for k in [14, 16] {
             let (a, b) = (f[0][k], f[0][k + 1]);
@@ -252,42 +254,19 @@ fn forced_actions_initial_scenes_and_bad_settings() {
     // group is new, so every agent drawn is dropped, and the generator counts each one.
     let (mut tested, mut dropped) = (0, 0);
     for seed in 0..20 {
-        let mut g = Generator::new(
-            &m,
-            vec![
-                Sampling {
-                    top_k: 0,
-                    ..Sampling::default()
-                };
-                3
-            ],
-            4,
-            seed,
-        )
-        .unwrap();
+        let mut g = unfiltered(&m, seed);
         let at_origin = |lo: f64, hi: f64| (0, lo, hi, 6);
-        let boxed = FrameControl {
-            groups: vec![umgen_generate::TokenGroups {
-                first: 14,
-                size: 2,
-                count: 2,
-                pad: 8,
-                values: 6,
-                last: 6..8,
-                boxes: Some(umgen_generate::GroupBoxes {
-                    fields: [
-                        at_origin(-0.1, 0.1),
-                        at_origin(-0.1, 0.1),
-                        at_origin(0.0, 0.1),
-                        at_origin(4.0, 4.1),
-                        at_origin(2.0, 2.1),
-                    ],
-                    ego: [5.0, 2.0],
-                    max_boxes: 30,
-                }),
-            }],
-            ..Default::default()
-        };
+        let boxed = agent_groups(Some(umgen_generate::GroupBoxes {
+            fields: [
+                at_origin(-0.1, 0.1),
+                at_origin(-0.1, 0.1),
+                at_origin(0.0, 0.1),
+                at_origin(4.0, 4.1),
+                at_origin(2.0, 2.1),
+            ],
+            ego: [5.0, 2.0],
+            max_boxes: 30,
+        }));
         let f = g.next_frame(&[vec![]], &boxed).unwrap();
         assert!(
             f[0][14..18].iter().all(|&x| x == 8),

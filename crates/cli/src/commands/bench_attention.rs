@@ -113,8 +113,8 @@ fn measure<B: AutodiffBackend>(
     })
 }
 
-/// max |a − b| / max |b|.
-fn rel_err<B: Backend>(a: Tensor<B, 4>, b: Tensor<B, 4>) -> f64 {
+/// max |a − b| / max |b| (also `bench matmul`'s agreement measure).
+pub(super) fn rel_err<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>) -> f64 {
     let scale: f64 = b.clone().abs().max().into_scalar().elem();
     let diff: f64 = (a - b).abs().max().into_scalar().elem();
     diff / scale.max(f64::MIN_POSITIVE)

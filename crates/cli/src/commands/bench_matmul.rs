@@ -155,13 +155,8 @@ mod cuda {
 
     /// Largest |difference| / largest |reference|, in f32.
     fn rel_err(x: &Primitive, reference: &Primitive) -> f64 {
-        let (x, r) = (
-            float(x.clone()).cast(FloatDType::F32),
-            float(reference.clone()).cast(FloatDType::F32),
-        );
-        let d: f32 = (x - r.clone()).abs().max().into_scalar();
-        let s: f32 = r.abs().max().into_scalar();
-        f64::from(d) / f64::from(s).max(f64::MIN_POSITIVE)
+        let f32_of = |t: &Primitive| float(t.clone()).cast(FloatDType::F32);
+        crate::commands::bench_attention::rel_err(f32_of(x), f32_of(reference))
     }
 
     pub(super) fn run(a: &BenchMatmulArgs, shapes: &[Shape], gpu: usize) -> anyhow::Result<()> {

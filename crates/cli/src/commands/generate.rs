@@ -54,7 +54,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
     let on_device = a.draw.on_device(matches!(device, Device::Cuda(_)), total);
     let started = std::time::Instant::now();
-    let scenes = crate::with_inference!(device, |I, dev| {
+    let (scenes, (new_tested, new_dropped)) = crate::with_inference!(device, |I, dev| {
         let model = Backbone::<I>::new(&bundle.config.backbone, &spec, &dev)?;
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
         let mut g = Generator::new(&model, samplings, window, a.seed)?
@@ -131,7 +131,6 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         }
         (history, (tested, dropped))
     });
-    let (scenes, (new_tested, new_dropped)) = scenes;
     let elapsed = started.elapsed().as_secs_f64();
     let n_context = context_rows.first().map_or(0, Vec::len);
     // Fewer than --frames when --time-limit stopped the rollout.
