@@ -14,6 +14,7 @@
 //! same function.
 
 use crate::config::Precision;
+use crate::dispatch::same;
 use crate::precision::{matmul, operand};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -26,7 +27,6 @@ use burn::tensor::backend::Backend;
 use burn::tensor::module::attention;
 use burn::tensor::ops::{AttentionModuleOptions, FloatTensor};
 use burn::tensor::{Bool, Tensor, TensorPrimitive};
-use std::any::Any;
 
 /// Shorter key sequences take the decomposed path: their score matrices are no larger than a few copies of
 /// the keys, and the block loop only adds launches (H200, `umgen bench attention`: 70,352 sequences of 8
@@ -79,12 +79,10 @@ pub fn tiled_for<B: Backend>() -> Option<AttentionFn<B>> {
 
 /// `tiled_autodiff` on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
 fn on<B: Backend, I: Backend>() -> Option<AttentionFn<B>> {
-    fn cast<B: Backend, A: Backend>(f: AttentionFn<A>) -> Option<AttentionFn<B>> {
-        // Function pointers are `'static` values, so `Any` can tell whether `A` and `B` are one type.
-        (&f as &dyn Any).downcast_ref::<AttentionFn<B>>().copied()
-    }
-    cast::<B, Autodiff<I, NoCheckpointing>>(tiled_autodiff::<I, NoCheckpointing>)
-        .or_else(|| cast::<B, Autodiff<I, BalancedCheckpointing>>(tiled_autodiff::<I, BalancedCheckpointing>))
+    let plain: AttentionFn<Autodiff<I, NoCheckpointing>> = tiled_autodiff::<I, NoCheckpointing>;
+    let balanced: AttentionFn<Autodiff<I, BalancedCheckpointing>> =
+        tiled_autodiff::<I, BalancedCheckpointing>;
+    same(plain).or_else(|| same(balanced))
 }
 
 fn float<B: Backend, const D: usize>(t: FloatTensor<B>) -> Tensor<B, D> {

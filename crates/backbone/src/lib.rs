@@ -17,7 +17,8 @@
 //!    CE(OAR) + CE(TAR) + CE(ego), reported per modality.
 //!
 //! Matrix products run in f32 or, with [`Precision::Bf16`], on bf16 operands with f32 master weights
-//! (`precision.rs`); training attention over long sequences is tiled ([`attention`]).
+//! (`precision.rs`); training attention over long sequences is tiled ([`attention`]), and training on CUDA
+//! runs the linear layers' products on a named matmul kernel ([`matmul`]).
 //!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
@@ -25,11 +26,13 @@ mod ama;
 pub mod attention;
 mod config;
 mod decode;
+mod dispatch;
 mod ego;
 mod embed;
 mod error;
 mod heads;
 mod layers;
+pub mod matmul;
 mod model;
 mod precision;
 mod spec;

@@ -34,8 +34,20 @@ pub fn matmul<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>, p: P
     widen(operand(a, p).matmul(operand(b, p)), p)
 }
 
-/// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32.
+/// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32. Training on CUDA runs the
+/// product on the named kernel (`matmul.rs`), as one `[m, k] × [k, n]` product over all leading dimensions.
 pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
+    if let Some(product) = crate::matmul::named_for::<B>() {
+        let mut dims = x.dims();
+        let k = dims[D - 1];
+        let w = layer.weight.val();
+        dims[D - 1] = w.dims()[1];
+        let y = product(x.reshape([-1, k as i32]), w, p).reshape(dims);
+        return match &layer.bias {
+            Some(bias) => y + bias.val().unsqueeze::<D>(),
+            None => y,
+        };
+    }
     match p {
         Precision::F32 => layer.forward(x),
         Precision::Bf16 => {

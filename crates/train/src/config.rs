@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+use umgen_backbone::matmul::MatmulKernel;
 
 /// How the backbone is trained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -58,6 +59,9 @@ pub struct TrainConfig {
     pub split: String,
     /// Size of a gradient all-reduce bucket in MiB (data-parallel runs).
     pub bucket_mib: f64,
+    /// Kernel of the linear layers' products when training on CUDA: `named` (cubek's
+    /// `specialized_tma_mma`, `umgen_backbone::matmul`) or `burn` (burn's default kernel).
+    pub matmul: MatmulKernel,
 }
 
 impl Default for TrainConfig {
@@ -87,6 +91,7 @@ impl Default for TrainConfig {
             data: None,
             split: "train".into(),
             bucket_mib: 25.0,
+            matmul: MatmulKernel::Named,
         }
     }
 }
@@ -106,6 +111,8 @@ impl TrainConfig {
                 "tokens",
                 "data",
                 "bucket_mib",
+                // Same products on another kernel: rounding differs, the run does not.
+                "matmul",
             ] {
                 o.remove(k);
             }

@@ -23,6 +23,31 @@ pub enum BenchCommand {
     /// The matrix-product kernels cubecl offers (burn's default and the ones its autotuning chooses
     /// between), each timed and checked against the default on the shapes of the `small` training step.
     Matmul(BenchMatmulArgs),
+    /// A linear layer's product, forward and both gradients, on the named kernel that training uses
+    /// (`train.matmul = "named"`) against burn's own path: agreement with burn's f32 result, and time.
+    Linear(BenchLinearArgs),
+}
+
+/// Arguments of `umgen bench linear`.
+#[derive(Debug, Args)]
+pub struct BenchLinearArgs {
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Products as `MxKxN` (`x: [M, K]`, `w: [K, N]`), comma-separated. Default: the `small` step's
+    /// attention projection, MLP up and down (M = 4 · 8 · 2199 tokens) and the map head (8192 codes).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "70368x384x384,70368x384x1536,70368x1536x384,32768x384x8192"
+    )]
+    pub shapes: Vec<String>,
+    /// Number formats of the products (`backbone.precision`), comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "f32,bf16")]
+    pub dtypes: Vec<PrecisionArg>,
+    /// Timed forward+backward passes per path (the median is reported).
+    #[arg(long, default_value_t = 10)]
+    pub iters: usize,
 }
 
 /// Arguments of `umgen bench matmul`.

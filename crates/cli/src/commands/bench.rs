@@ -15,6 +15,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Generate(args) => super::bench_generate::run(&args),
         BenchCommand::Attention(args) => super::bench_attention::run(&args),
         BenchCommand::Matmul(args) => super::bench_matmul::run(&args),
+        BenchCommand::Linear(args) => super::bench_linear::run(&args),
     }
 }
 

@@ -7,16 +7,16 @@ use anyhow::Context;
 
 /// One product: `batch` independent `[m, k] × [k, n]`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Shape {
-    batch: usize,
-    m: usize,
-    k: usize,
-    n: usize,
+pub(super) struct Shape {
+    pub(super) batch: usize,
+    pub(super) m: usize,
+    pub(super) k: usize,
+    pub(super) n: usize,
 }
 
 impl Shape {
     /// `[BATCHx]MxKxN`.
-    fn parse(s: &str) -> anyhow::Result<Self> {
+    pub(super) fn parse(s: &str) -> anyhow::Result<Self> {
         let v: Vec<usize> = s
             .split('x')
             .map(|x| x.parse::<usize>())
@@ -32,8 +32,7 @@ impl Shape {
     }
 
     /// Multiply-adds × 2.
-    #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
-    fn flops(&self) -> f64 {
+    pub(super) fn flops(&self) -> f64 {
         2.0 * (self.batch * self.m * self.k * self.n) as f64
     }
 }

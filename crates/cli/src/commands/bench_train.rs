@@ -71,6 +71,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     let tokens_per_step = (b * tc.frames * spec.n * world) as f64;
     let flops = spec.train_flops(cfg, b, tc.frames) * world as f64;
     let bucket = (tc.bucket_mib * 1048576.0) as usize;
+    umgen::backbone::matmul::select(tc.matmul);
     // Every rank runs the same binary, so std's hasher is stable enough to compare configs.
     let identity = {
         use std::hash::{Hash, Hasher};
@@ -171,6 +172,16 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         None => writeln!(out, "config        {}", path.display())?,
     }
     writeln!(out, "device        {}", a.device)?;
+    // Only the CUDA training backend has the named kernel; elsewhere `matmul` changes nothing.
+    #[cfg(feature = "cuda")]
+    if matches!(device, Device::Cuda(_)) {
+        writeln!(
+            out,
+            "matmul        {:?}, {} product(s) fell back to burn's default kernel",
+            tc.matmul,
+            umgen::backbone::matmul::fallbacks()
+        )?;
+    }
     if world > 1 {
         writeln!(
             out,

@@ -5,6 +5,7 @@ mod bench;
 mod bench_attention;
 mod bench_decode;
 mod bench_generate;
+mod bench_linear;
 mod bench_matmul;
 mod bench_train;
 mod data;

@@ -1,0 +1,247 @@
+//! The products of the linear layers and output heads on a named matmul kernel.
+//!
+//! Without burn's `autotune` build every product runs one default kernel (cubek's simple cyclic CMMA).
+//! `umgen bench matmul` timed the kernels cubek offers on the `small` training step's shapes (H200):
+//! `specialized_tma_mma` ran the projections, heads and weight gradients 1.7–2.8× faster than the default
+//! in f32 and 2.3–3.7× in bf16, while two other kernels gave wrong results on the weight-gradient shape,
+//! so letting autotuning pick by time alone is not safe either. Training on CUDA therefore routes each
+//! linear layer's product through [`named_autodiff`], a custom autodiff operation whose forward product
+//! and both gradient products go to [`NamedMatmul::named_matmul`]; on CUDA that launches the one kernel
+//! named here and falls back to burn's default kernel, counted and logged, on any shape or format it does
+//! not take (`matmul/cuda.rs`). `umgen bench linear` checks the operation against burn's own path on the
+//! GPU, forward and gradients.
+//!
+//! With [`Precision::Bf16`] the operation casts its operands itself: it saves them in bf16 (half the
+//! memory of burn's path, which saves f32 inputs before its cast), and every product, gradients included,
+//! reads bf16 and writes f32, where burn's differentiable cast would compute the gradients in bf16.
+//!
+//! On the CPU (`Autodiff<Flex>`) the operation runs burn's one product, so CPU training checks its gradients;
+//! any other backend, and [`MatmulKernel::Burn`], keep burn's `matmul`.
+
+use crate::config::Precision;
+use crate::dispatch::same;
+use crate::precision::operand;
+use burn::backend::Autodiff;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::tensor::backend::Backend;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{FloatDType, Tensor, TensorPrimitive};
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+#[cfg(feature = "cuda")]
+mod cuda;
+#[cfg(feature = "cuda")]
+pub use cuda::fallbacks;
+
+/// Which kernel runs the linear layers' products in training on CUDA (`train.matmul`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MatmulKernel {
+    /// cubek's `specialized_tma_mma`, through [`named_autodiff`].
+    #[default]
+    Named,
+    /// burn's default kernel, through burn's own autodiff.
+    Burn,
+}
+
+/// Burn's kernel chosen (process-wide: a kernel is a property of the device run, not of the model).
+static BURN_KERNEL: AtomicBool = AtomicBool::new(false);
+
+/// Chooses the kernel for every product this process runs from now on.
+pub fn select(kernel: MatmulKernel) {
+    BURN_KERNEL.store(kernel == MatmulKernel::Burn, Ordering::Relaxed);
+}
+
+/// The kernel [`select`] chose ([`MatmulKernel::Named`] unless told otherwise).
+pub fn selected() -> MatmulKernel {
+    if BURN_KERNEL.load(Ordering::Relaxed) {
+        MatmulKernel::Burn
+    } else {
+        MatmulKernel::Named
+    }
+}
+
+/// A backend that can multiply two `[m, k] × [k, n]` matrices of one float format (either may be a
+/// transposed view) into an f32 result on a kernel of its choosing.
+pub trait NamedMatmul: Backend {
+    /// `lhs · rhs`, f32.
+    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>) -> FloatTensor<Self>;
+}
+
+/// The CPU backend has one kernel: burn's product, widened. It lets the CPU tests check the operation's
+/// gradients and casts.
+impl NamedMatmul for burn::backend::Flex {
+    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>) -> FloatTensor<Self> {
+        float::<Self>(lhs)
+            .matmul(float(rhs))
+            .cast(FloatDType::F32)
+            .into_primitive()
+            .tensor()
+    }
+}
+
+/// `x · w` for `x: [m, k]` and `w: [k, n]`, the product in `p`'s format, the result f32.
+pub type ProductFn<B> = fn(Tensor<B, 2>, Tensor<B, 2>, Precision) -> Tensor<B, 2>;
+
+/// [`named_autodiff`] as a function on `B` when `B` is one of the autodiff backends this workspace trains on
+/// (CUDA, or the CPU's `Flex`, where it runs burn's product) and [`selected`] is [`MatmulKernel::Named`];
+/// `None` otherwise (the caller then uses burn's `matmul`).
+pub fn named_for<B: Backend>() -> Option<ProductFn<B>> {
+    if selected() == MatmulKernel::Burn {
+        return None;
+    }
+    let found = on::<B, burn::backend::Flex>();
+    #[cfg(feature = "cuda")]
+    let found = found.or_else(on::<B, burn::backend::Cuda>);
+    found
+}
+
+/// `named_autodiff` on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+fn on<B: Backend, I: NamedMatmul>() -> Option<ProductFn<B>> {
+    let plain: ProductFn<Autodiff<I, NoCheckpointing>> = named_autodiff::<I, NoCheckpointing>;
+    let balanced: ProductFn<Autodiff<I, BalancedCheckpointing>> = named_autodiff::<I, BalancedCheckpointing>;
+    same(plain).or_else(|| same(balanced))
+}
+
+fn float<B: Backend>(t: FloatTensor<B>) -> Tensor<B, 2> {
+    Tensor::from_primitive(TensorPrimitive::Float(t))
+}
+
+/// `a · b` on `B`'s named kernel.
+fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>) -> Tensor<B, 2> {
+    float(B::named_matmul(
+        a.into_primitive().tensor(),
+        b.into_primitive().tensor(),
+    ))
+}
+
+#[derive(Debug)]
+struct Product;
+
+impl<B: NamedMatmul> Backward<B, 2> for Product {
+    /// `x` and `w` in the products' format, and that format.
+    type State = (FloatTensor<B>, FloatTensor<B>, Precision);
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let [nx, nw] = ops.parents;
+        let (x, w, p) = ops.state;
+        let dy = operand(float::<B>(grads.consume::<B>(&ops.node)), p);
+        if let Some(node) = nx {
+            let dx = product(dy.clone(), float::<B>(w).transpose());
+            grads.register::<B>(node.id, dx.into_primitive().tensor());
+        }
+        if let Some(node) = nw {
+            let dw = product(float::<B>(x).transpose(), dy);
+            grads.register::<B>(node.id, dw.into_primitive().tensor());
+        }
+    }
+}
+
+/// `x · w` on `Autodiff<I, C>` with every product (forward, input gradient, weight gradient) on `I`'s
+/// named kernel, operands in `p`'s format and results f32. `x: [m, k]`, `w: [k, n]`.
+pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
+    x: Tensor<Autodiff<I, C>, 2>,
+    w: Tensor<Autodiff<I, C>, 2>,
+    p: Precision,
+) -> Tensor<Autodiff<I, C>, 2> {
+    let (x, w) = (x.into_primitive().tensor(), w.into_primitive().tensor());
+    let prep = Product
+        .prepare::<C>([x.node.clone(), w.node.clone()])
+        .compute_bound()
+        .stateful();
+    let (xi, wi) = (
+        operand(float::<I>(x.primitive), p),
+        operand(float::<I>(w.primitive), p),
+    );
+    let y = product(xi.clone(), wi.clone()).into_primitive().tensor();
+    let y = match prep {
+        OpsKind::Tracked(prep) => {
+            prep.finish((xi.into_primitive().tensor(), wi.into_primitive().tensor(), p), y)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(y),
+    };
+    Tensor::from_primitive(TensorPrimitive::Float(y))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::Flex;
+    use burn::tensor::{DType, Distribution};
+
+    type A = Autodiff<Flex>;
+
+    fn rel(a: Tensor<Flex, 2>, b: Tensor<Flex, 2>) -> f32 {
+        let scale = b.clone().abs().max().into_scalar();
+        (a - b).abs().max().into_scalar() / scale
+    }
+
+    /// Output and both gradients of `x · w` (under a non-uniform upstream gradient) on `f`.
+    fn run(
+        f: impl Fn(Tensor<A, 2>, Tensor<A, 2>) -> Tensor<A, 2>,
+        x: &Tensor<Flex, 2>,
+        w: &Tensor<Flex, 2>,
+        up: &Tensor<Flex, 2>,
+    ) -> [Tensor<Flex, 2>; 3] {
+        let xa = Tensor::<A, 2>::from_inner(x.clone()).require_grad();
+        let wa = Tensor::<A, 2>::from_inner(w.clone()).require_grad();
+        let y = f(xa.clone(), wa.clone());
+        let g = (y.clone() * Tensor::from_inner(up.clone())).sum().backward();
+        let (dx, dw) = (xa.grad(&g).expect("dx"), wa.grad(&g).expect("dw"));
+        [y.inner(), dx, dw]
+    }
+
+    #[test]
+    fn output_and_gradients_match_burns_matmul() {
+        let dev = Default::default();
+        let n = Distribution::Normal(0.0, 1.0);
+        for (m, k, nn) in [(7, 5, 3), (33, 48, 17)] {
+            let x = Tensor::<Flex, 2>::random([m, k], n, &dev);
+            let w = Tensor::<Flex, 2>::random([k, nn], n, &dev);
+            let up = Tensor::<Flex, 2>::random([m, nn], n, &dev);
+            let reference = run(|x, w| x.matmul(w), &x, &w, &up);
+            let full = run(|x, w| named_autodiff(x, w, Precision::F32), &x, &w, &up);
+            for (name, (a, b)) in ["y", "dx", "dw"]
+                .iter()
+                .zip(full.into_iter().zip(reference.clone()))
+            {
+                assert_eq!(a.dims(), b.dims(), "{name}");
+                let err = rel(a, b);
+                assert!(err < 1e-6, "{name} at {m}×{k}×{nn}: relative error {err}");
+            }
+            // bf16 operands: every result f32, within bf16's resolution of f32 but not equal to it.
+            let half = run(|x, w| named_autodiff(x, w, Precision::Bf16), &x, &w, &up);
+            for (name, (a, b)) in ["y", "dx", "dw"].iter().zip(half.into_iter().zip(reference)) {
+                assert_eq!(a.dtype(), DType::F32, "{name}");
+                let err = rel(a, b);
+                assert!(
+                    err > 1e-6 && err < 2e-2,
+                    "{name} at {m}×{k}×{nn} in bf16: relative error {err}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn untracked_inputs_get_no_gradient_and_only_training_backends_dispatch() {
+        let dev = Default::default();
+        let x = Tensor::<A, 2>::ones([2, 3], &dev);
+        let w = Tensor::<A, 2>::ones([3, 4], &dev).require_grad();
+        let g = named_autodiff(x.clone(), w.clone(), Precision::F32)
+            .sum()
+            .backward();
+        assert!(x.grad(&g).is_none());
+        // Each of the 3 × 4 weights meets both rows of ones.
+        assert_eq!(
+            w.grad(&g).expect("dw").into_data().to_vec::<f32>().expect("f32"),
+            vec![2.0; 12]
+        );
+        assert!(named_for::<A>().is_some() && named_for::<Flex>().is_none());
+    }
+}

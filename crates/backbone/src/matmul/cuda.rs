@@ -1,0 +1,143 @@
+//! [`NamedMatmul`] for `Cuda` (burn-fusion over the cubecl backend): a custom operation in the fusion
+//! stream that launches cubek's `specialized_tma_mma` on the two operands as they lie in memory, row- or
+//! column-major, and writes an f32 result.
+//!
+//! The fusion stream cannot fuse a custom operation, so element-wise work around a product (a bias, a
+//! cast) runs as its own kernels instead of inside burn's fused matmul; the kernel's speed pays for that
+//! many times over on the training step's shapes (`umgen bench matmul`, `docs/perf-notes.md`).
+
+use super::NamedMatmul;
+use burn::backend::Cuda;
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::{FloatTensor, FloatTensorOps};
+use burn::tensor::{DType, FloatDType, Shape};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::kernel::matmul::{MatmulStrategy, init_matmul_output, matmul};
+use burn_cubecl::tensor::CubeTensor;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, OperationOutput, TensorIr};
+use cubek::matmul::definition::{MatmulElems, MatmulGlobalElems};
+use cubek::matmul::launch::Strategy;
+use cubek::matmul::routines::BlueprintStrategy;
+use cubek::std::InputBinding;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+type Primitive = CubeTensor<CudaRuntime>;
+type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
+
+/// Products that fell back to burn's default kernel.
+static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
+
+/// How many products fell back to burn's default kernel in this process (the first is logged with its
+/// reason at `warn`, the rest at `debug`).
+pub fn fallbacks() -> usize {
+    FALLBACKS.load(Ordering::Relaxed)
+}
+
+impl NamedMatmul for Cuda {
+    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>) -> FloatTensor<Self> {
+        let client = lhs.client.clone();
+        let shape = Shape::new([lhs.shape[0], rhs.shape[1]]);
+        let out = TensorIr::uninit(client.create_empty_handle(), shape, DType::F32);
+        let streams = OperationStreams::with_inputs([&lhs, &rhs]);
+        let desc = CustomOpIr::new("umgen_named_matmul", &[lhs.into_ir(), rhs.into_ir()], &[out]);
+        client
+            .register(streams, OperationIr::Custom(desc.clone()), Product { desc })
+            .output()
+    }
+}
+
+/// The operation as the fusion stream runs it.
+#[derive(Debug)]
+struct Product {
+    desc: CustomOpIr,
+}
+
+impl Operation<FusionCubeRuntime<CudaRuntime>> for Product {
+    fn execute(&self, handles: &mut Handles) {
+        let ([l, r], [o]) = self.desc.as_fixed();
+        let lhs = handles.get_float_tensor::<Inner>(l);
+        let rhs = handles.get_float_tensor::<Inner>(r);
+        handles.register_float_tensor::<Inner>(&o.id, run(lhs, rhs));
+    }
+}
+
+/// The kernel.
+fn strategy() -> Strategy {
+    Strategy::SpecializedTmaMma(BlueprintStrategy::Inferred(().into()))
+}
+
+/// Why the tensor-memory-accelerator kernel cannot read `t`, if it cannot: it needs a matrix whose rows or
+/// columns are contiguous and whose other stride is a multiple of 16 bytes.
+fn unfit(t: &Primitive) -> Option<String> {
+    let (shape, strides) = (t.meta.shape(), t.meta.strides());
+    if shape.len() != 2 || strides.len() != 2 {
+        return Some(format!("rank {}", shape.len()));
+    }
+    let lead = match (strides[0], strides[1]) {
+        (s, 1) => s,
+        (1, s) => s,
+        (a, b) => return Some(format!("strides [{a}, {b}]")),
+    };
+    if t.qparams.is_some() {
+        return Some("quantized operand".into());
+    }
+    (!(lead * t.elem_size()).is_multiple_of(16))
+        .then(|| format!("leading stride {lead} × {} bytes", t.elem_size()))
+}
+
+fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), String> {
+    if let Some(why) = unfit(lhs).or_else(|| unfit(rhs)) {
+        return Err(why);
+    }
+    let mut elems = MatmulElems::from_globals(&MatmulGlobalElems {
+        lhs: lhs.dtype.into(),
+        rhs: rhs.dtype.into(),
+        out: out.dtype.into(),
+    });
+    let l = InputBinding::new(lhs.clone().binding(), lhs.dtype.into());
+    let r = InputBinding::new(rhs.clone().binding(), rhs.dtype.into());
+    let client = lhs.client.clone();
+    // Some kernels assert on shapes they cannot tile instead of returning an error.
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        cubek::matmul::launch::launch_ref(&strategy(), &client, l, r, out.clone().binding(), &mut elems)
+    }))
+    .map_err(|_| "the kernel panicked".to_string())?
+    .map_err(|e| format!("{e:?}"))
+}
+
+/// `lhs · rhs` in f32 on the named kernel, else on burn's default kernel.
+fn run(lhs: Primitive, rhs: Primitive) -> Primitive {
+    let out = init_matmul_output(&lhs, &rhs, DType::F32);
+    let why = match launch(&lhs, &rhs, &out) {
+        Ok(()) => return out,
+        Err(why) => why,
+    };
+    let n = FALLBACKS.fetch_add(1, Ordering::Relaxed) + 1;
+    let what = format!(
+        "{:?} × {:?} ({:?}): {why}",
+        lhs.meta.shape(),
+        rhs.meta.shape(),
+        lhs.dtype
+    );
+    if n == 1 {
+        tracing::warn!(
+            "named matmul kernel refused {what}; burn's default kernel runs it (counted in fallbacks)"
+        );
+    } else {
+        tracing::debug!("named matmul fallback #{n}: {what}");
+    }
+    match matmul(
+        lhs.clone(),
+        rhs.clone(),
+        None,
+        MatmulStrategy::default(),
+        DType::F32,
+    ) {
+        Ok(out) => out,
+        // burn's default kernel writes the operands' own format; widen after it.
+        Err(_) => Inner::float_cast(Inner::float_matmul(lhs, rhs), FloatDType::F32),
+    }
+}
