@@ -99,6 +99,10 @@ pub struct BenchAttentionArgs {
     /// Number format of the tiled path's matrix products (the decomposed reference stays f32).
     #[arg(long, value_enum, default_value = "f32")]
     pub precision: PrecisionArg,
+    /// Instead, time cubecl's fused flash-attention forward kernels (CUDA) against burn's decomposed forward
+    /// pass, with their agreement: whether a fused forward would pay in training.
+    #[arg(long)]
+    pub flash: bool,
 }
 
 /// `--precision` values.

@@ -15,13 +15,13 @@ use umgen::backbone::attention::tiled_for;
 
 /// One measured shape.
 #[derive(Debug, Clone, Copy)]
-struct Case {
-    seqs: usize,
-    heads: usize,
-    lq: usize,
-    lk: usize,
-    dh: usize,
-    causal: bool,
+pub(super) struct Case {
+    pub(super) seqs: usize,
+    pub(super) heads: usize,
+    pub(super) lq: usize,
+    pub(super) lk: usize,
+    pub(super) dh: usize,
+    pub(super) causal: bool,
 }
 
 impl Case {
@@ -124,6 +124,9 @@ pub(super) fn rel_err<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, 
 pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     let cases: Vec<Case> = a.cases.iter().map(|s| Case::parse(s)).collect::<Result<_, _>>()?;
     let device = Device::parse(&a.device)?;
+    if a.flash {
+        return super::bench_flash::run(a, &cases, device);
+    }
     let mut out = std::io::stdout().lock();
     writeln!(
         out,

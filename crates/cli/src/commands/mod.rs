@@ -4,6 +4,7 @@ mod agents;
 mod bench;
 mod bench_attention;
 mod bench_decode;
+mod bench_flash;
 mod bench_generate;
 mod bench_linear;
 mod bench_matmul;
