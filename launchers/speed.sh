@@ -5,7 +5,8 @@
 #
 # Runs, each under its own time limit so that one slow case cannot eat the others: the reference for the
 # `small` and `paper` presets, `umgen bench train` for both presets in f32 and bf16 (`--set
-# backbone.precision=bf16`), `umgen bench attention` in both precisions, and 30 training steps of the
+# backbone.precision=bf16`) and `small` once more on burn's matmul kernel (`--set train.matmul=burn`), `umgen
+# bench linear`, `umgen bench attention` in both precisions, and 30 training steps of the
 # `small` map and image VQ tokenizers on the bundled sample (their rasters/s). Prints the lines that
 # matter at the end; full outputs go to $OUT (default ./speed-out). UMGEN names the binary (default:
 # umgen); run from the repository root.
@@ -37,6 +38,10 @@ for p in small paper; do
             --phases --set "backbone.precision=$prec"
     done
 done
+# The linear layers on burn's default kernel too (`train.matmul = "burn"`): what the named kernel gains.
+run "umgen-small-f32-burnmm" "$umgen" bench train --preset small --device "cuda:$gpu" --steps 10 --warmup 2 \
+    --set train.matmul=burn
+run linear "$umgen" bench linear --device "cuda:$gpu"
 for prec in f32 bf16; do
     run "attention-$prec" "$umgen" bench attention --device "cuda:$gpu" --precision "$prec"
 done
@@ -51,5 +56,5 @@ for f in "$out"/torch-*.txt; do [ -f "$f" ] && echo "$(basename "$f" .txt): $(gr
 for f in "$out"/umgen-*.txt; do
     echo "$(basename "$f" .txt): $(grep -h -E '^(first step|step|throughput|peak memory)' "$f" | tr -s ' ' | paste -sd ';' -)"
 done
-for f in "$out"/attention-*.txt; do echo "-- $(basename "$f" .txt)"; grep -v INFO "$f" | tail -n 5; done
+for f in "$out"/attention-*.txt "$out"/linear.txt; do echo "-- $(basename "$f" .txt)"; grep -v INFO "$f" | tail -n 9; done
 for m in map image; do echo "vq-$m: $(grep -o 'step [0-9]*/30.*rasters_per_s [0-9.]*' "$out/vq-$m.txt" | sed 's/:.*rasters_per_s/: rasters\/s/' | tr '\n' ';')"; done
