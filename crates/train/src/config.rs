@@ -128,3 +128,28 @@ impl TrainConfig {
         v
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_matmul_kernel_is_a_setting_that_resuming_may_change() {
+        let named = TrainConfig::default();
+        let parse = |json: &str| serde_json::from_str::<TrainConfig>(json);
+        let burn = parse(r#"{"matmul": "burn"}"#).expect("train.matmul = burn");
+        assert_eq!(
+            (named.matmul, burn.matmul),
+            (MatmulKernel::Named, MatmulKernel::Burn)
+        );
+        assert_eq!(named.identity(), burn.identity());
+        // A setting that changes the run still does.
+        let lr = parse(r#"{"lr": 0.5}"#).expect("lr");
+        assert_ne!(named.identity(), lr.identity());
+        let e = parse(r#"{"matmul": "tma"}"#).unwrap_err().to_string();
+        assert!(
+            e.contains("tma") && e.contains("named") && e.contains("burn"),
+            "{e}"
+        );
+    }
+}
