@@ -27,6 +27,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::module::attention;
 use burn::tensor::ops::{AttentionModuleOptions, FloatTensor};
 use burn::tensor::{Bool, Tensor, TensorPrimitive};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Shorter key sequences take the decomposed path: their score matrices are no larger than a few copies of
 /// the keys, and the block loop only adds launches (H200, `umgen bench attention`: 70,352 sequences of 8
@@ -34,9 +35,26 @@ use burn::tensor::{Bool, Tensor, TensorPrimitive};
 /// 101 ms, in 3.4 GiB instead of 29.6).
 const MIN_TILED_KEYS: usize = 256;
 
-/// Bytes one block's score matrix may take; sets the query block length. Few, large blocks: every causal
-/// block has its own key length, hence its own kernel shapes to compile and tune on CUDA.
+/// Bytes one block's score matrix may take by default; sets the query block length. Few, large blocks:
+/// every causal block has its own key length, hence its own kernel shapes to compile and tune on CUDA.
 const BLOCK_BYTES: usize = 1 << 30;
+
+/// [`set_block_bytes`]'s value; 0 for [`BLOCK_BYTES`].
+static BLOCK_BYTES_SET: AtomicUsize = AtomicUsize::new(0);
+
+/// Sets the bytes one query block's scores may take in training, process-wide (`None`: the default,
+/// 1 GiB). Smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels;
+/// `umgen bench attention --block-mib` compares sizes.
+pub fn set_block_bytes(bytes: Option<usize>) {
+    BLOCK_BYTES_SET.store(bytes.unwrap_or(0), Ordering::Relaxed);
+}
+
+fn block_bytes() -> usize {
+    match BLOCK_BYTES_SET.load(Ordering::Relaxed) {
+        0 => BLOCK_BYTES,
+        b => b,
+    }
+}
 
 /// `softmax(q kᵀ / √d) v` over `[b, h, l, d]` tensors; `causal` hides keys after each query (bottom-right
 /// aligned, as burn's `is_causal`). Without a mask, training backends take the tiled operation, whose
@@ -89,10 +107,11 @@ fn float<B: Backend, const D: usize>(t: FloatTensor<B>) -> Tensor<B, D> {
     Tensor::from_primitive(TensorPrimitive::Float(t))
 }
 
-/// Query rows per block in training: as many as keep one block's scores within [`BLOCK_BYTES`], a multiple of 64.
+/// Query rows per block in training: as many as keep one block's scores within the block size
+/// ([`set_block_bytes`], 1 GiB by default), a multiple of 64.
 pub fn block_rows(b: usize, h: usize, lq: usize, lk: usize) -> usize {
     let per_row = (b * h * lk * 4).max(1);
-    let rows = (BLOCK_BYTES / per_row).max(64) / 64 * 64;
+    let rows = (block_bytes() / per_row).max(64) / 64 * 64;
     rows.min(lq).max(1)
 }
 

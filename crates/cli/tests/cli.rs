@@ -256,10 +256,37 @@ fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
             .skip(1)
             .map(|c| c.parse().unwrap())
             .collect();
-        assert!(cols[0] > 0.0 && cols[1] > 0.0, "{row}");
+        // The default block size, 1024 MiB.
+        assert_eq!(cols[0], 1024.0, "{row}");
+        assert!(cols[1] > 0.0 && cols[2] > 0.0, "{row}");
         // Output and the three gradients agree to f32 rounding.
-        assert!(cols[2..6].iter().all(|&e| e < 1e-5), "{row}");
+        assert!(cols[3..7].iter().all(|&e| e < 1e-5), "{row}");
     }
+    // Blocks of 1 MiB split the 300 causal queries in two (192 + 108 rows); one row per size, each
+    // agreeing with the decomposed attention.
+    let out = umgen(&[
+        "bench",
+        "attention",
+        "--cases",
+        "2x2x300x300x8c",
+        "--iters",
+        "1",
+        "--block-mib",
+        "1,64",
+    ]);
+    let table = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let rows: Vec<Vec<f64>> = table
+        .lines()
+        .filter(|l| l.starts_with("2x2x300x300x8c"))
+        .map(|l| l.split_whitespace().skip(1).map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(
+        rows.iter().map(|r| r[0]).collect::<Vec<_>>(),
+        [1.0, 64.0],
+        "{table}"
+    );
+    assert!(rows.iter().all(|r| r[3..7].iter().all(|&e| e < 1e-5)), "{table}");
     // bf16 products on the tiled side: close to the f32 reference, but not equal to it.
     let out = umgen(&[
         "bench",
@@ -280,7 +307,7 @@ fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
         .unwrap_or_else(|| panic!("no bf16 row: {table}"));
     let errs: Vec<f64> = row
         .split_whitespace()
-        .skip(3)
+        .skip(4)
         .take(4)
         .map(|c| c.parse().unwrap())
         .collect();

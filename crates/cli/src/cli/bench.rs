@@ -103,6 +103,10 @@ pub struct BenchAttentionArgs {
     /// pass, with their agreement: whether a fused forward would pay in training.
     #[arg(long)]
     pub flash: bool,
+    /// Sizes in MiB that one query block's scores may take in the tiled path, comma-separated: one row per
+    /// size (default: the training default, 1024).
+    #[arg(long, value_delimiter = ',')]
+    pub block_mib: Vec<usize>,
 }
 
 /// `--precision` values.

@@ -138,38 +138,67 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     )?;
     writeln!(
         out,
-        "{:<22} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>11} {:>11}",
-        "case", "tiled ms", "decomp ms", "err out", "err dq", "err dk", "err dv", "tiled GiB", "decomp GiB"
+        "{:<22} {:>9} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>11} {:>11}",
+        "case",
+        "block MiB",
+        "tiled ms",
+        "decomp ms",
+        "err out",
+        "err dq",
+        "err dk",
+        "err dv",
+        "tiled GiB",
+        "decomp GiB"
     )?;
+    anyhow::ensure!(
+        a.block_mib.iter().all(|&m| m > 0),
+        "--block-mib sizes must be positive"
+    );
+    let blocks: Vec<Option<usize>> = match a.block_mib.is_empty() {
+        true => vec![None],
+        false => a.block_mib.iter().map(|&m| Some(m << 20)).collect(),
+    };
     let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
     for (c, name) in cases.iter().zip(&a.cases) {
-        let row = crate::with_autodiff!(device, |B, dev| {
+        let rows = crate::with_autodiff!(device, |B, dev| {
             // Tiled first: the pool only grows, so the decomposed path's figure includes what it added.
-            let t = measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev)?;
+            let mut tiled = Vec::new();
+            for &bytes in &blocks {
+                umgen::backbone::attention::set_block_bytes(bytes);
+                tiled.push(measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev));
+            }
+            umgen::backbone::attention::set_block_bytes(None);
             let d = measure::<B>(c, None, a.iters, device, &dev)?;
-            let [tq, tk, tv] = t.grads;
-            let [dq, dk, dv] = d.grads;
-            let errs = [
-                rel_err(t.out, d.out),
-                rel_err(tq, dq),
-                rel_err(tk, dk),
-                rel_err(tv, dv),
-            ];
-            (t.seconds, d.seconds, errs, t.reserved, d.reserved)
+            let mut rows = Vec::new();
+            for (t, bytes) in tiled.into_iter().zip(&blocks) {
+                let t = t?;
+                let [tq, tk, tv] = t.grads;
+                let [dq, dk, dv] = d.grads.clone();
+                let errs = [
+                    rel_err(t.out, d.out.clone()),
+                    rel_err(tq, dq),
+                    rel_err(tk, dk),
+                    rel_err(tv, dv),
+                ];
+                let mib = bytes.map_or(1024, |b| b >> 20);
+                rows.push((mib, t.seconds, d.seconds, errs, t.reserved, d.reserved));
+            }
+            rows
         });
-        let (ts, ds, e, tr, dr) = row;
-        writeln!(
-            out,
-            "{name:<22} {:>10.2} {:>10.2} {:>9.1e} {:>9.1e} {:>9.1e} {:>9.1e} {:>11.2} {:>11.2}",
-            1e3 * ts,
-            1e3 * ds,
-            e[0],
-            e[1],
-            e[2],
-            e[3],
-            gib(tr),
-            gib(dr)
-        )?;
+        for (mib, ts, ds, e, tr, dr) in rows {
+            writeln!(
+                out,
+                "{name:<22} {mib:>9} {:>10.2} {:>10.2} {:>9.1e} {:>9.1e} {:>9.1e} {:>9.1e} {:>11.2} {:>11.2}",
+                1e3 * ts,
+                1e3 * ds,
+                e[0],
+                e[1],
+                e[2],
+                e[3],
+                gib(tr),
+                gib(dr)
+            )?;
+        }
     }
     Ok(())
 }

@@ -167,6 +167,7 @@ mod tests {
             iters: 1,
             precision: PrecisionArg::F32,
             flash: true,
+            block_mib: vec![],
         };
         let e = crate::commands::bench_attention::run(&a).unwrap_err().to_string();
         assert!(
