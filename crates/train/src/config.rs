@@ -1,5 +1,6 @@
 //! Training settings (`[train]` in configs).
 
+use crate::error::{Result, TrainError};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use umgen_backbone::matmul::MatmulKernel;
@@ -62,6 +63,9 @@ pub struct TrainConfig {
     /// Kernel of the linear layers' products when training on CUDA: `named` (cubek's
     /// `specialized_tma_mma`, `umgen_backbone::matmul`) or `burn` (burn's default kernel).
     pub matmul: MatmulKernel,
+    /// MiB one query block's attention scores may take in the tiled attention (`attention::set_block_bytes`):
+    /// smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels.
+    pub attention_block_mib: usize,
 }
 
 impl Default for TrainConfig {
@@ -92,11 +96,24 @@ impl Default for TrainConfig {
             split: "train".into(),
             bucket_mib: 25.0,
             matmul: MatmulKernel::Named,
+            attention_block_mib: 1024,
         }
     }
 }
 
 impl TrainConfig {
+    /// Applies the kernel settings (`matmul`, `attention_block_mib`) to this process, before any product runs.
+    pub fn select_kernels(&self) -> Result<()> {
+        if self.attention_block_mib == 0 {
+            return Err(TrainError::Setup(
+                "train.attention_block_mib = 0: a query block needs at least 1 MiB of scores".into(),
+            ));
+        }
+        umgen_backbone::matmul::select(self.matmul);
+        umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
+        Ok(())
+    }
+
     /// The settings a resumed run must share with the run it continues (everything that changes the
     /// trajectory; `steps`, logging and checkpoint cadence may change).
     pub fn identity(&self) -> serde_json::Value {
@@ -111,8 +128,9 @@ impl TrainConfig {
                 "tokens",
                 "data",
                 "bucket_mib",
-                // Same products on another kernel: rounding differs, the run does not.
+                // Same products on another kernel or in other blocks: rounding differs, the run does not.
                 "matmul",
+                "attention_block_mib",
             ] {
                 o.remove(k);
             }
@@ -134,7 +152,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_matmul_kernel_is_a_setting_that_resuming_may_change() {
+    fn kernel_settings_parse_are_checked_and_resuming_may_change_them() {
         let named = TrainConfig::default();
         let parse = |json: &str| serde_json::from_str::<TrainConfig>(json);
         let burn = parse(r#"{"matmul": "burn"}"#).expect("train.matmul = burn");
@@ -146,6 +164,13 @@ mod tests {
         // A setting that changes the run still does.
         let lr = parse(r#"{"lr": 0.5}"#).expect("lr");
         assert_ne!(named.identity(), lr.identity());
+        let blocks = parse(r#"{"attention_block_mib": 256}"#).expect("attention_block_mib");
+        assert_eq!(named.identity(), blocks.identity());
+        let e = parse(r#"{"attention_block_mib": 0}"#)
+            .expect("parses")
+            .select_kernels()
+            .unwrap_err();
+        assert!(e.to_string().contains("train.attention_block_mib = 0"), "{e}");
         let e = parse(r#"{"matmul": "tma"}"#).unwrap_err().to_string();
         assert!(
             e.contains("tma") && e.contains("named") && e.contains("burn"),

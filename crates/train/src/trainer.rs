@@ -112,7 +112,7 @@ pub fn train<B: AutodiffBackend>(
     let (rank, world) = (group.rank(), group.world_size());
     let lead = rank == 0;
     let bucket = (tc.bucket_mib * 1048576.0).max(4.0) as usize;
-    umgen_backbone::matmul::select(tc.matmul);
+    tc.select_kernels()?;
     let out = &tc.out_dir;
     let f = tc.frames + 1;
     let windows = tokens.windows(f, tc.gap, Some(&tc.split));

@@ -71,7 +71,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     let tokens_per_step = (b * tc.frames * spec.n * world) as f64;
     let flops = spec.train_flops(cfg, b, tc.frames) * world as f64;
     let bucket = (tc.bucket_mib * 1048576.0) as usize;
-    umgen::backbone::matmul::select(tc.matmul);
+    tc.select_kernels()?;
     // Every rank runs the same binary, so std's hasher is stable enough to compare configs.
     let identity = {
         use std::hash::{Hash, Hasher};
