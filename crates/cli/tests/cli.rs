@@ -234,84 +234,54 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
     );
 }
 
-#[test]
-fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
-    let out = umgen(&[
-        "bench",
-        "attention",
-        "--cases",
-        "2x2x300x300x8c,1x2x40x90x8",
-        "--iters",
-        "1",
-    ]);
+/// `umgen bench attention --iters 1` with `args`: the header and each row as (case, numbers: block MiB,
+/// tiled ms, decomposed ms, the four errors, the two pool sizes).
+fn attention_table(args: &[&str]) -> (String, Vec<(String, Vec<f64>)>) {
+    let out = umgen(&[&["bench", "attention", "--iters", "1"], args].concat());
     let table = text(&out.stdout);
     assert!(out.status.success(), "{}", text(&out.stderr));
-    for case in ["2x2x300x300x8c", "1x2x40x90x8"] {
-        let row = table
-            .lines()
-            .find(|l| l.starts_with(case))
-            .unwrap_or_else(|| panic!("no row for {case}: {table}"));
-        let cols: Vec<f64> = row
-            .split_whitespace()
-            .skip(1)
-            .map(|c| c.parse().unwrap())
-            .collect();
+    let rows = table
+        .lines()
+        .filter(|l| {
+            l.split_whitespace()
+                .nth(1)
+                .is_some_and(|c| c.parse::<f64>().is_ok())
+        })
+        .map(|l| {
+            let mut cols = l.split_whitespace();
+            let case = cols.next().unwrap_or_default().to_string();
+            (case, cols.map(|c| c.parse().unwrap()).collect())
+        })
+        .collect();
+    (table, rows)
+}
+
+#[test]
+fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
+    let (table, rows) = attention_table(&["--cases", "2x2x300x300x8c,1x2x40x90x8"]);
+    let cases: Vec<&str> = rows.iter().map(|(c, _)| c.as_str()).collect();
+    assert_eq!(cases, ["2x2x300x300x8c", "1x2x40x90x8"], "{table}");
+    for (_, cols) in &rows {
         // The default block size, 1024 MiB.
-        assert_eq!(cols[0], 1024.0, "{row}");
-        assert!(cols[1] > 0.0 && cols[2] > 0.0, "{row}");
+        assert_eq!(cols[0], 1024.0, "{table}");
+        assert!(cols[1] > 0.0 && cols[2] > 0.0, "{table}");
         // Output and the three gradients agree to f32 rounding.
-        assert!(cols[3..7].iter().all(|&e| e < 1e-5), "{row}");
+        assert!(cols[3..7].iter().all(|&e| e < 1e-5), "{table}");
     }
     // Blocks of 1 MiB split the 300 causal queries in two (192 + 108 rows); one row per size, each
     // agreeing with the decomposed attention.
-    let out = umgen(&[
-        "bench",
-        "attention",
-        "--cases",
-        "2x2x300x300x8c",
-        "--iters",
-        "1",
-        "--block-mib",
-        "1,64",
-    ]);
-    let table = text(&out.stdout);
-    assert!(out.status.success(), "{}", text(&out.stderr));
-    let rows: Vec<Vec<f64>> = table
-        .lines()
-        .filter(|l| l.starts_with("2x2x300x300x8c"))
-        .map(|l| l.split_whitespace().skip(1).map(|c| c.parse().unwrap()).collect())
-        .collect();
-    assert_eq!(
-        rows.iter().map(|r| r[0]).collect::<Vec<_>>(),
-        [1.0, 64.0],
+    let (table, rows) = attention_table(&["--cases", "2x2x300x300x8c", "--block-mib", "1,64"]);
+    let sizes: Vec<f64> = rows.iter().map(|(_, r)| r[0]).collect();
+    assert_eq!(sizes, [1.0, 64.0], "{table}");
+    assert!(
+        rows.iter().all(|(_, r)| r[3..7].iter().all(|&e| e < 1e-5)),
         "{table}"
     );
-    assert!(rows.iter().all(|r| r[3..7].iter().all(|&e| e < 1e-5)), "{table}");
     // bf16 products on the tiled side: close to the f32 reference, but not equal to it.
-    let out = umgen(&[
-        "bench",
-        "attention",
-        "--cases",
-        "2x2x300x300x8c",
-        "--iters",
-        "1",
-        "--precision",
-        "bf16",
-    ]);
-    let table = text(&out.stdout);
-    assert!(out.status.success(), "{}", text(&out.stderr));
+    let (table, rows) = attention_table(&["--cases", "2x2x300x300x8c", "--precision", "bf16"]);
     assert!(table.contains("tiled products in bf16"), "{table}");
-    let row = table
-        .lines()
-        .find(|l| l.starts_with("2x2x300x300x8c"))
-        .unwrap_or_else(|| panic!("no bf16 row: {table}"));
-    let errs: Vec<f64> = row
-        .split_whitespace()
-        .skip(4)
-        .take(4)
-        .map(|c| c.parse().unwrap())
-        .collect();
-    assert!(errs.iter().all(|&e| e > 1e-6 && e < 3e-2), "{row}");
+    assert_eq!(rows.len(), 1, "{table}");
+    assert!(rows[0].1[3..7].iter().all(|&e| e > 1e-6 && e < 3e-2), "{table}");
     let err = failure(&["bench", "attention", "--cases", "2x2x30x20x8c"], &[]);
     assert!(err.contains("2x2x30x20x8c") && err.contains("LK ≥ LQ"), "{err}");
 }
