@@ -103,7 +103,8 @@ fn on<B: Backend, I: Backend>() -> Option<AttentionFn<B>> {
     same(plain).or_else(|| same(balanced))
 }
 
-fn float<B: Backend, const D: usize>(t: FloatTensor<B>) -> Tensor<B, D> {
+/// A float primitive as a tensor of rank `D`.
+pub(crate) fn float<B: Backend, const D: usize>(t: FloatTensor<B>) -> Tensor<B, D> {
     Tensor::from_primitive(TensorPrimitive::Float(t))
 }
 

@@ -18,6 +18,7 @@
 //! On the CPU (`Autodiff<Flex>`) the operation runs burn's one product, so CPU training checks its gradients;
 //! any other backend, and [`MatmulKernel::Burn`], keep burn's `matmul`.
 
+use crate::attention::float;
 use crate::config::Precision;
 use crate::dispatch::same;
 use crate::precision::operand;
@@ -30,7 +31,7 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{FloatDType, Tensor, TensorPrimitive};
+use burn::tensor::{FloatDType, Tensor};
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -78,7 +79,7 @@ pub trait NamedMatmul: Backend {
 /// gradients and casts.
 impl NamedMatmul for burn::backend::Flex {
     fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>) -> FloatTensor<Self> {
-        float::<Self>(lhs)
+        float::<Self, 2>(lhs)
             .matmul(float(rhs))
             .cast(FloatDType::F32)
             .into_primitive()
@@ -109,10 +110,6 @@ fn on<B: Backend, I: NamedMatmul>() -> Option<ProductFn<B>> {
     same(plain).or_else(|| same(balanced))
 }
 
-fn float<B: Backend>(t: FloatTensor<B>) -> Tensor<B, 2> {
-    Tensor::from_primitive(TensorPrimitive::Float(t))
-}
-
 /// `a · b` on `B`'s named kernel.
 fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>) -> Tensor<B, 2> {
     float(B::named_matmul(
@@ -131,13 +128,13 @@ impl<B: NamedMatmul> Backward<B, 2> for Product {
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [nx, nw] = ops.parents;
         let (x, w, p) = ops.state;
-        let dy = operand(float::<B>(grads.consume::<B>(&ops.node)), p);
+        let dy = operand(float::<B, 2>(grads.consume::<B>(&ops.node)), p);
         if let Some(node) = nx {
-            let dx = product(dy.clone(), float::<B>(w).transpose());
+            let dx = product(dy.clone(), float::<B, 2>(w).transpose());
             grads.register::<B>(node.id, dx.into_primitive().tensor());
         }
         if let Some(node) = nw {
-            let dw = product(float::<B>(x).transpose(), dy);
+            let dw = product(float::<B, 2>(x).transpose(), dy);
             grads.register::<B>(node.id, dw.into_primitive().tensor());
         }
     }
@@ -156,8 +153,8 @@ pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
         .compute_bound()
         .stateful();
     let (xi, wi) = (
-        operand(float::<I>(x.primitive), p),
-        operand(float::<I>(w.primitive), p),
+        operand(float::<I, 2>(x.primitive), p),
+        operand(float::<I, 2>(w.primitive), p),
     );
     let y = product(xi.clone(), wi.clone()).into_primitive().tensor();
     let y = match prep {
@@ -166,7 +163,7 @@ pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
         }
         OpsKind::UnTracked(prep) => prep.finish(y),
     };
-    Tensor::from_primitive(TensorPrimitive::Float(y))
+    float(y)
 }
 
 #[cfg(test)]

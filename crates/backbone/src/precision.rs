@@ -37,27 +37,24 @@ pub fn matmul<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>, p: P
 /// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32. Training on CUDA runs the
 /// product on the named kernel (`matmul.rs`), as one `[m, k] × [k, n]` product over all leading dimensions.
 pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
-    if let Some(product) = crate::matmul::named_for::<B>() {
-        let mut dims = x.dims();
-        let k = dims[D - 1];
-        let w = layer.weight.val();
-        dims[D - 1] = w.dims()[1];
-        let y = product(x.reshape([-1, k as i32]), w, p).reshape(dims);
-        return match &layer.bias {
-            Some(bias) => y + bias.val().unsqueeze::<D>(),
-            None => y,
-        };
-    }
-    match p {
-        Precision::F32 => layer.forward(x),
-        Precision::Bf16 => {
-            let y = burn::tensor::module::linear(operand(x, p), operand(layer.weight.val(), p), None);
-            let y = widen(y, p);
-            match &layer.bias {
-                Some(bias) => y + bias.val().unsqueeze::<D>(),
-                None => y,
-            }
+    let w = layer.weight.val();
+    let y = match (crate::matmul::named_for::<B>(), p) {
+        (Some(product), _) => {
+            let mut dims = x.dims();
+            let k = dims[D - 1];
+            dims[D - 1] = w.dims()[1];
+            product(x.reshape([-1, k as i32]), w, p).reshape(dims)
         }
+        // burn's layer adds the bias inside its product.
+        (None, Precision::F32) => return layer.forward(x),
+        (None, Precision::Bf16) => widen(
+            burn::tensor::module::linear(operand(x, p), operand(w, p), None),
+            p,
+        ),
+    };
+    match &layer.bias {
+        Some(bias) => y + bias.val().unsqueeze::<D>(),
+        None => y,
     }
 }
 
