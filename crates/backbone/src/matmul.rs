@@ -38,7 +38,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 #[cfg(feature = "cuda")]
 mod cuda;
 #[cfg(feature = "cuda")]
-pub use cuda::fallbacks;
+pub use cuda::{fallbacks, launch_kernel};
 
 /// Which kernel runs the linear layers' products in training on CUDA (`train.matmul`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]

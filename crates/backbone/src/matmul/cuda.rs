@@ -92,6 +92,18 @@ fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), Strin
     if let Some(why) = unfit(lhs).or_else(|| unfit(rhs)) {
         return Err(why);
     }
+    launch_kernel(&strategy(), lhs, rhs, out)
+}
+
+/// Launches cubek's matmul kernel `strategy` once on `lhs × rhs` into `out` (formats as the tensors have
+/// them); a kernel that cannot take the shape or format says why. `umgen bench matmul` times every
+/// strategy through this.
+pub fn launch_kernel(
+    strategy: &Strategy,
+    lhs: &Primitive,
+    rhs: &Primitive,
+    out: &Primitive,
+) -> Result<(), String> {
     let mut elems = MatmulElems::from_globals(&MatmulGlobalElems {
         lhs: lhs.dtype.into(),
         rhs: rhs.dtype.into(),
@@ -102,7 +114,7 @@ fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), Strin
     let client = lhs.client.clone();
     // Some kernels assert on shapes they cannot tile instead of returning an error.
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        cubek::matmul::launch::launch_ref(&strategy(), &client, l, r, out.clone().binding(), &mut elems)
+        cubek::matmul::launch::launch_ref(strategy, &client, l, r, out.clone().binding(), &mut elems)
     }))
     .map_err(|_| "the kernel panicked".to_string())?
     .map_err(|e| format!("{e:?}"))

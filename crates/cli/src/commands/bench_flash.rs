@@ -137,15 +137,7 @@ mod cuda {
                         format!("{:.3}", 1e3 * s),
                         format!("{:.1e}", rel_err(o.cast(FloatDType::F32), reference.clone())),
                     ),
-                    Err(e) => (
-                        "-".into(),
-                        e.split_whitespace()
-                            .collect::<Vec<_>>()
-                            .join(" ")
-                            .chars()
-                            .take(90)
-                            .collect(),
-                    ),
+                    Err(e) => ("-".into(), crate::commands::bench_matmul::one_line(&e, 90)),
                 };
                 writeln!(out, "{name:<22} {kname:<34} {ms:>10} {err:>9}")?;
                 out.flush()?;

@@ -37,6 +37,17 @@ impl Shape {
     }
 }
 
+/// A kernel's refusal on one line of at most `max` characters, for a table row.
+#[cfg(feature = "cuda")]
+pub(super) fn one_line(e: &str, max: usize) -> String {
+    e.split_whitespace()
+        .collect::<Vec<_>>()
+        .join(" ")
+        .chars()
+        .take(max)
+        .collect()
+}
+
 /// Measures (CUDA builds only).
 pub fn run(a: &BenchMatmulArgs) -> anyhow::Result<()> {
     let shapes: Vec<Shape> = a
@@ -67,15 +78,14 @@ mod cuda {
     use burn::tensor::backend::Backend;
     use burn::tensor::{DType, Distribution, FloatDType, Tensor, TensorPrimitive};
     use cubek::matmul::components::tile::TileMatmulKind;
-    use cubek::matmul::definition::{MatmulElems, MatmulGlobalElems};
     use cubek::matmul::launch::Strategy;
     use cubek::matmul::routines::BlueprintStrategy;
     use cubek::matmul::routines::double_buffering::DoubleBufferingArgs;
     use cubek::matmul::routines::ordered_double_buffering::OrderedSelectionArgs;
     use cubek::matmul::routines::simple::SimpleArgs;
-    use cubek::std::InputBinding;
     use std::io::Write;
     use std::time::Instant;
+    use umgen::backbone::matmul::launch_kernel;
 
     type Cb = burn_cubecl::CubeBackend<CudaRuntime, f32, i32, u8>;
     type Primitive = burn_cubecl::tensor::CubeTensor<CudaRuntime>;
@@ -126,26 +136,6 @@ mod cuda {
             Strategy::Auto => "auto (burn's default)".to_string(),
             s => s.to_string(),
         }
-    }
-
-    /// Launches `strategy` once on `lhs × rhs` into `out`; a kernel that cannot take the shape or
-    /// format says why.
-    fn launch(strategy: &Strategy, lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), String> {
-        let dt = lhs.dtype;
-        let mut elems = MatmulElems::from_globals(&MatmulGlobalElems {
-            lhs: dt.into(),
-            rhs: dt.into(),
-            out: out.dtype.into(),
-        });
-        let l = InputBinding::new(lhs.clone().binding(), dt.into());
-        let r = InputBinding::new(rhs.clone().binding(), dt.into());
-        let client = lhs.client.clone();
-        // Some kernels assert on shapes they cannot tile instead of returning an error.
-        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            cubek::matmul::launch::launch_ref(strategy, &client, l, r, out.clone().binding(), &mut elems)
-        }))
-        .map_err(|_| "panicked".to_string())?
-        .map_err(|e| format!("{e:?}"))
     }
 
     fn float(t: Primitive) -> Tensor<Cb, 3> {
@@ -213,16 +203,7 @@ mod cuda {
                                 format!("{err:.1e}"),
                             )
                         }
-                        Err(e) => (
-                            String::from("-"),
-                            String::from("-"),
-                            e.split_whitespace()
-                                .collect::<Vec<_>>()
-                                .join(" ")
-                                .chars()
-                                .take(80)
-                                .collect(),
-                        ),
+                        Err(e) => (String::from("-"), String::from("-"), super::one_line(&e, 80)),
                     };
                     writeln!(
                         out,
@@ -246,12 +227,12 @@ mod cuda {
         iters: usize,
         dev: &CudaDevice,
     ) -> Result<f64, String> {
-        launch(s, lhs, rhs, o)?;
+        launch_kernel(s, lhs, rhs, o)?;
         Cb::sync(dev).map_err(|e| format!("{e:?}"))?;
         let mut t = Vec::with_capacity(iters);
         for _ in 0..iters {
             let t0 = Instant::now();
-            launch(s, lhs, rhs, o)?;
+            launch_kernel(s, lhs, rhs, o)?;
             Cb::sync(dev).map_err(|e| format!("{e:?}"))?;
             t.push(t0.elapsed().as_secs_f64());
         }
