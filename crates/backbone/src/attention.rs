@@ -37,7 +37,7 @@ const MIN_TILED_KEYS: usize = 256;
 
 /// Bytes one block's score matrix may take by default; sets the query block length. Few, large blocks:
 /// every causal block has its own key length, hence its own kernel shapes to compile and tune on CUDA.
-const BLOCK_BYTES: usize = 1 << 30;
+pub const BLOCK_BYTES: usize = 1 << 30;
 
 /// [`set_block_bytes`]'s value; 0 for [`BLOCK_BYTES`].
 static BLOCK_BYTES_SET: AtomicUsize = AtomicUsize::new(0);

@@ -96,7 +96,7 @@ impl Default for TrainConfig {
             split: "train".into(),
             bucket_mib: 25.0,
             matmul: MatmulKernel::Named,
-            attention_block_mib: 1024,
+            attention_block_mib: umgen_backbone::attention::BLOCK_BYTES >> 20,
         }
     }
 }

@@ -180,7 +180,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                     rel_err(tk, dk),
                     rel_err(tv, dv),
                 ];
-                let mib = bytes.map_or(1024, |b| b >> 20);
+                let mib = bytes.unwrap_or(umgen::backbone::attention::BLOCK_BYTES) >> 20;
                 rows.push((mib, t.seconds, d.seconds, errs, t.reserved, d.reserved));
             }
             rows
