@@ -15,6 +15,7 @@
 
 use crate::config::Precision;
 use crate::dispatch::same;
+use crate::flash::FusedAttention;
 use crate::precision::{matmul, operand};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -96,7 +97,7 @@ pub fn tiled_for<B: Backend>() -> Option<AttentionFn<B>> {
 }
 
 /// `tiled_autodiff` on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
-fn on<B: Backend, I: Backend>() -> Option<AttentionFn<B>> {
+fn on<B: Backend, I: FusedAttention>() -> Option<AttentionFn<B>> {
     let plain: AttentionFn<Autodiff<I, NoCheckpointing>> = tiled_autodiff::<I, NoCheckpointing>;
     let balanced: AttentionFn<Autodiff<I, BalancedCheckpointing>> =
         tiled_autodiff::<I, BalancedCheckpointing>;
@@ -268,8 +269,8 @@ pub fn tiled_backward<B: Backend>(
 #[derive(Debug)]
 struct TiledAttention;
 
-impl<B: Backend> Backward<B, 3> for TiledAttention {
-    /// q, k, v, output, log-sum-exp, causal, block rows, precision of the products.
+impl<B: FusedAttention> Backward<B, 3> for TiledAttention {
+    /// q, k, v, output, log-sum-exp, causal, precision of the products.
     type State = (
         FloatTensor<B>,
         FloatTensor<B>,
@@ -277,16 +278,15 @@ impl<B: Backend> Backward<B, 3> for TiledAttention {
         FloatTensor<B>,
         FloatTensor<B>,
         bool,
-        usize,
         Precision,
     );
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [nq, nk, nv] = ops.parents;
         let dout = float::<B, 4>(grads.consume::<B>(&ops.node));
-        let (q, k, v, out, lse, causal, rows, precision) = ops.state;
+        let (q, k, v, out, lse, causal, precision) = ops.state;
         let (q, k, v, out, lse) = (float(q), float(k), float(v), float(out), float(lse));
-        let (dq, dk, dv) = tiled_backward(q, k, v, out, lse, dout, causal, rows, precision);
+        let (dq, dk, dv) = B::attention_backward(q, k, v, out, lse, dout, causal, precision);
         for (node, g) in [(nq, dq), (nk, dk), (nv, dv)] {
             if let Some(node) = node {
                 grads.register::<B>(node.id, g.into_primitive().tensor());
@@ -295,9 +295,10 @@ impl<B: Backend> Backward<B, 3> for TiledAttention {
     }
 }
 
-/// The tiled operation on `Autodiff<I, C>`: forward through [`tiled_forward`] on the inner backend, keeping
-/// its inputs, output and log-sum-exp for [`tiled_backward`].
-pub fn tiled_autodiff<I: Backend, C: CheckpointStrategy>(
+/// The training attention on `Autodiff<I, C>`: forward through `I`'s [`FusedAttention::attention_forward`]
+/// (fused kernels on CUDA, [`tiled_forward`] elsewhere), keeping its inputs, output and log-sum-exp for
+/// [`FusedAttention::attention_backward`].
+pub fn tiled_autodiff<I: FusedAttention, C: CheckpointStrategy>(
     q: Tensor<Autodiff<I, C>, 4>,
     k: Tensor<Autodiff<I, C>, 4>,
     v: Tensor<Autodiff<I, C>, 4>,
@@ -321,9 +322,7 @@ pub fn tiled_autodiff<I: Backend, C: CheckpointStrategy>(
         float::<I, 4>(v.primitive),
         precision,
     );
-    let [b, h, lq, _] = qi.dims();
-    let rows = block_rows(b, h, lq, ki.dims()[2]);
-    let (out, lse) = tiled_forward(qi.clone(), ki.clone(), vi.clone(), causal, rows, precision);
+    let (out, lse) = I::attention_forward(qi.clone(), ki.clone(), vi.clone(), causal, precision);
     let out_p = out.clone().into_primitive().tensor();
     let y = match prep {
         OpsKind::Tracked(prep) => {
@@ -334,7 +333,6 @@ pub fn tiled_autodiff<I: Backend, C: CheckpointStrategy>(
                 out.into_primitive().tensor(),
                 lse.into_primitive().tensor(),
                 causal,
-                rows,
                 precision,
             );
             prep.finish(state, out_p)

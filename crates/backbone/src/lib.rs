@@ -17,8 +17,9 @@
 //!    CE(OAR) + CE(TAR) + CE(ego), reported per modality.
 //!
 //! Matrix products run in f32 or, with [`Precision::Bf16`], on bf16 operands with f32 master weights
-//! (`precision.rs`); training attention over long sequences is tiled ([`attention`]), and training on CUDA
-//! runs the linear layers' products on a named matmul kernel ([`matmul`]).
+//! (`precision.rs`); training attention over long sequences runs fused kernels on CUDA ([`flash`]) and tiled
+//! passes elsewhere ([`attention`]), and training on CUDA runs the linear layers' products on a named matmul
+//! kernel ([`matmul`]).
 //!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
@@ -30,6 +31,7 @@ mod dispatch;
 mod ego;
 mod embed;
 mod error;
+pub mod flash;
 mod heads;
 mod layers;
 pub mod matmul;

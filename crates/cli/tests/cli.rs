@@ -235,7 +235,8 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
 }
 
 /// `umgen bench attention --iters 1` with `args`: the header and each row as (case, numbers: block MiB,
-/// tiled ms, decomposed ms, the four errors, the two pool sizes).
+/// training kernels' ms, decomposed ms, the four errors, the two pool sizes). Every row is the tiled
+/// kernel's (the CPU has no other).
 fn attention_table(args: &[&str]) -> (String, Vec<(String, Vec<f64>)>) {
     let out = umgen(&[&["bench", "attention", "--iters", "1"], args].concat());
     let table = text(&out.stdout);
@@ -244,12 +245,13 @@ fn attention_table(args: &[&str]) -> (String, Vec<(String, Vec<f64>)>) {
         .lines()
         .filter(|l| {
             l.split_whitespace()
-                .nth(1)
+                .nth(2)
                 .is_some_and(|c| c.parse::<f64>().is_ok())
         })
         .map(|l| {
             let mut cols = l.split_whitespace();
             let case = cols.next().unwrap_or_default().to_string();
+            assert_eq!(cols.next(), Some("tiled"), "{table}");
             (case, cols.map(|c| c.parse().unwrap()).collect())
         })
         .collect();
@@ -279,11 +281,13 @@ fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
     );
     // bf16 products on the tiled side: close to the f32 reference, but not equal to it.
     let (table, rows) = attention_table(&["--cases", "2x2x300x300x8c", "--precision", "bf16"]);
-    assert!(table.contains("tiled products in bf16"), "{table}");
+    assert!(table.contains("products in bf16"), "{table}");
     assert_eq!(rows.len(), 1, "{table}");
     assert!(rows[0].1[3..7].iter().all(|&e| e > 1e-6 && e < 3e-2), "{table}");
     let err = failure(&["bench", "attention", "--cases", "2x2x30x20x8c"], &[]);
     assert!(err.contains("2x2x30x20x8c") && err.contains("LK ≥ LQ"), "{err}");
+    let err = failure(&["bench", "attention", "--kernels", "fused"], &[]);
+    assert!(err.contains("--kernels fused") && err.contains("CUDA"), "{err}");
 }
 
 #[test]

@@ -3,6 +3,7 @@
 use crate::error::{Result, TrainError};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+use umgen_backbone::flash::AttentionKernel;
 use umgen_backbone::matmul::MatmulKernel;
 
 /// How the backbone is trained.
@@ -66,6 +67,10 @@ pub struct TrainConfig {
     /// MiB one query block's attention scores may take in the tiled attention (`attention::set_block_bytes`):
     /// smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels.
     pub attention_block_mib: usize,
+    /// Kernels of the training attention on CUDA: `fused` (one cubecl kernel per pass,
+    /// `umgen_backbone::flash`) or `tiled` (the tiled passes in burn tensor operations, in blocks of
+    /// `attention_block_mib`).
+    pub attention: AttentionKernel,
 }
 
 impl Default for TrainConfig {
@@ -97,12 +102,14 @@ impl Default for TrainConfig {
             bucket_mib: 25.0,
             matmul: MatmulKernel::Named,
             attention_block_mib: umgen_backbone::attention::BLOCK_BYTES >> 20,
+            attention: AttentionKernel::Fused,
         }
     }
 }
 
 impl TrainConfig {
-    /// Applies the kernel settings (`matmul`, `attention_block_mib`) to this process, before any product runs.
+    /// Applies the kernel settings (`matmul`, `attention`, `attention_block_mib`) to this process, before any
+    /// product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
@@ -110,6 +117,7 @@ impl TrainConfig {
             ));
         }
         umgen_backbone::matmul::select(self.matmul);
+        umgen_backbone::flash::select(self.attention);
         umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
         Ok(())
     }
@@ -131,6 +139,7 @@ impl TrainConfig {
                 // Same products on another kernel or in other blocks: rounding differs, the run does not.
                 "matmul",
                 "attention_block_mib",
+                "attention",
             ] {
                 o.remove(k);
             }
@@ -166,6 +175,14 @@ mod tests {
         assert_ne!(named.identity(), lr.identity());
         let blocks = parse(r#"{"attention_block_mib": 256}"#).expect("attention_block_mib");
         assert_eq!(named.identity(), blocks.identity());
+        let tiled = parse(r#"{"attention": "tiled"}"#).expect("attention = tiled");
+        assert_eq!(
+            (named.attention, tiled.attention),
+            (AttentionKernel::Fused, AttentionKernel::Tiled)
+        );
+        assert_eq!(named.identity(), tiled.identity());
+        let e = parse(r#"{"attention": "flash"}"#).unwrap_err().to_string();
+        assert!(e.contains("flash") && e.contains("fused"), "{e}");
         let e = parse(r#"{"attention_block_mib": 0}"#)
             .expect("parses")
             .select_kernels()

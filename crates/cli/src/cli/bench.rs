@@ -107,6 +107,29 @@ pub struct BenchAttentionArgs {
     /// size (default: the training default, 1024).
     #[arg(long, value_delimiter = ',')]
     pub block_mib: Vec<usize>,
+    /// Training attention kernels to measure (`train.attention`), comma-separated: one row each (the tiled
+    /// one once per `--block-mib` size). Default: `fused,tiled` on CUDA, `tiled` on the CPU, which has no
+    /// fused kernels.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub kernels: Vec<AttentionArg>,
+}
+
+/// `--kernels` values (`train.attention`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum AttentionArg {
+    /// One cubecl kernel per pass (CUDA).
+    Fused,
+    /// The tiled passes in burn tensor operations.
+    Tiled,
+}
+
+impl From<AttentionArg> for umgen::backbone::flash::AttentionKernel {
+    fn from(a: AttentionArg) -> Self {
+        match a {
+            AttentionArg::Fused => Self::Fused,
+            AttentionArg::Tiled => Self::Tiled,
+        }
+    }
 }
 
 /// `--precision` values.

@@ -1,5 +1,5 @@
-//! `umgen bench attention`: the tiled attention against burn's decomposed one on the device, for
-//! correctness (outputs and gradients) and for time and memory.
+//! `umgen bench attention`: the training attention's kernels (fused, tiled) against burn's decomposed
+//! attention on the device, for correctness (outputs and gradients) and for time and memory.
 
 use crate::cli::BenchAttentionArgs;
 use crate::device::{Device, memory_in_use};
@@ -12,6 +12,7 @@ use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
 use umgen::backbone::attention::tiled_for;
+use umgen::backbone::flash::{self, AttentionKernel};
 
 /// One measured shape.
 #[derive(Debug, Clone, Copy)]
@@ -120,6 +121,37 @@ pub(super) fn rel_err<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, 
     diff / scale.max(f64::MIN_POSITIVE)
 }
 
+/// The rows to measure: each kernel of `--kernels` (the tiled one once per block size; `None` for the
+/// default size).
+fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(AttentionKernel, Option<usize>)>> {
+    anyhow::ensure!(
+        a.block_mib.iter().all(|&m| m > 0),
+        "--block-mib sizes must be positive"
+    );
+    let cuda = !matches!(device, Device::Cpu);
+    let kernels: Vec<AttentionKernel> = match a.kernels.is_empty() {
+        true if cuda => vec![AttentionKernel::Fused, AttentionKernel::Tiled],
+        true => vec![AttentionKernel::Tiled],
+        false => a.kernels.iter().map(|&k| k.into()).collect(),
+    };
+    anyhow::ensure!(
+        cuda || !kernels.contains(&AttentionKernel::Fused),
+        "--kernels fused: the fused attention kernels are CUDA's; on {} only `tiled` runs",
+        a.device
+    );
+    let blocks: Vec<Option<usize>> = match a.block_mib.is_empty() {
+        true => vec![None],
+        false => a.block_mib.iter().map(|&m| Some(m << 20)).collect(),
+    };
+    Ok(kernels
+        .into_iter()
+        .flat_map(|k| match k {
+            AttentionKernel::Fused => vec![(k, None)],
+            AttentionKernel::Tiled => blocks.iter().map(|&b| (k, b)).collect(),
+        })
+        .collect())
+}
+
 /// Measures.
 pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     let cases: Vec<Case> = a.cases.iter().map(|s| Case::parse(s)).collect::<Result<_, _>>()?;
@@ -127,50 +159,47 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     if a.flash {
         return super::bench_flash::run(a, &cases, device);
     }
+    let variants = variants(a, device)?;
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
-        "attention forward+backward on {}, tiled products in {}, decomposed in f32; err = max|Δ| / \
-         max|decomposed|; GiB = memory pool after the path (the pool only grows: the decomposed figure \
-         includes the tiled one's)",
+        "attention forward+backward on {}, training kernels' products in {}, decomposed in f32; err = \
+         max|Δ| / max|decomposed|; GiB = memory pool after the path (the pool only grows: the decomposed \
+         figure includes the training kernels')",
         a.device,
         a.precision.name()
     )?;
     writeln!(
         out,
-        "{:<22} {:>9} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>11} {:>11}",
+        "{:<22} {:>7} {:>9} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>11} {:>11}",
         "case",
+        "kernel",
         "block MiB",
-        "tiled ms",
+        "train ms",
         "decomp ms",
         "err out",
         "err dq",
         "err dk",
         "err dv",
-        "tiled GiB",
+        "train GiB",
         "decomp GiB"
     )?;
-    anyhow::ensure!(
-        a.block_mib.iter().all(|&m| m > 0),
-        "--block-mib sizes must be positive"
-    );
-    let blocks: Vec<Option<usize>> = match a.block_mib.is_empty() {
-        true => vec![None],
-        false => a.block_mib.iter().map(|&m| Some(m << 20)).collect(),
-    };
     let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
     for (c, name) in cases.iter().zip(&a.cases) {
         let rows = crate::with_autodiff!(device, |B, dev| {
-            // Tiled first: the pool only grows, so the decomposed path's figure includes what it added.
-            let mut tiled = Vec::new();
-            for &bytes in &blocks {
+            // Training kernels first: the pool only grows, so the decomposed path's figure includes what
+            // they added.
+            let mut runs = Vec::new();
+            for &(kernel, bytes) in &variants {
+                flash::select(kernel);
                 umgen::backbone::attention::set_block_bytes(bytes);
-                tiled.push(measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev));
+                runs.push(measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev));
             }
+            flash::select(AttentionKernel::default());
             umgen::backbone::attention::set_block_bytes(None);
             let d = measure::<B>(c, None, a.iters, device, &dev)?;
             let mut rows = Vec::new();
-            for (t, bytes) in tiled.into_iter().zip(&blocks) {
+            for (t, &(kernel, bytes)) in runs.into_iter().zip(&variants) {
                 let t = t?;
                 let [tq, tk, tv] = t.grads;
                 let [dq, dk, dv] = d.grads.clone();
@@ -180,15 +209,24 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                     rel_err(tk, dk),
                     rel_err(tv, dv),
                 ];
-                let mib = bytes.unwrap_or(umgen::backbone::attention::BLOCK_BYTES) >> 20;
-                rows.push((mib, t.seconds, d.seconds, errs, t.reserved, d.reserved));
+                let block = match kernel {
+                    AttentionKernel::Fused => "-".to_string(),
+                    AttentionKernel::Tiled => {
+                        (bytes.unwrap_or(umgen::backbone::attention::BLOCK_BYTES) >> 20).to_string()
+                    }
+                };
+                rows.push((kernel, block, t.seconds, d.seconds, errs, t.reserved, d.reserved));
             }
             rows
         });
-        for (mib, ts, ds, e, tr, dr) in rows {
+        for (kernel, block, ts, ds, e, tr, dr) in rows {
+            let kernel = match kernel {
+                AttentionKernel::Fused => "fused",
+                AttentionKernel::Tiled => "tiled",
+            };
             writeln!(
                 out,
-                "{name:<22} {mib:>9} {:>10.2} {:>10.2} {:>9.1e} {:>9.1e} {:>9.1e} {:>9.1e} {:>11.2} {:>11.2}",
+                "{name:<22} {kernel:>7} {block:>9} {:>10.2} {:>10.2} {:>9.1e} {:>9.1e} {:>9.1e} {:>9.1e} {:>11.2} {:>11.2}",
                 1e3 * ts,
                 1e3 * ds,
                 e[0],
@@ -199,6 +237,13 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                 gib(dr)
             )?;
         }
+    }
+    if flash::fallbacks() > 0 {
+        writeln!(
+            out,
+            "{} passes fell back from the fused kernels to the tiled ones (see the warning above)",
+            flash::fallbacks()
+        )?;
     }
     Ok(())
 }

@@ -160,6 +160,7 @@ mod tests {
             precision: PrecisionArg::F32,
             flash: true,
             block_mib: vec![],
+            kernels: vec![],
         };
         let e = crate::commands::bench_attention::run(&a).unwrap_err().to_string();
         assert!(

@@ -182,6 +182,15 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             umgen::backbone::matmul::fallbacks()
         )?;
     }
+    // Likewise the fused attention kernels.
+    if matches!(device, Device::Cuda(_)) {
+        writeln!(
+            out,
+            "attention     {:?}, {} pass(es) fell back to the tiled kernels",
+            tc.attention,
+            umgen::backbone::flash::fallbacks()
+        )?;
+    }
     if world > 1 {
         writeln!(
             out,

@@ -1,0 +1,198 @@
+//! The training attention's kernels: fused (one kernel per pass, FlashAttention-2) on CUDA, tiled
+//! (FlashAttention's algorithm in backend tensor operations, [`crate::attention`]) elsewhere.
+//!
+//! [`crate::attention`]'s custom autodiff operation computes its forward and backward passes through
+//! [`FusedAttention`], a trait of the inner backend. On the CPU (`Flex`) both passes are the tiled ones.
+//! On CUDA, with [`AttentionKernel::Fused`] (the default), each pass is a custom operation in burn-fusion's
+//! stream that launches this module's cubecl kernels (`flash/kernels.rs`): the `lq × lk` scores and
+//! probabilities live only in shared memory, so a pass costs its inputs, outputs and one log-sum-exp per
+//! query instead of a block of score matrices in global memory, and one launch instead of a few dozen per
+//! block. A head size the kernels do not take (not a multiple of 16, or over [`MAX_HEAD`]) runs the tiled
+//! passes instead, counted by [`fallbacks`] and logged once.
+
+use crate::attention::{tiled_backward, tiled_forward};
+use crate::config::Precision;
+use burn::tensor::Tensor;
+use burn::tensor::backend::Backend;
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+#[cfg(feature = "cuda")]
+mod cuda;
+#[cfg(feature = "cuda")]
+mod kernels;
+
+/// The largest head size the fused kernels take (their shared memory grows with it).
+pub const MAX_HEAD: usize = 128;
+
+/// Which kernels run the training attention on CUDA (`train.attention`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AttentionKernel {
+    /// One fused cubecl kernel per pass (forward; key/value gradients; query gradients).
+    #[default]
+    Fused,
+    /// The tiled passes in burn tensor operations (blocks of [`crate::attention::BLOCK_BYTES`]).
+    Tiled,
+}
+
+/// The tiled kernels chosen (process-wide, as [`crate::matmul::select`]).
+static TILED: AtomicBool = AtomicBool::new(false);
+/// Passes that wanted the fused kernels but ran the tiled ones.
+static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
+
+/// Chooses the attention kernels for every training pass this process runs from now on.
+pub fn select(kernel: AttentionKernel) {
+    TILED.store(kernel == AttentionKernel::Tiled, Ordering::Relaxed);
+}
+
+/// The kernels [`select`] chose ([`AttentionKernel::Fused`] unless told otherwise).
+pub fn selected() -> AttentionKernel {
+    if TILED.load(Ordering::Relaxed) {
+        AttentionKernel::Tiled
+    } else {
+        AttentionKernel::Fused
+    }
+}
+
+/// How many passes fell back from the fused kernels to the tiled ones in this process.
+pub fn fallbacks() -> usize {
+    FALLBACKS.load(Ordering::Relaxed)
+}
+
+/// Shared memory (bytes) the largest of the fused kernels declares for head size `head` and operands of
+/// `elem` bytes (the key/value gradients' kernel, whose K, V, Q and dO tiles, scores, probabilities and two
+/// accumulators all live in shared memory).
+pub fn shared_bytes(head: usize, elem: usize) -> usize {
+    const B: usize = 64;
+    let tiles = B * (head + 8) * elem;
+    let scores = B * (B + 4) * 4;
+    let probs = B * (B + 8) * elem;
+    let acc = B * (head + 4) * 4;
+    let forward = 3 * tiles + scores + probs + acc;
+    let kv = 4 * tiles + 2 * B * 4 + 2 * scores + 2 * probs + 2 * acc;
+    let q = 4 * tiles + 2 * scores + probs + acc;
+    forward.max(kv).max(q)
+}
+
+/// Why the fused kernels cannot take a head size, if they cannot.
+pub fn unfit(head: usize) -> Option<String> {
+    (head == 0 || !head.is_multiple_of(16) || head > MAX_HEAD)
+        .then(|| format!("head size {head} (the fused kernels take multiples of 16 up to {MAX_HEAD})"))
+}
+
+/// Counts a pass that runs the tiled kernels although the fused ones were chosen; logs the first.
+#[cfg_attr(not(feature = "cuda"), allow(dead_code))]
+fn fell_back(why: &str) {
+    if FALLBACKS.fetch_add(1, Ordering::Relaxed) == 0 {
+        tracing::warn!("fused attention refused {why}; the tiled kernels run it (counted in fallbacks)");
+    }
+}
+
+/// A backend that computes the training attention's two passes. `q: [b, h, lq, d]`, `k`, `v:
+/// [b, h, lk, d]`, already in `precision`'s format; `causal` hides keys after each query, bottom-right
+/// aligned. Every result is f32.
+pub trait FusedAttention: Backend {
+    /// The output `[b, h, lq, d]` and each query's log-sum-exp of its scaled scores `[b, h, lq, 1]`.
+    fn attention_forward(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>);
+
+    /// The gradients of `q`, `k` and `v` from the output's gradient `dout`, given the forward pass's output
+    /// and log-sum-exp.
+    #[allow(clippy::too_many_arguments)]
+    fn attention_backward(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        out: Tensor<Self, 4>,
+        lse: Tensor<Self, 4>,
+        dout: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>);
+}
+
+/// The tiled forward pass with the process's block size.
+pub(crate) fn tiled_forward_pass<B: Backend>(
+    q: Tensor<B, 4>,
+    k: Tensor<B, 4>,
+    v: Tensor<B, 4>,
+    causal: bool,
+    precision: Precision,
+) -> (Tensor<B, 4>, Tensor<B, 4>) {
+    let [b, h, lq, _] = q.dims();
+    let rows = crate::attention::block_rows(b, h, lq, k.dims()[2]);
+    tiled_forward(q, k, v, causal, rows, precision)
+}
+
+/// The tiled backward pass with the process's block size.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn tiled_backward_pass<B: Backend>(
+    q: Tensor<B, 4>,
+    k: Tensor<B, 4>,
+    v: Tensor<B, 4>,
+    out: Tensor<B, 4>,
+    lse: Tensor<B, 4>,
+    dout: Tensor<B, 4>,
+    causal: bool,
+    precision: Precision,
+) -> (Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>) {
+    let [b, h, lq, _] = q.dims();
+    let rows = crate::attention::block_rows(b, h, lq, k.dims()[2]);
+    tiled_backward(q, k, v, out, lse, dout, causal, rows, precision)
+}
+
+/// The CPU has the tiled passes only; CPU training runs them through the same autodiff operation.
+impl FusedAttention for burn::backend::Flex {
+    fn attention_forward(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        tiled_forward_pass(q, k, v, causal, precision)
+    }
+
+    fn attention_backward(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        out: Tensor<Self, 4>,
+        lse: Tensor<Self, 4>,
+        dout: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>) {
+        tiled_backward_pass(q, k, v, out, lse, dout, causal, precision)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn head_sizes_the_kernels_take() {
+        for ok in [16, 64, 128] {
+            assert!(unfit(ok).is_none(), "{ok}");
+        }
+        for bad in [0, 8, 24, 65, 144] {
+            let why = unfit(bad).expect("refused");
+            assert!(why.contains(&bad.to_string()), "{why}");
+        }
+    }
+
+    #[test]
+    fn shared_memory_matches_what_the_device_reported() {
+        // An H200 refused the f32 kernels at head size 128 with "Requested 279040 bytes, maximum 232448".
+        assert_eq!(shared_bytes(128, 4), 279_040);
+        // The sizes training uses fit that limit; bf16 operands fit at 128 too.
+        assert!(shared_bytes(64, 4) <= 232_448 && shared_bytes(128, 2) <= 232_448);
+    }
+}

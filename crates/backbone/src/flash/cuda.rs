@@ -1,0 +1,289 @@
+//! [`FusedAttention`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in
+//! the fusion stream that launches the kernels of `kernels.rs` on the operands as they lie in memory (any
+//! strides) and writes f32 results.
+
+use super::kernels::{self, BLOCK};
+use super::{
+    AttentionKernel, FusedAttention, fell_back, selected, shared_bytes, tiled_backward_pass,
+    tiled_forward_pass, unfit,
+};
+use crate::attention::float;
+use crate::config::Precision;
+use burn::backend::Cuda;
+use burn::cubecl::Runtime;
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::{DType, Shape, Tensor};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::tensor::CubeTensor;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use cubecl::prelude::{CubeCount, CubeDim, CubePrimitive, StorageType};
+use cubecl::tf32;
+
+type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+type Primitive = CubeTensor<CudaRuntime>;
+type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
+
+/// Why the kernels cannot take these operands, if they cannot.
+fn refused(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> Option<String> {
+    let d = q.dims()[3];
+    if let Some(why) = unfit(d) {
+        return Some(why);
+    }
+    let dt = q.dtype();
+    if !matches!(dt, DType::F32 | DType::BF16) || k.dtype() != dt || v.dtype() != dt {
+        return Some(format!(
+            "operands {:?}, {:?}, {:?} (the fused kernels take f32 or bf16, all alike)",
+            dt,
+            k.dtype(),
+            v.dtype()
+        ));
+    }
+    if v.dims()[3] != d {
+        return Some(format!("value size {} ≠ query size {d}", v.dims()[3]));
+    }
+    let need = shared_bytes(d, dt.size());
+    let have = CudaRuntime::client(&q.device())
+        .properties()
+        .hardware
+        .max_shared_memory_size;
+    (need > have)
+        .then(|| format!("head size {d} in {dt:?}: {need} bytes of shared memory, the device allows {have}"))
+}
+
+/// The products' tile format and depth for operands of `dtype`: TF32 16×16×8 for f32, bf16 16×16×16.
+fn tile_format(dtype: DType) -> (StorageType, usize) {
+    match dtype {
+        DType::BF16 => (dtype.into(), 16),
+        _ => (tf32::as_type_native_unchecked().storage_type(), 8),
+    }
+}
+
+/// Registers a custom operation on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
+fn register<const N: usize>(
+    id: &'static str,
+    inputs: &[&Tensor<Cuda, 4>],
+    shapes: [Shape; N],
+    op: impl FnOnce(CustomOpIr) -> Pass,
+) -> [Tensor<Cuda, 4>; N] {
+    let prims: Vec<_> = inputs
+        .iter()
+        .map(|t| (*t).clone().into_primitive().tensor())
+        .collect();
+    let client = prims[0].client.clone();
+    let outs: Vec<TensorIr> = shapes
+        .into_iter()
+        .map(|s| TensorIr::uninit(client.create_empty_handle(), s, DType::F32))
+        .collect();
+    let streams = OperationStreams::with_inputs(prims.iter());
+    let irs: Vec<TensorIr> = prims.into_iter().map(|p| p.into_ir()).collect();
+    let desc = CustomOpIr::new(id, &irs, &outs);
+    let out = client.register(streams, OperationIr::Custom(desc.clone()), op(desc));
+    let tensors: Vec<Tensor<Cuda, 4>> = out.into_iter().map(float).collect();
+    tensors
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("the operation was described with {N} outputs"))
+}
+
+impl FusedAttention for Cuda {
+    fn attention_forward(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        if selected() == AttentionKernel::Tiled {
+            return tiled_forward_pass(q, k, v, causal, precision);
+        }
+        if let Some(why) = refused(&q, &k, &v) {
+            fell_back(&why);
+            return tiled_forward_pass(q, k, v, causal, precision);
+        }
+        let [b, h, lq, d] = q.dims();
+        let [out, lse] = register(
+            "umgen_flash_forward",
+            &[&q, &k, &v],
+            [Shape::new([b, h, lq, d]), Shape::new([b, h, lq, 1])],
+            |desc| Pass { desc, causal },
+        );
+        (out, lse)
+    }
+
+    fn attention_backward(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        out: Tensor<Self, 4>,
+        lse: Tensor<Self, 4>,
+        dout: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>) {
+        if selected() == AttentionKernel::Tiled || refused(&q, &k, &v).is_some() {
+            // The forward pass counted the fallback.
+            return tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
+        }
+        // Rowsum(dO ∘ O) = Σ_j P_ij dP_ij, the softmax Jacobian's correction term, in f32.
+        let delta = (dout.clone() * out).sum_dim(3);
+        let dout = crate::precision::operand(dout, precision);
+        let [b, h, lq, d] = q.dims();
+        let lk = k.dims()[2];
+        let [dq, dk, dv] = register(
+            "umgen_flash_backward",
+            &[&q, &k, &v, &dout, &lse, &delta],
+            [
+                Shape::new([b, h, lq, d]),
+                Shape::new([b, h, lk, d]),
+                Shape::new([b, h, lk, d]),
+            ],
+            |desc| Pass { desc, causal },
+        );
+        (dq, dk, dv)
+    }
+}
+
+/// One pass as the fusion stream runs it; the number of inputs tells forward (3) from backward (6).
+#[derive(Debug)]
+struct Pass {
+    desc: CustomOpIr,
+    causal: bool,
+}
+
+impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
+    fn execute(&self, handles: &mut Handles) {
+        let inputs: Vec<Primitive> = self
+            .desc
+            .inputs
+            .iter()
+            .map(|t| handles.get_float_tensor::<Inner>(t))
+            .collect();
+        let outputs = match inputs.as_slice() {
+            [q, k, v] => forward(q, k, v, self.causal),
+            [q, k, v, dout, lse, delta] => backward(q, k, v, dout, lse, delta, self.causal),
+            _ => unreachable!("flash passes have 3 or 6 inputs"),
+        };
+        for (ir, t) in self.desc.outputs.iter().zip(outputs) {
+            handles.register_float_tensor::<Inner>(&ir.id, t);
+        }
+    }
+}
+
+/// An uninitialised f32 tensor of `shape` on `like`'s device.
+fn empty(like: &Primitive, shape: [usize; 4]) -> Primitive {
+    empty_device_dtype(
+        like.client.clone(),
+        like.device.clone(),
+        Shape::new(shape),
+        DType::F32,
+    )
+}
+
+/// Launch geometry: one cube per block of `rows` rows of each (sequence, head); four planes of 32.
+fn geometry(rows: usize, b: usize, h: usize) -> (CubeCount, CubeDim) {
+    let blocks = rows.div_ceil(BLOCK) as u32;
+    (
+        CubeCount::Static(blocks, h as u32, b as u32),
+        CubeDim::new_2d(32, 4),
+    )
+}
+
+/// `(1/√d, lk − lq)`: the score scale and the causal mask's offset.
+fn scale_and_offset(q: &Primitive, k: &Primitive) -> (f32, usize) {
+    let (lq, d) = (q.meta.shape()[2], q.meta.shape()[3]);
+    let lk = k.meta.shape()[2];
+    (1.0 / (d as f32).sqrt(), lk.saturating_sub(lq))
+}
+
+fn forward(q: &Primitive, k: &Primitive, v: &Primitive, causal: bool) -> Vec<Primitive> {
+    let [b, h, lq, d] = dims(q);
+    let out = empty(q, [b, h, lq, d]);
+    let lse = empty(q, [b, h, lq, 1]);
+    let (scale, off) = scale_and_offset(q, k);
+    let (format, kstep) = tile_format(q.dtype);
+    let (count, dim) = geometry(lq, b, h);
+    kernels::forward::launch::<CudaRuntime>(
+        &q.client,
+        count,
+        dim,
+        q.clone().into_tensor_arg(),
+        k.clone().into_tensor_arg(),
+        v.clone().into_tensor_arg(),
+        out.clone().into_tensor_arg(),
+        lse.clone().into_tensor_arg(),
+        scale,
+        off,
+        causal,
+        d,
+        kstep,
+        [q.dtype.into(), format],
+    );
+    vec![out, lse]
+}
+
+#[allow(clippy::too_many_arguments)]
+fn backward(
+    q: &Primitive,
+    k: &Primitive,
+    v: &Primitive,
+    dout: &Primitive,
+    lse: &Primitive,
+    delta: &Primitive,
+    causal: bool,
+) -> Vec<Primitive> {
+    let [b, h, lq, d] = dims(q);
+    let lk = k.meta.shape()[2];
+    let dq = empty(q, [b, h, lq, d]);
+    let dk = empty(q, [b, h, lk, d]);
+    let dv = empty(q, [b, h, lk, d]);
+    let (scale, off) = scale_and_offset(q, k);
+    let (format, kstep) = tile_format(q.dtype);
+    let arg = |t: &Primitive| t.clone().into_tensor_arg();
+    let (count, dim) = geometry(lk, b, h);
+    kernels::backward_kv::launch::<CudaRuntime>(
+        &q.client,
+        count,
+        dim,
+        arg(q),
+        arg(k),
+        arg(v),
+        arg(dout),
+        arg(lse),
+        arg(delta),
+        arg(&dk),
+        arg(&dv),
+        scale,
+        off,
+        causal,
+        d,
+        kstep,
+        [q.dtype.into(), format],
+    );
+    let (count, dim) = geometry(lq, b, h);
+    kernels::backward_q::launch::<CudaRuntime>(
+        &q.client,
+        count,
+        dim,
+        arg(q),
+        arg(k),
+        arg(v),
+        arg(dout),
+        arg(lse),
+        arg(delta),
+        arg(&dq),
+        scale,
+        off,
+        causal,
+        d,
+        kstep,
+        [q.dtype.into(), format],
+    );
+    vec![dq, dk, dv]
+}
+
+fn dims(t: &Primitive) -> [usize; 4] {
+    let s = t.meta.shape();
+    [s[0], s[1], s[2], s[3]]
+}

@@ -1,0 +1,592 @@
+//! The fused attention's kernels in cubecl: FlashAttention-2's forward pass and its backward pass split in
+//! two (one kernel for the key/value gradients, one for the query gradients, so that no gradient needs an
+//! atomic sum across cubes).
+//!
+//! Layout of every kernel: one cube per block of [`BLOCK`] rows (queries, or keys for the key/value
+//! gradients) of one (sequence, head), four planes of 32 units, each plane owning 16 of the rows. Products
+//! run on tensor cores (`cmma`) from shared memory: TF32 tiles of 16×16×8 for f32 operands, bf16 tiles of
+//! 16×16×16 for bf16 operands, all accumulating in f32. The element-wise work between products (scale,
+//! mask, online softmax, the softmax Jacobian) runs on f32 copies of the products in shared memory, two
+//! units per row. Nothing of size `lq × lk` reaches global memory: the memory of a pass is its inputs,
+//! outputs and one f32 log-sum-exp per query.
+//!
+//! Rows past a sequence's end are loaded as zeros and masked out; `off = lk − lq` aligns the causal mask
+//! bottom-right, as burn's `is_causal` and the tiled path do.
+
+use cubecl::cmma;
+use cubecl::prelude::*;
+
+/// Rows of a cube's block (queries or keys), and keys (or queries) per step of its loop.
+pub const BLOCK: usize = 64;
+/// Units per cube: four planes of 32.
+const UNITS: usize = 128;
+/// Running maximum of a row that has seen no visible score yet (finite, so that differences stay finite).
+const NONE_SEEN: f32 = -1.0e30;
+
+/// Whether `key` is visible from `query`.
+#[cube]
+fn visible(key: usize, query: usize, lk: usize, lq: usize, off: usize, #[comptime] causal: bool) -> bool {
+    let mut seen = key < lk && query < lq;
+    if causal {
+        seen = seen && key <= query + off;
+    }
+    seen
+}
+
+/// Copies rows `[row0, row0 + BLOCK)` of one (sequence, head) of `src` (`[b, h, l, dh]`, any strides; rows
+/// at or past `valid` as zeros) into `dst` (row stride `stride`), converted to the products' format.
+#[cube]
+fn load_rows<E: Float, C: Float>(
+    src: &Tensor<E>,
+    base: usize,
+    row0: usize,
+    valid: usize,
+    dst: &mut SharedMemory<C>,
+    #[comptime] dh: usize,
+    #[comptime] stride: usize,
+) {
+    let (s2, s3) = (src.stride(2), src.stride(3));
+    // A loop, not unrolled: unrolling this and the element-wise loops made the kernels 1.2–1.4× slower on
+    // an H200 (`umgen bench attention`, docs/perf-notes.md).
+    let mut i = (UNIT_POS_Y * 32 + UNIT_POS_X) as usize;
+    while i < comptime!(BLOCK * dh) {
+        let r = i / dh;
+        let c = i % dh;
+        let row = row0 + r;
+        let mut x = C::from_int(0);
+        if row < valid {
+            x = C::cast_from(src[base + row * s2 + c * s3]);
+        }
+        dst[r * stride + c] = x;
+        i += UNITS;
+    }
+}
+
+/// Sets the first `BLOCK · stride` values of `dst` to zero.
+#[cube]
+fn zero(dst: &mut SharedMemory<f32>, #[comptime] stride: usize) {
+    let mut i = (UNIT_POS_Y * 32 + UNIT_POS_X) as usize;
+    while i < comptime!(BLOCK * stride) {
+        dst[i] = 0.0;
+        i += UNITS;
+    }
+}
+
+/// One plane's 16 × [`BLOCK`] product `a · bᵀ` into `out` (f32, row stride `so`, from `out_off`): `a` holds
+/// the plane's 16 rows of length `dh` from `a_off`, `b` [`BLOCK`] rows of length `dh`; both row stride `sa`.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn rows_by_rows<C: Float>(
+    a: &SharedMemory<C>,
+    a_off: usize,
+    b: &SharedMemory<C>,
+    out: &mut SharedMemory<f32>,
+    out_off: usize,
+    #[comptime] dh: usize,
+    #[comptime] sa: usize,
+    #[comptime] so: usize,
+    #[comptime] kstep: usize,
+) {
+    #[unroll]
+    for nt in 0..BLOCK / 16 {
+        let acc = cmma::Matrix::<f32>::from_value(
+            cmma::MatrixIdent::Accumulator,
+            16usize,
+            16usize,
+            kstep,
+            cmma::MatrixLayout::Undefined,
+            0.0,
+        );
+        #[unroll]
+        for kk in 0..dh / kstep {
+            let x = cmma::Matrix::<C>::from_slice(
+                cmma::MatrixIdent::A,
+                16usize,
+                16usize,
+                kstep,
+                cmma::MatrixLayout::RowMajor,
+                &a.slice(a_off + kk * kstep, a_off + kk * kstep + 16 * sa),
+                sa as u32,
+            );
+            let y = cmma::Matrix::<C>::from_slice(
+                cmma::MatrixIdent::B,
+                16usize,
+                16usize,
+                kstep,
+                cmma::MatrixLayout::ColMajor,
+                &b.slice(nt * 16 * sa + kk * kstep, (nt * 16 + 16) * sa),
+                sa as u32,
+            );
+            cmma::execute::<C, C, f32, f32>(&x, &y, &acc, &acc);
+        }
+        cmma::store(
+            &mut out.slice_mut(out_off + nt * 16, out_off + nt * 16 + 16 * so),
+            &acc,
+            so as u32,
+            cmma::MatrixLayout::RowMajor,
+        );
+    }
+}
+
+/// One plane's 16 × `dh` accumulator in `acc` (f32, row stride `sacc`, from `acc_off`) plus `a · b`: `a`
+/// holds the plane's 16 rows of length [`BLOCK`] from `a_off` (row stride `sa`), `b` [`BLOCK`] rows of
+/// length `dh` (row stride `sb`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn accumulate<C: Float>(
+    acc: &mut SharedMemory<f32>,
+    acc_off: usize,
+    a: &SharedMemory<C>,
+    a_off: usize,
+    b: &SharedMemory<C>,
+    #[comptime] dh: usize,
+    #[comptime] sa: usize,
+    #[comptime] sb: usize,
+    #[comptime] sacc: usize,
+    #[comptime] kstep: usize,
+) {
+    #[unroll]
+    for nt in 0..dh / 16 {
+        let sum = cmma::Matrix::<f32>::from_value(
+            cmma::MatrixIdent::Accumulator,
+            16usize,
+            16usize,
+            kstep,
+            cmma::MatrixLayout::Undefined,
+            0.0,
+        );
+        let start = acc_off + nt * 16;
+        cmma::load_with_layout(
+            &sum,
+            &acc.slice(start, start + 16 * sacc),
+            sacc as u32,
+            cmma::MatrixLayout::RowMajor,
+        );
+        #[unroll]
+        for kk in 0..BLOCK / kstep {
+            let x = cmma::Matrix::<C>::from_slice(
+                cmma::MatrixIdent::A,
+                16usize,
+                16usize,
+                kstep,
+                cmma::MatrixLayout::RowMajor,
+                &a.slice(a_off + kk * kstep, a_off + kk * kstep + 16 * sa),
+                sa as u32,
+            );
+            let y = cmma::Matrix::<C>::from_slice(
+                cmma::MatrixIdent::B,
+                16usize,
+                16usize,
+                kstep,
+                cmma::MatrixLayout::RowMajor,
+                &b.slice(kk * kstep * sb + nt * 16, (kk * kstep + kstep) * sb),
+                sb as u32,
+            );
+            cmma::execute::<C, C, f32, f32>(&x, &y, &sum, &sum);
+        }
+        cmma::store(
+            &mut acc.slice_mut(start, start + 16 * sacc),
+            &sum,
+            sacc as u32,
+            cmma::MatrixLayout::RowMajor,
+        );
+    }
+}
+
+/// Forward pass: `out = softmax(q kᵀ · scale) v` (f32, `[b, h, lq, dh]`) and each query's log-sum-exp of
+/// its scaled scores (f32, `[b, h, lq, 1]`). Cube `(x, y, z)` = (query block, head, sequence).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub fn forward<E: Float, C: Float>(
+    q: &Tensor<E>,
+    k: &Tensor<E>,
+    v: &Tensor<E>,
+    out: &mut Tensor<f32>,
+    lse: &mut Tensor<f32>,
+    scale: f32,
+    off: usize,
+    #[comptime] causal: bool,
+    #[comptime] dh: usize,
+    #[comptime] kstep: usize,
+    #[define(E, C)] _dtypes: [StorageType; 2],
+) {
+    let sq = comptime!(dh + 8);
+    let ss = comptime!(BLOCK + 4);
+    let sp = comptime!(BLOCK + 8);
+    let so = comptime!(dh + 4);
+    let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut scores = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
+    let mut probs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sp), 128usize);
+    let mut acc = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * so), 128usize);
+
+    let (lq, lk) = (q.shape(2), k.shape(2));
+    let (seq, head) = (CUBE_POS_Z as usize, CUBE_POS_Y as usize);
+    let q0 = CUBE_POS_X as usize * BLOCK;
+    let plane = UNIT_POS_Y as usize;
+    let half = UNIT_POS_X as usize % 2;
+    let r = plane * 16 + UNIT_POS_X as usize / 2;
+    let row = q0 + r;
+
+    let kbase = seq * k.stride(0) + head * k.stride(1);
+    let vbase = seq * v.stride(0) + head * v.stride(1);
+    load_rows::<E, C>(q, seq * q.stride(0) + head * q.stride(1), q0, lq, &mut qs, dh, sq);
+    zero(&mut acc, so);
+
+    let mut m = f32::new(NONE_SEEN);
+    let mut l = 0.0f32;
+    let mut kend = lk;
+    if causal {
+        kend = min(lk, q0 + BLOCK + off);
+    }
+    let blocks = (kend + BLOCK - 1) / BLOCK;
+    for kb in 0..blocks {
+        let k0 = kb * BLOCK;
+        sync_cube();
+        load_rows::<E, C>(k, kbase, k0, lk, &mut ks, dh, sq);
+        load_rows::<E, C>(v, vbase, k0, lk, &mut vs, dh, sq);
+        sync_cube();
+        rows_by_rows::<C>(
+            &qs,
+            plane * 16 * sq,
+            &ks,
+            &mut scores,
+            plane * 16 * ss,
+            dh,
+            sq,
+            ss,
+            kstep,
+        );
+        sync_plane();
+
+        let mut top = f32::new(NONE_SEEN);
+        for j in 0..BLOCK / 2 {
+            let c = half + 2 * j;
+            if visible(k0 + c, row, lk, lq, off, causal) {
+                top = max(top, scores[r * ss + c] * scale);
+            }
+        }
+        top = max(top, plane_shuffle_xor(top, 1));
+        let m_new = max(m, top);
+        let mut sum = 0.0f32;
+        for j in 0..BLOCK / 2 {
+            let c = half + 2 * j;
+            let s = scores[r * ss + c] * scale;
+            let p = select(visible(k0 + c, row, lk, lq, off, causal), (s - m_new).exp(), 0.0);
+            probs[r * sp + c] = C::cast_from(p);
+            sum += p;
+        }
+        sum += plane_shuffle_xor(sum, 1);
+        let alpha = (m - m_new).exp();
+        l = l * alpha + sum;
+        m = m_new;
+        for j in 0..dh / 2 {
+            let c = half + 2 * j;
+            acc[r * so + c] = acc[r * so + c] * alpha;
+        }
+        sync_plane();
+        accumulate::<C>(
+            &mut acc,
+            plane * 16 * so,
+            &probs,
+            plane * 16 * sp,
+            &vs,
+            dh,
+            sp,
+            sq,
+            so,
+            kstep,
+        );
+        sync_plane();
+    }
+
+    if row < lq {
+        let obase = seq * out.stride(0) + head * out.stride(1) + row * out.stride(2);
+        let os3 = out.stride(3);
+        for j in 0..dh / 2 {
+            let c = half + 2 * j;
+            out[obase + c * os3] = acc[r * so + c] / l;
+        }
+        if half == 0 {
+            lse[seq * lse.stride(0) + head * lse.stride(1) + row * lse.stride(2)] = m + l.ln();
+        }
+    }
+}
+
+/// Gradients of the keys and values: `dk = scale · dSᵀ q` and `dv = Pᵀ dout` (f32, `[b, h, lk, dh]`), from
+/// each query's log-sum-exp and `delta = rowsum(dout ∘ out)` (f32, `[b, h, lq, 1]`). Cube `(x, y, z)` =
+/// (key block, head, sequence).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub fn backward_kv<E: Float, C: Float>(
+    q: &Tensor<E>,
+    k: &Tensor<E>,
+    v: &Tensor<E>,
+    dout: &Tensor<E>,
+    lse: &Tensor<f32>,
+    delta: &Tensor<f32>,
+    dk: &mut Tensor<f32>,
+    dv: &mut Tensor<f32>,
+    scale: f32,
+    off: usize,
+    #[comptime] causal: bool,
+    #[comptime] dh: usize,
+    #[comptime] kstep: usize,
+    #[define(E, C)] _dtypes: [StorageType; 2],
+) {
+    let sq = comptime!(dh + 8);
+    let ss = comptime!(BLOCK + 4);
+    let sp = comptime!(BLOCK + 8);
+    let so = comptime!(dh + 4);
+    let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut dos = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut lses = SharedMemory::<f32>::new_aligned(BLOCK, 16usize);
+    let mut deltas = SharedMemory::<f32>::new_aligned(BLOCK, 16usize);
+    let mut st = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
+    let mut dpt = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
+    let mut pt = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sp), 128usize);
+    let mut dst = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sp), 128usize);
+    let mut dka = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * so), 128usize);
+    let mut dva = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * so), 128usize);
+
+    let (lq, lk) = (q.shape(2), k.shape(2));
+    let (seq, head) = (CUBE_POS_Z as usize, CUBE_POS_Y as usize);
+    let k0 = CUBE_POS_X as usize * BLOCK;
+    let plane = UNIT_POS_Y as usize;
+    let half = UNIT_POS_X as usize % 2;
+    let r = plane * 16 + UNIT_POS_X as usize / 2;
+    let key = k0 + r;
+    let tid = (UNIT_POS_Y * 32 + UNIT_POS_X) as usize;
+
+    let qbase = seq * q.stride(0) + head * q.stride(1);
+    let dobase = seq * dout.stride(0) + head * dout.stride(1);
+    let lbase = seq * lse.stride(0) + head * lse.stride(1);
+    let dbase = seq * delta.stride(0) + head * delta.stride(1);
+    load_rows::<E, C>(k, seq * k.stride(0) + head * k.stride(1), k0, lk, &mut ks, dh, sq);
+    load_rows::<E, C>(v, seq * v.stride(0) + head * v.stride(1), k0, lk, &mut vs, dh, sq);
+    zero(&mut dka, so);
+    zero(&mut dva, so);
+
+    // The first query that sees this block's first key.
+    let mut first = 0;
+    if causal && k0 > off {
+        first = (k0 - off) / BLOCK;
+    }
+    let blocks = (lq + BLOCK - 1) / BLOCK;
+    for qb in first..blocks {
+        let q0 = qb * BLOCK;
+        sync_cube();
+        load_rows::<E, C>(q, qbase, q0, lq, &mut qs, dh, sq);
+        load_rows::<E, C>(dout, dobase, q0, lq, &mut dos, dh, sq);
+        if tid < BLOCK {
+            let query = q0 + tid;
+            let mut x = 0.0f32;
+            let mut y = 0.0f32;
+            if query < lq {
+                x = lse[lbase + query * lse.stride(2)];
+                y = delta[dbase + query * delta.stride(2)];
+            }
+            lses[tid] = x;
+            deltas[tid] = y;
+        }
+        sync_cube();
+        rows_by_rows::<C>(
+            &ks,
+            plane * 16 * sq,
+            &qs,
+            &mut st,
+            plane * 16 * ss,
+            dh,
+            sq,
+            ss,
+            kstep,
+        );
+        rows_by_rows::<C>(
+            &vs,
+            plane * 16 * sq,
+            &dos,
+            &mut dpt,
+            plane * 16 * ss,
+            dh,
+            sq,
+            ss,
+            kstep,
+        );
+        sync_plane();
+        for j in 0..BLOCK / 2 {
+            let c = half + 2 * j;
+            let seen = visible(key, q0 + c, lk, lq, off, causal);
+            let p = select(seen, (st[r * ss + c] * scale - lses[c]).exp(), 0.0);
+            let ds = p * (dpt[r * ss + c] - deltas[c]);
+            pt[r * sp + c] = C::cast_from(p);
+            dst[r * sp + c] = C::cast_from(ds);
+        }
+        sync_plane();
+        accumulate::<C>(
+            &mut dva,
+            plane * 16 * so,
+            &pt,
+            plane * 16 * sp,
+            &dos,
+            dh,
+            sp,
+            sq,
+            so,
+            kstep,
+        );
+        accumulate::<C>(
+            &mut dka,
+            plane * 16 * so,
+            &dst,
+            plane * 16 * sp,
+            &qs,
+            dh,
+            sp,
+            sq,
+            so,
+            kstep,
+        );
+    }
+    // The accumulators were zeroed by the whole cube; a block with no visible query skips the loop.
+    sync_cube();
+
+    if key < lk {
+        let kb = seq * dk.stride(0) + head * dk.stride(1) + key * dk.stride(2);
+        let vb = seq * dv.stride(0) + head * dv.stride(1) + key * dv.stride(2);
+        let (k3, v3) = (dk.stride(3), dv.stride(3));
+        for j in 0..dh / 2 {
+            let c = half + 2 * j;
+            dk[kb + c * k3] = dka[r * so + c] * scale;
+            dv[vb + c * v3] = dva[r * so + c];
+        }
+    }
+}
+
+/// Gradient of the queries: `dq = scale · dS k` (f32, `[b, h, lq, dh]`). Cube `(x, y, z)` = (query block,
+/// head, sequence).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub fn backward_q<E: Float, C: Float>(
+    q: &Tensor<E>,
+    k: &Tensor<E>,
+    v: &Tensor<E>,
+    dout: &Tensor<E>,
+    lse: &Tensor<f32>,
+    delta: &Tensor<f32>,
+    dq: &mut Tensor<f32>,
+    scale: f32,
+    off: usize,
+    #[comptime] causal: bool,
+    #[comptime] dh: usize,
+    #[comptime] kstep: usize,
+    #[define(E, C)] _dtypes: [StorageType; 2],
+) {
+    let sq = comptime!(dh + 8);
+    let ss = comptime!(BLOCK + 4);
+    let sp = comptime!(BLOCK + 8);
+    let so = comptime!(dh + 4);
+    let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut dos = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut s = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
+    let mut dp = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
+    let mut ds = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sp), 128usize);
+    let mut acc = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * so), 128usize);
+
+    let (lq, lk) = (q.shape(2), k.shape(2));
+    let (seq, head) = (CUBE_POS_Z as usize, CUBE_POS_Y as usize);
+    let q0 = CUBE_POS_X as usize * BLOCK;
+    let plane = UNIT_POS_Y as usize;
+    let half = UNIT_POS_X as usize % 2;
+    let r = plane * 16 + UNIT_POS_X as usize / 2;
+    let row = q0 + r;
+
+    let kbase = seq * k.stride(0) + head * k.stride(1);
+    let vbase = seq * v.stride(0) + head * v.stride(1);
+    load_rows::<E, C>(q, seq * q.stride(0) + head * q.stride(1), q0, lq, &mut qs, dh, sq);
+    load_rows::<E, C>(
+        dout,
+        seq * dout.stride(0) + head * dout.stride(1),
+        q0,
+        lq,
+        &mut dos,
+        dh,
+        sq,
+    );
+    zero(&mut acc, so);
+    let mut my_lse = 0.0f32;
+    let mut my_delta = 0.0f32;
+    if row < lq {
+        my_lse = lse[seq * lse.stride(0) + head * lse.stride(1) + row * lse.stride(2)];
+        my_delta = delta[seq * delta.stride(0) + head * delta.stride(1) + row * delta.stride(2)];
+    }
+
+    let mut kend = lk;
+    if causal {
+        kend = min(lk, q0 + BLOCK + off);
+    }
+    let blocks = (kend + BLOCK - 1) / BLOCK;
+    for kb in 0..blocks {
+        let k0 = kb * BLOCK;
+        sync_cube();
+        load_rows::<E, C>(k, kbase, k0, lk, &mut ks, dh, sq);
+        load_rows::<E, C>(v, vbase, k0, lk, &mut vs, dh, sq);
+        sync_cube();
+        rows_by_rows::<C>(
+            &qs,
+            plane * 16 * sq,
+            &ks,
+            &mut s,
+            plane * 16 * ss,
+            dh,
+            sq,
+            ss,
+            kstep,
+        );
+        rows_by_rows::<C>(
+            &dos,
+            plane * 16 * sq,
+            &vs,
+            &mut dp,
+            plane * 16 * ss,
+            dh,
+            sq,
+            ss,
+            kstep,
+        );
+        sync_plane();
+        for j in 0..BLOCK / 2 {
+            let c = half + 2 * j;
+            let seen = visible(k0 + c, row, lk, lq, off, causal);
+            let p = select(seen, (s[r * ss + c] * scale - my_lse).exp(), 0.0);
+            ds[r * sp + c] = C::cast_from(p * (dp[r * ss + c] - my_delta));
+        }
+        sync_plane();
+        accumulate::<C>(
+            &mut acc,
+            plane * 16 * so,
+            &ds,
+            plane * 16 * sp,
+            &ks,
+            dh,
+            sp,
+            sq,
+            so,
+            kstep,
+        );
+    }
+    sync_cube();
+
+    if row < lq {
+        let base = seq * dq.stride(0) + head * dq.stride(1) + row * dq.stride(2);
+        let s3 = dq.stride(3);
+        for j in 0..dh / 2 {
+            let c = half + 2 * j;
+            dq[base + c * s3] = acc[r * so + c] * scale;
+        }
+    }
+}
