@@ -107,7 +107,11 @@ impl FusedAttention for Cuda {
             "umgen_flash_forward",
             &[&q, &k, &v],
             [Shape::new([b, h, lq, d]), Shape::new([b, h, lq, 1])],
-            |desc| Pass { desc, causal },
+            |desc| Pass {
+                desc,
+                causal,
+                kind: Kind::Forward,
+            },
         );
         (out, lse)
     }
@@ -139,31 +143,47 @@ impl FusedAttention for Cuda {
                 Shape::new([b, h, lk, d]),
                 Shape::new([b, h, lk, d]),
             ],
-            |desc| Pass { desc, causal },
+            |desc| Pass {
+                desc,
+                causal,
+                kind: Kind::Backward,
+            },
         );
         (dq, dk, dv)
     }
 }
 
-/// One pass as the fusion stream runs it; the number of inputs tells forward (3) from backward (6).
+/// Which pass.
+#[derive(Debug, Clone, Copy)]
+enum Kind {
+    /// q, k, v in; output and log-sum-exp out.
+    Forward,
+    /// q, k, v, dout, log-sum-exp, delta in; dq, dk, dv out.
+    Backward,
+}
+
+/// One pass as the fusion stream runs it.
 #[derive(Debug)]
 struct Pass {
     desc: CustomOpIr,
     causal: bool,
+    kind: Kind,
 }
 
 impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
     fn execute(&self, handles: &mut Handles) {
-        let inputs: Vec<Primitive> = self
-            .desc
-            .inputs
-            .iter()
-            .map(|t| handles.get_float_tensor::<Inner>(t))
-            .collect();
-        let outputs = match inputs.as_slice() {
-            [q, k, v] => forward(q, k, v, self.causal),
-            [q, k, v, dout, lse, delta] => backward(q, k, v, dout, lse, delta, self.causal),
-            _ => unreachable!("flash passes have 3 or 6 inputs"),
+        let outputs = match self.kind {
+            Kind::Forward => {
+                let ([q, k, v], _) = self.desc.as_fixed::<3, 2>();
+                let [q, k, v] = [q, k, v].map(|t| handles.get_float_tensor::<Inner>(t));
+                forward(&q, &k, &v, self.causal)
+            }
+            Kind::Backward => {
+                let (inputs, _) = self.desc.as_fixed::<6, 3>();
+                let [q, k, v, dout, lse, delta] =
+                    inputs.each_ref().map(|t| handles.get_float_tensor::<Inner>(t));
+                backward(&q, &k, &v, &dout, &lse, &delta, self.causal)
+            }
         };
         for (ir, t) in self.desc.outputs.iter().zip(outputs) {
             handles.register_float_tensor::<Inner>(&ir.id, t);

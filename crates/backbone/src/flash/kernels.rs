@@ -13,6 +13,9 @@
 //! Rows past a sequence's end are loaded as zeros and masked out; `off = lk − lq` aligns the causal mask
 //! bottom-right, as burn's `is_causal` and the tiled path do.
 
+// The kernels' language has no `usize::div_ceil`.
+#![allow(clippy::manual_div_ceil)]
+
 use cubecl::cmma;
 use cubecl::prelude::*;
 
