@@ -36,6 +36,17 @@ fn visible(key: usize, query: usize, lk: usize, lq: usize, off: usize, #[comptim
     seen
 }
 
+/// Key blocks the query block starting at `q0` sees: all of them, or for causal attention those up to
+/// its last query's last visible key.
+#[cube]
+fn key_blocks(lk: usize, q0: usize, off: usize, #[comptime] causal: bool) -> usize {
+    let mut end = lk;
+    if causal {
+        end = min(lk, q0 + BLOCK + off);
+    }
+    (end + BLOCK - 1) / BLOCK
+}
+
 /// Copies rows `[row0, row0 + BLOCK)` of one (sequence, head) of `src` (`[b, h, l, dh]`, any strides; rows
 /// at or past `valid` as zeros) into `dst` (row stride `stride`), converted to the products' format.
 #[cube]
@@ -239,12 +250,7 @@ pub fn forward<E: Float, C: Float>(
 
     let mut m = f32::new(NONE_SEEN);
     let mut l = 0.0f32;
-    let mut kend = lk;
-    if causal {
-        kend = min(lk, q0 + BLOCK + off);
-    }
-    let blocks = (kend + BLOCK - 1) / BLOCK;
-    for kb in 0..blocks {
+    for kb in 0..key_blocks(lk, q0, off, causal) {
         let k0 = kb * BLOCK;
         sync_cube();
         load_rows::<E, C>(k, kbase, k0, lk, &mut ks, dh, sq);
@@ -528,12 +534,7 @@ pub fn backward_q<E: Float, C: Float>(
         my_delta = delta[seq * delta.stride(0) + head * delta.stride(1) + row * delta.stride(2)];
     }
 
-    let mut kend = lk;
-    if causal {
-        kend = min(lk, q0 + BLOCK + off);
-    }
-    let blocks = (kend + BLOCK - 1) / BLOCK;
-    for kb in 0..blocks {
+    for kb in 0..key_blocks(lk, q0, off, causal) {
         let k0 = kb * BLOCK;
         sync_cube();
         load_rows::<E, C>(k, kbase, k0, lk, &mut ks, dh, sq);
