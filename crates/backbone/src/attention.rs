@@ -215,6 +215,12 @@ pub fn tiled_forward<B: Backend>(
     (Tensor::cat(outs, 2), Tensor::cat(lses, 2))
 }
 
+/// Rowsum(dO ∘ O) = Σ_j P_ij dP_ij, the softmax Jacobian's correction term of each query (`[b, h, lq, 1]`,
+/// in `dout`'s format), from the output's gradient and the output.
+pub(crate) fn softmax_delta<B: Backend>(dout: Tensor<B, 4>, out: Tensor<B, 4>) -> Tensor<B, 4> {
+    (dout * out).sum_dim(3)
+}
+
 /// Backward pass in blocks of `rows` queries: gradients of `q`, `k` and `v` from the output's gradient `dout`, recomputing each block's
 /// probabilities from `lse`.
 #[allow(clippy::too_many_arguments)]
@@ -232,8 +238,7 @@ pub fn tiled_backward<B: Backend>(
     let [b, h, lq, d] = q.dims();
     let lk = k.dims()[2];
     let scale = 1.0 / (d as f64).sqrt();
-    // Rowsum(dO ∘ O) = Σ_j P_ij dP_ij, the softmax Jacobian's correction term.
-    let delta = (dout.clone() * out).sum_dim(3);
+    let delta = softmax_delta(dout.clone(), out);
     let mut dk = Tensor::<B, 4>::zeros(k.shape(), &k.device());
     let mut dv = Tensor::<B, 4>::zeros(v.shape(), &v.device());
     let (q, k, v) = operands(q, k, v, precision);

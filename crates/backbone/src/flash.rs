@@ -25,6 +25,27 @@ mod kernels;
 /// The largest head size the fused kernels take (their shared memory grows with it).
 pub const MAX_HEAD: usize = 128;
 
+/// Rows of a fused kernel's block (queries, or keys for the key/value gradients), and keys (or queries)
+/// per step of its loop.
+pub const BLOCK: usize = 64;
+
+/// Row stride (elements) of the kernels' Q, K, V and dO tiles for head size `head`. The paddings of these
+/// strides keep every tensor-core load and store on a 32-byte boundary and spread rows over the banks.
+pub(crate) const fn tile_stride(head: usize) -> usize {
+    head + 8
+}
+
+/// Row stride of the kernels' f32 score (and score-gradient) buffers.
+pub(crate) const SCORE_STRIDE: usize = BLOCK + 4;
+
+/// Row stride of the kernels' probability (and score-gradient) buffers in the products' format.
+pub(crate) const PROB_STRIDE: usize = BLOCK + 8;
+
+/// Row stride of the kernels' f32 accumulators for head size `head`.
+pub(crate) const fn acc_stride(head: usize) -> usize {
+    head + 4
+}
+
 /// Which kernels run the training attention on CUDA (`train.attention`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -64,13 +85,12 @@ pub fn fallbacks() -> usize {
 /// `elem` bytes (the key/value gradients' kernel, whose K, V, Q and dO tiles, scores, probabilities and two
 /// accumulators all live in shared memory).
 pub fn shared_bytes(head: usize, elem: usize) -> usize {
-    const B: usize = 64;
-    let tiles = B * (head + 8) * elem;
-    let scores = B * (B + 4) * 4;
-    let probs = B * (B + 8) * elem;
-    let acc = B * (head + 4) * 4;
+    let tiles = BLOCK * tile_stride(head) * elem;
+    let scores = BLOCK * SCORE_STRIDE * 4;
+    let probs = BLOCK * PROB_STRIDE * elem;
+    let acc = BLOCK * acc_stride(head) * 4;
     let forward = 3 * tiles + scores + probs + acc;
-    let kv = 4 * tiles + 2 * B * 4 + 2 * scores + 2 * probs + 2 * acc;
+    let kv = 4 * tiles + 2 * BLOCK * 4 + 2 * scores + 2 * probs + 2 * acc;
     let q = 4 * tiles + 2 * scores + probs + acc;
     forward.max(kv).max(q)
 }

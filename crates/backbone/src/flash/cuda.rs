@@ -2,12 +2,12 @@
 //! the fusion stream that launches the kernels of `kernels.rs` on the operands as they lie in memory (any
 //! strides) and writes f32 results.
 
-use super::kernels::{self, BLOCK};
+use super::kernels;
 use super::{
-    AttentionKernel, FusedAttention, fell_back, selected, shared_bytes, tiled_backward_pass,
+    AttentionKernel, BLOCK, FusedAttention, fell_back, selected, shared_bytes, tiled_backward_pass,
     tiled_forward_pass, unfit,
 };
-use crate::attention::float;
+use crate::attention::{float, softmax_delta};
 use crate::config::Precision;
 use burn::backend::Cuda;
 use burn::cubecl::Runtime;
@@ -61,12 +61,12 @@ fn tile_format(dtype: DType) -> (StorageType, usize) {
     }
 }
 
-/// Registers a custom operation on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
+/// Registers pass `kind` on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
 fn register<const N: usize>(
-    id: &'static str,
+    kind: Kind,
+    causal: bool,
     inputs: &[&Tensor<Cuda, 4>],
     shapes: [Shape; N],
-    op: impl FnOnce(CustomOpIr) -> Pass,
 ) -> [Tensor<Cuda, 4>; N] {
     let prims: Vec<_> = inputs
         .iter()
@@ -79,8 +79,17 @@ fn register<const N: usize>(
         .collect();
     let streams = OperationStreams::with_inputs(prims.iter());
     let irs: Vec<TensorIr> = prims.into_iter().map(|p| p.into_ir()).collect();
+    let id = match kind {
+        Kind::Forward => "umgen_flash_forward",
+        Kind::Backward => "umgen_flash_backward",
+    };
     let desc = CustomOpIr::new(id, &irs, &outs);
-    let out = client.register(streams, OperationIr::Custom(desc.clone()), op(desc));
+    let pass = Pass {
+        desc: desc.clone(),
+        causal,
+        kind,
+    };
+    let out = client.register(streams, OperationIr::Custom(desc), pass);
     let tensors: Vec<Tensor<Cuda, 4>> = out.into_iter().map(float).collect();
     tensors
         .try_into()
@@ -104,14 +113,10 @@ impl FusedAttention for Cuda {
         }
         let [b, h, lq, d] = q.dims();
         let [out, lse] = register(
-            "umgen_flash_forward",
+            Kind::Forward,
+            causal,
             &[&q, &k, &v],
             [Shape::new([b, h, lq, d]), Shape::new([b, h, lq, 1])],
-            |desc| Pass {
-                desc,
-                causal,
-                kind: Kind::Forward,
-            },
         );
         (out, lse)
     }
@@ -130,24 +135,19 @@ impl FusedAttention for Cuda {
             // The forward pass counted the fallback.
             return tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
         }
-        // Rowsum(dO ∘ O) = Σ_j P_ij dP_ij, the softmax Jacobian's correction term, in f32.
-        let delta = (dout.clone() * out).sum_dim(3);
+        let delta = softmax_delta(dout.clone(), out);
         let dout = crate::precision::operand(dout, precision);
         let [b, h, lq, d] = q.dims();
         let lk = k.dims()[2];
         let [dq, dk, dv] = register(
-            "umgen_flash_backward",
+            Kind::Backward,
+            causal,
             &[&q, &k, &v, &dout, &lse, &delta],
             [
                 Shape::new([b, h, lq, d]),
                 Shape::new([b, h, lk, d]),
                 Shape::new([b, h, lk, d]),
             ],
-            |desc| Pass {
-                desc,
-                causal,
-                kind: Kind::Backward,
-            },
         );
         (dq, dk, dv)
     }

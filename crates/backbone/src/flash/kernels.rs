@@ -16,11 +16,9 @@
 // The kernels' language has no `usize::div_ceil`.
 #![allow(clippy::manual_div_ceil)]
 
+use super::{BLOCK, PROB_STRIDE, SCORE_STRIDE, acc_stride, tile_stride};
 use cubecl::cmma;
 use cubecl::prelude::*;
-
-/// Rows of a cube's block (queries or keys), and keys (or queries) per step of its loop.
-pub const BLOCK: usize = 64;
 /// Units per cube: four planes of 32.
 const UNITS: usize = 128;
 /// Running maximum of a row that has seen no visible score yet (finite, so that differences stay finite).
@@ -224,10 +222,10 @@ pub fn forward<E: Float, C: Float>(
     #[comptime] kstep: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
-    let sq = comptime!(dh + 8);
-    let ss = comptime!(BLOCK + 4);
-    let sp = comptime!(BLOCK + 8);
-    let so = comptime!(dh + 4);
+    let sq = comptime!(tile_stride(dh));
+    let ss = comptime!(SCORE_STRIDE);
+    let sp = comptime!(PROB_STRIDE);
+    let so = comptime!(acc_stride(dh));
     let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
@@ -344,10 +342,10 @@ pub fn backward_kv<E: Float, C: Float>(
     #[comptime] kstep: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
-    let sq = comptime!(dh + 8);
-    let ss = comptime!(BLOCK + 4);
-    let sp = comptime!(BLOCK + 8);
-    let so = comptime!(dh + 4);
+    let sq = comptime!(tile_stride(dh));
+    let ss = comptime!(SCORE_STRIDE);
+    let sp = comptime!(PROB_STRIDE);
+    let so = comptime!(acc_stride(dh));
     let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
@@ -493,10 +491,10 @@ pub fn backward_q<E: Float, C: Float>(
     #[comptime] kstep: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
-    let sq = comptime!(dh + 8);
-    let ss = comptime!(BLOCK + 4);
-    let sp = comptime!(BLOCK + 8);
-    let so = comptime!(dh + 4);
+    let sq = comptime!(tile_stride(dh));
+    let ss = comptime!(SCORE_STRIDE);
+    let sp = comptime!(PROB_STRIDE);
+    let so = comptime!(acc_stride(dh));
     let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut dos = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
