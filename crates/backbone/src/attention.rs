@@ -34,7 +34,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 /// the keys, and the block loop only adds launches (H200, `umgen bench attention`: 70,352 sequences of 8
 /// tokens took 15.8 ms tiled against 8.1 ms decomposed; 32 × 6 heads × 2,199 causal tokens 34 ms against
 /// 101 ms, in 3.4 GiB instead of 29.6).
-const MIN_TILED_KEYS: usize = 256;
+pub(crate) const MIN_TILED_KEYS: usize = 256;
 
 /// Bytes one block's score matrix may take by default; sets the query block length. Few, large blocks:
 /// every causal block has its own key length, hence its own kernel shapes to compile and tune on CUDA.

@@ -37,13 +37,13 @@ impl<B: Backend> Mlp<B> {
 }
 
 /// `[b, l, h·dh]` → `[b, h, l, dh]`.
-fn split_heads<B: Backend>(x: Tensor<B, 3>, heads: usize) -> Tensor<B, 4> {
+pub(crate) fn split_heads<B: Backend>(x: Tensor<B, 3>, heads: usize) -> Tensor<B, 4> {
     let [b, l, d] = x.dims();
     x.reshape([b, l, heads, d / heads]).swap_dims(1, 2)
 }
 
 /// `[b, h, l, dh]` → `[b, l, h·dh]`.
-fn merge_heads<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 3> {
+pub(crate) fn merge_heads<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 3> {
     let [b, h, l, dh] = x.dims();
     x.swap_dims(1, 2).reshape([b, l, h * dh])
 }
@@ -185,8 +185,17 @@ impl<B: Backend> SelfBlock<B> {
         }
     }
 
-    /// Applies it to `[b, l, d]`; `causal` lets position `i` see positions `≤ i` only.
+    /// Applies it to `[b, l, d]`; `causal` lets position `i` see positions `≤ i` only. With recomputation on
+    /// (`recompute.rs`) a training backend keeps only `x` for the backward pass.
     pub fn forward(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
+        match crate::recompute::recomputed_for::<B>() {
+            Some(layer) => layer(self, x, causal),
+            None => self.forward_autodiff(x, causal),
+        }
+    }
+
+    /// [`Self::forward`] through burn's operations (and their autodiff, on training backends).
+    pub(crate) fn forward_autodiff(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
         let n = self.ln1.forward(x.clone());
         let x = x + self.attn.forward(n.clone(), n, None, causal);
         x.clone() + self.mlp.forward(self.ln2.forward(x))
@@ -203,6 +212,39 @@ impl<B: Backend> SelfBlock<B> {
     ) -> Tensor<B, 3> {
         let x = x.clone() + self.attn.forward_step(self.ln1.forward(x), cache, pos, hidden);
         x.clone() + self.mlp.forward(self.ln2.forward(x))
+    }
+}
+
+/// The parts of a [`SelfBlock`], for the recomputing operation.
+pub(crate) struct Parts<'a, B: Backend> {
+    pub ln1: &'a LayerNorm<B>,
+    pub q: &'a Linear<B>,
+    pub kv: &'a Linear<B>,
+    pub proj: &'a Linear<B>,
+    pub ln2: &'a LayerNorm<B>,
+    pub fc: &'a Linear<B>,
+    pub out: &'a Linear<B>,
+    pub heads: usize,
+    pub precision: Precision,
+    pub attn_dropout: f64,
+    pub mlp_dropout: f64,
+}
+
+impl<B: Backend> SelfBlock<B> {
+    pub(crate) fn parts(&self) -> Parts<'_, B> {
+        Parts {
+            ln1: &self.ln1,
+            q: &self.attn.q,
+            kv: &self.attn.kv,
+            proj: &self.attn.proj,
+            ln2: &self.ln2,
+            fc: &self.mlp.fc,
+            out: &self.mlp.proj,
+            heads: self.attn.heads,
+            precision: self.attn.precision,
+            attn_dropout: self.attn.drop.prob,
+            mlp_dropout: self.mlp.drop.prob,
+        }
     }
 }
 

@@ -19,7 +19,8 @@
 //! Matrix products run in f32 or, with [`Precision::Bf16`], on bf16 operands with f32 master weights
 //! (`precision.rs`); training attention over long sequences runs fused kernels on CUDA ([`flash`]) and tiled
 //! passes elsewhere ([`attention`]), and training on CUDA runs the linear layers' products on a named matmul
-//! kernel ([`matmul`]).
+//! kernel ([`matmul`]). With [`recompute`] on, the self-attention layers keep only their inputs for the
+//! backward pass and are recomputed there (activation checkpointing).
 //!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
@@ -37,6 +38,7 @@ mod layers;
 pub mod matmul;
 mod model;
 mod precision;
+pub mod recompute;
 mod spec;
 
 pub use ama::align;

@@ -71,6 +71,10 @@ pub struct TrainConfig {
     /// `umgen_backbone::flash`) or `tiled` (the tiled passes in burn tensor operations, in blocks of
     /// `attention_block_mib`).
     pub attention: AttentionKernel,
+    /// Recompute each self-attention layer's activations in the backward pass instead of keeping them
+    /// (activation checkpointing, `umgen_backbone::recompute`): the step keeps one activation per layer
+    /// instead of about twenty, for one more forward pass of those layers.
+    pub recompute: bool,
 }
 
 impl Default for TrainConfig {
@@ -103,13 +107,14 @@ impl Default for TrainConfig {
             matmul: MatmulKernel::Named,
             attention_block_mib: umgen_backbone::attention::BLOCK_BYTES >> 20,
             attention: AttentionKernel::Fused,
+            recompute: false,
         }
     }
 }
 
 impl TrainConfig {
-    /// Applies the kernel settings (`matmul`, `attention`, `attention_block_mib`) to this process, before any
-    /// product runs.
+    /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`, `recompute`) to
+    /// this process, before any product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
@@ -119,6 +124,7 @@ impl TrainConfig {
         umgen_backbone::matmul::select(self.matmul);
         umgen_backbone::flash::select(self.attention);
         umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
+        umgen_backbone::recompute::set_enabled(self.recompute);
         Ok(())
     }
 
@@ -140,6 +146,8 @@ impl TrainConfig {
                 "matmul",
                 "attention_block_mib",
                 "attention",
+                // Recomputed layers give the same gradients to rounding.
+                "recompute",
             ] {
                 o.remove(k);
             }
@@ -181,6 +189,9 @@ mod tests {
             (AttentionKernel::Fused, AttentionKernel::Tiled)
         );
         assert_eq!(named.identity(), tiled.identity());
+        let recompute = parse(r#"{"recompute": true}"#).expect("recompute = true");
+        assert!(recompute.recompute && !named.recompute);
+        assert_eq!(named.identity(), recompute.identity());
         let e = parse(r#"{"attention": "flash"}"#).unwrap_err().to_string();
         assert!(e.contains("flash") && e.contains("fused"), "{e}");
         let e = parse(r#"{"attention_block_mib": 0}"#)

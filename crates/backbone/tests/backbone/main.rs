@@ -7,6 +7,7 @@ mod causality;
 mod decode;
 mod heads;
 mod precision;
+mod recompute;
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};

@@ -254,7 +254,7 @@ pub struct BenchTrainArgs {
 pub enum BenchPreset {
     /// D 384, 4 layers per stack, batch 4 × T 8.
     Small,
-    /// D 768, the paper's depths, batch 1 × T 20.
+    /// D 768, the paper's depths, batch 1 × T 20, self-attention layers recomputed (`train.recompute`).
     Paper,
 }
 
@@ -269,9 +269,10 @@ impl BenchPreset {
 
     /// Config overrides that give the PyTorch reference's sizes.
     pub fn overrides(self) -> Vec<String> {
-        let (batch, frames) = match self {
-            Self::Small => (4, 8),
-            Self::Paper => (1, 20),
+        // The reference checkpoints `paper`'s layers, which do not fit in an H200 otherwise.
+        let (batch, frames, recompute) = match self {
+            Self::Small => (4, 8, false),
+            Self::Paper => (1, 20, true),
         };
         [
             "layout.boundary_tokens=false".to_string(),
@@ -279,6 +280,7 @@ impl BenchPreset {
             "backbone.dropout=0.0".into(),
             format!("train.batch_size={batch}"),
             format!("train.frames={frames}"),
+            format!("train.recompute={recompute}"),
         ]
         .into()
     }

@@ -191,6 +191,18 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             umgen::backbone::flash::fallbacks()
         )?;
     }
+    writeln!(
+        out,
+        "recompute     {}",
+        if tc.recompute {
+            format!(
+                "on: {} self-attention layer passes kept only their input",
+                umgen::backbone::recompute::layers_recomputed()
+            )
+        } else {
+            "off".into()
+        }
+    )?;
     if world > 1 {
         writeln!(
             out,

@@ -1,0 +1,318 @@
+//! A self-attention layer's forward and backward passes written out on a backend without autodiff.
+//!
+//! [`super`] keeps only a layer's input for the backward pass and recomputes the rest there. burn 0.21
+//! cannot run that recomputation under autodiff: a backward pass started inside another one deadlocks on
+//! the graph client's locks (`GraphMutexClient::backward` locks every graph when it cleans up, the outer
+//! one included). So the layer's gradients are derived here by hand, with the same kernels as the
+//! autodiff path (the named matmul, the fused or tiled attention, `gelu_backward`) and the same casts for
+//! [`Precision::Bf16`], so that both paths give the same numbers to rounding.
+
+use crate::attention::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
+use crate::config::Precision;
+use crate::flash::FusedAttention;
+use crate::layers::{merge_heads, split_heads};
+use crate::matmul::NamedMatmul;
+use crate::precision::operand;
+use burn::tensor::activation::gelu;
+use burn::tensor::{Bool, Tensor, TensorPrimitive};
+
+/// What both passes need from the inner backend: the attention and the matmul kernels.
+pub trait LayerBackend: FusedAttention + NamedMatmul {}
+impl<B: FusedAttention + NamedMatmul> LayerBackend for B {}
+
+/// A layer norm's scale and shift.
+#[derive(Debug, Clone)]
+pub struct Norm<I: LayerBackend> {
+    pub gamma: Tensor<I, 1>,
+    pub beta: Tensor<I, 1>,
+}
+
+/// A linear layer's weight `[in, out]` and bias `[out]`.
+#[derive(Debug, Clone)]
+pub struct Lin<I: LayerBackend> {
+    pub w: Tensor<I, 2>,
+    pub b: Tensor<I, 1>,
+}
+
+/// The parameters of `SelfBlock`, in the order of [`Weights::tensors`] (the operation's parents).
+#[derive(Debug, Clone)]
+pub struct Weights<I: LayerBackend> {
+    pub ln1: Norm<I>,
+    pub q: Lin<I>,
+    pub kv: Lin<I>,
+    pub proj: Lin<I>,
+    pub ln2: Norm<I>,
+    pub fc: Lin<I>,
+    pub out: Lin<I>,
+}
+
+/// One gradient per parameter, in the same order as the parameters.
+pub type WeightGrads<I> = [TensorPrimitive<I>; 14];
+
+/// Shape-independent settings of the layer.
+#[derive(Debug, Clone, Copy)]
+pub struct Setting {
+    pub heads: usize,
+    pub causal: bool,
+    pub precision: Precision,
+    /// Layer norms' ε (burn's default, which `layers.rs` builds with).
+    pub eps: f64,
+}
+
+/// A dropout keep-mask (true = kept) and the scale of kept values, `1 / (1 − p)`.
+pub type Mask<I> = Option<(Tensor<I, 3, Bool>, f64)>;
+
+/// Dropout masks of the attention and MLP outputs.
+#[derive(Debug, Clone)]
+pub struct Masks<I: LayerBackend> {
+    pub attn: Mask<I>,
+    pub mlp: Mask<I>,
+}
+
+/// `x` through dropout with `mask`.
+fn drop<I: LayerBackend>(mask: &Mask<I>, x: Tensor<I, 3>) -> Tensor<I, 3> {
+    match mask {
+        Some((m, scale)) => x * m.clone().float().mul_scalar(*scale),
+        None => x,
+    }
+}
+
+/// What the backward pass reads of the forward pass.
+struct Saved<I: LayerBackend> {
+    xhat1: Tensor<I, 3>,
+    rstd1: Tensor<I, 3>,
+    n1: Tensor<I, 3>,
+    q: Tensor<I, 4>,
+    k: Tensor<I, 4>,
+    v: Tensor<I, 4>,
+    att: Tensor<I, 4>,
+    lse: Tensor<I, 4>,
+    merged: Tensor<I, 3>,
+    xhat2: Tensor<I, 3>,
+    rstd2: Tensor<I, 3>,
+    n2: Tensor<I, 3>,
+    hidden: Tensor<I, 3>,
+    act: Tensor<I, 3>,
+}
+
+/// `(x − mean) / √(var + ε) · γ + β` over the last axis, with the normalised input and `1/√(var + ε)`.
+fn norm<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    n: &Norm<I>,
+    eps: f64,
+) -> (Tensor<I, 3>, Tensor<I, 3>, Tensor<I, 3>) {
+    let centered = x.clone() - x.mean_dim(2);
+    let rstd = (centered.clone().powi_scalar(2).mean_dim(2) + eps).sqrt().recip();
+    let xhat = centered * rstd.clone();
+    let y = xhat.clone() * n.gamma.clone().unsqueeze::<3>() + n.beta.clone().unsqueeze::<3>();
+    (y, xhat, rstd)
+}
+
+/// Gradients of a layer norm's input, scale and shift from its output's gradient `dy`.
+fn norm_grad<I: LayerBackend>(
+    xhat: Tensor<I, 3>,
+    rstd: Tensor<I, 3>,
+    n: &Norm<I>,
+    dy: Tensor<I, 3>,
+) -> (Tensor<I, 3>, Tensor<I, 1>, Tensor<I, 1>) {
+    let dgamma = rows_sum(dy.clone() * xhat.clone());
+    let dbeta = rows_sum(dy.clone());
+    let dxhat = dy * n.gamma.clone().unsqueeze::<3>();
+    let dx = (dxhat.clone() - dxhat.clone().mean_dim(2) - xhat.clone() * (dxhat * xhat).mean_dim(2)) * rstd;
+    (dx, dgamma, dbeta)
+}
+
+/// Row groups of [`rows_sum`]'s first stage.
+const GROUPS: usize = 256;
+
+/// Sum over every row of `[.., d]`: `[d]`. In two stages (rows in [`GROUPS`] groups, then the groups):
+/// burn's reduction of a `[70,368, 384]` matrix along its rows in one go gives each column one unit, and a
+/// profiled `small` step spent about 900 ms in such sums (docs/perf-notes.md).
+fn rows_sum<I: LayerBackend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
+    let d = x.dims()[D - 1];
+    let x = x.reshape([-1, d as i32]);
+    let m = x.dims()[0];
+    let per = m / GROUPS;
+    if per < 2 {
+        return x.sum_dim(0).reshape([d]);
+    }
+    let grouped = x.clone().narrow(0, 0, GROUPS * per).reshape([GROUPS, per, d]);
+    let sum = grouped.sum_dim(1).reshape([GROUPS, d]).sum_dim(0);
+    let rest = m - GROUPS * per;
+    let sum = if rest > 0 {
+        sum + x.narrow(0, GROUPS * per, rest).sum_dim(0)
+    } else {
+        sum
+    };
+    sum.reshape([d])
+}
+
+/// `a · b` on the named kernel, f32.
+fn product<I: LayerBackend>(a: Tensor<I, 2>, b: Tensor<I, 2>) -> Tensor<I, 2> {
+    Tensor::from_primitive(TensorPrimitive::Float(I::named_matmul(
+        a.into_primitive().tensor(),
+        b.into_primitive().tensor(),
+    )))
+}
+
+/// `x · w + b` with the product in `p`'s format (as `precision::linear` on the named kernel).
+fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 3> {
+    let [b, len, k] = x.dims();
+    let n = l.w.dims()[1];
+    let y = product(operand(x.reshape([b * len, k]), p), operand(l.w.clone(), p));
+    y.reshape([b, len, n]) + l.b.clone().unsqueeze::<3>()
+}
+
+/// Gradients of a linear layer's input, weight and bias (as `matmul.rs`'s operation computes them).
+fn linear_grad<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    l: &Lin<I>,
+    dy: Tensor<I, 3>,
+    p: Precision,
+) -> (Tensor<I, 3>, Tensor<I, 2>, Tensor<I, 1>) {
+    let [b, len, k] = x.dims();
+    let n = dy.dims()[2];
+    let dy2 = dy.reshape([b * len, n]);
+    let db = rows_sum(dy2.clone());
+    let dy2 = operand(dy2, p);
+    let dx = product(dy2.clone(), operand(l.w.clone(), p).transpose()).reshape([b, len, k]);
+    let dw = product(operand(x.reshape([b * len, k]), p).transpose(), dy2);
+    (dx, dw, db)
+}
+
+/// Attention of `q` over `k`, `v` (already in the products' format): the output and each query's
+/// log-sum-exp. Short key sequences (the TAR's sequences over time) take one decomposed block, as
+/// `attention::attend` sends them to burn's decomposed attention: the fused kernels would spend a cube of 64
+/// rows on each of their tens of thousands of 8- or 20-token sequences.
+fn attend<I: LayerBackend>(
+    q: Tensor<I, 4>,
+    k: Tensor<I, 4>,
+    v: Tensor<I, 4>,
+    s: Setting,
+) -> (Tensor<I, 4>, Tensor<I, 4>) {
+    let lq = q.dims()[2];
+    if k.dims()[2] >= MIN_TILED_KEYS {
+        I::attention_forward(q, k, v, s.causal, s.precision)
+    } else {
+        tiled_forward(q, k, v, s.causal, lq, s.precision)
+    }
+}
+
+/// [`attend`]'s gradients of `q`, `k` and `v`.
+#[allow(clippy::too_many_arguments)]
+fn attend_grad<I: LayerBackend>(
+    q: Tensor<I, 4>,
+    k: Tensor<I, 4>,
+    v: Tensor<I, 4>,
+    out: Tensor<I, 4>,
+    lse: Tensor<I, 4>,
+    dout: Tensor<I, 4>,
+    s: Setting,
+) -> (Tensor<I, 4>, Tensor<I, 4>, Tensor<I, 4>) {
+    let lq = q.dims()[2];
+    if k.dims()[2] >= MIN_TILED_KEYS {
+        I::attention_backward(q, k, v, out, lse, dout, s.causal, s.precision)
+    } else {
+        tiled_backward(q, k, v, out, lse, dout, s.causal, lq, s.precision)
+    }
+}
+
+/// The layer's output for input `x` `[b, l, d]`, and what its backward pass reads.
+fn run<I: LayerBackend>(
+    w: &Weights<I>,
+    s: Setting,
+    masks: &Masks<I>,
+    x: Tensor<I, 3>,
+) -> (Tensor<I, 3>, Saved<I>) {
+    let p = s.precision;
+    let (n1, xhat1, rstd1) = norm(x.clone(), &w.ln1, s.eps);
+    let q = operand(split_heads(linear(n1.clone(), &w.q, p), s.heads), p);
+    let kv = linear(n1.clone(), &w.kv, p);
+    let d = kv.dims()[2] / 2;
+    let k = operand(split_heads(kv.clone().narrow(2, 0, d), s.heads), p);
+    let v = operand(split_heads(kv.narrow(2, d, d), s.heads), p);
+    let (att, lse) = attend(q.clone(), k.clone(), v.clone(), s);
+    let merged = merge_heads(att.clone());
+    let x1 = x + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
+    let (n2, xhat2, rstd2) = norm(x1.clone(), &w.ln2, s.eps);
+    let hidden = linear(n2.clone(), &w.fc, p);
+    let act = gelu(hidden.clone());
+    let y = x1 + drop(&masks.mlp, linear(act.clone(), &w.out, p));
+    let saved = Saved {
+        xhat1,
+        rstd1,
+        n1,
+        q,
+        k,
+        v,
+        att,
+        lse,
+        merged,
+        xhat2,
+        rstd2,
+        n2,
+        hidden,
+        act,
+    };
+    (y, saved)
+}
+
+/// The layer's output for input `x` `[b, l, d]`.
+pub fn forward<I: LayerBackend>(
+    w: &Weights<I>,
+    s: Setting,
+    masks: &Masks<I>,
+    x: Tensor<I, 3>,
+) -> Tensor<I, 3> {
+    run(w, s, masks, x).0
+}
+
+/// The gradients of the input and of every parameter from the output's gradient `dy`, recomputing the
+/// forward pass from `x` with the forward pass's dropout masks.
+pub fn backward<I: LayerBackend>(
+    w: &Weights<I>,
+    s: Setting,
+    masks: &Masks<I>,
+    x: Tensor<I, 3>,
+    dy: Tensor<I, 3>,
+) -> (Tensor<I, 3>, WeightGrads<I>) {
+    let p = s.precision;
+    let (_, f) = run(w, s, masks, x);
+    let d_out = drop(&masks.mlp, dy.clone());
+    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p);
+    let d_hidden = Tensor::<I, 3>::from_primitive(TensorPrimitive::Float(I::gelu_backward(
+        f.hidden.into_primitive().tensor(),
+        d_act.into_primitive().tensor(),
+    )));
+    let (dn2, d_fc_w, d_fc_b) = linear_grad(f.n2, &w.fc, d_hidden, p);
+    let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.xhat2, f.rstd2, &w.ln2, dn2);
+    let dx1 = dy + dx1_norm;
+    let d_proj = drop(&masks.attn, dx1.clone());
+    let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p);
+    let d_att = split_heads(d_merged, s.heads);
+    let (dq, dk, dv) = attend_grad(f.q, f.k, f.v, f.att, f.lse, d_att, s);
+    let dkv = Tensor::cat(vec![merge_heads(dk), merge_heads(dv)], 2);
+    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, merge_heads(dq), p);
+    let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p);
+    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.xhat1, f.rstd1, &w.ln1, dn1_q + dn1_kv);
+    let dx = dx1 + dx_norm;
+    let one = |t: Tensor<I, 1>| t.into_primitive();
+    let two = |t: Tensor<I, 2>| t.into_primitive();
+    let grads = [
+        one(d_ln1_g),
+        one(d_ln1_b),
+        two(d_q_w),
+        one(d_q_b),
+        two(d_kv_w),
+        one(d_kv_b),
+        two(d_proj_w),
+        one(d_proj_b),
+        one(d_ln2_g),
+        one(d_ln2_b),
+        two(d_fc_w),
+        one(d_fc_b),
+        two(d_out_w),
+        one(d_out_b),
+    ];
+    (dx, grads)
+}
