@@ -111,7 +111,7 @@ fn on<B: Backend, I: NamedMatmul>() -> Option<ProductFn<B>> {
 }
 
 /// `a · b` on `B`'s named kernel.
-fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>) -> Tensor<B, 2> {
+pub(crate) fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>) -> Tensor<B, 2> {
     float(B::named_matmul(
         a.into_primitive().tensor(),
         b.into_primitive().tensor(),

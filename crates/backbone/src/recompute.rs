@@ -7,8 +7,8 @@
 //! recomputes its activations in the backward pass, as PyTorch's `torch.utils.checkpoint` does for the
 //! reference. The cost is one more forward pass of those layers per step.
 //!
-//! The backward pass is written out by hand in [`math`] (burn 0.21 cannot run autodiff inside a backward
-//! step; `math.rs` says why). Like the other training operations it exists for the autodiff backends this
+//! The backward pass is written out by hand in `recompute/math.rs` (burn 0.21 cannot run autodiff inside
+//! a backward step; `math.rs` says why). Like the other training operations it exists for the autodiff backends this
 //! workspace trains on (CUDA, and the CPU's `Flex`, where the tests compare it with burn's autodiff);
 //! elsewhere, and while recomputation is off (the default), layers take burn's autodiff.
 

@@ -11,7 +11,7 @@ use crate::attention::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
 use crate::config::Precision;
 use crate::flash::FusedAttention;
 use crate::layers::{merge_heads, split_heads};
-use crate::matmul::NamedMatmul;
+use crate::matmul::{NamedMatmul, product};
 use crate::precision::operand;
 use burn::tensor::activation::gelu;
 use burn::tensor::{Bool, Tensor, TensorPrimitive};
@@ -34,7 +34,7 @@ pub struct Lin<I: LayerBackend> {
     pub b: Tensor<I, 1>,
 }
 
-/// The parameters of `SelfBlock`, in the order of [`Weights::tensors`] (the operation's parents).
+/// The parameters of `SelfBlock`, in the order of the operation's parents and of [`WeightGrads`].
 #[derive(Debug, Clone)]
 pub struct Weights<I: LayerBackend> {
     pub ln1: Norm<I>,
@@ -147,14 +147,6 @@ fn rows_sum<I: LayerBackend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
     sum.reshape([d])
 }
 
-/// `a · b` on the named kernel, f32.
-fn product<I: LayerBackend>(a: Tensor<I, 2>, b: Tensor<I, 2>) -> Tensor<I, 2> {
-    Tensor::from_primitive(TensorPrimitive::Float(I::named_matmul(
-        a.into_primitive().tensor(),
-        b.into_primitive().tensor(),
-    )))
-}
-
 /// `x · w + b` with the product in `p`'s format (as `precision::linear` on the named kernel).
 fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 3> {
     let [b, len, k] = x.dims();
@@ -217,7 +209,9 @@ fn attend_grad<I: LayerBackend>(
     }
 }
 
-/// The layer's output for input `x` `[b, l, d]`, and what its backward pass reads.
+/// The layer for input `x` `[b, l, d]` up to its last product: the residual stream after the attention
+/// half, and what the backward pass reads (the MLP's activation among it). The backward pass needs nothing
+/// of the output product, so only [`forward`] runs it.
 fn run<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
@@ -237,7 +231,6 @@ fn run<I: LayerBackend>(
     let (n2, xhat2, rstd2) = norm(x1.clone(), &w.ln2, s.eps);
     let hidden = linear(n2.clone(), &w.fc, p);
     let act = gelu(hidden.clone());
-    let y = x1 + drop(&masks.mlp, linear(act.clone(), &w.out, p));
     let saved = Saved {
         xhat1,
         rstd1,
@@ -254,7 +247,7 @@ fn run<I: LayerBackend>(
         hidden,
         act,
     };
-    (y, saved)
+    (x1, saved)
 }
 
 /// The layer's output for input `x` `[b, l, d]`.
@@ -264,7 +257,8 @@ pub fn forward<I: LayerBackend>(
     masks: &Masks<I>,
     x: Tensor<I, 3>,
 ) -> Tensor<I, 3> {
-    run(w, s, masks, x).0
+    let (x1, f) = run(w, s, masks, x);
+    x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision))
 }
 
 /// The gradients of the input and of every parameter from the output's gradient `dy`, recomputing the
