@@ -33,6 +33,12 @@ pub struct BackboneConfig {
     pub align: Option<String>,
     /// Number format of the matrix products (`f32`, or `bf16` with f32 master weights; `precision.rs`).
     pub precision: Precision,
+    /// Start the embedding and output-head rows of ordered value bins (segments with
+    /// [`ordinal`](crate::SegmentSpec::ordinal) ids: the ego action, the agents' values) as a sinusoid
+    /// of the bin index, so that neighbouring bins begin close and what is learnt for one value carries
+    /// over to its neighbours; `false` draws them at random like every other row. Initialisation only:
+    /// checkpoints do not depend on it.
+    pub ordinal_init: bool,
 }
 
 /// Number format of the backbone's matrix products.
@@ -63,6 +69,7 @@ impl Default for BackboneConfig {
             action: Some("ego".into()),
             align: Some("map".into()),
             precision: Precision::F32,
+            ordinal_init: true,
         }
     }
 }

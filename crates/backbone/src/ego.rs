@@ -35,8 +35,16 @@ pub struct EgoSizes {
 
 impl<B: Backend> EgoModule<B> {
     /// A module predicting `queries` tokens of vocabulary `vocab` from the action block `block`
-    /// (`[start, len]` positions, boundary tokens included).
-    pub fn new(s: EgoSizes, queries: usize, vocab: usize, block: [usize; 2], dev: &B::Device) -> Self {
+    /// (`[start, len]` positions, boundary tokens included); the head's first `ordinal` ids start as a
+    /// sinusoid ([`crate::ordinal`]).
+    pub fn new(
+        s: EgoSizes,
+        queries: usize,
+        vocab: usize,
+        ordinal: usize,
+        block: [usize; 2],
+        dev: &B::Device,
+    ) -> Self {
         let blocks = |n: usize| (0..n).map(|_| CrossBlock::new(s.layer, dev)).collect();
         Self {
             queries: Param::from_tensor(Tensor::random(
@@ -47,7 +55,10 @@ impl<B: Backend> EgoModule<B> {
             hist: blocks(s.hist),
             env: blocks(s.env),
             ln: LayerNormConfig::new(s.layer.d).init(dev),
-            head: LinearConfig::new(s.layer.d, vocab).with_bias(false).init(dev),
+            head: crate::ordinal::head(
+                LinearConfig::new(s.layer.d, vocab).with_bias(false).init(dev),
+                ordinal,
+            ),
             heads: s.layer.heads,
             block,
             precision: s.layer.precision,

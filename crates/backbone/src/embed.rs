@@ -30,13 +30,15 @@ pub struct FrameEmbedding<B: Backend> {
 }
 
 impl<B: Backend> FrameEmbedding<B> {
-    /// Tables for every segment of `spec`, width `e`, output width `d`, products in `precision`.
+    /// Tables for every segment of `spec`, width `e`, output width `d`, products in `precision`; with
+    /// `ordinal_init`, the rows of ordered value bins start as a sinusoid ([`crate::ordinal`]).
     pub fn new(
         spec: &BackboneSpec,
         e: usize,
         d: usize,
         dropout: f64,
         precision: Precision,
+        ordinal_init: bool,
         dev: &B::Device,
     ) -> Self {
         let tables = spec
@@ -63,7 +65,10 @@ impl<B: Backend> FrameEmbedding<B> {
                     }
                 }
                 None => SegmentTable {
-                    table: EmbeddingConfig::new(s.embed_vocab, e).init(dev),
+                    table: crate::ordinal::embedding(
+                        EmbeddingConfig::new(s.embed_vocab, e).init(dev),
+                        if ordinal_init { s.ordinal } else { 0 },
+                    ),
                     proj: None,
                 },
             })

@@ -19,12 +19,22 @@ pub struct Heads<B: Backend> {
 }
 
 impl<B: Backend> Heads<B> {
-    /// Heads for `segments` from width `d`, their products in `precision` (logits are f32 either way).
-    pub fn new(segments: &[SegmentSpec], d: usize, precision: Precision, dev: &B::Device) -> Self {
+    /// Heads for `segments` from width `d`, their products in `precision` (logits are f32 either way);
+    /// with `ordinal_init`, the columns of ordered value bins start as a sinusoid ([`crate::ordinal`]).
+    pub fn new(
+        segments: &[SegmentSpec],
+        d: usize,
+        precision: Precision,
+        ordinal_init: bool,
+        dev: &B::Device,
+    ) -> Self {
         Self {
             heads: segments
                 .iter()
-                .map(|s| LinearConfig::new(d, s.vocab).with_bias(false).init(dev))
+                .map(|s| {
+                    let head = LinearConfig::new(d, s.vocab).with_bias(false).init(dev);
+                    crate::ordinal::head(head, if ordinal_init { s.ordinal } else { 0 })
+                })
                 .collect(),
             content: segments.iter().map(|s| [s.offset, s.tokens]).collect(),
             precision,

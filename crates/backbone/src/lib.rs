@@ -37,6 +37,7 @@ mod heads;
 mod layers;
 pub mod matmul;
 mod model;
+pub mod ordinal;
 mod precision;
 pub mod recompute;
 mod spec;

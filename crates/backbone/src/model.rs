@@ -94,7 +94,15 @@ impl<B: Backend> Backbone<B> {
                 hist: cfg.ego_hist_layers,
                 env: cfg.ego_env_layers,
             };
-            EgoModule::new(sizes, s.tokens, s.vocab, [s.block_start, s.block_len], dev)
+            let ordinal = if cfg.ordinal_init { s.ordinal } else { 0 };
+            EgoModule::new(
+                sizes,
+                s.tokens,
+                s.vocab,
+                ordinal,
+                [s.block_start, s.block_len],
+                dev,
+            )
         });
         // The module keeps the spec for shapes; codebooks already went into the tables.
         let mut light = spec.clone();
@@ -102,7 +110,15 @@ impl<B: Backend> Backbone<B> {
             s.codebook = None;
         }
         Ok(Self {
-            embed: FrameEmbedding::new(spec, cfg.embed(), d, cfg.dropout, cfg.precision, dev),
+            embed: FrameEmbedding::new(
+                spec,
+                cfg.embed(),
+                d,
+                cfg.dropout,
+                cfg.precision,
+                cfg.ordinal_init,
+                dev,
+            ),
             time: Param::from_tensor(Tensor::random(
                 [cfg.max_frames, d],
                 Distribution::Normal(0.0, 0.02),
@@ -119,8 +135,8 @@ impl<B: Backend> Backbone<B> {
             oar_bos: Param::from_tensor(Tensor::random([d], Distribution::Normal(0.0, 0.02), dev)),
             oar: (0..cfg.oar_layers).map(block).collect(),
             ln_oar: LayerNormConfig::new(d).init(dev),
-            tar_heads: Heads::new(&spec.segments, d, cfg.precision, dev),
-            oar_heads: Heads::new(&spec.segments, d, cfg.precision, dev),
+            tar_heads: Heads::new(&spec.segments, d, cfg.precision, cfg.ordinal_init, dev),
+            oar_heads: Heads::new(&spec.segments, d, cfg.precision, cfg.ordinal_init, dev),
             spec: light,
         })
     }

@@ -22,6 +22,10 @@ pub struct SegmentSpec {
     pub vocab: usize,
     /// Embedding table rows (content, start and end ids).
     pub embed_vocab: usize,
+    /// Content ids `0..ordinal` are ordered scalar bins (0: unordered codes); with
+    /// `backbone.ordinal_init` their embedding and head rows start as a sinusoid of the bin index.
+    #[serde(default)]
+    pub ordinal: usize,
     /// A pre-trained codebook `[vocab, dim]` (row-major) that initialises the embedding table.
     #[serde(skip)]
     pub codebook: Option<(usize, Vec<f32>)>,
@@ -81,6 +85,7 @@ impl BackboneSpec {
                 || s.offset + s.tokens > s.block_start + s.block_len
                 || s.vocab == 0
                 || s.embed_vocab < s.vocab
+                || s.ordinal > s.vocab
             {
                 return fail(format!(
                     "segment `{}` is not a contiguous block with a vocabulary",

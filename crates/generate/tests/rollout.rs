@@ -19,6 +19,7 @@ fn seg(label: &str, start: usize, tokens: usize, vocab: usize) -> SegmentSpec {
         tokens,
         vocab,
         embed_vocab: vocab + 2,
+        ordinal: 0,
         codebook: None,
     }
 }
@@ -47,6 +48,7 @@ fn model() -> Backbone<F> {
         action: None,
         align: None,
         precision: Default::default(),
+        ordinal_init: true,
     };
     F::seed(&Default::default(), 9);
     Backbone::new(&cfg, &spec, &Default::default()).unwrap()

@@ -64,6 +64,15 @@ pub struct ModalitySpec {
     /// dθ), so that models can decode them to values.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub bins: Vec<crate::scalar::ScalarBins>,
+    /// Content ids `0..ordinal` are bins of ordered scalar values, neighbouring ids holding neighbouring
+    /// values (the ego action's and the agents' value bins); 0 when the ids are unordered codes. Models
+    /// may use it to start nearby bins with similar embeddings.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub ordinal: u32,
+}
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
 }
 
 impl ModalitySpec {
@@ -84,6 +93,7 @@ impl ModalitySpec {
             pad_id: None,
             grid: None,
             bins: Vec::new(),
+            ordinal: 0,
         }
     }
 
@@ -116,6 +126,12 @@ impl ModalitySpec {
     /// Sets the bins of the leading content tokens.
     pub fn with_bins(mut self, bins: Vec<crate::scalar::ScalarBins>) -> Self {
         self.bins = bins;
+        self
+    }
+
+    /// Declares content ids `0..ordinal` as ordered scalar bins.
+    pub fn with_ordinal(mut self, ordinal: u32) -> Self {
+        self.ordinal = ordinal;
         self
     }
 
@@ -156,6 +172,12 @@ impl ModalitySpec {
             return fail(format!(
                 "pad id {pad} is not a content id (0..{})",
                 self.vocab_size
+            ));
+        }
+        if self.ordinal > self.vocab_size {
+            return fail(format!(
+                "ordinal ids 0..{} exceed the content ids 0..{}",
+                self.ordinal, self.vocab_size
             ));
         }
         if let Some(g) = self.grid.filter(|g| g.cells() != self.tokens_per_frame) {
@@ -226,6 +248,10 @@ mod tests {
             (ModalitySpec::new("e", "e", 0, 3), "positive"),
             (ModalitySpec::new("e", "e", 10, 4).with_grid(3, 2), "grid"),
             (ModalitySpec::new("e", "e", 10, 3).with_pad(10), "pad id 10"),
+            (
+                ModalitySpec::new("e", "e", 10, 3).with_ordinal(11),
+                "ordinal ids 0..11",
+            ),
             (
                 ModalitySpec {
                     start_id: 5,

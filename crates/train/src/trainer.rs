@@ -40,7 +40,13 @@ pub struct RunSpec {
 impl RunSpec {
     /// What a resumed run must share with the checkpoint.
     fn identity(&self) -> serde_json::Value {
-        serde_json::json!({"fingerprint": self.fingerprint, "backbone": self.backbone, "train": self.train.identity()})
+        let mut backbone = serde_json::to_value(&self.backbone).unwrap_or(serde_json::Value::Null);
+        // How fresh weights start does not matter to a resumed run (its weights come from the checkpoint)
+        // nor to other ranks (they receive rank 0's weights); runs from before the setting stay resumable.
+        if let Some(o) = backbone.as_object_mut() {
+            o.remove("ordinal_init");
+        }
+        serde_json::json!({"fingerprint": self.fingerprint, "backbone": backbone, "train": self.train.identity()})
     }
 
     /// A digest of everything that must be equal on every rank of a data-parallel run.

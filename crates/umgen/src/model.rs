@@ -27,6 +27,7 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
             tokens: s.tokens,
             vocab: s.vocab_size as usize,
             embed_vocab: s.embed_vocab as usize,
+            ordinal: m.spec().ordinal as usize,
             codebook: m
                 .codebook()
                 .filter(|c| c.entries() == s.vocab_size as usize)

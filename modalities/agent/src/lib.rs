@@ -45,7 +45,8 @@ impl AgentModality {
             });
         }
         let spec = ModalitySpec::new(name, KIND, config.bins + 4, config.max_agents * ATTRIBUTES)
-            .with_pad(config.pad_id());
+            .with_pad(config.pad_id())
+            .with_ordinal(config.bins);
         Ok(Self {
             spec,
             config,

@@ -74,8 +74,9 @@ impl EgoModality {
             })
             .collect::<Result<Vec<_>>>()?;
         // The bins go into the spec so that models can decode actions (AMA) without knowing this crate.
-        let spec =
-            ModalitySpec::new(name, KIND, config.bins, 3).with_bins(fields.iter().map(|(_, b)| *b).collect());
+        let spec = ModalitySpec::new(name, KIND, config.bins, 3)
+            .with_bins(fields.iter().map(|(_, b)| *b).collect())
+            .with_ordinal(config.bins);
         Ok(Self {
             spec,
             config,

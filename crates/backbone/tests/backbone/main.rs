@@ -6,6 +6,7 @@ mod attention;
 mod causality;
 mod decode;
 mod heads;
+mod ordinal;
 mod precision;
 mod recompute;
 
@@ -41,16 +42,24 @@ pub fn seg(
         tokens,
         vocab,
         embed_vocab: vocab + 2,
+        ordinal: 0,
         codebook,
     }
 }
 
-/// ego (3 tokens), a 4×4 map with a codebook, 3 agent tokens, a 2×2 image with a codebook.
+/// A block whose ids `0..ordinal` are ordered value bins.
+pub fn ordinal(mut s: SegmentSpec, ordinal: usize) -> SegmentSpec {
+    s.ordinal = ordinal;
+    s
+}
+
+/// ego (3 tokens, 16 bins), a 4×4 map with a codebook, 3 agent tokens (8 value bins and 2 other ids), a
+/// 2×2 image with a codebook.
 pub fn spec() -> BackboneSpec {
     let segments = vec![
-        seg("ego", 0, 3, 16, None),
+        ordinal(seg("ego", 0, 3, 16, None), 16),
         seg("map", 5, 16, 32, Some(4)),
-        seg("agent", 23, 3, 10, None),
+        ordinal(seg("agent", 23, 3, 10, None), 8),
         seg("image", 28, 4, 24, Some(4)),
     ];
     BackboneSpec {
@@ -84,6 +93,7 @@ pub fn config() -> BackboneConfig {
         action: None,
         align: None,
         precision: Default::default(),
+        ordinal_init: true,
     }
 }
 
@@ -134,9 +144,9 @@ fn parameter_count_matches_the_built_model() {
 fn the_paper_layout_runs_at_a_small_width() {
     // The paper's frame (2251 positions, vocabularies 1024 / 8192 / 1028 / 8192) with a small model.
     let segments = vec![
-        seg("ego", 0, 3, 1024, None),
+        ordinal(seg("ego", 0, 3, 1024, None), 1024),
         seg("map", 5, 1024, 8192, None),
-        seg("agent", 1031, 704, 1028, None),
+        ordinal(seg("agent", 1031, 704, 1028, None), 1024),
         seg("image", 1737, 512, 8192, None),
     ];
     let spec = BackboneSpec {
