@@ -52,14 +52,34 @@ pub fn constant_velocity_agents(ego: &EgoPose, agents: &[Agent], dt: f64, h: usi
         .collect()
 }
 
+/// Distances between predicted and true global positions of the agents present in both (matched by track
+/// id), in the order of `predicted`.
+pub fn agent_errors(predicted: &[(u64, [f64; 2])], truth: &[(u64, [f64; 2])]) -> Vec<f64> {
+    predicted
+        .iter()
+        .filter_map(|(id, p)| truth.iter().find(|(t, _)| t == id).map(|(_, q)| dist(*p, *q)))
+        .collect()
+}
+
 /// Mean distance between predicted and true global positions of the agents present in both (matched by
 /// track id), and how many were matched; `None` when none match.
 pub fn agent_l2(predicted: &[(u64, [f64; 2])], truth: &[(u64, [f64; 2])]) -> Option<(f64, usize)> {
-    let d: Vec<f64> = predicted
-        .iter()
-        .filter_map(|(id, p)| truth.iter().find(|(t, _)| t == id).map(|(_, q)| dist(*p, *q)))
-        .collect();
+    let d = agent_errors(predicted, truth);
     (!d.is_empty()).then(|| (d.iter().sum::<f64>() / d.len() as f64, d.len()))
+}
+
+/// The median of `values` (the mean of the two middle ones for an even count); `None` when empty. A
+/// mean of agent errors is ruled by the few agents a model loses; the median says how close a typical
+/// one stays.
+pub fn median(values: &[f64]) -> Option<f64> {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    match n {
+        0 => None,
+        _ if n % 2 == 1 => Some(v[n / 2]),
+        _ => Some(0.5 * (v[n / 2 - 1] + v[n / 2])),
+    }
 }
 
 /// Global positions by track id of a frame's agents.
@@ -133,5 +153,18 @@ mod tests {
         );
         assert_eq!(got, Some((5.0, 1)));
         assert_eq!(agent_l2(&[(1, [0.0, 0.0])], &[(2, [0.0, 0.0])]), None);
+        let each = agent_errors(
+            &[(7, [3.0, 4.0]), (8, [0.0, 0.0]), (9, [1.0, 2.0])],
+            &[(9, [1.0, 1.0]), (7, [0.0, 0.0])],
+        );
+        assert_eq!(each, vec![5.0, 1.0]);
+    }
+
+    #[test]
+    fn medians_of_odd_even_and_empty_sets() {
+        // One lost agent moves the mean (22.6) and not the median.
+        assert_eq!(median(&[0.2, 110.0, 0.1, 0.3, 2.0]), Some(0.3));
+        assert_eq!(median(&[4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median(&[]), None);
     }
 }

@@ -221,15 +221,20 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         "batch         {b} windows × {} frames × N {} × {world} rank(s) = {} tokens/step",
         tc.frames, spec.n, tokens_per_step
     )?;
+    let cuda = matches!(device, Device::Cuda(_));
     writeln!(
         out,
-        "first step    {:.1} s (forward {:.1} s, backward {:.1} s, all-reduce {:.1} s, optimizer {:.1} s): \
-         kernel compilation and autotuning on CUDA",
+        "first step    {:.1} s (forward {:.1} s, backward {:.1} s, all-reduce {:.1} s, optimizer {:.1} s){}",
         first.iter().sum::<f64>(),
         first[0],
         first[1],
         first[2],
-        first[3]
+        first[3],
+        if cuda {
+            ": kernel compilation and autotuning"
+        } else {
+            ""
+        }
     )?;
     writeln!(
         out,
@@ -254,13 +259,21 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         tokens_per_step / median,
         tokens_per_step / median / world as f64
     )?;
+    // MFU is against a GPU's tensor-core peak (`--peak-tflops`); a CPU has no such figure here.
+    let mfu = if cuda {
+        format!(
+            ", MFU {:.1}% of {} TFLOP/s per device",
+            100.0 * flops / median / (a.peak_tflops * 1e12 * world as f64),
+            a.peak_tflops
+        )
+    } else {
+        String::new()
+    };
     writeln!(
         out,
-        "compute       {:.2} TFLOP/step, {:.1} TFLOP/s, MFU {:.1}% of {} TFLOP/s per device",
+        "compute       {:.2} TFLOP/step, {:.1} TFLOP/s{mfu}",
         flops / 1e12,
         flops / median / 1e12,
-        100.0 * flops / median / (a.peak_tflops * 1e12 * world as f64),
-        a.peak_tflops
     )?;
     let (peak, live) = peak;
     if peak > 0 {

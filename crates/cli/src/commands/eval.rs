@@ -9,7 +9,9 @@ use umgen::modality::{Modality, ModalityRegistry};
 use umgen::modality_agent::{ATTRIBUTES, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
-use umgen_eval::l2::{agent_l2, constant_velocity_agents, constant_velocity_ego, ego_l2, positions};
+use umgen_eval::l2::{
+    agent_errors, agent_l2, constant_velocity_agents, constant_velocity_ego, ego_l2, median, positions,
+};
 use umgen_eval::mmd::{Group, mmd};
 
 /// Agents of every frame of `clip` as the model's agent tokens decode them (slot ids as track ids, binned
@@ -181,29 +183,33 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         for h in 1..=k {
             let (mut model_ego, mut model_agents, mut cv_ego, mut cv_agents) =
                 (vec![], vec![], vec![], vec![]);
+            // Every matched agent's error, for the medians.
+            let (mut model_each, mut cv_each) = (vec![], vec![]);
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
             for (c, t) in truths.iter().enumerate() {
                 let true_pos = positions(&t.poses[h - 1], &t.tracked[h - 1]);
                 for s in &scenes[c * per..(c + 1) * per] {
                     let f = &s.frames[h - 1];
                     model_ego.push(ego_l2(&[f.ego], &[t.poses[h - 1]])[0]);
-                    model_agents.extend(agent_l2(&positions(&f.ego, &f.agents), &true_pos).map(|(d, _)| d));
+                    let errors = agent_errors(&positions(&f.ego, &f.agents), &true_pos);
+                    if !errors.is_empty() {
+                        model_agents.push(errors.iter().sum::<f64>() / errors.len() as f64);
+                    }
+                    model_each.extend(errors);
                     generated.extend(f.agents.iter());
                 }
                 cv_ego.push(t.cv_ego[h - 1]);
-                cv_agents.extend(
-                    agent_l2(
-                        &constant_velocity_agents(&t.last.ego, &t.last_agents, dt, h),
-                        &true_pos,
-                    )
-                    .map(|(d, _)| d),
-                );
+                let cv = constant_velocity_agents(&t.last.ego, &t.last_agents, dt, h);
+                cv_agents.extend(agent_l2(&cv, &true_pos).map(|(d, _)| d));
+                cv_each.extend(agent_errors(&cv, &true_pos));
                 real.extend(t.agents[h - 1].iter());
             }
             l2_rows.push(serde_json::json!({
                 "horizon": h, "seconds": dt * h as f64,
                 "ego_model": mean(&model_ego), "ego_constant_velocity": mean(&cv_ego),
                 "agents_model": mean(&model_agents), "agents_constant_velocity": mean(&cv_agents),
+                "agents_model_median": median(&model_each),
+                "agents_constant_velocity_median": median(&cv_each),
             }));
             mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }
@@ -245,17 +251,20 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     if !l2_rows.is_empty() {
         writeln!(
             md,
-            "\n| horizon (s) | ego L2 model | ego L2 const. vel. | agents L2 model | agents L2 const. vel. |\n|---|---|---|---|---|"
+            "\n| horizon (s) | ego L2 model | ego L2 const. vel. | agents L2 model | agents L2 const. vel. \
+             | agents median model | agents median const. vel. |\n|---|---|---|---|---|---|---|"
         )?;
         for r in &l2_rows {
             writeln!(
                 md,
-                "| {:.1} | {} | {} | {} | {} |",
+                "| {:.1} | {} | {} | {} | {} | {} | {} |",
                 r["seconds"].as_f64().unwrap_or(0.0),
                 f(&r["ego_model"]),
                 f(&r["ego_constant_velocity"]),
                 f(&r["agents_model"]),
-                f(&r["agents_constant_velocity"])
+                f(&r["agents_constant_velocity"]),
+                f(&r["agents_model_median"]),
+                f(&r["agents_constant_velocity_median"])
             )?;
         }
         super::eval_plot::l2_plot(&l2_rows, &out.join("l2.png"))?;
