@@ -13,14 +13,10 @@ pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
         .split(',')
         .map(|d| Device::parse(d.trim()))
         .collect::<anyhow::Result<Vec<_>>>()?;
-    // One registry (tokenizers loaded once) per device.
-    let registries = devices
-        .iter()
-        .map(|d| Ok(config.registry(&builtin_catalog_with(d.codec_loader())?)?))
-        .collect::<anyhow::Result<Vec<_>>>()?;
+    let threads = a.threads.unwrap_or_else(|| default_threads(&devices));
+    let registries = registries(&config, &devices, threads)?;
     let registry = &registries[0];
     let data = Dataset::open(&a.data)?;
-    let threads = a.threads.unwrap_or_else(|| default_threads(&devices));
     let started = std::time::Instant::now();
     let report = with_progress(&registries, &data, &a.out, a.split.as_deref(), threads)?;
     tracing::info!(
@@ -34,6 +30,25 @@ pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
         registry.layout()?.len()
     );
     Ok(())
+}
+
+/// The registries the tokenizing threads use (thread k takes number k modulo their count): one per GPU,
+/// whose encodes queue on that device's tokenizers; on the CPU one per thread, since a thread's encode
+/// holds its tokenizer's lock: with one registry for all, 16 threads encoded one at a time (48,171 frames
+/// of `small-bundled` in 550 s on 16 cores, 400 s on 2).
+pub fn registries(
+    config: &UmgenConfig,
+    devices: &[Device],
+    threads: usize,
+) -> anyhow::Result<Vec<umgen::modality::ModalityRegistry>> {
+    let cpu_only = devices.iter().all(|d| !matches!(d, Device::Cuda(_)));
+    let copies = if cpu_only { threads.max(1) } else { devices.len() };
+    devices
+        .iter()
+        .cycle()
+        .take(copies)
+        .map(|d| Ok(config.registry(&builtin_catalog_with(d.codec_loader())?)?))
+        .collect()
 }
 
 /// Tokenizing threads unless told: one per core on the CPU, at most 2 per GPU. Each thread encodes on its
@@ -60,4 +75,38 @@ pub fn with_progress(
     })?;
     bar.finish_and_clear();
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use std::path::PathBuf;
+
+    #[test]
+    fn cpu_threads_get_their_own_tokenizers() {
+        let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let set = ["map", "image"].map(|m| {
+            format!(
+                "modality.{m}.tokenizer={}",
+                root.join(format!("data/tokenizers/tiny-{m}")).display()
+            )
+        });
+        let config = UmgenConfig::load(&root.join("configs/tiny.toml"), &set).unwrap();
+        let regs = registries(&config, &[Device::Cpu], 3).unwrap();
+        assert_eq!(regs.len(), 3);
+        // No two threads share a modality (and with it a tokenizer's lock).
+        for (i, a) in regs.iter().enumerate() {
+            for b in &regs[i + 1..] {
+                for (x, y) in a.modalities().iter().zip(b.modalities()) {
+                    assert!(!std::sync::Arc::ptr_eq(x, y), "{}", x.spec().name);
+                }
+            }
+        }
+        assert_eq!(
+            regs[0].layout().unwrap().fingerprint(),
+            regs[2].layout().unwrap().fingerprint()
+        );
+        assert_eq!(registries(&config, &[Device::Cpu], 0).unwrap().len(), 1);
+    }
 }

@@ -41,13 +41,12 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         // Tokenize what is missing; finished shards are skipped.
         let data = Dataset::open(data_dir)?;
         let threads = super::tokenize::default_threads(&[device]);
-        let r = super::tokenize::with_progress(
-            std::slice::from_ref(&registry),
-            &data,
-            &tc.tokens,
-            Some(&tc.split),
-            threads,
-        )?;
+        let registries = if tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
+            super::tokenize::registries(&config, &[device], threads)?
+        } else {
+            vec![registry.clone()]
+        };
+        let r = super::tokenize::with_progress(&registries, &data, &tc.tokens, Some(&tc.split), threads)?;
         if r.written > 0 {
             tracing::info!(
                 "{}: tokenized {} frames of {}",
