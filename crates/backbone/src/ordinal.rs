@@ -33,21 +33,9 @@ pub fn sinusoid(rows: usize, width: usize) -> Vec<f32> {
 /// `table` with its first `ordinal` rows replaced by [`sinusoid`] rows scaled to unit variance per value,
 /// the scale of burn's default embedding initialisation.
 pub fn embedding<B: Backend>(mut table: Embedding<B>, ordinal: usize) -> Embedding<B> {
-    let [rows, width] = table.weight.dims();
-    let ordinal = ordinal.min(rows);
-    if ordinal == 0 {
-        return table;
+    if let Some(w) = leading(table.weight.val(), 0, ordinal, std::f64::consts::SQRT_2) {
+        table.weight = Param::from_tensor(w);
     }
-    let w = table.weight.val();
-    let dev = w.device();
-    let head = Tensor::<B, 2>::from_data(TensorData::new(sinusoid(ordinal, width), [ordinal, width]), &dev)
-        .mul_scalar(std::f64::consts::SQRT_2);
-    // Detached: on an autodiff backend a parameter must be a leaf, not the result of `cat`.
-    table.weight = Param::from_tensor(if ordinal == rows {
-        head
-    } else {
-        Tensor::cat(vec![head, w.narrow(0, ordinal, rows - ordinal)], 0).detach()
-    });
     table
 }
 
@@ -55,23 +43,33 @@ pub fn embedding<B: Backend>(mut table: Embedding<B>, ordinal: usize) -> Embeddi
 /// [`sinusoid`] rows scaled to the spread of burn's default initialisation (uniform in ±1/√d), so that
 /// nearby bins start with correlated logits and the first loss stays near ln(vocab).
 pub fn head<B: Backend>(mut head: Linear<B>, ordinal: usize) -> Linear<B> {
-    let [d, vocab] = head.weight.dims();
-    let ordinal = ordinal.min(vocab);
-    if ordinal == 0 {
-        return head;
+    let d = head.weight.dims()[0];
+    if let Some(w) = leading(head.weight.val(), 1, ordinal, (2.0 / (3.0 * d as f64)).sqrt()) {
+        head.weight = Param::from_tensor(w);
     }
-    let w = head.weight.val();
-    let dev = w.device();
-    let scale = (2.0 / (3.0 * d as f64)).sqrt();
-    let cols = Tensor::<B, 2>::from_data(TensorData::new(sinusoid(ordinal, d), [ordinal, d]), &dev)
-        .transpose()
-        .mul_scalar(scale);
-    head.weight = Param::from_tensor(if ordinal == vocab {
-        cols.detach()
-    } else {
-        Tensor::cat(vec![cols, w.narrow(1, ordinal, vocab - ordinal)], 1).detach()
-    });
     head
+}
+
+/// `w` with its first `ordinal` slices along `dim` (rows for 0, columns for 1) replaced by `scale` ×
+/// [`sinusoid`] (one table row per slice); `None` when there is nothing to replace. Detached: on an
+/// autodiff backend a parameter must be a leaf, not the result of `cat`.
+fn leading<B: Backend>(w: Tensor<B, 2>, dim: usize, ordinal: usize, scale: f64) -> Option<Tensor<B, 2>> {
+    let dims = w.dims();
+    let (len, width) = (dims[dim], dims[1 - dim]);
+    let ordinal = ordinal.min(len);
+    if ordinal == 0 {
+        return None;
+    }
+    let table = TensorData::new(sinusoid(ordinal, width), [ordinal, width]);
+    let mut block = Tensor::<B, 2>::from_data(table, &w.device()).mul_scalar(scale);
+    if dim == 1 {
+        block = block.transpose();
+    }
+    Some(if ordinal == len {
+        block.detach()
+    } else {
+        Tensor::cat(vec![block, w.narrow(dim, ordinal, len - ordinal)], dim).detach()
+    })
 }
 
 #[cfg(test)]
