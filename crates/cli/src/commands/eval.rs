@@ -10,7 +10,7 @@ use umgen::modality_agent::{ATTRIBUTES, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{
-    agent_errors, agent_l2, constant_velocity_agents, constant_velocity_ego, ego_l2, median, positions,
+    agent_errors, constant_velocity_agents, constant_velocity_ego, ego_l2, median, positions,
 };
 use umgen_eval::mmd::{Group, mmd};
 
@@ -192,16 +192,15 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                     let f = &s.frames[h - 1];
                     model_ego.push(ego_l2(&[f.ego], &[t.poses[h - 1]])[0]);
                     let errors = agent_errors(&positions(&f.ego, &f.agents), &true_pos);
-                    if !errors.is_empty() {
-                        model_agents.push(errors.iter().sum::<f64>() / errors.len() as f64);
-                    }
+                    model_agents.extend(mean(&errors));
                     model_each.extend(errors);
                     generated.extend(f.agents.iter());
                 }
                 cv_ego.push(t.cv_ego[h - 1]);
                 let cv = constant_velocity_agents(&t.last.ego, &t.last_agents, dt, h);
-                cv_agents.extend(agent_l2(&cv, &true_pos).map(|(d, _)| d));
-                cv_each.extend(agent_errors(&cv, &true_pos));
+                let errors = agent_errors(&cv, &true_pos);
+                cv_agents.extend(mean(&errors));
+                cv_each.extend(errors);
                 real.extend(t.agents[h - 1].iter());
             }
             l2_rows.push(serde_json::json!({
