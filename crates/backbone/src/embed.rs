@@ -30,21 +30,23 @@ pub struct FrameEmbedding<B: Backend> {
 }
 
 impl<B: Backend> FrameEmbedding<B> {
-    /// Tables for every segment of `spec`, width `e`, output width `d`, products in `precision`; with
-    /// `ordinal_init`, the rows of ordered value bins start as a sinusoid ([`crate::ordinal`]).
+    /// Tables for every segment of `spec`, width `e`, output width `d`, products in `precision`; the first
+    /// `ordinal[s]` rows of segment `s`'s table start as a sinusoid ([`crate::ordinal`]; none past the
+    /// slice's end).
     pub fn new(
         spec: &BackboneSpec,
         e: usize,
         d: usize,
         dropout: f64,
         precision: Precision,
-        ordinal_init: bool,
+        ordinal: &[usize],
         dev: &B::Device,
     ) -> Self {
         let tables = spec
             .segments
             .iter()
-            .map(|s| match &s.codebook {
+            .enumerate()
+            .map(|(i, s)| match &s.codebook {
                 Some((dim, data)) => {
                     let mut table = EmbeddingConfig::new(s.embed_vocab, *dim).init(dev);
                     // Content rows from the codebook; start/end rows random at the codebook's scale.
@@ -67,7 +69,7 @@ impl<B: Backend> FrameEmbedding<B> {
                 None => SegmentTable {
                     table: crate::ordinal::embedding(
                         EmbeddingConfig::new(s.embed_vocab, e).init(dev),
-                        if ordinal_init { s.ordinal } else { 0 },
+                        ordinal.get(i).copied().unwrap_or(0),
                     ),
                     proj: None,
                 },

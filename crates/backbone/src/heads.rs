@@ -20,20 +20,22 @@ pub struct Heads<B: Backend> {
 
 impl<B: Backend> Heads<B> {
     /// Heads for `segments` from width `d`, their products in `precision` (logits are f32 either way);
-    /// with `ordinal_init`, the columns of ordered value bins start as a sinusoid ([`crate::ordinal`]).
+    /// the first `ordinal[s]` columns of segment `s`'s head start as a sinusoid ([`crate::ordinal`];
+    /// none past the slice's end).
     pub fn new(
         segments: &[SegmentSpec],
         d: usize,
         precision: Precision,
-        ordinal_init: bool,
+        ordinal: &[usize],
         dev: &B::Device,
     ) -> Self {
         Self {
             heads: segments
                 .iter()
-                .map(|s| {
+                .enumerate()
+                .map(|(i, s)| {
                     let head = LinearConfig::new(d, s.vocab).with_bias(false).init(dev);
-                    crate::ordinal::head(head, if ordinal_init { s.ordinal } else { 0 })
+                    crate::ordinal::head(head, ordinal.get(i).copied().unwrap_or(0))
                 })
                 .collect(),
             content: segments.iter().map(|s| [s.offset, s.tokens]).collect(),

@@ -87,6 +87,12 @@ impl<B: Backend> Backbone<B> {
             precision: cfg.precision,
         };
         let block = |_| SelfBlock::new(layer, dev);
+        // How many leading ids of each segment start as a sinusoid: its value bins, or none.
+        let ordinal: Vec<usize> = spec
+            .segments
+            .iter()
+            .map(|s| if cfg.ordinal_init { s.ordinal } else { 0 })
+            .collect();
         let ego = spec.action.as_ref().map(|a| {
             let s = &spec.segments[a.segment];
             let sizes = EgoSizes {
@@ -94,12 +100,11 @@ impl<B: Backend> Backbone<B> {
                 hist: cfg.ego_hist_layers,
                 env: cfg.ego_env_layers,
             };
-            let ordinal = if cfg.ordinal_init { s.ordinal } else { 0 };
             EgoModule::new(
                 sizes,
                 s.tokens,
                 s.vocab,
-                ordinal,
+                ordinal[a.segment],
                 [s.block_start, s.block_len],
                 dev,
             )
@@ -110,15 +115,7 @@ impl<B: Backend> Backbone<B> {
             s.codebook = None;
         }
         Ok(Self {
-            embed: FrameEmbedding::new(
-                spec,
-                cfg.embed(),
-                d,
-                cfg.dropout,
-                cfg.precision,
-                cfg.ordinal_init,
-                dev,
-            ),
+            embed: FrameEmbedding::new(spec, cfg.embed(), d, cfg.dropout, cfg.precision, &ordinal, dev),
             time: Param::from_tensor(Tensor::random(
                 [cfg.max_frames, d],
                 Distribution::Normal(0.0, 0.02),
@@ -135,8 +132,8 @@ impl<B: Backend> Backbone<B> {
             oar_bos: Param::from_tensor(Tensor::random([d], Distribution::Normal(0.0, 0.02), dev)),
             oar: (0..cfg.oar_layers).map(block).collect(),
             ln_oar: LayerNormConfig::new(d).init(dev),
-            tar_heads: Heads::new(&spec.segments, d, cfg.precision, cfg.ordinal_init, dev),
-            oar_heads: Heads::new(&spec.segments, d, cfg.precision, cfg.ordinal_init, dev),
+            tar_heads: Heads::new(&spec.segments, d, cfg.precision, &ordinal, dev),
+            oar_heads: Heads::new(&spec.segments, d, cfg.precision, &ordinal, dev),
             spec: light,
         })
     }
