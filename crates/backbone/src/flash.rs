@@ -25,9 +25,15 @@ mod kernels;
 /// The largest head size the fused kernels take (their shared memory grows with it).
 pub const MAX_HEAD: usize = 128;
 
-/// Rows of a fused kernel's block (queries, or keys for the key/value gradients), and keys (or queries)
-/// per step of its loop.
+/// Rows of a fused kernel's block (queries, or keys for the key/value gradients).
 pub const BLOCK: usize = 64;
+
+/// Keys (or queries, for the key/value gradients) per step of a fused kernel's loop that the kernels
+/// take: multiples of 16 up to [`BLOCK`].
+pub const STEPS: [usize; 3] = [16, 32, 64];
+
+/// The step the kernels use unless told otherwise ([`set_step`], `train.attention_step`).
+pub const DEFAULT_STEP: usize = 16;
 
 /// Row stride (elements) of the kernels' Q, K, V and dO tiles for head size `head`. The paddings of these
 /// strides keep every tensor-core load and store on a 32-byte boundary and spread rows over the banks.
@@ -35,11 +41,15 @@ pub(crate) const fn tile_stride(head: usize) -> usize {
     head + 8
 }
 
-/// Row stride of the kernels' f32 score (and score-gradient) buffers.
-pub(crate) const SCORE_STRIDE: usize = BLOCK + 4;
+/// Row stride of the kernels' f32 score (and score-gradient) buffers for a loop of `step` rows.
+pub(crate) const fn score_stride(step: usize) -> usize {
+    step + 4
+}
 
 /// Row stride of the kernels' probability (and score-gradient) buffers in the products' format.
-pub(crate) const PROB_STRIDE: usize = BLOCK + 8;
+pub(crate) const fn prob_stride(step: usize) -> usize {
+    step + 8
+}
 
 /// Row stride of the kernels' f32 accumulators for head size `head`.
 pub(crate) const fn acc_stride(head: usize) -> usize {
@@ -61,6 +71,8 @@ pub enum AttentionKernel {
 static TILED: AtomicBool = AtomicBool::new(false);
 /// Passes that wanted the fused kernels but ran the tiled ones.
 static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
+/// The fused kernels' loop step ([`set_step`]).
+static STEP: AtomicUsize = AtomicUsize::new(DEFAULT_STEP);
 
 /// Chooses the attention kernels for every training pass this process runs from now on.
 pub fn select(kernel: AttentionKernel) {
@@ -76,22 +88,41 @@ pub fn selected() -> AttentionKernel {
     }
 }
 
+/// Sets the fused kernels' loop step for every pass this process runs from now on (`None`: the default).
+/// Errors name a step outside [`STEPS`].
+pub fn set_step(step: Option<usize>) -> Result<(), String> {
+    let step = step.unwrap_or(DEFAULT_STEP);
+    if !STEPS.contains(&step) {
+        return Err(format!(
+            "attention step {step}: the fused kernels take {STEPS:?} rows per step"
+        ));
+    }
+    STEP.store(step, Ordering::Relaxed);
+    Ok(())
+}
+
+/// The fused kernels' loop step.
+pub fn step() -> usize {
+    STEP.load(Ordering::Relaxed)
+}
+
 /// How many passes fell back from the fused kernels to the tiled ones in this process.
 pub fn fallbacks() -> usize {
     FALLBACKS.load(Ordering::Relaxed)
 }
 
-/// Shared memory (bytes) the largest of the fused kernels declares for head size `head` and operands of
-/// `elem` bytes (the key/value gradients' kernel, whose K, V, Q and dO tiles, scores, probabilities and two
-/// accumulators all live in shared memory).
-pub fn shared_bytes(head: usize, elem: usize) -> usize {
-    let tiles = BLOCK * tile_stride(head) * elem;
-    let scores = BLOCK * SCORE_STRIDE * 4;
-    let probs = BLOCK * PROB_STRIDE * elem;
+/// Shared memory (bytes) the largest of the fused kernels declares for head size `head`, operands of
+/// `elem` bytes and a loop of `step` rows (the key/value gradients' kernel, whose K, V, Q and dO tiles,
+/// scores, probabilities and two accumulators all live in shared memory).
+pub fn shared_bytes(head: usize, elem: usize, step: usize) -> usize {
+    let block = BLOCK * tile_stride(head) * elem;
+    let stepped = step * tile_stride(head) * elem;
+    let scores = BLOCK * score_stride(step) * 4;
+    let probs = BLOCK * prob_stride(step) * elem;
     let acc = BLOCK * acc_stride(head) * 4;
-    let forward = 3 * tiles + scores + probs + acc;
-    let kv = 4 * tiles + 2 * BLOCK * 4 + 2 * scores + 2 * probs + 2 * acc;
-    let q = 4 * tiles + 2 * scores + probs + acc;
+    let forward = block + 2 * stepped + scores + probs + acc;
+    let kv = 2 * block + 2 * stepped + 2 * step * 4 + 2 * scores + 2 * probs + 2 * acc;
+    let q = 2 * block + 2 * stepped + 2 * scores + probs + acc;
     forward.max(kv).max(q)
 }
 
@@ -211,8 +242,23 @@ mod tests {
     #[test]
     fn shared_memory_matches_what_the_device_reported() {
         // An H200 refused the f32 kernels at head size 128 with "Requested 279040 bytes, maximum 232448".
-        assert_eq!(shared_bytes(128, 4), 279_040);
+        assert_eq!(shared_bytes(128, 4, 64), 279_040);
         // The sizes training uses fit that limit; bf16 operands fit at 128 too.
-        assert!(shared_bytes(64, 4) <= 232_448 && shared_bytes(128, 2) <= 232_448);
+        assert!(shared_bytes(64, 4, 64) <= 232_448 && shared_bytes(128, 2, 64) <= 232_448);
+        // The key/value kernel at head size 64 in f32: one cube per SM of 228 KB with steps of 64 or 32,
+        // two (each also reserves 1 KB) with steps of 16.
+        let half_sm = 228 * 1024 / 2 - 1024;
+        assert_eq!(shared_bytes(64, 4, 64), 180_736);
+        assert!(shared_bytes(64, 4, 32) > half_sm && shared_bytes(64, 4, 16) <= half_sm);
+        // f32 at head size 128 fits the device with the shorter steps.
+        assert!(shared_bytes(128, 4, 32) <= 232_448);
+    }
+
+    #[test]
+    fn steps_outside_the_kernels_range_are_refused_by_name() {
+        let e = set_step(Some(48)).expect_err("48 is not a step the kernels take");
+        assert!(e.contains("48") && e.contains("[16, 32, 64]"), "{e}");
+        // The refused value did not replace the step in use.
+        assert!(STEPS.contains(&step()));
     }
 }

@@ -71,6 +71,10 @@ pub struct TrainConfig {
     /// `umgen_backbone::flash`) or `tiled` (the tiled passes in burn tensor operations, in blocks of
     /// `attention_block_mib`).
     pub attention: AttentionKernel,
+    /// Keys (or queries) per step of the fused attention kernels' loop, 16, 32 or 64
+    /// (`umgen_backbone::flash::set_step`): shorter steps take less shared memory per cube, so more cubes
+    /// share an SM, for more loop steps and synchronisations.
+    pub attention_step: usize,
     /// Recompute each self-attention layer's activations in the backward pass instead of keeping them
     /// (activation checkpointing, `umgen_backbone::recompute`): the step keeps one activation per layer
     /// instead of about twenty, for one more forward pass of those layers.
@@ -107,20 +111,23 @@ impl Default for TrainConfig {
             matmul: MatmulKernel::Named,
             attention_block_mib: umgen_backbone::attention::BLOCK_BYTES >> 20,
             attention: AttentionKernel::Fused,
+            attention_step: umgen_backbone::flash::DEFAULT_STEP,
             recompute: false,
         }
     }
 }
 
 impl TrainConfig {
-    /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`, `recompute`) to
-    /// this process, before any product runs.
+    /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
+    /// `attention_step`, `recompute`) to this process, before any product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
                 "train.attention_block_mib = 0: a query block needs at least 1 MiB of scores".into(),
             ));
         }
+        umgen_backbone::flash::set_step(Some(self.attention_step))
+            .map_err(|e| TrainError::Setup(format!("train.attention_step = {}: {e}", self.attention_step)))?;
         umgen_backbone::matmul::select(self.matmul);
         umgen_backbone::flash::select(self.attention);
         umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
@@ -146,6 +153,7 @@ impl TrainConfig {
                 "matmul",
                 "attention_block_mib",
                 "attention",
+                "attention_step",
                 // Recomputed layers give the same gradients to rounding.
                 "recompute",
             ] {
@@ -199,6 +207,13 @@ mod tests {
             .select_kernels()
             .unwrap_err();
         assert!(e.to_string().contains("train.attention_block_mib = 0"), "{e}");
+        let step = parse(r#"{"attention_step": 16}"#).expect("attention_step = 16");
+        assert_eq!(named.identity(), step.identity());
+        let e = parse(r#"{"attention_step": 48}"#)
+            .expect("parses")
+            .select_kernels()
+            .unwrap_err();
+        assert!(e.to_string().contains("train.attention_step = 48"), "{e}");
         let e = parse(r#"{"matmul": "tma"}"#).unwrap_err().to_string();
         assert!(
             e.contains("tma") && e.contains("named") && e.contains("burn"),

@@ -4,7 +4,7 @@
 
 use super::kernels;
 use super::{
-    AttentionKernel, BLOCK, FusedAttention, fell_back, selected, shared_bytes, tiled_backward_pass,
+    AttentionKernel, BLOCK, FusedAttention, fell_back, selected, shared_bytes, step, tiled_backward_pass,
     tiled_forward_pass, unfit,
 };
 use crate::attention::{float, softmax_delta};
@@ -44,7 +44,7 @@ fn refused(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> Opt
     if v.dims()[3] != d {
         return Some(format!("value size {} ≠ query size {d}", v.dims()[3]));
     }
-    let need = shared_bytes(d, dt.size());
+    let need = shared_bytes(d, dt.size(), step());
     let have = CudaRuntime::client(&q.device())
         .properties()
         .hardware
@@ -223,6 +223,7 @@ fn forward(q: &Primitive, k: &Primitive, v: &Primitive, causal: bool) -> Vec<Pri
     let lse = empty(q, [b, h, lq, 1]);
     let (scale, off) = scale_and_offset(q, k);
     let (format, kstep) = tile_format(q.dtype);
+    let step = step();
     let (count, dim) = geometry(lq, b, h);
     kernels::forward::launch::<CudaRuntime>(
         &q.client,
@@ -238,6 +239,7 @@ fn forward(q: &Primitive, k: &Primitive, v: &Primitive, causal: bool) -> Vec<Pri
         causal,
         d,
         kstep,
+        step,
         [q.dtype.into(), format],
     );
     vec![out, lse]
@@ -260,6 +262,7 @@ fn backward(
     let dv = empty(q, [b, h, lk, d]);
     let (scale, off) = scale_and_offset(q, k);
     let (format, kstep) = tile_format(q.dtype);
+    let step = step();
     let arg = |t: &Primitive| t.clone().into_tensor_arg();
     let (count, dim) = geometry(lk, b, h);
     kernels::backward_kv::launch::<CudaRuntime>(
@@ -279,6 +282,7 @@ fn backward(
         causal,
         d,
         kstep,
+        step,
         [q.dtype.into(), format],
     );
     let (count, dim) = geometry(lq, b, h);
@@ -298,6 +302,7 @@ fn backward(
         causal,
         d,
         kstep,
+        step,
         [q.dtype.into(), format],
     );
     vec![dq, dk, dv]

@@ -3,7 +3,10 @@
 //! atomic sum across cubes).
 //!
 //! Layout of every kernel: one cube per block of [`BLOCK`] rows (queries, or keys for the key/value
-//! gradients) of one (sequence, head), four planes of 32 units, each plane owning 16 of the rows. Products
+//! gradients) of one (sequence, head), four planes of 32 units, each plane owning 16 of the rows; the cube
+//! loops over the other side (keys, or queries) in steps of `step` rows (a launch constant, [`super::step`]):
+//! the step's tiles, scores and probabilities are what fills shared memory, so a shorter step lets more
+//! cubes share an SM. Products
 //! run on tensor cores (`cmma`) from shared memory: TF32 tiles of 16×16×8 for f32 operands, bf16 tiles of
 //! 16×16×16 for bf16 operands, all accumulating in f32. The element-wise work between products (scale,
 //! mask, online softmax, the softmax Jacobian) runs on f32 copies of the products in shared memory, two
@@ -16,7 +19,7 @@
 // The kernels' language has no `usize::div_ceil`.
 #![allow(clippy::manual_div_ceil)]
 
-use super::{BLOCK, PROB_STRIDE, SCORE_STRIDE, acc_stride, tile_stride};
+use super::{BLOCK, acc_stride, prob_stride, score_stride, tile_stride};
 use cubecl::cmma;
 use cubecl::prelude::*;
 /// Units per cube: four planes of 32.
@@ -34,18 +37,18 @@ fn visible(key: usize, query: usize, lk: usize, lq: usize, off: usize, #[comptim
     seen
 }
 
-/// Key blocks the query block starting at `q0` sees: all of them, or for causal attention those up to
-/// its last query's last visible key.
+/// Key steps of `step` keys the query block starting at `q0` sees: all of them, or for causal attention
+/// those up to its last query's last visible key.
 #[cube]
-fn key_blocks(lk: usize, q0: usize, off: usize, #[comptime] causal: bool) -> usize {
+fn key_steps(lk: usize, q0: usize, off: usize, #[comptime] causal: bool, #[comptime] step: usize) -> usize {
     let mut end = lk;
     if causal {
         end = min(lk, q0 + BLOCK + off);
     }
-    (end + BLOCK - 1) / BLOCK
+    (end + step - 1) / step
 }
 
-/// Copies rows `[row0, row0 + BLOCK)` of one (sequence, head) of `src` (`[b, h, l, dh]`, any strides; rows
+/// Copies rows `[row0, row0 + rows)` of one (sequence, head) of `src` (`[b, h, l, dh]`, any strides; rows
 /// at or past `valid` as zeros) into `dst` (row stride `stride`), converted to the products' format.
 #[cube]
 fn load_rows<E: Float, C: Float>(
@@ -54,6 +57,7 @@ fn load_rows<E: Float, C: Float>(
     row0: usize,
     valid: usize,
     dst: &mut SharedMemory<C>,
+    #[comptime] rows: usize,
     #[comptime] dh: usize,
     #[comptime] stride: usize,
 ) {
@@ -61,7 +65,7 @@ fn load_rows<E: Float, C: Float>(
     // A loop, not unrolled: unrolling this and the element-wise loops made the kernels 1.2–1.4× slower on
     // an H200 (`umgen bench attention`, docs/perf-notes.md).
     let mut i = (UNIT_POS_Y * 32 + UNIT_POS_X) as usize;
-    while i < comptime!(BLOCK * dh) {
+    while i < comptime!(rows * dh) {
         let r = i / dh;
         let c = i % dh;
         let row = row0 + r;
@@ -84,8 +88,8 @@ fn zero(dst: &mut SharedMemory<f32>, #[comptime] stride: usize) {
     }
 }
 
-/// One plane's 16 × [`BLOCK`] product `a · bᵀ` into `out` (f32, row stride `so`, from `out_off`): `a` holds
-/// the plane's 16 rows of length `dh` from `a_off`, `b` [`BLOCK`] rows of length `dh`; both row stride `sa`.
+/// One plane's 16 × `step` product `a · bᵀ` into `out` (f32, row stride `so`, from `out_off`): `a` holds
+/// the plane's 16 rows of length `dh` from `a_off`, `b` `step` rows of length `dh`; both row stride `sa`.
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn rows_by_rows<C: Float>(
@@ -98,9 +102,10 @@ fn rows_by_rows<C: Float>(
     #[comptime] sa: usize,
     #[comptime] so: usize,
     #[comptime] kstep: usize,
+    #[comptime] step: usize,
 ) {
     #[unroll]
-    for nt in 0..BLOCK / 16 {
+    for nt in 0..step / 16 {
         let acc = cmma::Matrix::<f32>::from_value(
             cmma::MatrixIdent::Accumulator,
             16usize,
@@ -141,8 +146,8 @@ fn rows_by_rows<C: Float>(
 }
 
 /// One plane's 16 × `dh` accumulator in `acc` (f32, row stride `sacc`, from `acc_off`) plus `a · b`: `a`
-/// holds the plane's 16 rows of length [`BLOCK`] from `a_off` (row stride `sa`), `b` [`BLOCK`] rows of
-/// length `dh` (row stride `sb`).
+/// holds the plane's 16 rows of length `step` from `a_off` (row stride `sa`), `b` `step` rows of length
+/// `dh` (row stride `sb`).
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn accumulate<C: Float>(
@@ -156,6 +161,7 @@ fn accumulate<C: Float>(
     #[comptime] sb: usize,
     #[comptime] sacc: usize,
     #[comptime] kstep: usize,
+    #[comptime] step: usize,
 ) {
     #[unroll]
     for nt in 0..dh / 16 {
@@ -175,7 +181,7 @@ fn accumulate<C: Float>(
             cmma::MatrixLayout::RowMajor,
         );
         #[unroll]
-        for kk in 0..BLOCK / kstep {
+        for kk in 0..step / kstep {
             let x = cmma::Matrix::<C>::from_slice(
                 cmma::MatrixIdent::A,
                 16usize,
@@ -220,15 +226,16 @@ pub fn forward<E: Float, C: Float>(
     #[comptime] causal: bool,
     #[comptime] dh: usize,
     #[comptime] kstep: usize,
+    #[comptime] step: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
     let sq = comptime!(tile_stride(dh));
-    let ss = comptime!(SCORE_STRIDE);
-    let sp = comptime!(PROB_STRIDE);
+    let ss = comptime!(score_stride(step));
+    let sp = comptime!(prob_stride(step));
     let so = comptime!(acc_stride(dh));
     let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
-    let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
-    let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut ks = SharedMemory::<C>::new_aligned(comptime!(step * sq), 128usize);
+    let mut vs = SharedMemory::<C>::new_aligned(comptime!(step * sq), 128usize);
     let mut scores = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
     let mut probs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sp), 128usize);
     let mut acc = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * so), 128usize);
@@ -243,16 +250,25 @@ pub fn forward<E: Float, C: Float>(
 
     let kbase = seq * k.stride(0) + head * k.stride(1);
     let vbase = seq * v.stride(0) + head * v.stride(1);
-    load_rows::<E, C>(q, seq * q.stride(0) + head * q.stride(1), q0, lq, &mut qs, dh, sq);
+    load_rows::<E, C>(
+        q,
+        seq * q.stride(0) + head * q.stride(1),
+        q0,
+        lq,
+        &mut qs,
+        BLOCK,
+        dh,
+        sq,
+    );
     zero(&mut acc, so);
 
     let mut m = f32::new(NONE_SEEN);
     let mut l = 0.0f32;
-    for kb in 0..key_blocks(lk, q0, off, causal) {
-        let k0 = kb * BLOCK;
+    for kb in 0..key_steps(lk, q0, off, causal, step) {
+        let k0 = kb * step;
         sync_cube();
-        load_rows::<E, C>(k, kbase, k0, lk, &mut ks, dh, sq);
-        load_rows::<E, C>(v, vbase, k0, lk, &mut vs, dh, sq);
+        load_rows::<E, C>(k, kbase, k0, lk, &mut ks, step, dh, sq);
+        load_rows::<E, C>(v, vbase, k0, lk, &mut vs, step, dh, sq);
         sync_cube();
         rows_by_rows::<C>(
             &qs,
@@ -264,11 +280,12 @@ pub fn forward<E: Float, C: Float>(
             sq,
             ss,
             kstep,
+            step,
         );
         sync_plane();
 
         let mut top = f32::new(NONE_SEEN);
-        for j in 0..BLOCK / 2 {
+        for j in 0..step / 2 {
             let c = half + 2 * j;
             if visible(k0 + c, row, lk, lq, off, causal) {
                 top = max(top, scores[r * ss + c] * scale);
@@ -277,7 +294,7 @@ pub fn forward<E: Float, C: Float>(
         top = max(top, plane_shuffle_xor(top, 1));
         let m_new = max(m, top);
         let mut sum = 0.0f32;
-        for j in 0..BLOCK / 2 {
+        for j in 0..step / 2 {
             let c = half + 2 * j;
             let s = scores[r * ss + c] * scale;
             let p = select(visible(k0 + c, row, lk, lq, off, causal), (s - m_new).exp(), 0.0);
@@ -304,6 +321,7 @@ pub fn forward<E: Float, C: Float>(
             sq,
             so,
             kstep,
+            step,
         );
         sync_plane();
     }
@@ -340,18 +358,19 @@ pub fn backward_kv<E: Float, C: Float>(
     #[comptime] causal: bool,
     #[comptime] dh: usize,
     #[comptime] kstep: usize,
+    #[comptime] step: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
     let sq = comptime!(tile_stride(dh));
-    let ss = comptime!(SCORE_STRIDE);
-    let sp = comptime!(PROB_STRIDE);
+    let ss = comptime!(score_stride(step));
+    let sp = comptime!(prob_stride(step));
     let so = comptime!(acc_stride(dh));
     let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
-    let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
-    let mut dos = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
-    let mut lses = SharedMemory::<f32>::new_aligned(BLOCK, 16usize);
-    let mut deltas = SharedMemory::<f32>::new_aligned(BLOCK, 16usize);
+    let mut qs = SharedMemory::<C>::new_aligned(comptime!(step * sq), 128usize);
+    let mut dos = SharedMemory::<C>::new_aligned(comptime!(step * sq), 128usize);
+    let mut lses = SharedMemory::<f32>::new_aligned(step, 16usize);
+    let mut deltas = SharedMemory::<f32>::new_aligned(step, 16usize);
     let mut st = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
     let mut dpt = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
     let mut pt = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sp), 128usize);
@@ -372,23 +391,41 @@ pub fn backward_kv<E: Float, C: Float>(
     let dobase = seq * dout.stride(0) + head * dout.stride(1);
     let lbase = seq * lse.stride(0) + head * lse.stride(1);
     let dbase = seq * delta.stride(0) + head * delta.stride(1);
-    load_rows::<E, C>(k, seq * k.stride(0) + head * k.stride(1), k0, lk, &mut ks, dh, sq);
-    load_rows::<E, C>(v, seq * v.stride(0) + head * v.stride(1), k0, lk, &mut vs, dh, sq);
+    load_rows::<E, C>(
+        k,
+        seq * k.stride(0) + head * k.stride(1),
+        k0,
+        lk,
+        &mut ks,
+        BLOCK,
+        dh,
+        sq,
+    );
+    load_rows::<E, C>(
+        v,
+        seq * v.stride(0) + head * v.stride(1),
+        k0,
+        lk,
+        &mut vs,
+        BLOCK,
+        dh,
+        sq,
+    );
     zero(&mut dka, so);
     zero(&mut dva, so);
 
     // The first query that sees this block's first key.
     let mut first = 0;
     if causal && k0 > off {
-        first = (k0 - off) / BLOCK;
+        first = (k0 - off) / step;
     }
-    let blocks = (lq + BLOCK - 1) / BLOCK;
+    let blocks = (lq + step - 1) / step;
     for qb in first..blocks {
-        let q0 = qb * BLOCK;
+        let q0 = qb * step;
         sync_cube();
-        load_rows::<E, C>(q, qbase, q0, lq, &mut qs, dh, sq);
-        load_rows::<E, C>(dout, dobase, q0, lq, &mut dos, dh, sq);
-        if tid < BLOCK {
+        load_rows::<E, C>(q, qbase, q0, lq, &mut qs, step, dh, sq);
+        load_rows::<E, C>(dout, dobase, q0, lq, &mut dos, step, dh, sq);
+        if tid < step {
             let query = q0 + tid;
             let mut x = 0.0f32;
             let mut y = 0.0f32;
@@ -410,6 +447,7 @@ pub fn backward_kv<E: Float, C: Float>(
             sq,
             ss,
             kstep,
+            step,
         );
         rows_by_rows::<C>(
             &vs,
@@ -421,9 +459,10 @@ pub fn backward_kv<E: Float, C: Float>(
             sq,
             ss,
             kstep,
+            step,
         );
         sync_plane();
-        for j in 0..BLOCK / 2 {
+        for j in 0..step / 2 {
             let c = half + 2 * j;
             let seen = visible(key, q0 + c, lk, lq, off, causal);
             let p = select(seen, (st[r * ss + c] * scale - lses[c]).exp(), 0.0);
@@ -443,6 +482,7 @@ pub fn backward_kv<E: Float, C: Float>(
             sq,
             so,
             kstep,
+            step,
         );
         accumulate::<C>(
             &mut dka,
@@ -455,6 +495,7 @@ pub fn backward_kv<E: Float, C: Float>(
             sq,
             so,
             kstep,
+            step,
         );
     }
     // The accumulators were zeroed by the whole cube; a block with no visible query skips the loop.
@@ -489,16 +530,17 @@ pub fn backward_q<E: Float, C: Float>(
     #[comptime] causal: bool,
     #[comptime] dh: usize,
     #[comptime] kstep: usize,
+    #[comptime] step: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
     let sq = comptime!(tile_stride(dh));
-    let ss = comptime!(SCORE_STRIDE);
-    let sp = comptime!(PROB_STRIDE);
+    let ss = comptime!(score_stride(step));
+    let sp = comptime!(prob_stride(step));
     let so = comptime!(acc_stride(dh));
     let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut dos = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
-    let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
-    let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
+    let mut ks = SharedMemory::<C>::new_aligned(comptime!(step * sq), 128usize);
+    let mut vs = SharedMemory::<C>::new_aligned(comptime!(step * sq), 128usize);
     let mut s = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
     let mut dp = SharedMemory::<f32>::new_aligned(comptime!(BLOCK * ss), 128usize);
     let mut ds = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sp), 128usize);
@@ -514,13 +556,23 @@ pub fn backward_q<E: Float, C: Float>(
 
     let kbase = seq * k.stride(0) + head * k.stride(1);
     let vbase = seq * v.stride(0) + head * v.stride(1);
-    load_rows::<E, C>(q, seq * q.stride(0) + head * q.stride(1), q0, lq, &mut qs, dh, sq);
+    load_rows::<E, C>(
+        q,
+        seq * q.stride(0) + head * q.stride(1),
+        q0,
+        lq,
+        &mut qs,
+        BLOCK,
+        dh,
+        sq,
+    );
     load_rows::<E, C>(
         dout,
         seq * dout.stride(0) + head * dout.stride(1),
         q0,
         lq,
         &mut dos,
+        BLOCK,
         dh,
         sq,
     );
@@ -532,11 +584,11 @@ pub fn backward_q<E: Float, C: Float>(
         my_delta = delta[seq * delta.stride(0) + head * delta.stride(1) + row * delta.stride(2)];
     }
 
-    for kb in 0..key_blocks(lk, q0, off, causal) {
-        let k0 = kb * BLOCK;
+    for kb in 0..key_steps(lk, q0, off, causal, step) {
+        let k0 = kb * step;
         sync_cube();
-        load_rows::<E, C>(k, kbase, k0, lk, &mut ks, dh, sq);
-        load_rows::<E, C>(v, vbase, k0, lk, &mut vs, dh, sq);
+        load_rows::<E, C>(k, kbase, k0, lk, &mut ks, step, dh, sq);
+        load_rows::<E, C>(v, vbase, k0, lk, &mut vs, step, dh, sq);
         sync_cube();
         rows_by_rows::<C>(
             &qs,
@@ -548,6 +600,7 @@ pub fn backward_q<E: Float, C: Float>(
             sq,
             ss,
             kstep,
+            step,
         );
         rows_by_rows::<C>(
             &dos,
@@ -559,9 +612,10 @@ pub fn backward_q<E: Float, C: Float>(
             sq,
             ss,
             kstep,
+            step,
         );
         sync_plane();
-        for j in 0..BLOCK / 2 {
+        for j in 0..step / 2 {
             let c = half + 2 * j;
             let seen = visible(k0 + c, row, lk, lq, off, causal);
             let p = select(seen, (s[r * ss + c] * scale - my_lse).exp(), 0.0);
@@ -579,6 +633,7 @@ pub fn backward_q<E: Float, C: Float>(
             sq,
             so,
             kstep,
+            step,
         );
     }
     sync_cube();

@@ -107,6 +107,10 @@ pub struct BenchAttentionArgs {
     /// size (default: the training default, 1024).
     #[arg(long, value_delimiter = ',')]
     pub block_mib: Vec<usize>,
+    /// Loop steps of the fused kernels (`train.attention_step`: 16, 32 or 64), comma-separated: one fused
+    /// row per step (default: the training default).
+    #[arg(long, value_delimiter = ',')]
+    pub step: Vec<usize>,
     /// Training attention kernels to measure (`train.attention`), comma-separated: one row each (the tiled
     /// one once per `--block-mib` size). Default: `fused,tiled` on CUDA, `tiled` on the CPU, which has no
     /// fused kernels.

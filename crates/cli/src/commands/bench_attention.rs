@@ -121,8 +121,8 @@ pub(super) fn rel_err<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, 
     diff / scale.max(f64::MIN_POSITIVE)
 }
 
-/// The rows to measure: each kernel of `--kernels` (the tiled one once per block size; `None` for the
-/// default size).
+/// The rows to measure: each kernel of `--kernels`, the tiled one once per block size (bytes) and the
+/// fused one once per loop step (`None`: the default).
 fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(AttentionKernel, Option<usize>)>> {
     anyhow::ensure!(
         a.block_mib.iter().all(|&m| m > 0),
@@ -143,10 +143,18 @@ fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(Atten
         true => vec![None],
         false => a.block_mib.iter().map(|&m| Some(m << 20)).collect(),
     };
+    for &s in &a.step {
+        flash::set_step(Some(s)).map_err(|e| anyhow::anyhow!("--step: {e}"))?;
+    }
+    flash::set_step(None).map_err(anyhow::Error::msg)?;
+    let steps: Vec<Option<usize>> = match a.step.is_empty() {
+        true => vec![None],
+        false => a.step.iter().map(|&s| Some(s)).collect(),
+    };
     Ok(kernels
         .into_iter()
         .flat_map(|k| match k {
-            AttentionKernel::Fused => vec![(k, None)],
+            AttentionKernel::Fused => steps.iter().map(|&s| (k, s)).collect::<Vec<_>>(),
             AttentionKernel::Tiled => blocks.iter().map(|&b| (k, b)).collect(),
         })
         .collect())
@@ -174,7 +182,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
         "{:<22} {:>7} {:>9} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>11} {:>11}",
         "case",
         "kernel",
-        "block MiB",
+        "block",
         "train ms",
         "decomp ms",
         "err out",
@@ -190,16 +198,20 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
             // Training kernels first: the pool only grows, so the decomposed path's figure includes what
             // they added.
             let mut runs = Vec::new();
-            for &(kernel, bytes) in &variants {
+            for &(kernel, size) in &variants {
                 flash::select(kernel);
-                umgen::backbone::attention::set_block_bytes(bytes);
+                match kernel {
+                    AttentionKernel::Fused => flash::set_step(size).map_err(anyhow::Error::msg)?,
+                    AttentionKernel::Tiled => umgen::backbone::attention::set_block_bytes(size),
+                }
                 runs.push(measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev));
             }
             flash::select(AttentionKernel::default());
+            flash::set_step(None).map_err(anyhow::Error::msg)?;
             umgen::backbone::attention::set_block_bytes(None);
             let d = measure::<B>(c, None, a.iters, device, &dev)?;
             let mut rows = Vec::new();
-            for (t, &(kernel, bytes)) in runs.into_iter().zip(&variants) {
+            for (t, &(kernel, size)) in runs.into_iter().zip(&variants) {
                 let t = t?;
                 let [tq, tk, tv] = t.grads;
                 let [dq, dk, dv] = d.grads.clone();
@@ -210,9 +222,9 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                     rel_err(tv, dv),
                 ];
                 let block = match kernel {
-                    AttentionKernel::Fused => "-".to_string(),
+                    AttentionKernel::Fused => format!("step {}", size.unwrap_or(flash::DEFAULT_STEP)),
                     AttentionKernel::Tiled => {
-                        (bytes.unwrap_or(umgen::backbone::attention::BLOCK_BYTES) >> 20).to_string()
+                        (size.unwrap_or(umgen::backbone::attention::BLOCK_BYTES) >> 20).to_string()
                     }
                 };
                 rows.push((kernel, block, t.seconds, d.seconds, errs, t.reserved, d.reserved));

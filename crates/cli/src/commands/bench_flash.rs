@@ -161,6 +161,7 @@ mod tests {
             flash: true,
             block_mib: vec![],
             kernels: vec![],
+            step: vec![],
         };
         let e = crate::commands::bench_attention::run(&a).unwrap_err().to_string();
         assert!(
