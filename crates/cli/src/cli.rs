@@ -232,6 +232,9 @@ pub enum DataCommand {
     Sumo(SumoArgs),
     /// Summarise a dataset: logs, clips, frames and per-modality statistics.
     Info(InfoArgs),
+    /// How far kinematics alone predicts a split's agents: position errors of constant velocity, constant
+    /// acceleration and repeated displacement against the recorded states.
+    Kinematics(KinematicsArgs),
 }
 
 /// Arguments of `umgen data sumo`.
@@ -275,6 +278,20 @@ pub struct InfoArgs {
     /// Dataset directory.
     #[arg(long, value_name = "DIR")]
     pub data: PathBuf,
+}
+
+/// Arguments of `umgen data kinematics`.
+#[derive(Debug, Args)]
+pub struct KinematicsArgs {
+    /// Dataset directory.
+    #[arg(long, value_name = "DIR")]
+    pub data: PathBuf,
+    /// Split whose clips are measured.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Frames ahead, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4")]
+    pub horizons: Vec<usize>,
 }
 
 /// Arguments of `umgen viz`.

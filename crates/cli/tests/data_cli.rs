@@ -45,6 +45,46 @@ fn the_bundled_sample_loads() {
 }
 
 #[test]
+fn kinematics_of_the_held_out_split_and_its_errors() {
+    let sample = repo("data/sumo-sample");
+    let data = sample.to_str().unwrap();
+    let out = ok(&umgen(&[
+        "data",
+        "kinematics",
+        "--data",
+        data,
+        "--horizons",
+        "1,2",
+    ]));
+    // Two horizons × three predictors, each over the same agents at a horizon.
+    let rows: Vec<Vec<&str>> = out
+        .lines()
+        .filter(|l| l.trim_start().starts_with(['0', '1']))
+        .map(|l| l.split_whitespace().collect())
+        .collect();
+    assert_eq!(rows.len(), 6, "{out}");
+    let mean = |r: &[&str]| r[r.len() - 3].parse::<f64>().unwrap();
+    let agents = |r: &[&str]| r[r.len() - 4].parse::<usize>().unwrap();
+    assert!(
+        rows[..3]
+            .iter()
+            .all(|r| agents(r) == agents(&rows[0]) && agents(r) > 1000),
+        "{out}"
+    );
+    // On SUMO's steady traffic a constant velocity is within centimetres half a second ahead and
+    // errors grow with the horizon.
+    assert!(mean(&rows[0]) < 0.2 && mean(&rows[3]) > mean(&rows[0]), "{out}");
+    let e = umgen(&["data", "kinematics", "--data", data, "--split", "val"]);
+    let msg = String::from_utf8_lossy(&e.stderr);
+    assert!(
+        !e.status.success() && msg.contains("no clips in split `val`"),
+        "{msg}"
+    );
+    let e = umgen(&["data", "kinematics", "--data", data, "--horizons", "0"]);
+    assert!(!e.status.success() && String::from_utf8_lossy(&e.stderr).contains("--horizons"));
+}
+
+#[test]
 fn viz_writes_a_gif_and_pngs() {
     let dir = tempfile::tempdir().unwrap();
     let (gif, pngs) = (dir.path().join("c.gif"), dir.path().join("frames"));

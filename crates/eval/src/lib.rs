@@ -1,7 +1,10 @@
 //! Measures of generated driving scenes (paper §4, the authors' definitions where they exist):
 //! [`mmd`] of agent attribute groups between generated and real scenes, the BEV [`collision`] rate, and
-//! [`l2`] position errors of ego and agents against ground truth, next to the constant-velocity baseline.
+//! [`l2`] position errors of ego and agents against ground truth, next to the constant-velocity baseline;
+//! and how far [`kinematics`] alone predicts a dataset's agents, which bounds what beating that baseline
+//! can mean on it.
 
 pub mod collision;
+pub mod kinematics;
 pub mod l2;
 pub mod mmd;

@@ -1,6 +1,6 @@
-//! `umgen data sumo` and `umgen data info`.
+//! `umgen data sumo`, `umgen data info` and `umgen data kinematics`.
 
-use crate::cli::{DataCommand, InfoArgs, SumoArgs};
+use crate::cli::{DataCommand, InfoArgs, KinematicsArgs, SumoArgs};
 use std::io::Write;
 use umgen_data::sumo::{ImportOptions, import};
 use umgen_data::{Dataset, Summary};
@@ -10,6 +10,7 @@ pub fn run(command: DataCommand) -> anyhow::Result<()> {
     match command {
         DataCommand::Sumo(args) => sumo(&args),
         DataCommand::Info(args) => info(&args),
+        DataCommand::Kinematics(args) => kinematics(&args),
     }
 }
 
@@ -102,5 +103,66 @@ fn info(a: &InfoArgs) -> anyhow::Result<()> {
         .map(|(k, v)| format!("{k} {v}"))
         .collect();
     writeln!(out, "categories  {}", cats.join(", "))?;
+    Ok(())
+}
+
+fn kinematics(a: &KinematicsArgs) -> anyhow::Result<()> {
+    use umgen_eval::kinematics::{Predictor, clip_errors, quantile};
+    anyhow::ensure!(
+        !a.horizons.is_empty() && a.horizons.iter().all(|&h| h > 0),
+        "--horizons: frames ahead must be at least 1"
+    );
+    let ds = Dataset::open(&a.data)?;
+    let clips: Vec<usize> = (0..ds.clips().len())
+        .filter(|&i| ds.clips()[i].split == a.split)
+        .collect();
+    anyhow::ensure!(
+        !clips.is_empty(),
+        "{}: no clips in split `{}`",
+        a.data.display(),
+        a.split
+    );
+    let mut errors: Vec<[Vec<f64>; 3]> = vec![Default::default(); a.horizons.len()];
+    let bar = indicatif::ProgressBar::new(clips.len() as u64);
+    for &i in &clips {
+        let clip = ds.read_clip(i)?;
+        for (e, &h) in errors.iter_mut().zip(&a.horizons) {
+            for (all, one) in e.iter_mut().zip(clip_errors(&clip, h)) {
+                all.extend(one);
+            }
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let dt = ds.index().frame_interval;
+    let mut out = std::io::stdout().lock();
+    writeln!(
+        out,
+        "{}: split `{}`, {} clips; agent position error (m) against the recorded states",
+        a.data.display(),
+        a.split,
+        clips.len()
+    )?;
+    writeln!(
+        out,
+        "{:>8} {:<22} {:>9} {:>8} {:>8} {:>8}",
+        "ahead", "predictor", "agents", "mean", "median", "p90"
+    )?;
+    let f = |x: Option<f64>| x.map_or("-".to_string(), |x| format!("{x:.4}"));
+    for (e, &h) in errors.iter().zip(&a.horizons) {
+        for (v, p) in e.iter().zip(Predictor::ALL) {
+            let mean = (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+            writeln!(
+                out,
+                "{:>7.1}s {:<22} {:>9} {:>8} {:>8} {:>8}",
+                dt * h as f64,
+                p.name(),
+                v.len(),
+                f(mean),
+                f(quantile(v, 0.5)),
+                f(quantile(v, 0.9))
+            )?;
+        }
+    }
     Ok(())
 }
