@@ -35,10 +35,18 @@ pub const STEPS: [usize; 3] = [16, 32, 64];
 /// The step the kernels use unless told otherwise ([`set_step`], `train.attention_step`).
 pub const DEFAULT_STEP: usize = 16;
 
-/// Row stride (elements) of the kernels' Q, K, V and dO tiles for head size `head`. The paddings of these
-/// strides keep every tensor-core load and store on a 32-byte boundary and spread rows over the banks.
-pub(crate) const fn tile_stride(head: usize) -> usize {
-    head + 8
+/// Row padding (elements) of the buffers the products read, for operands of `elem` bytes: 16 bytes, the
+/// least that keeps every tensor-core load on a 32-byte boundary (16-bit fragments also need a row stride
+/// of a multiple of 8 elements) while shifting consecutive rows to other banks. Four f32 elements rather
+/// than eight save the shared memory that fits a third query-gradient cube on an SM.
+pub(crate) const fn pad(elem: usize) -> usize {
+    16 / elem
+}
+
+/// Row stride (elements) of the kernels' Q, K, V and dO tiles for head size `head` and `elem`-byte
+/// operands.
+pub(crate) const fn tile_stride(head: usize, elem: usize) -> usize {
+    head + pad(elem)
 }
 
 /// Row stride of the kernels' f32 score (and score-gradient) buffers for a loop of `step` rows.
@@ -47,8 +55,8 @@ pub(crate) const fn score_stride(step: usize) -> usize {
 }
 
 /// Row stride of the kernels' probability (and score-gradient) buffers in the products' format.
-pub(crate) const fn prob_stride(step: usize) -> usize {
-    step + 8
+pub(crate) const fn prob_stride(step: usize, elem: usize) -> usize {
+    step + pad(elem)
 }
 
 /// Row stride of the kernels' f32 accumulators for head size `head`.
@@ -111,19 +119,27 @@ pub fn fallbacks() -> usize {
     FALLBACKS.load(Ordering::Relaxed)
 }
 
-/// Shared memory (bytes) the largest of the fused kernels declares for head size `head`, operands of
-/// `elem` bytes and a loop of `step` rows (the key/value gradients' kernel, whose K, V, Q and dO tiles,
-/// scores, probabilities and two accumulators all live in shared memory).
-pub fn shared_bytes(head: usize, elem: usize, step: usize) -> usize {
-    let block = BLOCK * tile_stride(head) * elem;
-    let stepped = step * tile_stride(head) * elem;
+/// Shared memory (bytes) each fused kernel declares for head size `head`, operands of `elem` bytes and a
+/// loop of `step` rows: forward, key/value gradients, query gradients. Each holds its own block's tiles,
+/// one step's tiles, f32 scores, probabilities in the products' format and f32 accumulators.
+pub fn kernel_shared_bytes(head: usize, elem: usize, step: usize) -> [usize; 3] {
+    let block = BLOCK * tile_stride(head, elem) * elem;
+    let stepped = step * tile_stride(head, elem) * elem;
     let scores = BLOCK * score_stride(step) * 4;
-    let probs = BLOCK * prob_stride(step) * elem;
+    let probs = BLOCK * prob_stride(step, elem) * elem;
     let acc = BLOCK * acc_stride(head) * 4;
     let forward = block + 2 * stepped + scores + probs + acc;
     let kv = 2 * block + 2 * stepped + 2 * step * 4 + 2 * scores + 2 * probs + 2 * acc;
     let q = 2 * block + 2 * stepped + 2 * scores + probs + acc;
-    forward.max(kv).max(q)
+    [forward, kv, q]
+}
+
+/// Shared memory (bytes) the largest of the fused kernels declares (the key/value gradients' kernel).
+pub fn shared_bytes(head: usize, elem: usize, step: usize) -> usize {
+    kernel_shared_bytes(head, elem, step)
+        .into_iter()
+        .max()
+        .unwrap_or(0)
 }
 
 /// Why the fused kernels cannot take a head size, if they cannot.
@@ -240,18 +256,23 @@ mod tests {
     }
 
     #[test]
-    fn shared_memory_matches_what_the_device_reported() {
-        // An H200 refused the f32 kernels at head size 128 with "Requested 279040 bytes, maximum 232448".
-        assert_eq!(shared_bytes(128, 4, 64), 279_040);
-        // The sizes training uses fit that limit; bf16 operands fit at 128 too.
-        assert!(shared_bytes(64, 4, 64) <= 232_448 && shared_bytes(128, 2, 64) <= 232_448);
-        // The key/value kernel at head size 64 in f32: one cube per SM of 228 KB with steps of 64 or 32,
-        // two (each also reserves 1 KB) with steps of 16.
-        let half_sm = 228 * 1024 / 2 - 1024;
-        assert_eq!(shared_bytes(64, 4, 64), 180_736);
-        assert!(shared_bytes(64, 4, 32) > half_sm && shared_bytes(64, 4, 16) <= half_sm);
-        // f32 at head size 128 fits the device with the shorter steps.
-        assert!(shared_bytes(128, 4, 32) <= 232_448);
+    fn shared_memory_decides_how_many_cubes_share_an_sm() {
+        // Cubes per SM of 228 KB, each also reserving 1 KB.
+        let per_sm = |bytes: usize| 233_472 / (bytes + 1024);
+        // Head size 64 in f32 with steps of 16 (the default): two key/value cubes, three query-gradient
+        // cubes, four forward cubes. (Nsight Compute, thirteenth session, with rows padded by 8 floats
+        // instead of 4: 103.55, 79.87 and 56.32 KB, so two query-gradient cubes.)
+        assert_eq!(kernel_shared_bytes(64, 4, 16), [53_760, 98_944, 76_288]);
+        assert_eq!(kernel_shared_bytes(64, 4, 16).map(per_sm), [4, 2, 3]);
+        // With steps of 64 (the kernels before), one cube of each backward kernel (the key/value one: Nsight
+        // reported 180.74 KB with the wider padding).
+        assert_eq!(kernel_shared_bytes(64, 4, 64).map(per_sm)[1..], [1, 1]);
+        // An H200 refused the f32 kernels at head size 128 with steps of 64 ("Requested 279040 bytes,
+        // maximum 232448", the wider padding); they still do not fit, and do with shorter steps.
+        assert!(shared_bytes(128, 4, 64) > 232_448 && shared_bytes(128, 4, 32) <= 232_448);
+        // bf16 operands keep 8-element padding (16-bit fragments need strides of multiples of 8).
+        assert_eq!(tile_stride(64, 2), 72);
+        assert!(shared_bytes(128, 2, 64) <= 232_448);
     }
 
     #[test]

@@ -8,7 +8,8 @@
 //! the step's tiles, scores and probabilities are what fills shared memory, so a shorter step lets more
 //! cubes share an SM. Products
 //! run on tensor cores (`cmma`) from shared memory: TF32 tiles of 16×16×8 for f32 operands, bf16 tiles of
-//! 16×16×16 for bf16 operands, all accumulating in f32. The element-wise work between products (scale,
+//! 16×16×16 for bf16 operands, all accumulating in f32 (so `32 / kstep` is the operands' size in bytes,
+//! which sets the rows' padding). The element-wise work between products (scale,
 //! mask, online softmax, the softmax Jacobian) runs on f32 copies of the products in shared memory, two
 //! units per row. Nothing of size `lq × lk` reaches global memory: the memory of a pass is its inputs,
 //! outputs and one f32 log-sum-exp per query.
@@ -229,9 +230,9 @@ pub fn forward<E: Float, C: Float>(
     #[comptime] step: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
-    let sq = comptime!(tile_stride(dh));
+    let sq = comptime!(tile_stride(dh, 32 / kstep));
     let ss = comptime!(score_stride(step));
-    let sp = comptime!(prob_stride(step));
+    let sp = comptime!(prob_stride(step, 32 / kstep));
     let so = comptime!(acc_stride(dh));
     let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut ks = SharedMemory::<C>::new_aligned(comptime!(step * sq), 128usize);
@@ -361,9 +362,9 @@ pub fn backward_kv<E: Float, C: Float>(
     #[comptime] step: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
-    let sq = comptime!(tile_stride(dh));
+    let sq = comptime!(tile_stride(dh, 32 / kstep));
     let ss = comptime!(score_stride(step));
-    let sp = comptime!(prob_stride(step));
+    let sp = comptime!(prob_stride(step, 32 / kstep));
     let so = comptime!(acc_stride(dh));
     let mut ks = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut vs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
@@ -533,9 +534,9 @@ pub fn backward_q<E: Float, C: Float>(
     #[comptime] step: usize,
     #[define(E, C)] _dtypes: [StorageType; 2],
 ) {
-    let sq = comptime!(tile_stride(dh));
+    let sq = comptime!(tile_stride(dh, 32 / kstep));
     let ss = comptime!(score_stride(step));
-    let sp = comptime!(prob_stride(step));
+    let sp = comptime!(prob_stride(step, 32 / kstep));
     let so = comptime!(acc_stride(dh));
     let mut qs = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
     let mut dos = SharedMemory::<C>::new_aligned(comptime!(BLOCK * sq), 128usize);
