@@ -59,7 +59,7 @@ fn block_bytes() -> usize {
 
 /// `softmax(q kᵀ / √d) v` over `[b, h, l, d]` tensors; `causal` hides keys after each query (bottom-right
 /// aligned, as burn's `is_causal`). Without a mask, training backends take the tiled operation, whose
-/// products follow `precision`; the decomposed path stays f32.
+/// products follow `precision.attention()`; the decomposed path stays f32.
 pub fn attend<B: Backend>(
     q: Tensor<B, 4>,
     k: Tensor<B, 4>,
@@ -68,6 +68,7 @@ pub fn attend<B: Backend>(
     causal: bool,
     precision: Precision,
 ) -> Tensor<B, 4> {
+    let precision = precision.attention();
     let [_, _, lq, _] = q.dims();
     let lk = k.dims()[2];
     match tiled_for::<B>() {

@@ -51,6 +51,21 @@ pub enum Precision {
     /// Linear layers and attention products in bf16 with f32 accumulation and f32 outputs; parameters,
     /// gradients, optimizer state, norms, softmax statistics and losses stay f32.
     Bf16,
+    /// Linear layers and output heads as [`Precision::Bf16`], the attention's products in f32: on CUDA the
+    /// fused attention kernels are faster on f32 operands than on bf16 ones (docs/perf-notes.md), the named
+    /// matmul kernel is faster on bf16 ones.
+    #[serde(rename = "bf16-linear")]
+    Bf16Linear,
+}
+
+impl Precision {
+    /// The format of the attention's products (the linear layers around it keep `self`).
+    pub fn attention(self) -> Precision {
+        match self {
+            Precision::Bf16Linear => Precision::F32,
+            p => p,
+        }
+    }
 }
 
 impl Default for BackboneConfig {
@@ -75,6 +90,16 @@ impl Default for BackboneConfig {
 }
 
 impl BackboneConfig {
+    /// The settings generation builds the model with: products in f32 whatever `precision` trained it
+    /// (the parameters are f32 either way). Without autotuning, burn's bf16 matmul kernel is no faster than
+    /// its f32 one on generation's shapes and the casts would come on top (docs/performance.md).
+    pub fn for_inference(&self) -> BackboneConfig {
+        BackboneConfig {
+            precision: Precision::F32,
+            ..self.clone()
+        }
+    }
+
     /// Embedding width E.
     pub fn embed(&self) -> usize {
         if self.embed_dim == 0 {
@@ -82,5 +107,29 @@ impl BackboneConfig {
         } else {
             self.embed_dim
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn inference_computes_in_f32_and_keeps_every_other_setting() {
+        let trained = BackboneConfig {
+            precision: Precision::Bf16Linear,
+            d_model: 64,
+            tar_layers: 3,
+            ..BackboneConfig::default()
+        };
+        let inference = trained.for_inference();
+        assert_eq!(inference.precision, Precision::F32);
+        assert_eq!(
+            BackboneConfig {
+                precision: Precision::Bf16Linear,
+                ..inference
+            },
+            trained
+        );
     }
 }

@@ -12,11 +12,12 @@ use burn::nn::Linear;
 use burn::tensor::backend::Backend;
 use burn::tensor::{FloatDType, Tensor};
 
-/// `x` in the format products are computed in: bf16 for [`Precision::Bf16`], unchanged otherwise.
+/// `x` in the format products are computed in: bf16 for [`Precision::Bf16`] and
+/// [`Precision::Bf16Linear`] (whose attention calls get [`Precision::attention`]'s f32), unchanged for f32.
 pub fn operand<B: Backend, const D: usize>(x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
     match p {
         Precision::F32 => x,
-        Precision::Bf16 => x.cast(FloatDType::BF16),
+        Precision::Bf16 | Precision::Bf16Linear => x.cast(FloatDType::BF16),
     }
 }
 
@@ -24,7 +25,7 @@ pub fn operand<B: Backend, const D: usize>(x: Tensor<B, D>, p: Precision) -> Ten
 fn widen<B: Backend, const D: usize>(x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
     match p {
         Precision::F32 => x,
-        Precision::Bf16 => x.cast(FloatDType::F32),
+        Precision::Bf16 | Precision::Bf16Linear => x.cast(FloatDType::F32),
     }
 }
 
@@ -47,7 +48,7 @@ pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p:
         }
         // burn's layer adds the bias inside its product.
         (None, Precision::F32) => return layer.forward(x),
-        (None, Precision::Bf16) => widen(
+        (None, Precision::Bf16 | Precision::Bf16Linear) => widen(
             burn::tensor::module::linear(operand(x, p), operand(w, p), None),
             p,
         ),
@@ -93,5 +94,41 @@ mod tests {
         let bias = layer.bias.as_ref().expect("bias").val();
         assert_eq!(bias.grad(&g_half).expect("bias grad").dtype(), DType::F32);
         assert_eq!(x.grad(&g_half).expect("input grad").dtype(), DType::F32);
+    }
+
+    #[test]
+    fn bf16_linear_casts_linear_layers_and_leaves_attention_in_f32() {
+        let dev = Default::default();
+        let layer = LinearConfig::new(48, 24).init::<A>(&dev);
+        let x = Tensor::<A, 3>::random([2, 5, 48], Distribution::Normal(0.0, 1.0), &dev);
+        let half = linear(&layer, x.clone(), Precision::Bf16).inner();
+        let mixed = linear(&layer, x, Precision::Bf16Linear).inner();
+        assert_eq!(
+            rel(mixed, half),
+            0.0,
+            "linear layers: the same bf16 products as `bf16`"
+        );
+        // 300 keys take the training attention's tiled operation on the CPU, whose products follow the
+        // precision it is given.
+        let qkv = |seed: f64| Tensor::<A, 4>::random([1, 2, 300, 16], Distribution::Normal(seed, 1.0), &dev);
+        let (q, k, v) = (qkv(0.0), qkv(0.1), qkv(-0.1));
+        let att = |p| {
+            crate::attention::attend(q.clone(), k.clone(), v.clone(), None, true, p)
+                .inner()
+                .flatten::<3>(0, 1)
+        };
+        let (full, bf16, mixed) = (
+            att(Precision::F32),
+            att(Precision::Bf16),
+            att(Precision::Bf16Linear),
+        );
+        assert_eq!(rel(mixed, full.clone()), 0.0, "attention: f32 products");
+        assert!(
+            rel(bf16, full) > 1e-5,
+            "bf16 attention products differ from f32 ones"
+        );
+        assert_eq!(Precision::Bf16Linear.attention(), Precision::F32);
+        let parsed: Precision = serde_json::from_str(r#""bf16-linear""#).expect("bf16-linear parses");
+        assert_eq!(parsed, Precision::Bf16Linear);
     }
 }

@@ -184,9 +184,9 @@ fn attend<I: LayerBackend>(
 ) -> (Tensor<I, 4>, Tensor<I, 4>) {
     let lq = q.dims()[2];
     if k.dims()[2] >= MIN_TILED_KEYS {
-        I::attention_forward(q, k, v, s.causal, s.precision)
+        I::attention_forward(q, k, v, s.causal, s.precision.attention())
     } else {
-        tiled_forward(q, k, v, s.causal, lq, s.precision)
+        tiled_forward(q, k, v, s.causal, lq, s.precision.attention())
     }
 }
 
@@ -203,9 +203,9 @@ fn attend_grad<I: LayerBackend>(
 ) -> (Tensor<I, 4>, Tensor<I, 4>, Tensor<I, 4>) {
     let lq = q.dims()[2];
     if k.dims()[2] >= MIN_TILED_KEYS {
-        I::attention_backward(q, k, v, out, lse, dout, s.causal, s.precision)
+        I::attention_backward(q, k, v, out, lse, dout, s.causal, s.precision.attention())
     } else {
-        tiled_backward(q, k, v, out, lse, dout, s.causal, lq, s.precision)
+        tiled_backward(q, k, v, out, lse, dout, s.causal, lq, s.precision.attention())
     }
 }
 
@@ -220,11 +220,12 @@ fn run<I: LayerBackend>(
 ) -> (Tensor<I, 3>, Saved<I>) {
     let p = s.precision;
     let (n1, xhat1, rstd1) = norm(x.clone(), &w.ln1, s.eps);
-    let q = operand(split_heads(linear(n1.clone(), &w.q, p), s.heads), p);
+    let pa = p.attention();
+    let q = operand(split_heads(linear(n1.clone(), &w.q, p), s.heads), pa);
     let kv = linear(n1.clone(), &w.kv, p);
     let d = kv.dims()[2] / 2;
-    let k = operand(split_heads(kv.clone().narrow(2, 0, d), s.heads), p);
-    let v = operand(split_heads(kv.narrow(2, d, d), s.heads), p);
+    let k = operand(split_heads(kv.clone().narrow(2, 0, d), s.heads), pa);
+    let v = operand(split_heads(kv.narrow(2, d, d), s.heads), pa);
     let (att, lse) = attend(q.clone(), k.clone(), v.clone(), s);
     let merged = merge_heads(att.clone());
     let x1 = x + drop(&masks.attn, linear(merged.clone(), &w.proj, p));

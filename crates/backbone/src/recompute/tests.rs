@@ -97,6 +97,7 @@ fn recomputed_layer_matches_autodiff_in_f32() {
 #[test]
 fn recomputed_layer_matches_autodiff_in_bf16() {
     check(300, true, Precision::Bf16, 2e-2);
+    check(300, false, Precision::Bf16Linear, 2e-2);
 }
 
 #[test]

@@ -48,7 +48,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
     let (config, _) = UmgenConfig::load(&a.config.config, &a.config.set)?.without_missing_tokenizers();
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
-    let cfg = &config.backbone;
+    let cfg = &config.backbone.for_inference();
     let device = Device::parse(&a.device)?;
     let on_gpu = matches!(device, Device::Cuda(_));
     let n = spec.n;

@@ -55,7 +55,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let on_device = a.draw.on_device(matches!(device, Device::Cuda(_)), total);
     let started = std::time::Instant::now();
     let (scenes, (new_tested, new_dropped)) = crate::with_inference!(device, |I, dev| {
-        let model = Backbone::<I>::new(&bundle.config.backbone, &spec, &dev)?;
+        let model = Backbone::<I>::new(&bundle.config.backbone.for_inference(), &spec, &dev)?;
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
         let mut g = Generator::new(&model, samplings, window, a.seed)?
             .draw_on_device(on_device)
