@@ -28,6 +28,12 @@ const UNITS: usize = 128;
 /// Running maximum of a row that has seen no visible score yet (finite, so that differences stay finite).
 const NONE_SEEN: f32 = -1.0e30;
 
+/// Offset of one (sequence, head) in a `[b, h, l, dh]` (or `[b, h, l, 1]`) tensor.
+#[cube]
+fn head_base<T: CubeType>(t: &Tensor<T>, seq: usize, head: usize) -> usize {
+    seq * t.stride(0) + head * t.stride(1)
+}
+
 /// Whether `key` is visible from `query`.
 #[cube]
 fn visible(key: usize, query: usize, lk: usize, lq: usize, off: usize, #[comptime] causal: bool) -> bool {
@@ -249,18 +255,9 @@ pub fn forward<E: Float, C: Float>(
     let r = plane * 16 + UNIT_POS_X as usize / 2;
     let row = q0 + r;
 
-    let kbase = seq * k.stride(0) + head * k.stride(1);
-    let vbase = seq * v.stride(0) + head * v.stride(1);
-    load_rows::<E, C>(
-        q,
-        seq * q.stride(0) + head * q.stride(1),
-        q0,
-        lq,
-        &mut qs,
-        BLOCK,
-        dh,
-        sq,
-    );
+    let kbase = head_base(k, seq, head);
+    let vbase = head_base(v, seq, head);
+    load_rows::<E, C>(q, head_base(q, seq, head), q0, lq, &mut qs, BLOCK, dh, sq);
     zero(&mut acc, so);
 
     let mut m = f32::new(NONE_SEEN);
@@ -328,14 +325,14 @@ pub fn forward<E: Float, C: Float>(
     }
 
     if row < lq {
-        let obase = seq * out.stride(0) + head * out.stride(1) + row * out.stride(2);
+        let obase = head_base(out, seq, head) + row * out.stride(2);
         let os3 = out.stride(3);
         for j in 0..dh / 2 {
             let c = half + 2 * j;
             out[obase + c * os3] = acc[r * so + c] / l;
         }
         if half == 0 {
-            lse[seq * lse.stride(0) + head * lse.stride(1) + row * lse.stride(2)] = m + l.ln();
+            lse[head_base(lse, seq, head) + row * lse.stride(2)] = m + l.ln();
         }
     }
 }
@@ -388,30 +385,12 @@ pub fn backward_kv<E: Float, C: Float>(
     let key = k0 + r;
     let tid = (UNIT_POS_Y * 32 + UNIT_POS_X) as usize;
 
-    let qbase = seq * q.stride(0) + head * q.stride(1);
-    let dobase = seq * dout.stride(0) + head * dout.stride(1);
-    let lbase = seq * lse.stride(0) + head * lse.stride(1);
-    let dbase = seq * delta.stride(0) + head * delta.stride(1);
-    load_rows::<E, C>(
-        k,
-        seq * k.stride(0) + head * k.stride(1),
-        k0,
-        lk,
-        &mut ks,
-        BLOCK,
-        dh,
-        sq,
-    );
-    load_rows::<E, C>(
-        v,
-        seq * v.stride(0) + head * v.stride(1),
-        k0,
-        lk,
-        &mut vs,
-        BLOCK,
-        dh,
-        sq,
-    );
+    let qbase = head_base(q, seq, head);
+    let dobase = head_base(dout, seq, head);
+    let lbase = head_base(lse, seq, head);
+    let dbase = head_base(delta, seq, head);
+    load_rows::<E, C>(k, head_base(k, seq, head), k0, lk, &mut ks, BLOCK, dh, sq);
+    load_rows::<E, C>(v, head_base(v, seq, head), k0, lk, &mut vs, BLOCK, dh, sq);
     zero(&mut dka, so);
     zero(&mut dva, so);
 
@@ -503,8 +482,8 @@ pub fn backward_kv<E: Float, C: Float>(
     sync_cube();
 
     if key < lk {
-        let kb = seq * dk.stride(0) + head * dk.stride(1) + key * dk.stride(2);
-        let vb = seq * dv.stride(0) + head * dv.stride(1) + key * dv.stride(2);
+        let kb = head_base(dk, seq, head) + key * dk.stride(2);
+        let vb = head_base(dv, seq, head) + key * dv.stride(2);
         let (k3, v3) = (dk.stride(3), dv.stride(3));
         for j in 0..dh / 2 {
             let c = half + 2 * j;
@@ -555,34 +534,16 @@ pub fn backward_q<E: Float, C: Float>(
     let r = plane * 16 + UNIT_POS_X as usize / 2;
     let row = q0 + r;
 
-    let kbase = seq * k.stride(0) + head * k.stride(1);
-    let vbase = seq * v.stride(0) + head * v.stride(1);
-    load_rows::<E, C>(
-        q,
-        seq * q.stride(0) + head * q.stride(1),
-        q0,
-        lq,
-        &mut qs,
-        BLOCK,
-        dh,
-        sq,
-    );
-    load_rows::<E, C>(
-        dout,
-        seq * dout.stride(0) + head * dout.stride(1),
-        q0,
-        lq,
-        &mut dos,
-        BLOCK,
-        dh,
-        sq,
-    );
+    let kbase = head_base(k, seq, head);
+    let vbase = head_base(v, seq, head);
+    load_rows::<E, C>(q, head_base(q, seq, head), q0, lq, &mut qs, BLOCK, dh, sq);
+    load_rows::<E, C>(dout, head_base(dout, seq, head), q0, lq, &mut dos, BLOCK, dh, sq);
     zero(&mut acc, so);
     let mut my_lse = 0.0f32;
     let mut my_delta = 0.0f32;
     if row < lq {
-        my_lse = lse[seq * lse.stride(0) + head * lse.stride(1) + row * lse.stride(2)];
-        my_delta = delta[seq * delta.stride(0) + head * delta.stride(1) + row * delta.stride(2)];
+        my_lse = lse[head_base(lse, seq, head) + row * lse.stride(2)];
+        my_delta = delta[head_base(delta, seq, head) + row * delta.stride(2)];
     }
 
     for kb in 0..key_steps(lk, q0, off, causal, step) {
@@ -640,7 +601,7 @@ pub fn backward_q<E: Float, C: Float>(
     sync_cube();
 
     if row < lq {
-        let base = seq * dq.stride(0) + head * dq.stride(1) + row * dq.stride(2);
+        let base = head_base(dq, seq, head) + row * dq.stride(2);
         let s3 = dq.stride(3);
         for j in 0..dh / 2 {
             let c = half + 2 * j;
