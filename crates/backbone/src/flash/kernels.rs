@@ -22,6 +22,7 @@
 
 use super::{BLOCK, acc_stride, prob_stride, score_stride, tile_stride};
 use cubecl::cmma;
+use cubecl::cmma::{MatrixIdent, MatrixLayout};
 use cubecl::prelude::*;
 /// Units per cube: four planes of 32.
 const UNITS: usize = 128;
@@ -95,6 +96,49 @@ fn zero(dst: &mut SharedMemory<f32>, #[comptime] stride: usize) {
     }
 }
 
+/// The A operand of a 16 × 16 × `kstep` product: 16 rows of `src` from `start`, row stride `stride`.
+#[cube]
+fn tile_a<C: Float>(
+    src: &SharedMemory<C>,
+    start: usize,
+    #[comptime] stride: usize,
+    #[comptime] kstep: usize,
+) -> cmma::Matrix<C> {
+    let rows = src.slice(start, start + 16 * stride);
+    cmma::Matrix::<C>::from_slice(
+        MatrixIdent::A,
+        16usize,
+        16usize,
+        kstep,
+        MatrixLayout::RowMajor,
+        &rows,
+        stride as u32,
+    )
+}
+
+/// The B operand of a 16 × 16 × `kstep` product from `src[start..end]`, row stride `stride`, in
+/// `layout`: column-major for rows of keys (`a · bᵀ`), row-major for a block of rows (`a · b`).
+#[cube]
+fn tile_b<C: Float>(
+    src: &SharedMemory<C>,
+    start: usize,
+    end: usize,
+    #[comptime] layout: MatrixLayout,
+    #[comptime] stride: usize,
+    #[comptime] kstep: usize,
+) -> cmma::Matrix<C> {
+    let rows = src.slice(start, end);
+    cmma::Matrix::<C>::from_slice(
+        MatrixIdent::B,
+        16usize,
+        16usize,
+        kstep,
+        layout,
+        &rows,
+        stride as u32,
+    )
+}
+
 /// One plane's 16 × `step` product `a · bᵀ` into `out` (f32, row stride `so`, from `out_off`): `a` holds
 /// the plane's 16 rows of length `dh` from `a_off`, `b` `step` rows of length `dh`; both row stride `sa`.
 #[cube]
@@ -114,41 +158,50 @@ fn rows_by_rows<C: Float>(
     #[unroll]
     for nt in 0..step / 16 {
         let acc = cmma::Matrix::<f32>::from_value(
-            cmma::MatrixIdent::Accumulator,
+            MatrixIdent::Accumulator,
             16usize,
             16usize,
             kstep,
-            cmma::MatrixLayout::Undefined,
+            MatrixLayout::Undefined,
             0.0,
         );
         #[unroll]
         for kk in 0..dh / kstep {
-            let x = cmma::Matrix::<C>::from_slice(
-                cmma::MatrixIdent::A,
-                16usize,
-                16usize,
-                kstep,
-                cmma::MatrixLayout::RowMajor,
-                &a.slice(a_off + kk * kstep, a_off + kk * kstep + 16 * sa),
-                sa as u32,
-            );
-            let y = cmma::Matrix::<C>::from_slice(
-                cmma::MatrixIdent::B,
-                16usize,
-                16usize,
-                kstep,
-                cmma::MatrixLayout::ColMajor,
-                &b.slice(nt * 16 * sa + kk * kstep, (nt * 16 + 16) * sa),
-                sa as u32,
-            );
+            let x = tile_a::<C>(a, a_off + kk * kstep, sa, kstep);
+            let (b0, b1) = (nt * 16 * sa + kk * kstep, (nt * 16 + 16) * sa);
+            let y = tile_b::<C>(b, b0, b1, MatrixLayout::ColMajor, sa, kstep);
             cmma::execute::<C, C, f32, f32>(&x, &y, &acc, &acc);
         }
         cmma::store(
             &mut out.slice_mut(out_off + nt * 16, out_off + nt * 16 + 16 * so),
             &acc,
             so as u32,
-            cmma::MatrixLayout::RowMajor,
+            MatrixLayout::RowMajor,
         );
+    }
+}
+
+/// `sum` plus the plane's product of `a` (16 rows of length `step` from `a_off`, row stride `sa`) and
+/// columns `[16 nt, 16 nt + 16)` of `b` (`step` rows, row stride `sb`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn add_product<C: Float>(
+    sum: &cmma::Matrix<f32>,
+    a: &SharedMemory<C>,
+    a_off: usize,
+    b: &SharedMemory<C>,
+    #[comptime] nt: usize,
+    #[comptime] sa: usize,
+    #[comptime] sb: usize,
+    #[comptime] kstep: usize,
+    #[comptime] step: usize,
+) {
+    #[unroll]
+    for kk in 0..step / kstep {
+        let x = tile_a::<C>(a, a_off + kk * kstep, sa, kstep);
+        let (b0, b1) = (kk * kstep * sb + nt * 16, (kk * kstep + kstep) * sb);
+        let y = tile_b::<C>(b, b0, b1, MatrixLayout::RowMajor, sb, kstep);
+        cmma::execute::<C, C, f32, f32>(&x, &y, sum, sum);
     }
 }
 
@@ -173,11 +226,11 @@ fn accumulate<C: Float>(
     #[unroll]
     for nt in 0..dh / 16 {
         let sum = cmma::Matrix::<f32>::from_value(
-            cmma::MatrixIdent::Accumulator,
+            MatrixIdent::Accumulator,
             16usize,
             16usize,
             kstep,
-            cmma::MatrixLayout::Undefined,
+            MatrixLayout::Undefined,
             0.0,
         );
         let start = acc_off + nt * 16;
@@ -185,35 +238,76 @@ fn accumulate<C: Float>(
             &sum,
             &acc.slice(start, start + 16 * sacc),
             sacc as u32,
-            cmma::MatrixLayout::RowMajor,
+            MatrixLayout::RowMajor,
         );
-        #[unroll]
-        for kk in 0..step / kstep {
-            let x = cmma::Matrix::<C>::from_slice(
-                cmma::MatrixIdent::A,
-                16usize,
-                16usize,
-                kstep,
-                cmma::MatrixLayout::RowMajor,
-                &a.slice(a_off + kk * kstep, a_off + kk * kstep + 16 * sa),
-                sa as u32,
-            );
-            let y = cmma::Matrix::<C>::from_slice(
-                cmma::MatrixIdent::B,
-                16usize,
-                16usize,
-                kstep,
-                cmma::MatrixLayout::RowMajor,
-                &b.slice(kk * kstep * sb + nt * 16, (kk * kstep + kstep) * sb),
-                sb as u32,
-            );
-            cmma::execute::<C, C, f32, f32>(&x, &y, &sum, &sum);
-        }
+        add_product::<C>(&sum, a, a_off, b, nt, sa, sb, kstep, step);
         cmma::store(
             &mut acc.slice_mut(start, start + 16 * sacc),
             &sum,
             sacc as u32,
-            cmma::MatrixLayout::RowMajor,
+            MatrixLayout::RowMajor,
+        );
+    }
+}
+
+/// One plane's 16 × `dh` f32 accumulator held in tensor-core fragments (`dh / 16` tiles of 16 × 16), zero:
+/// the backward kernels' sums need no rescaling between steps, so, unlike the forward pass's, they never
+/// go through shared memory until the end.
+#[cube]
+fn zero_tiles(#[comptime] dh: usize, #[comptime] kstep: usize) -> Sequence<cmma::Matrix<f32>> {
+    let mut tiles = Sequence::new();
+    #[unroll]
+    for _ in 0..dh / 16 {
+        tiles.push(cmma::Matrix::<f32>::from_value(
+            MatrixIdent::Accumulator,
+            16usize,
+            16usize,
+            kstep,
+            MatrixLayout::Undefined,
+            0.0,
+        ));
+    }
+    tiles
+}
+
+/// [`accumulate`] into fragments: `tiles` plus `a · b`, `a` the plane's 16 rows of length `step` from
+/// `a_off` (row stride `sa`), `b` `step` rows of length `dh` (row stride `sb`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn accumulate_tiles<C: Float>(
+    tiles: &Sequence<cmma::Matrix<f32>>,
+    a: &SharedMemory<C>,
+    a_off: usize,
+    b: &SharedMemory<C>,
+    #[comptime] dh: usize,
+    #[comptime] sa: usize,
+    #[comptime] sb: usize,
+    #[comptime] kstep: usize,
+    #[comptime] step: usize,
+) {
+    #[unroll]
+    for nt in 0..dh / 16 {
+        add_product::<C>(tiles.index(nt), a, a_off, b, nt, sa, sb, kstep, step);
+    }
+}
+
+/// Stores one plane's fragments into its 16 rows of `acc` (row stride `sacc`, from `acc_off`).
+#[cube]
+fn store_tiles(
+    tiles: &Sequence<cmma::Matrix<f32>>,
+    acc: &mut SharedMemory<f32>,
+    acc_off: usize,
+    #[comptime] dh: usize,
+    #[comptime] sacc: usize,
+) {
+    #[unroll]
+    for nt in 0..dh / 16 {
+        let start = acc_off + nt * 16;
+        cmma::store(
+            &mut acc.slice_mut(start, start + 16 * sacc),
+            tiles.index(nt),
+            sacc as u32,
+            MatrixLayout::RowMajor,
         );
     }
 }
@@ -391,8 +485,8 @@ pub fn backward_kv<E: Float, C: Float>(
     let dbase = head_base(delta, seq, head);
     load_rows::<E, C>(k, head_base(k, seq, head), k0, lk, &mut ks, BLOCK, dh, sq);
     load_rows::<E, C>(v, head_base(v, seq, head), k0, lk, &mut vs, BLOCK, dh, sq);
-    zero(&mut dka, so);
-    zero(&mut dva, so);
+    let dk_tiles = zero_tiles(dh, kstep);
+    let dv_tiles = zero_tiles(dh, kstep);
 
     // The first query that sees this block's first key.
     let mut first = 0;
@@ -451,35 +545,14 @@ pub fn backward_kv<E: Float, C: Float>(
             dst[r * sp + c] = C::cast_from(ds);
         }
         sync_plane();
-        accumulate::<C>(
-            &mut dva,
-            plane * 16 * so,
-            &pt,
-            plane * 16 * sp,
-            &dos,
-            dh,
-            sp,
-            sq,
-            so,
-            kstep,
-            step,
-        );
-        accumulate::<C>(
-            &mut dka,
-            plane * 16 * so,
-            &dst,
-            plane * 16 * sp,
-            &qs,
-            dh,
-            sp,
-            sq,
-            so,
-            kstep,
-            step,
-        );
+        accumulate_tiles::<C>(&dv_tiles, &pt, plane * 16 * sp, &dos, dh, sp, sq, kstep, step);
+        accumulate_tiles::<C>(&dk_tiles, &dst, plane * 16 * sp, &qs, dh, sp, sq, kstep, step);
     }
-    // The accumulators were zeroed by the whole cube; a block with no visible query skips the loop.
-    sync_cube();
+    // Each plane reads back only its own rows; a block with no visible query skips the loop and stores
+    // zeros.
+    store_tiles(&dk_tiles, &mut dka, plane * 16 * so, dh, so);
+    store_tiles(&dv_tiles, &mut dva, plane * 16 * so, dh, so);
+    sync_plane();
 
     if key < lk {
         let kb = head_base(dk, seq, head) + key * dk.stride(2);
@@ -538,7 +611,7 @@ pub fn backward_q<E: Float, C: Float>(
     let vbase = head_base(v, seq, head);
     load_rows::<E, C>(q, head_base(q, seq, head), q0, lq, &mut qs, BLOCK, dh, sq);
     load_rows::<E, C>(dout, head_base(dout, seq, head), q0, lq, &mut dos, BLOCK, dh, sq);
-    zero(&mut acc, so);
+    let dq_tiles = zero_tiles(dh, kstep);
     let mut my_lse = 0.0f32;
     let mut my_delta = 0.0f32;
     if row < lq {
@@ -584,21 +657,10 @@ pub fn backward_q<E: Float, C: Float>(
             ds[r * sp + c] = C::cast_from(p * (dp[r * ss + c] - my_delta));
         }
         sync_plane();
-        accumulate::<C>(
-            &mut acc,
-            plane * 16 * so,
-            &ds,
-            plane * 16 * sp,
-            &ks,
-            dh,
-            sp,
-            sq,
-            so,
-            kstep,
-            step,
-        );
+        accumulate_tiles::<C>(&dq_tiles, &ds, plane * 16 * sp, &ks, dh, sp, sq, kstep, step);
     }
-    sync_cube();
+    store_tiles(&dq_tiles, &mut acc, plane * 16 * so, dh, so);
+    sync_plane();
 
     if row < lq {
         let base = head_base(dq, seq, head) + row * dq.stride(2);
