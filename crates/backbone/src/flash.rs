@@ -96,15 +96,21 @@ pub fn selected() -> AttentionKernel {
     }
 }
 
-/// Sets the fused kernels' loop step for every pass this process runs from now on (`None`: the default).
-/// Errors name a step outside [`STEPS`].
-pub fn set_step(step: Option<usize>) -> Result<(), String> {
-    let step = step.unwrap_or(DEFAULT_STEP);
-    if !STEPS.contains(&step) {
-        return Err(format!(
+/// `step` if the fused kernels take it (one of [`STEPS`]); the error names it and the steps they take.
+pub fn check_step(step: usize) -> Result<usize, String> {
+    if STEPS.contains(&step) {
+        Ok(step)
+    } else {
+        Err(format!(
             "attention step {step}: the fused kernels take {STEPS:?} rows per step"
-        ));
+        ))
     }
+}
+
+/// Sets the fused kernels' loop step for every pass this process runs from now on (`None`: the default).
+/// Errors name a step outside [`STEPS`] and leave the step in use.
+pub fn set_step(step: Option<usize>) -> Result<(), String> {
+    let step = check_step(step.unwrap_or(DEFAULT_STEP))?;
     STEP.store(step, Ordering::Relaxed);
     Ok(())
 }

@@ -291,6 +291,11 @@ fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
     assert!(err.contains("2x2x30x20x8c") && err.contains("LK ≥ LQ"), "{err}");
     let err = failure(&["bench", "attention", "--kernels", "fused"], &[]);
     assert!(err.contains("--kernels fused") && err.contains("CUDA"), "{err}");
+    let err = failure(&["bench", "attention", "--step", "16,48"], &[]);
+    assert!(
+        err.contains("--step") && err.contains("48") && err.contains("[16, 32, 64]"),
+        "{err}"
+    );
 }
 
 #[test]

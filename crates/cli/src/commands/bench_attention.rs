@@ -144,9 +144,8 @@ fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(Atten
         false => a.block_mib.iter().map(|&m| Some(m << 20)).collect(),
     };
     for &s in &a.step {
-        flash::set_step(Some(s)).map_err(|e| anyhow::anyhow!("--step: {e}"))?;
+        flash::check_step(s).map_err(|e| anyhow::anyhow!("--step: {e}"))?;
     }
-    flash::set_step(None).map_err(anyhow::Error::msg)?;
     let steps: Vec<Option<usize>> = match a.step.is_empty() {
         true => vec![None],
         false => a.step.iter().map(|&s| Some(s)).collect(),
