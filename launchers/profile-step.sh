@@ -8,8 +8,11 @@
 # (CUBECL_DEBUG_LOG=FILE CUBECL_DEBUG_OPTION=profile: every kernel is synced and timed, so that step runs
 # slower than an unprofiled one while each kernel's own time stays right), and sums the kernel times by
 # kind: the named matmul kernel (train.matmul = "named"), burn's matmul kernels, fused element-wise, fused
-# and plain reductions, copies, the rest by name. The log stays in $OUT (default ./profile-out). UMGEN names
-# the binary (default: umgen); run from the repository root.
+# and plain reductions, copies, the rest by name. cuBLAS's kernels (train.matmul = "cublas", the default)
+# are not cubecl's and are not in the log: their time shows as cubecl's `wait` kernel, which holds cubecl's
+# stream until the product is done; pass `--set train.matmul=named` to see the products by name. The log
+# stays in $OUT (default ./profile-out). UMGEN names the binary (default: umgen); run from the repository
+# root.
 set -uo pipefail
 gpu=${1:-0}
 preset=${2:-small}

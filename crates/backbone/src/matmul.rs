@@ -33,8 +33,10 @@ use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{FloatDType, Tensor};
 use serde::{Deserialize, Serialize};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU8, Ordering};
 
+#[cfg(feature = "cuda")]
+mod cublas;
 #[cfg(feature = "cuda")]
 mod cuda;
 #[cfg(feature = "cuda")]
@@ -45,27 +47,35 @@ pub use cuda::{fallbacks, launch_kernel};
 #[serde(rename_all = "lowercase")]
 pub enum MatmulKernel {
     /// cubek's `specialized_tma_mma`, through [`named_autodiff`].
-    #[default]
     Named,
+    /// cuBLAS's `cublasGemmEx`, through [`named_autodiff`]; products it cannot take, or a machine without
+    /// libcublas, fall back to [`MatmulKernel::Named`] (counted in `fallbacks`).
+    #[default]
+    Cublas,
     /// burn's default kernel, through burn's own autodiff.
     Burn,
 }
 
-/// Burn's kernel chosen (process-wide: a kernel is a property of the device run, not of the model).
-static BURN_KERNEL: AtomicBool = AtomicBool::new(false);
+impl MatmulKernel {
+    const ALL: [MatmulKernel; 3] = [MatmulKernel::Cublas, MatmulKernel::Named, MatmulKernel::Burn];
+}
+
+/// Index in [`MatmulKernel::ALL`] of the kernel chosen (process-wide: a kernel is a property of the device
+/// run, not of the model).
+static KERNEL: AtomicU8 = AtomicU8::new(0);
 
 /// Chooses the kernel for every product this process runs from now on.
 pub fn select(kernel: MatmulKernel) {
-    BURN_KERNEL.store(kernel == MatmulKernel::Burn, Ordering::Relaxed);
+    let i = MatmulKernel::ALL.iter().position(|&k| k == kernel).unwrap_or(0);
+    KERNEL.store(i as u8, Ordering::Relaxed);
 }
 
-/// The kernel [`select`] chose ([`MatmulKernel::Named`] unless told otherwise).
+/// The kernel [`select`] chose ([`MatmulKernel::Cublas`] unless told otherwise).
 pub fn selected() -> MatmulKernel {
-    if BURN_KERNEL.load(Ordering::Relaxed) {
-        MatmulKernel::Burn
-    } else {
-        MatmulKernel::Named
-    }
+    MatmulKernel::ALL
+        .get(KERNEL.load(Ordering::Relaxed) as usize)
+        .copied()
+        .unwrap_or_default()
 }
 
 /// A backend that can multiply two `[m, k] × [k, n]` matrices of one float format (either may be a
@@ -91,7 +101,7 @@ impl NamedMatmul for burn::backend::Flex {
 pub type ProductFn<B> = fn(Tensor<B, 2>, Tensor<B, 2>, Precision) -> Tensor<B, 2>;
 
 /// [`named_autodiff`] as a function on `B` when `B` is one of the autodiff backends this workspace trains on
-/// (CUDA, or the CPU's `Flex`, where it runs burn's product) and [`selected`] is [`MatmulKernel::Named`];
+/// (CUDA, or the CPU's `Flex`, where it runs burn's product) and [`selected`] is not [`MatmulKernel::Burn`];
 /// `None` otherwise (the caller then uses burn's `matmul`).
 pub fn named_for<B: Backend>() -> Option<ProductFn<B>> {
     if selected() == MatmulKernel::Burn {

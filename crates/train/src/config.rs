@@ -61,8 +61,9 @@ pub struct TrainConfig {
     pub split: String,
     /// Size of a gradient all-reduce bucket in MiB (data-parallel runs).
     pub bucket_mib: f64,
-    /// Kernel of the linear layers' products when training on CUDA: `named` (cubek's
-    /// `specialized_tma_mma`, `umgen_backbone::matmul`) or `burn` (burn's default kernel).
+    /// Kernel of the linear layers' products when training on CUDA: `cublas` (the default; cuBLAS, falling
+    /// back to `named` where it is missing), `named` (cubek's `specialized_tma_mma`,
+    /// `umgen_backbone::matmul`) or `burn` (burn's default kernel).
     pub matmul: MatmulKernel,
     /// MiB one query block's attention scores may take in the tiled attention (`attention::set_block_bytes`):
     /// smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels.
@@ -108,7 +109,7 @@ impl Default for TrainConfig {
             data: None,
             split: "train".into(),
             bucket_mib: 25.0,
-            matmul: MatmulKernel::Named,
+            matmul: MatmulKernel::default(),
             attention_block_mib: umgen_backbone::attention::BLOCK_BYTES >> 20,
             attention: AttentionKernel::Fused,
             attention_step: umgen_backbone::flash::DEFAULT_STEP,
@@ -178,14 +179,16 @@ mod tests {
 
     #[test]
     fn kernel_settings_parse_are_checked_and_resuming_may_change_them() {
-        let named = TrainConfig::default();
+        let cublas = TrainConfig::default();
         let parse = |json: &str| serde_json::from_str::<TrainConfig>(json);
         let burn = parse(r#"{"matmul": "burn"}"#).expect("train.matmul = burn");
+        let named = parse(r#"{"matmul": "named"}"#).expect("train.matmul = named");
         assert_eq!(
-            (named.matmul, burn.matmul),
-            (MatmulKernel::Named, MatmulKernel::Burn)
+            (cublas.matmul, named.matmul, burn.matmul),
+            (MatmulKernel::Cublas, MatmulKernel::Named, MatmulKernel::Burn)
         );
         assert_eq!(named.identity(), burn.identity());
+        assert_eq!(named.identity(), cublas.identity());
         // A setting that changes the run still does.
         let lr = parse(r#"{"lr": 0.5}"#).expect("lr");
         assert_ne!(named.identity(), lr.identity());
@@ -216,7 +219,7 @@ mod tests {
         assert!(e.to_string().contains("train.attention_step = 48"), "{e}");
         let e = parse(r#"{"matmul": "tma"}"#).unwrap_err().to_string();
         assert!(
-            e.contains("tma") && e.contains("named") && e.contains("burn"),
+            e.contains("tma") && e.contains("cublas") && e.contains("named") && e.contains("burn"),
             "{e}"
         );
     }

@@ -1,6 +1,6 @@
 //! [`NamedMatmul`] for `Cuda` (burn-fusion over the cubecl backend): a custom operation in the fusion
-//! stream that launches cubek's `specialized_tma_mma` on the two operands as they lie in memory, row- or
-//! column-major, and writes an f32 result.
+//! stream that launches cubek's `specialized_tma_mma` (or cuBLAS, `cublas.rs`, with `train.matmul =
+//! "cublas"`) on the two operands as they lie in memory, row- or column-major, and writes an f32 result.
 //!
 //! The fusion stream cannot fuse a custom operation, so element-wise work around a product (a bias, a
 //! cast) runs as its own kernels instead of inside burn's fused matmul; the kernel's speed pays for that
@@ -120,13 +120,8 @@ pub fn launch_kernel(
     .map_err(|e| format!("{e:?}"))
 }
 
-/// `lhs · rhs` in f32 on the named kernel, else on burn's default kernel.
-fn run(lhs: Primitive, rhs: Primitive) -> Primitive {
-    let out = init_matmul_output(&lhs, &rhs, DType::F32);
-    let why = match launch(&lhs, &rhs, &out) {
-        Ok(()) => return out,
-        Err(why) => why,
-    };
+/// Counts and logs a product that `kernel` refused (the first at `warn`, the rest at `debug`).
+fn fell_back(kernel: &str, instead: &str, lhs: &Primitive, rhs: &Primitive, why: &str) {
     let n = FALLBACKS.fetch_add(1, Ordering::Relaxed) + 1;
     let what = format!(
         "{:?} × {:?} ({:?}): {why}",
@@ -135,11 +130,31 @@ fn run(lhs: Primitive, rhs: Primitive) -> Primitive {
         lhs.dtype
     );
     if n == 1 {
-        tracing::warn!(
-            "named matmul kernel refused {what}; burn's default kernel runs it (counted in fallbacks)"
-        );
+        tracing::warn!("{kernel} refused {what}; {instead} runs it (counted in fallbacks)");
     } else {
-        tracing::debug!("named matmul fallback #{n}: {what}");
+        tracing::debug!("matmul fallback #{n} ({kernel}): {what}");
+    }
+}
+
+/// `lhs · rhs` in f32 on cuBLAS when selected, else (or when it refuses) on the named kernel, else on
+/// burn's default kernel.
+fn run(lhs: Primitive, rhs: Primitive) -> Primitive {
+    let out = init_matmul_output(&lhs, &rhs, DType::F32);
+    if super::selected() == super::MatmulKernel::Cublas {
+        match super::cublas::launch(&lhs, &rhs, &out) {
+            Ok(()) => return out,
+            Err(why) => fell_back("cuBLAS", "the named kernel", &lhs, &rhs, &why),
+        }
+    }
+    match launch(&lhs, &rhs, &out) {
+        Ok(()) => return out,
+        Err(why) => fell_back(
+            "the named matmul kernel",
+            "burn's default kernel",
+            &lhs,
+            &rhs,
+            &why,
+        ),
     }
     match matmul(
         lhs.clone(),

@@ -23,8 +23,9 @@ pub enum BenchCommand {
     /// The matrix-product kernels cubecl offers (burn's default and the ones its autotuning chooses
     /// between), each timed and checked against the default on the shapes of the `small` training step.
     Matmul(BenchMatmulArgs),
-    /// A linear layer's product, forward and both gradients, on the named kernel that training uses
-    /// (`train.matmul = "named"`) against burn's own path: agreement with burn's f32 result, and time.
+    /// A linear layer's product, forward and both gradients, on the kernels training can use
+    /// (`train.matmul = "named"`, and `"cublas"` on CUDA) against burn's own path: agreement with burn's
+    /// f32 result, and time.
     Linear(BenchLinearArgs),
 }
 

@@ -1,5 +1,6 @@
-//! `umgen bench linear`: a linear layer's product, forward and both gradients, on the named kernel that
-//! training uses (`umgen_backbone::matmul`) against burn's own path on the same backend. Each path's
+//! `umgen bench linear`: a linear layer's product, forward and both gradients, on the kernels training can
+//! use (`umgen_backbone::matmul`: the named kernel, and cuBLAS on CUDA) against burn's own path on the same
+//! backend. Each path's
 //! output and gradients are compared with burn's f32 path, and each forward+backward pass is timed.
 
 use crate::cli::{BenchLinearArgs, PrecisionArg};
@@ -12,7 +13,7 @@ use burn::tensor::{Distribution, FloatDType, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
-use umgen::backbone::matmul::named_for;
+use umgen::backbone::matmul::{MatmulKernel, named_for, select};
 
 /// A product under test: `x · w` on the autodiff backend `B`.
 type Path<'a, B> = &'a dyn Fn(Tensor<B, 2>, Tensor<B, 2>) -> Tensor<B, 2>;
@@ -65,8 +66,18 @@ fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::D
                     .matmul(w.cast(FloatDType::BF16))
                     .cast(FloatDType::F32),
             };
-            let named_path = move |x, w| named(x, w, p);
-            let paths: [(&str, Path<B>); 2] = [("burn", &burn_path), ("named", &named_path)];
+            let on = |kernel: MatmulKernel| {
+                move |x: Tensor<B, 2>, w: Tensor<B, 2>| {
+                    select(kernel);
+                    named(x, w, p)
+                }
+            };
+            let (named_path, cublas_path) = (on(MatmulKernel::Named), on(MatmulKernel::Cublas));
+            let mut paths: Vec<(&str, Path<B>)> = vec![("burn", &burn_path), ("named", &named_path)];
+            // On the CPU every named product is burn's; cuBLAS is a CUDA kernel.
+            if a.device.starts_with("cuda") {
+                paths.push(("cublas", &cublas_path));
+            }
             for (name, path) in paths {
                 let (results, secs) = pass::<B>(path, &x, &w, &up, a.iters)?;
                 let errs: Vec<String> = results
@@ -88,6 +99,7 @@ fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::D
             }
         }
     }
+    select(MatmulKernel::default());
     Ok(())
 }
 

@@ -1,0 +1,339 @@
+//! cuBLAS for the named products (`train.matmul = "cublas"`): `cublasGemmEx` on the operands as they lie in
+//! burn's memory, f32 or bf16 operands (f32 through TF32 tensor cores, as the cubek kernel does), an f32
+//! result, f32 accumulation.
+//!
+//! burn 0.21 gives no handle to cubecl's CUDA stream (each thread gets its own non-blocking stream), and
+//! waiting on the host around every product (as the NCCL group does) cost more than cuBLAS saves: the
+//! `small` step took 708 ms against 650 ms on the cubek kernel (H100), the GPU idling while the host
+//! caught up after each wait. So the two streams are ordered on the device, through two flags in device
+//! memory and a counter `v` per product:
+//!
+//! 1. cubecl's stream runs [`signal`], which stores `v` in flag 0 once everything queued before it is done;
+//! 2. this module's stream runs `umgen_wait` (one thread spinning until flag 0 is `v`), the product, then
+//!    `umgen_store` (flag 1 = `v`, after a fence);
+//! 3. cubecl's stream runs [`wait`], one thread spinning until flag 1 is `v`, so nothing queued after it
+//!    (readers of the result, reuse of the operands' memory) starts before the product is done.
+//!
+//! The host never waits. The work is queued in the order the dependencies run, so even streams that share
+//! a hardware queue cannot deadlock. Each thread keeps its own handle, stream and flags: cubecl gives
+//! each thread its own stream, and the protocol needs the two streams to take turns. (The driver's
+//! stream memory operations, `cuStreamWaitValue32`, would spare the kernels on this side, but refused
+//! cubecl's pool memory with `CUDA_ERROR_INVALID_VALUE` on an H100; the two small kernels are compiled
+//! with NVRTC, which cubecl loads anyway.)
+#![allow(unsafe_code)]
+
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::{DType, Shape};
+use burn_cubecl::ops::numeric::zeros_client;
+use burn_cubecl::tensor::CubeTensor;
+use cubecl::prelude::*;
+use cudarc::cublas::{result as blas, sys};
+use cudarc::driver::{CudaContext, CudaFunction, CudaStream, LaunchConfig, PushKernelArg};
+use std::cell::RefCell;
+use std::ffi::c_void;
+use std::sync::Arc;
+
+type Primitive = CubeTensor<CudaRuntime>;
+
+/// Stores `value` in `flag[0]` (a single unit).
+#[cube(launch)]
+pub fn signal(flag: &mut Tensor<Atomic<u32>>, value: u32) {
+    flag[0].store(value);
+}
+
+/// Spins (a single unit) until `flag[1]` holds `value`.
+#[cube(launch)]
+pub fn wait(flag: &mut Tensor<Atomic<u32>>, value: u32) {
+    let mut seen = flag[1].load();
+    while seen != value {
+        seen = flag[1].load();
+    }
+}
+
+/// This module's side of the protocol, in CUDA C for NVRTC.
+const FLAG_KERNELS: &str = r#"
+extern "C" __global__ void umgen_wait(unsigned int* flag, unsigned int v) {
+    while (atomicAdd(flag, 0u) != v) {}
+}
+extern "C" __global__ void umgen_store(unsigned int* flag, unsigned int v) {
+    __threadfence();
+    atomicExch(flag, v);
+}
+"#;
+
+/// A cuBLAS handle on its own stream, and the two flags, for one device and the calling thread.
+struct Blas {
+    ctx: Arc<CudaContext>,
+    stream: Arc<CudaStream>,
+    handle: sys::cublasHandle_t,
+    wait_fn: CudaFunction,
+    store_fn: CudaFunction,
+    flags: Primitive,
+    flags_ptr: u64,
+    /// The last product's `v`.
+    count: u32,
+}
+
+thread_local! {
+    /// This thread's handles by device; `Err` remembers why a device has none, so that the reason is found
+    /// once and every product falls back without retrying.
+    static HANDLES: RefCell<Vec<(usize, Result<Blas, String>)>> = const { RefCell::new(Vec::new()) };
+}
+
+impl Blas {
+    fn new(like: &Primitive) -> Result<Self, String> {
+        let device = like.device.index;
+        // SAFETY: only asks whether the library could be loaded.
+        if !unsafe { sys::is_culib_present() } {
+            return Err("libcublas (CUDA 13: libcublas.so.13) is not on the library path".into());
+        }
+        // The primary context, which cubecl uses too, so burn's pointers are valid here.
+        let ctx = CudaContext::new(device).map_err(|e| format!("CUDA context {device}: {e:?}"))?;
+        ctx.bind_to_thread()
+            .map_err(|e| format!("binding the context: {e:?}"))?;
+        let stream = ctx.new_stream().map_err(|e| format!("stream: {e:?}"))?;
+        let ptx = cudarc::nvrtc::compile_ptx(FLAG_KERNELS).map_err(|e| format!("NVRTC: {e:?}"))?;
+        let module = ctx
+            .load_module(ptx)
+            .map_err(|e| format!("loading the flag kernels: {e:?}"))?;
+        let function = |name: &str| {
+            module
+                .load_function(name)
+                .map_err(|e| format!("kernel {name}: {e:?}"))
+        };
+        let (wait_fn, store_fn) = (function("umgen_wait")?, function("umgen_store")?);
+        let handle = blas::create_handle().map_err(|e| format!("cublasCreate: {e:?}"))?;
+        // SAFETY: a live handle and a live stream of the same context.
+        unsafe { blas::set_stream(handle, stream.cu_stream() as sys::cudaStream_t) }
+            .map_err(|e| format!("cublasSetStream: {e:?}"))?;
+        let flags = zeros_client(
+            like.client.clone(),
+            like.device.clone(),
+            Shape::new([2]),
+            DType::U32,
+        );
+        let (flags_ptr, _) = pointer(&flags)?;
+        Ok(Self {
+            ctx,
+            stream,
+            handle,
+            wait_fn,
+            store_fn,
+            flags,
+            flags_ptr,
+            count: 0,
+        })
+    }
+
+    /// Runs `gemm` on this handle's stream between cubecl's queued work and what cubecl queues next.
+    fn ordered(
+        &mut self,
+        gemm: impl FnOnce(sys::cublasHandle_t) -> Result<(), String>,
+    ) -> Result<(), String> {
+        self.ctx
+            .bind_to_thread()
+            .map_err(|e| format!("binding the context: {e:?}"))?;
+        self.count = self.count.wrapping_add(1).max(1);
+        let v = self.count;
+        let client = &self.flags.client;
+        let one = || (CubeCount::Static(1, 1, 1), CubeDim::new_1d(1));
+        let (count, dim) = one();
+        signal::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
+        // Submitted before this side's wait, so that the GPU meets the two in dependency order.
+        client
+            .flush()
+            .map_err(|e| format!("submitting the signal: {e:?}"))?;
+        let (flag0, flag1) = (self.flags_ptr, self.flags_ptr + 4);
+        let single = LaunchConfig {
+            grid_dim: (1, 1, 1),
+            block_dim: (1, 1, 1),
+            shared_mem_bytes: 0,
+        };
+        let stream = &self.stream;
+        let run = |f: &CudaFunction, flag: u64, what: &str| {
+            // SAFETY: `flags` (kept by `self`) holds two u32 at `flags_ptr`; the kernels take
+            // `(unsigned int*, unsigned int)`.
+            unsafe { stream.launch_builder(f).arg(&flag).arg(&v).launch(single) }
+                .map(|_| ())
+                .map_err(|e| format!("{what}: {e:?}"))
+        };
+        run(&self.wait_fn, flag0, "umgen_wait")?;
+        // Flag 1 is stored even when the product fails, so that cubecl's stream is never left spinning.
+        let done = gemm(self.handle);
+        run(&self.store_fn, flag1, "umgen_store")?;
+        let (count, dim) = one();
+        wait::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
+        done
+    }
+}
+
+/// How one operand enters `cublasGemmEx`: its pointer, whether cuBLAS transposes it, its leading dimension.
+struct Operand {
+    ptr: u64,
+    op: sys::cublasOperation_t,
+    ld: i32,
+}
+
+/// The product's element types: cuBLAS's operand type and compute type for `dtype`.
+fn types(dtype: DType) -> Result<(sys::cudaDataType, sys::cublasComputeType_t), String> {
+    use sys::cublasComputeType_t::{CUBLAS_COMPUTE_32F, CUBLAS_COMPUTE_32F_FAST_TF32};
+    use sys::cudaDataType::{CUDA_R_16BF, CUDA_R_16F, CUDA_R_32F};
+    match dtype {
+        DType::F32 => Ok((CUDA_R_32F, CUBLAS_COMPUTE_32F_FAST_TF32)),
+        DType::BF16 => Ok((CUDA_R_16BF, CUBLAS_COMPUTE_32F)),
+        DType::F16 => Ok((CUDA_R_16F, CUBLAS_COMPUTE_32F)),
+        other => Err(format!("{other:?} operands")),
+    }
+}
+
+/// The layout of a `[rows, cols]` row-major operand in cuBLAS's column-major terms, where the product needs
+/// it as its `cols × rows` transpose: a row-major matrix (strides `[ld, 1]`) is that transpose as stored, a
+/// column-major one (strides `[1, ld]`) is transposed by cuBLAS. `None` when it is neither or cuBLAS would
+/// reject the leading dimension.
+fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(sys::cublasOperation_t, usize)> {
+    use sys::cublasOperation_t::{CUBLAS_OP_N, CUBLAS_OP_T};
+    let [rows, cols] = shape;
+    // A dimension of 1 leaves its stride free; give it the value that makes the layout valid.
+    let row_major = strides[1] == 1 || cols == 1;
+    let col_major = strides[0] == 1 || rows == 1;
+    if row_major && (strides[0] >= cols.max(1) || rows == 1) {
+        Some((CUBLAS_OP_N, strides[0].max(cols).max(1)))
+    } else if col_major && (strides[1] >= rows.max(1) || cols == 1) {
+        Some((CUBLAS_OP_T, strides[1].max(rows).max(1)))
+    } else {
+        None
+    }
+}
+
+fn int(what: &str, v: usize) -> Result<i32, String> {
+    i32::try_from(v).map_err(|_| format!("{what} {v} exceeds cuBLAS's 32-bit sizes"))
+}
+
+/// The device pointer of `t`'s first element (cubecl's stream waits for `t`'s producer from here on), and
+/// what keeps it alive.
+fn pointer(t: &Primitive) -> Result<(u64, impl Sized), String> {
+    let res = t
+        .client
+        .get_resource(t.handle.clone())
+        .map_err(|e| format!("device buffer: {e:?}"))?;
+    Ok((res.resource().ptr, res))
+}
+
+/// `out = lhs · rhs` on cuBLAS: `lhs [m, k]`, `rhs [k, n]` of one float format, row- or column-major, and
+/// `out [m, n]` row-major f32, ordered with cubecl's stream on the device (module docs). An operand cuBLAS
+/// cannot take, or a device without cuBLAS, says why (the caller falls back, after cubecl's stream has
+/// passed the failed product).
+pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), String> {
+    if lhs.dtype != rhs.dtype {
+        return Err(format!("mixed operands {:?} × {:?}", lhs.dtype, rhs.dtype));
+    }
+    if lhs.qparams.is_some() || rhs.qparams.is_some() {
+        return Err("quantized operand".into());
+    }
+    let (data, compute) = types(lhs.dtype)?;
+    let dims = |t: &Primitive| -> Result<([usize; 2], [usize; 2]), String> {
+        match (&t.meta.shape()[..], &t.meta.strides()[..]) {
+            ([r, c], [s0, s1]) => Ok(([*r, *c], [*s0, *s1])),
+            (s, _) => Err(format!("rank {}", s.len())),
+        }
+    };
+    let ((ls, lst), (rs, rst), (os, ost)) = (dims(lhs)?, dims(rhs)?, dims(out)?);
+    let (m, k, n) = (ls[0], ls[1], rs[1]);
+    if rs[0] != k || os != [m, n] || out.dtype != DType::F32 {
+        return Err(format!("shapes {ls:?} × {rs:?} into {os:?} {:?}", out.dtype));
+    }
+    // burn pads the rows of some outputs (a head of 1,028 ids gets a longer row stride): any row-major
+    // result will do, as cuBLAS's column-major transpose with that leading dimension.
+    let ldc = match layout(os, ost) {
+        Some((sys::cublasOperation_t::CUBLAS_OP_N, ld)) => ld,
+        _ => return Err(format!("result strides {ost:?}")),
+    };
+    if m == 0 || n == 0 || k == 0 {
+        return Err("an empty dimension".into());
+    }
+    let (a_op, lda) = layout(rs, rst).ok_or_else(|| format!("rhs strides {rst:?}"))?;
+    let (b_op, ldb) = layout(ls, lst).ok_or_else(|| format!("lhs strides {lst:?}"))?;
+    let (mi, ni, ki) = (int("n", n)?, int("m", m)?, int("k", k)?);
+    let (lda, ldb, ldc) = (int("lda", lda)?, int("ldb", ldb)?, int("ldc", ldc)?);
+
+    // Row-major out = lhs · rhs is column-major outᵀ = rhsᵀ · lhsᵀ: cuBLAS's A is rhs, its B is lhs.
+    let (a, _keep_a) = pointer(rhs)?;
+    let (b, _keep_b) = pointer(lhs)?;
+    let (c, _keep_c) = pointer(out)?;
+    let a = Operand {
+        ptr: a,
+        op: a_op,
+        ld: lda,
+    };
+    let b = Operand {
+        ptr: b,
+        op: b_op,
+        ld: ldb,
+    };
+    let gemm = |handle| {
+        let (one, zero) = (1.0f32, 0.0f32);
+        // SAFETY: the three pointers are live burn buffers holding the shapes and strides checked above,
+        // and cubecl's stream waits for the product before anything queued later can free or reuse them;
+        // the scalars are f32 as the compute types ask.
+        unsafe {
+            blas::gemm_ex(
+                handle,
+                a.op,
+                b.op,
+                mi,
+                ni,
+                ki,
+                (&one as *const f32).cast::<c_void>(),
+                a.ptr as *const c_void,
+                data,
+                a.ld,
+                b.ptr as *const c_void,
+                data,
+                b.ld,
+                (&zero as *const f32).cast::<c_void>(),
+                c as *mut c_void,
+                sys::cudaDataType::CUDA_R_32F,
+                ldc,
+                compute,
+                sys::cublasGemmAlgo_t::CUBLAS_GEMM_DEFAULT,
+            )
+        }
+        .map_err(|e| format!("cublasGemmEx: {e:?}"))
+    };
+    let device = lhs.device.index;
+    HANDLES.with_borrow_mut(|handles| {
+        if !handles.iter().any(|(d, _)| *d == device) {
+            let made = Blas::new(lhs);
+            if let Err(why) = &made {
+                tracing::warn!("cuBLAS on cuda:{device}: {why}");
+            }
+            handles.push((device, made));
+        }
+        match handles.iter_mut().find(|(d, _)| *d == device) {
+            Some((_, Ok(blas))) => blas.ordered(gemm),
+            Some((_, Err(why))) => Err(why.clone()),
+            None => Err(format!("no cuBLAS handle for cuda:{device}")),
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::layout;
+    use cudarc::cublas::sys::cublasOperation_t::{CUBLAS_OP_N, CUBLAS_OP_T};
+
+    #[test]
+    fn layouts_of_row_and_column_major_operands_and_their_refusals() {
+        // Row-major [3, 4]: stored as cuBLAS's 4 × 3 column-major, the transpose the product needs.
+        assert_eq!(layout([3, 4], [4, 1]), Some((CUBLAS_OP_N, 4)));
+        // Padded rows keep their stride.
+        assert_eq!(layout([3, 4], [8, 1]), Some((CUBLAS_OP_N, 8)));
+        // A transposed view [3, 4] of a row-major [4, 3]: cuBLAS transposes it.
+        assert_eq!(layout([3, 4], [1, 3]), Some((CUBLAS_OP_T, 3)));
+        // One row: any row stride will do.
+        assert_eq!(layout([1, 4], [0, 1]), Some((CUBLAS_OP_N, 4)));
+        // Neither layout, or rows that overlap.
+        assert_eq!(layout([3, 4], [8, 2]), None);
+        assert_eq!(layout([3, 4], [2, 1]), None);
+    }
+}
