@@ -167,6 +167,15 @@ impl Blas {
     }
 }
 
+impl Drop for Blas {
+    fn drop(&mut self) {
+        // SAFETY: the handle was made by `cublasCreate` and is not used after this. Errors cannot be
+        // reported from a thread's exit; the driver reclaims what is left with the process.
+        let _ = self.ctx.bind_to_thread();
+        let _ = unsafe { blas::destroy_handle(self.handle) };
+    }
+}
+
 /// How one operand enters `cublasGemmEx`: its pointer, whether cuBLAS transposes it, its leading dimension.
 struct Operand {
     ptr: u64,
