@@ -106,6 +106,12 @@ pub struct GenerateArgs {
     /// Control file (TOML or JSON), see docs/control.md.
     #[arg(long, value_name = "FILE")]
     pub control: Option<PathBuf>,
+    /// Force each context clip's recorded ego actions (the motion it recorded after its context) instead
+    /// of the ego module's: `umgen eval` then measures the agents and the rest of the scene given the real
+    /// ego motion. The clips need `--frames` more frames after their context; the control file may then
+    /// set no ego action.
+    #[arg(long)]
+    pub recorded_ego: bool,
     /// Frames of history the TAR sees (older ones slide out); default: the history the model was trained
     /// on (`train.frames`), at most 20 and `backbone.max_frames`.
     #[arg(long)]

@@ -324,6 +324,37 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
             );
         }
     }
+    // --recorded-ego: the ego follows the clip's recorded actions, so its L2 is only the bins' rounding,
+    // far below what the barely trained ego module draws; clips too short for it are refused by name.
+    let forced = run_gen("gen-recorded", &["--context", &one, "--recorded-ego"]);
+    let recorded = json(forced.join("eval/report.json"));
+    assert_eq!(recorded["recorded_ego"], true, "{recorded}");
+    for h in 0..2 {
+        let e = recorded["l2"][h]["ego_model"].as_f64().unwrap();
+        let drawn = singles[0]["l2"][h]["ego_model"].as_f64().unwrap();
+        assert!(
+            e < 0.05 && e < drawn,
+            "horizon {h}: {e} m recorded, {drawn} m drawn"
+        );
+    }
+    let out = fx.dir.path().join("gen-too-long");
+    let short = umgen(&[
+        "generate",
+        "--bundle",
+        bf16_dir.to_str().unwrap(),
+        "--context",
+        &one,
+        "--frames",
+        "100000",
+        "--recorded-ego",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&short.stderr);
+    assert!(
+        !short.status.success() && err.contains("--recorded-ego") && err.contains("rand-s3/v0:0"),
+        "{err}"
+    );
     let g3 = generate(&bf16_dir, "gen3", "4");
     assert_ne!(
         std::fs::read(g1.join("tokens.json")).unwrap(),

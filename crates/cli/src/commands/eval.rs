@@ -214,6 +214,10 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         }
         report["contexts"] = contexts.len().into();
     }
+    // `generate --recorded-ego`: the ego followed its recorded actions, so the ego L2 is only their
+    // rounding to bins, and the agents' L2 is the model's given the real ego motion.
+    let recorded_ego = meta["recorded_ego"].as_bool().unwrap_or(false);
+    report["recorded_ego"] = recorded_ego.into();
     let mut mmd_mean = serde_json::Map::new();
     for g in Group::ALL {
         let v: Vec<f64> = mmd_rows
@@ -232,6 +236,12 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     writeln!(md, "| measure | value |\n|---|---|")?;
     if let Some(n) = report["contexts"].as_u64() {
         writeln!(md, "| contexts (clips continued) | {n} |")?;
+    }
+    if recorded_ego {
+        writeln!(
+            md,
+            "| ego actions | recorded (`--recorded-ego`): ego L2 is the bins' rounding |"
+        )?;
     }
     writeln!(
         md,

@@ -33,6 +33,23 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         .iter()
         .map(|c| registry.tokenize_clip(&c.clip))
         .collect::<Result<Vec<_>, _>>()?;
+    let recorded = match a.recorded_ego {
+        true => {
+            anyhow::ensure!(
+                control.ego.is_empty(),
+                "--recorded-ego and the control file's [[ego]] entries both set the ego action"
+            );
+            let ids: Vec<(&str, &str)> = contexts
+                .iter()
+                .map(|c| (c.data.as_str(), c.id.as_str()))
+                .collect();
+            let n = context_rows.first().map_or(0, Vec::len);
+            Some(super::recorded::recorded_actions(
+                &ids, n, a.frames, &registry, &spec,
+            )?)
+        }
+        false => None,
+    };
     // Scene s continues context s / --scenes (each context's scenes are consecutive).
     let total = a.scenes * contexts.len().max(1);
     let context_of = |s: usize| (!contexts.is_empty()).then_some(s / a.scenes);
@@ -91,8 +108,12 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
                     Default::default()
                 }
             };
+            let action = match &recorded {
+                Some(r) => Some((0..total).map(|s| r[s / a.scenes][k].clone()).collect()),
+                None => forced.map(|(ids, _)| vec![ids; total]),
+            };
             let fc = FrameControl {
-                action: forced.map(|(ids, _)| vec![ids; total]),
+                action,
                 tokens: placed,
                 below,
                 keep,
@@ -194,6 +215,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             "draw": if on_device { "device" } else { "host" },
             "new_agents": {"tested": new_tested, "dropped": new_dropped},
             "interval": interval,
+            "recorded_ego": a.recorded_ego,
         }))?,
     )?;
     super::scenes::draw(

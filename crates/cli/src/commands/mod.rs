@@ -17,6 +17,7 @@ mod export;
 mod generate;
 mod launch;
 mod layout;
+mod recorded;
 mod scenes;
 mod tokenize;
 mod tokenizer;
