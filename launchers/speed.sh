@@ -4,10 +4,11 @@
 #   launchers/speed.sh [GPU] [TORCH_UMGEN_PY]       # default GPU 0; the reference is skipped without a path
 #
 # Runs, each under its own time limit so that one slow case cannot eat the others: the reference for the
-# `small` and `paper` presets, `umgen bench train` for both presets in f32 and bf16 (`--set
-# backbone.precision=bf16`) and `small` once more on burn's matmul kernel (`--set train.matmul=burn`), `umgen
-# bench linear`, `umgen bench attention` in both precisions, and 30 training steps of the
-# `small` map and image VQ tokenizers on the bundled sample (their rasters/s). Prints the lines that
+# `small` and `paper` presets, `umgen bench train` for both presets in their `bf16-linear`, in f32 and in
+# bf16 (`--set backbone.precision=…`), `small` once more on the named and on burn's matmul kernel (`--set
+# train.matmul=named|burn`; the default is cuBLAS), `umgen bench linear`, `umgen bench attention` in
+# both precisions, and 30 training steps of the `small` map and image VQ tokenizers on the bundled sample
+# (their rasters/s). Prints the lines that
 # matter at the end; full outputs go to $OUT (default ./speed-out). UMGEN names the binary (default:
 # umgen); run from the repository root.
 set -uo pipefail
@@ -33,14 +34,16 @@ if [ -n "$torch_py" ]; then
     done
 fi
 for p in small paper; do
-    for prec in f32 bf16; do
+    for prec in bf16-linear f32 bf16; do
         run "umgen-$p-$prec" "$umgen" bench train --preset "$p" --device "cuda:$gpu" --steps 10 --warmup 2 \
             --phases --set "backbone.precision=$prec"
     done
 done
-# The linear layers on burn's default kernel too (`train.matmul = "burn"`): what the named kernel gains.
-run "umgen-small-f32-burnmm" "$umgen" bench train --preset small --device "cuda:$gpu" --steps 10 --warmup 2 \
-    --set train.matmul=burn
+# The linear layers on the other kernels too: what cuBLAS (the default) gains over each.
+for mm in named burn; do
+    run "umgen-small-${mm}mm" "$umgen" bench train --preset small --device "cuda:$gpu" --steps 10 \
+        --warmup 2 --set "train.matmul=$mm"
+done
 run linear "$umgen" bench linear --device "cuda:$gpu"
 for prec in f32 bf16; do
     run "attention-$prec" "$umgen" bench attention --device "cuda:$gpu" --precision "$prec"
@@ -56,5 +59,6 @@ for f in "$out"/torch-*.txt; do [ -f "$f" ] && echo "$(basename "$f" .txt): $(gr
 for f in "$out"/umgen-*.txt; do
     echo "$(basename "$f" .txt): $(grep -h -E '^(first step|step|throughput|peak memory)' "$f" | tr -s ' ' | paste -sd ';' -)"
 done
-for f in "$out"/attention-*.txt "$out"/linear.txt; do echo "-- $(basename "$f" .txt)"; grep -v INFO "$f" | tail -n 9; done
+for f in "$out"/attention-*.txt; do echo "-- $(basename "$f" .txt)"; grep -v INFO "$f" | tail -n 9; done
+echo "-- linear"; grep -v -E 'INFO|WARN' "$out/linear.txt" | tail -n 26
 for m in map image; do echo "vq-$m: $(grep -o 'step [0-9]*/30.*rasters_per_s [0-9.]*' "$out/vq-$m.txt" | sed 's/:.*rasters_per_s/: rasters\/s/' | tr '\n' ';')"; done
