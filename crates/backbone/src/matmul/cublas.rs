@@ -61,7 +61,10 @@ extern "C" __global__ void umgen_store(unsigned int* flag, unsigned int v) {
 }
 "#;
 
-/// A cuBLAS handle on its own stream, and the two flags, for one device and the calling thread.
+/// A cuBLAS handle on its own stream, and the two flags, for one device and the calling thread. The
+/// handle is never destroyed: it lives as long as its thread (training threads live as long as the
+/// process), and calling into cuBLAS from a thread-local destructor at process exit, while CUDA may be
+/// tearing down, is a risk this does not take; the driver reclaims it with the process.
 struct Blas {
     ctx: Arc<CudaContext>,
     stream: Arc<CudaStream>,
@@ -164,15 +167,6 @@ impl Blas {
         let (count, dim) = one();
         wait::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
         done
-    }
-}
-
-impl Drop for Blas {
-    fn drop(&mut self) {
-        // SAFETY: the handle was made by `cublasCreate` and is not used after this. Errors cannot be
-        // reported from a thread's exit; the driver reclaims what is left with the process.
-        let _ = self.ctx.bind_to_thread();
-        let _ = unsafe { blas::destroy_handle(self.handle) };
     }
 }
 
