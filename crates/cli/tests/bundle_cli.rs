@@ -337,24 +337,28 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
             "horizon {h}: {e} m recorded, {drawn} m drawn"
         );
     }
-    let out = fx.dir.path().join("gen-too-long");
-    let short = umgen(&[
-        "generate",
-        "--bundle",
-        bf16_dir.to_str().unwrap(),
-        "--context",
-        &one,
-        "--frames",
+    let out = fx.dir.path().join("gen-refused");
+    let refused = |from: &[&str], frames: &str, wants: &[&str]| {
+        let mut args = vec!["generate", "--bundle", bf16_dir.to_str().unwrap()];
+        args.extend(from);
+        args.extend([
+            "--frames",
+            frames,
+            "--recorded-ego",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let run = umgen(&args);
+        let err = String::from_utf8_lossy(&run.stderr).to_string();
+        assert!(!run.status.success(), "{args:?} ran");
+        assert!(wants.iter().all(|w| err.contains(w)), "{err}");
+    };
+    refused(
+        &["--context", &one],
         "100000",
-        "--recorded-ego",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&short.stderr);
-    assert!(
-        !short.status.success() && err.contains("--recorded-ego") && err.contains("rand-s3/v0:0"),
-        "{err}"
+        &["--recorded-ego", "rand-s3/v0:0"],
     );
+    refused(&["--from-scratch"], "1", &["--recorded-ego", "--from-scratch"]);
     let g3 = generate(&bf16_dir, "gen3", "4");
     assert_ne!(
         std::fs::read(g1.join("tokens.json")).unwrap(),
