@@ -1,0 +1,135 @@
+//! `umgen eval` over several contexts in one batch, and with the recorded ego actions
+//! (`generate --recorded-ego`), on a bundle of the tiny fixture and clips of the bundled SUMO sample.
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
+
+mod common;
+use common::{ok, umgen};
+
+use std::path::PathBuf;
+use umgen_tests::run_fixture::Fixture;
+
+#[test]
+fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
+    let fx = Fixture::new().unwrap();
+    let cfg = fx.config("v", 2).unwrap();
+    ok(umgen(&["train", "--config", cfg.to_str().unwrap()]));
+    let bf16_dir = fx.dir.path().join("bundle-bf16");
+    ok(umgen(&[
+        "export",
+        "--checkpoint",
+        fx.run_dir("v").to_str().unwrap(),
+        "--out",
+        bf16_dir.to_str().unwrap(),
+        "--dtype",
+        "bf16",
+    ]));
+    // Several contexts in one batch (clips of the bundled SUMO sample, whose motion varies): --context,
+    // then --contexts' clips of a split; eval pools them, and its constant-velocity baselines (no model in
+    // them) are the means of the contexts' own.
+    let json =
+        |p: PathBuf| -> serde_json::Value { serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap() };
+    let sample = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data/sumo-sample");
+    let sample = sample.to_str().unwrap();
+    let run_gen = |out: &str, contexts: &[&str]| {
+        let out = fx.dir.path().join(out);
+        let mut args = vec![
+            "generate",
+            "--bundle",
+            bf16_dir.to_str().unwrap(),
+            "--frames",
+            "2",
+        ];
+        args.extend(contexts);
+        args.extend(["--out", out.to_str().unwrap()]);
+        ok(umgen(&args));
+        let dir = out.to_str().unwrap();
+        ok(umgen(&[
+            "eval",
+            "--generated",
+            dir,
+            "--reference",
+            sample,
+            "--split",
+            "test",
+            "--stride",
+            "50",
+        ]));
+        out
+    };
+    let (one, many) = (format!("{sample}:rand-s3/v0:0:2"), format!("{sample}:test:2:2"));
+    let multi = run_gen("gen-multi", &["--context", &one, "--contexts", &many]);
+    let meta = json(multi.join("meta.json"));
+    let ids: Vec<String> = meta["contexts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["clip"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(ids.len(), 3, "{meta}");
+    assert_eq!(ids[0], "rand-s3/v0:0");
+    let tokens = json(multi.join("tokens.json"));
+    assert_eq!(tokens["context_of"], serde_json::json!([0, 1, 2]));
+    let report = json(multi.join("eval/report.json"));
+    assert_eq!(report["contexts"], 3);
+    let singles: Vec<serde_json::Value> = ids
+        .iter()
+        .enumerate()
+        .map(|(k, id)| {
+            let one = format!("{sample}:{id}:2");
+            let out = run_gen(&format!("gen-one-{k}"), &["--context", &one]);
+            // The same clip's context rows as in the batch.
+            let rows = |t: &serde_json::Value, s: usize| t["scenes"][s].as_array().unwrap()[..2].to_vec();
+            assert_eq!(rows(&json(out.join("tokens.json")), 0), rows(&tokens, k));
+            json(out.join("eval/report.json"))
+        })
+        .collect();
+    for h in 0..2 {
+        for key in ["ego_constant_velocity", "agents_constant_velocity"] {
+            let cv: Vec<f64> = singles
+                .iter()
+                .map(|r| r["l2"][h][key].as_f64().unwrap())
+                .collect();
+            assert!(cv.iter().any(|v| (v - cv[0]).abs() > 1e-6), "{key}: {cv:?}");
+            let pooled = report["l2"][h][key].as_f64().unwrap();
+            assert!(
+                (pooled - cv.iter().sum::<f64>() / 3.0).abs() < 1e-9,
+                "{key}: {pooled} vs {cv:?}"
+            );
+        }
+    }
+    // --recorded-ego: the ego follows the clip's recorded actions, so its L2 is only the bins' rounding,
+    // far below what the barely trained ego module draws; clips too short for it are refused by name.
+    let forced = run_gen("gen-recorded", &["--context", &one, "--recorded-ego"]);
+    let recorded = json(forced.join("eval/report.json"));
+    assert_eq!(recorded["recorded_ego"], true, "{recorded}");
+    for h in 0..2 {
+        let e = recorded["l2"][h]["ego_model"].as_f64().unwrap();
+        let drawn = singles[0]["l2"][h]["ego_model"].as_f64().unwrap();
+        assert!(
+            e < 0.05 && e < drawn,
+            "horizon {h}: {e} m recorded, {drawn} m drawn"
+        );
+    }
+    let out = fx.dir.path().join("gen-refused");
+    let refused = |from: &[&str], frames: &str, wants: &[&str]| {
+        let mut args = vec!["generate", "--bundle", bf16_dir.to_str().unwrap()];
+        args.extend(from);
+        args.extend([
+            "--frames",
+            frames,
+            "--recorded-ego",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let run = umgen(&args);
+        let err = String::from_utf8_lossy(&run.stderr).to_string();
+        assert!(!run.status.success(), "{args:?} ran");
+        assert!(wants.iter().all(|w| err.contains(w)), "{err}");
+    };
+    refused(
+        &["--context", &one],
+        "100000",
+        &["--recorded-ego", "rand-s3/v0:0"],
+    );
+    refused(&["--from-scratch"], "1", &["--recorded-ego", "--from-scratch"]);
+}
