@@ -27,11 +27,11 @@ type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
 type Primitive = CubeTensor<CudaRuntime>;
 type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
 
-/// Products that fell back to burn's default kernel.
+/// Products that fell back: from cuBLAS to the named kernel, or from the named kernel to burn's default.
 static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
 
-/// How many products fell back to burn's default kernel in this process (the first is logged with its
-/// reason at `warn`, the rest at `debug`).
+/// How many products fell back (cuBLAS to the named kernel, or it to burn's default) in this process; the
+/// first is logged with its reason at `warn`, the rest at `debug`.
 pub fn fallbacks() -> usize {
     FALLBACKS.load(Ordering::Relaxed)
 }

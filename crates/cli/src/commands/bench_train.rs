@@ -172,12 +172,13 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         None => writeln!(out, "config        {}", path.display())?,
     }
     writeln!(out, "device        {}", a.device)?;
-    // Only the CUDA training backend has the named kernel; elsewhere `matmul` changes nothing.
+    // Only the CUDA training backend has cuBLAS and the named kernel; elsewhere `matmul` changes nothing.
     #[cfg(feature = "cuda")]
     if matches!(device, Device::Cuda(_)) {
         writeln!(
             out,
-            "matmul        {:?}, {} product(s) fell back to burn's default kernel",
+            "matmul        {:?}, {} product(s) fell back (cuBLAS to the named kernel, or it to burn's; \
+             the first is logged with its reason)",
             tc.matmul,
             umgen::backbone::matmul::fallbacks()
         )?;
