@@ -1,7 +1,7 @@
 //! `umgen bench linear`: a linear layer's product, forward and both gradients, on the kernels training can
 //! use (`umgen_backbone::matmul`: the named kernel, and cuBLAS on CUDA) against burn's own path on the same
-//! backend. Each path's
-//! output and gradients are compared with burn's f32 path, and each forward+backward pass is timed.
+//! backend. Each path's output and gradients are compared with burn's f32 path, and each forward+backward
+//! pass is timed.
 
 use crate::cli::{BenchLinearArgs, PrecisionArg};
 use crate::commands::bench_attention::rel_err;

@@ -27,10 +27,19 @@ pub(super) fn recorded_actions(
         !contexts.is_empty(),
         "--recorded-ego needs context clips (--context or --contexts), not --from-scratch"
     );
+    // Contexts usually come from one dataset: open each once, not once per clip.
+    let mut opened: Vec<(&str, Dataset)> = Vec::new();
     contexts
         .iter()
         .map(|&(data, id)| {
-            let ds = Dataset::open(Path::new(data))?;
+            let at = match opened.iter().position(|(d, _)| *d == data) {
+                Some(i) => i,
+                None => {
+                    opened.push((data, Dataset::open(Path::new(data))?));
+                    opened.len() - 1
+                }
+            };
+            let ds = &opened[at].1;
             let index = ds.find_clip(id)?;
             let have = ds.clips()[index].frames;
             let need = context_frames + frames;
