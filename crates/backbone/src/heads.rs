@@ -55,8 +55,15 @@ impl<B: Backend> Heads<B> {
     }
 
     /// Summed cross-entropy per segment of features `[m, N, d]` against targets `[m, N]`, with the number
-    /// of tokens each sum covers.
-    pub fn cross_entropy(&self, x: Tensor<B, 3>, targets: Tensor<B, 2, Int>) -> Vec<(Tensor<B, 1>, usize)> {
+    /// of tokens each sum covers. Segment `s`'s first `ordinal[s]` ids are ordered bins, scored with
+    /// [`crate::smoothing::nll_sum`] at `sigma` bins (0: plain cross-entropy).
+    pub fn cross_entropy(
+        &self,
+        x: Tensor<B, 3>,
+        targets: Tensor<B, 2, Int>,
+        ordinal: &[usize],
+        sigma: f64,
+    ) -> Vec<(Tensor<B, 1>, usize)> {
         let m = x.dims()[0];
         (0..self.heads.len())
             .map(|s| {
@@ -65,7 +72,8 @@ impl<B: Backend> Heads<B> {
                 let v = logits.dims()[2];
                 let lp = log_softmax(logits.reshape([m * tokens, v]), 1);
                 let t = targets.clone().narrow(1, offset, tokens).reshape([m * tokens, 1]);
-                (lp.gather(1, t).sum().neg(), m * tokens)
+                let ord = ordinal.get(s).copied().unwrap_or(0);
+                (crate::smoothing::nll_sum(lp, t, ord, sigma), m * tokens)
             })
             .collect()
     }

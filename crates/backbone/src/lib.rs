@@ -40,6 +40,7 @@ mod model;
 pub mod ordinal;
 mod precision;
 pub mod recompute;
+pub mod smoothing;
 mod spec;
 
 pub use ama::align;

@@ -52,6 +52,9 @@ pub struct LossOptions {
     /// Probability that a predicted frame's OAR is trained without its TAR prior, which is how
     /// `umgen generate --from-scratch` runs it (0 = never).
     pub prior_drop: f64,
+    /// Spread in bins of the targets of ordered value bins (agents' values, the ego action); 0 scores
+    /// the target bin alone. See [`crate::smoothing`].
+    pub ordinal_sigma: f64,
 }
 
 /// The TAR/OAR backbone.
@@ -266,6 +269,7 @@ impl<B: Backend> Backbone<B> {
             LossOptions {
                 ego_weight,
                 prior_drop: 0.0,
+                ordinal_sigma: 0.0,
             },
         )
     }
@@ -281,6 +285,14 @@ impl<B: Backend> Backbone<B> {
                 opts.prior_drop
             )));
         }
+        if !(opts.ordinal_sigma.is_finite() && opts.ordinal_sigma >= 0.0) {
+            return Err(BackboneError::Input(format!(
+                "ordinal_sigma {} is not a spread in bins (≥ 0)",
+                opts.ordinal_sigma
+            )));
+        }
+        let ordinal: Vec<usize> = self.spec.segments.iter().map(|s| s.ordinal).collect();
+        let sigma = opts.ordinal_sigma;
         let [b, f, n] = tokens.dims();
         if f < 2 || n != self.spec.n {
             return Err(BackboneError::Input(format!(
@@ -328,11 +340,15 @@ impl<B: Backend> Backbone<B> {
             }
             total
         };
-        let oar = mean("oar", self.oar_heads.cross_entropy(o, flat_target.clone()));
+        let oar = mean(
+            "oar",
+            self.oar_heads
+                .cross_entropy(o, flat_target.clone(), &ordinal, sigma),
+        );
         let tar = mean(
             "tar",
             self.tar_heads
-                .cross_entropy(h.reshape([b * t, n, d]), flat_target),
+                .cross_entropy(h.reshape([b * t, n, d]), flat_target, &ordinal, sigma),
         );
         let mut total = match (oar, tar) {
             (Some(o), Some(t)) => o + t,
@@ -341,7 +357,9 @@ impl<B: Backend> Backbone<B> {
         if let (Some(logits), Some(ids)) = (self.ego_logits(e, false), next_action) {
             let [_, _, q, v] = logits.dims();
             let lp = burn::tensor::activation::log_softmax(logits.reshape([b * t * q, v]), 1);
-            let ego = lp.gather(1, ids.reshape([b * t * q, 1])).mean().neg();
+            let bins = self.spec.action.as_ref().map_or(0, |a| ordinal[a.segment]);
+            let ego = crate::smoothing::nll_sum(lp, ids.reshape([b * t * q, 1]), bins, sigma)
+                .div_scalar((b * t * q) as f64);
             parts.push(("ego".into(), ego.clone()));
             total = total + ego.mul_scalar(ego_weight);
         }

@@ -113,6 +113,8 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
     assert!(err.contains("train.eps = 0"), "{err}");
     let err = refused(&["train.prior_drop=1.5"]);
     assert!(err.contains("train.prior_drop = 1.5"), "{err}");
+    let err = refused(&["train.ordinal_sigma=-1"]);
+    assert!(err.contains("train.ordinal_sigma = -1"), "{err}");
 
     // TensorBoard's own reader loads the scalars (CI sets UMGEN_TB_PYTHON to a Python with tensorboard).
     let tb = fx.run_dir("a").join("tb");

@@ -47,6 +47,10 @@ pub struct TrainConfig {
     /// `umgen generate --from-scratch` runs it; a model trained with 0 has never seen that and makes
     /// poor initial scenes (the authors' `mask_temporal_pro`).
     pub prior_drop: f64,
+    /// Spread, in bins, of the targets of ordered value bins (the agents' values and the ego action):
+    /// their cross-entropy is taken against a Gaussian over the neighbouring bins, so a near miss scores
+    /// better than a far one; 0 scores the target bin alone. Their logged losses are then KL(q ‖ p).
+    pub ordinal_sigma: f64,
     /// Steps between logged metrics.
     pub log_every: u64,
     /// Steps between checkpoints.
@@ -102,6 +106,7 @@ impl Default for TrainConfig {
             seed: 0,
             ego_loss_weight: 1.0,
             prior_drop: 0.0,
+            ordinal_sigma: 0.0,
             log_every: 10,
             checkpoint_every: 500,
             keep_checkpoints: 3,
@@ -167,6 +172,10 @@ impl TrainConfig {
             // Likewise runs from before the prior drop, which trained without it.
             if self.prior_drop == 0.0 {
                 o.remove("prior_drop");
+            }
+            // And from before ordinal smoothing.
+            if self.ordinal_sigma == 0.0 {
+                o.remove("ordinal_sigma");
             }
         }
         v

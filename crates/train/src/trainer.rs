@@ -140,6 +140,12 @@ pub fn train<B: AutodiffBackend>(
             tc.prior_drop
         )));
     }
+    if !(tc.ordinal_sigma.is_finite() && tc.ordinal_sigma >= 0.0) {
+        return Err(TrainError::Setup(format!(
+            "train.ordinal_sigma = {} must be a spread in bins, 0 or more",
+            tc.ordinal_sigma
+        )));
+    }
     if f > run.backbone.max_frames {
         return Err(TrainError::Setup(format!(
             "windows of {f} frames exceed backbone.max_frames = {}",
@@ -234,6 +240,7 @@ pub fn train<B: AutodiffBackend>(
                 LossOptions {
                     ego_weight: tc.ego_loss_weight,
                     prior_drop: tc.prior_drop,
+                    ordinal_sigma: tc.ordinal_sigma,
                 },
             )?;
             let grads = GradientsParams::from_grads(

@@ -95,6 +95,7 @@ fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
         let opts = LossOptions {
             ego_weight: 1.0,
             prior_drop,
+            ordinal_sigma: 0.0,
         };
         let l = m.loss_with(tensor::<F>(ids, 1, f, n), opts).unwrap();
         let get = |name: &str| {
@@ -122,6 +123,7 @@ fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
             LossOptions {
                 ego_weight: 1.0,
                 prior_drop: 0.0,
+                ordinal_sigma: 0.0,
             },
         )
         .unwrap()
@@ -138,7 +140,44 @@ fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
     let bad = LossOptions {
         ego_weight: 1.0,
         prior_drop: 1.5,
+        ordinal_sigma: 0.0,
     };
     let err = m.loss_with(tensor::<F>(&ids, 1, f, n), bad).err().unwrap();
     assert!(err.to_string().contains("prior_drop 1.5"), "{err}");
+}
+
+/// `ordinal_sigma` rescores the ordered segments (ego, agent) and the ego action and leaves the coded
+/// ones (map, image) exactly as they were; a spread that is not a number of bins is refused.
+#[test]
+fn ordinal_smoothing_touches_only_ordered_bins() {
+    use umgen_backbone::LossOptions;
+    let m = model::<F>();
+    let (b, f, n) = (2, 3, spec().n);
+    let ids = tokens(&spec(), b, f, 8);
+    let parts = |sigma: f64| -> Vec<(String, f32)> {
+        let opts = LossOptions {
+            ego_weight: 1.0,
+            prior_drop: 0.0,
+            ordinal_sigma: sigma,
+        };
+        let l = m.loss_with(tensor::<F>(&ids, b, f, n), opts).unwrap();
+        l.parts.into_iter().map(|(k, v)| (k, v.into_scalar())).collect()
+    };
+    let (hard, soft) = (parts(0.0), parts(1.5));
+    for ((name, h), (_, s)) in hard.iter().zip(&soft) {
+        let ordered = name.ends_with("/ego") || name.ends_with("/agent") || name == "ego";
+        let coded = name.ends_with("/map") || name.ends_with("/image");
+        if ordered {
+            assert_ne!(h, s, "{name} should be rescored");
+        } else if coded {
+            assert_eq!(h, s, "{name} should not change");
+        }
+    }
+    let bad = LossOptions {
+        ego_weight: 1.0,
+        prior_drop: 0.0,
+        ordinal_sigma: -1.0,
+    };
+    let err = m.loss_with(tensor::<F>(&ids, b, f, n), bad).err().unwrap();
+    assert!(err.to_string().contains("ordinal_sigma -1"), "{err}");
 }
