@@ -119,7 +119,7 @@ impl<B: Backend> FrameEmbedding<B> {
     fn rows(&self, s: usize, p: usize, ids: Tensor<B, 2, Int>) -> Tensor<B, 3> {
         let l = ids.dims()[1];
         let t = &self.tables[s];
-        let x = t.table.forward(ids);
+        let x = crate::lookup::embed(&t.table, ids);
         let x = match &t.proj {
             Some(proj) => linear(proj, x, self.precision),
             None => x,
@@ -137,7 +137,7 @@ impl<B: Backend> FrameEmbedding<B> {
             .iter()
             .zip(&self.blocks)
             .map(|(t, [start, len])| {
-                let x = t.table.forward(flat.clone().narrow(1, *start, *len));
+                let x = crate::lookup::embed(&t.table, flat.clone().narrow(1, *start, *len));
                 match &t.proj {
                     Some(p) => linear(p, x, self.precision),
                     None => x,

@@ -2,6 +2,7 @@
 
 use crate::config::Precision;
 use crate::precision::linear;
+use crate::rows;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::{gelu, softmax};
@@ -196,9 +197,9 @@ impl<B: Backend> SelfBlock<B> {
 
     /// [`Self::forward`] through burn's operations (and their autodiff, on training backends).
     pub(crate) fn forward_autodiff(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
-        let n = self.ln1.forward(x.clone());
+        let n = rows::layer_norm(&self.ln1, x.clone());
         let x = x + self.attn.forward(n.clone(), n, None, causal);
-        x.clone() + self.mlp.forward(self.ln2.forward(x))
+        x.clone() + self.mlp.forward(rows::layer_norm(&self.ln2, x))
     }
 
     /// The causal layer on one new position `[m, 1, d]`, with the keys and values of the earlier ones in
@@ -210,6 +211,7 @@ impl<B: Backend> SelfBlock<B> {
         pos: usize,
         hidden: Tensor<B, 4>,
     ) -> Tensor<B, 3> {
+        // One position at a time: no long gradient sums to shape, and the CPU backend's fused norm.
         let x = x.clone() + self.attn.forward_step(self.ln1.forward(x), cache, pos, hidden);
         x.clone() + self.mlp.forward(self.ln2.forward(x))
     }
@@ -278,9 +280,12 @@ impl<B: Backend> CrossBlock<B> {
         mask: Option<Tensor<B, 4, Bool>>,
     ) -> Tensor<B, 3> {
         let x = x.clone()
-            + self
-                .attn
-                .forward(self.ln_q.forward(x), self.ln_ctx.forward(ctx), mask, false);
-        x.clone() + self.mlp.forward(self.ln2.forward(x))
+            + self.attn.forward(
+                rows::layer_norm(&self.ln_q, x),
+                rows::layer_norm(&self.ln_ctx, ctx),
+                mask,
+                false,
+            );
+        x.clone() + self.mlp.forward(rows::layer_norm(&self.ln2, x))
     }
 }

@@ -35,11 +35,13 @@ mod error;
 pub mod flash;
 mod heads;
 mod layers;
+mod lookup;
 pub mod matmul;
 mod model;
 pub mod ordinal;
 mod precision;
 pub mod recompute;
+mod rows;
 pub mod smoothing;
 mod spec;
 

@@ -206,7 +206,7 @@ impl<B: Backend> Backbone<B> {
         for blk in &self.tar {
             x = blk.forward(x);
         }
-        self.ln_tar.forward(x)
+        crate::rows::layer_norm(&self.ln_tar, x)
     }
 
     /// OAR input for a frame: position 0 gets the learned start vector, position p the embedding of token
@@ -258,7 +258,7 @@ impl<B: Backend> Backbone<B> {
         for blk in &self.oar {
             x = blk.forward(x, true);
         }
-        self.ln_oar.forward(x)
+        crate::rows::layer_norm(&self.ln_oar, x)
     }
 
     /// The teacher-forced training loss of windows `[b, t + 1, N]`: frames `0..t` condition, frame

@@ -35,7 +35,7 @@ pub fn matmul<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>, p: P
     widen(operand(a, p).matmul(operand(b, p)), p)
 }
 
-/// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32. Training on CUDA runs the
+/// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32 ([`crate::rows::add`]). Training on CUDA runs the
 /// product on the named kernel (`matmul.rs`), as one `[m, k] × [k, n]` product over all leading dimensions.
 pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
     let w = layer.weight.val();
@@ -54,7 +54,7 @@ pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p:
         ),
     };
     match &layer.bias {
-        Some(bias) => y + bias.val().unsqueeze::<D>(),
+        Some(bias) => crate::rows::add(y, bias.val()),
         None => y,
     }
 }

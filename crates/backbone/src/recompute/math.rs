@@ -115,36 +115,11 @@ fn norm_grad<I: LayerBackend>(
     n: &Norm<I>,
     dy: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Tensor<I, 1>, Tensor<I, 1>) {
-    let dgamma = rows_sum(dy.clone() * xhat.clone());
-    let dbeta = rows_sum(dy.clone());
+    let dgamma = crate::rows::sum(dy.clone() * xhat.clone());
+    let dbeta = crate::rows::sum(dy.clone());
     let dxhat = dy * n.gamma.clone().unsqueeze::<3>();
     let dx = (dxhat.clone() - dxhat.clone().mean_dim(2) - xhat.clone() * (dxhat * xhat).mean_dim(2)) * rstd;
     (dx, dgamma, dbeta)
-}
-
-/// Row groups of [`rows_sum`]'s first stage.
-const GROUPS: usize = 256;
-
-/// Sum over every row of `[.., d]`: `[d]`. In two stages (rows in [`GROUPS`] groups, then the groups):
-/// burn's reduction of a `[70,368, 384]` matrix along its rows in one go gives each column one unit, and a
-/// profiled `small` step spent about 900 ms in such sums (docs/perf-notes.md).
-fn rows_sum<I: LayerBackend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
-    let d = x.dims()[D - 1];
-    let x = x.reshape([-1, d as i32]);
-    let m = x.dims()[0];
-    let per = m / GROUPS;
-    if per < 2 {
-        return x.sum_dim(0).reshape([d]);
-    }
-    let grouped = x.clone().narrow(0, 0, GROUPS * per).reshape([GROUPS, per, d]);
-    let sum = grouped.sum_dim(1).reshape([GROUPS, d]).sum_dim(0);
-    let rest = m - GROUPS * per;
-    let sum = if rest > 0 {
-        sum + x.narrow(0, GROUPS * per, rest).sum_dim(0)
-    } else {
-        sum
-    };
-    sum.reshape([d])
 }
 
 /// `x · w + b` with the product in `p`'s format (as `precision::linear` on the named kernel).
@@ -165,7 +140,7 @@ fn linear_grad<I: LayerBackend>(
     let [b, len, k] = x.dims();
     let n = dy.dims()[2];
     let dy2 = dy.reshape([b * len, n]);
-    let db = rows_sum(dy2.clone());
+    let db = crate::rows::sum(dy2.clone());
     let dy2 = operand(dy2, p);
     let dx = product(dy2.clone(), operand(l.w.clone(), p).transpose()).reshape([b, len, k]);
     let dw = product(operand(x.reshape([b * len, k]), p).transpose(), dy2);

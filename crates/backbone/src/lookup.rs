@@ -1,0 +1,161 @@
+//! Embedding lookups whose table gradient is summed in many columns at once.
+//!
+//! burn's embedding gradient is `select_assign` into a zero table, and cubecl's `select_assign` kernel
+//! gives each of the table's `d` columns one unit that walks every looked-up row in turn: 36,864 map
+//! tokens of a `small` step walked by 32 … 384 units took 6–13 ms per table (profile, docs/perf-notes.md).
+//! [`embed`] is a custom autodiff operation on the training backends whose forward pass is burn's lookup
+//! and whose backward pass splits the rows into `k` chunks, scatters each chunk into its own copy of the
+//! table (`scatter` along the vocabulary axis of a `[k, vocab, d]` zero tensor, `k · d` units of `rows / k`
+//! rows each) and sums the copies. Elsewhere it is burn's lookup.
+
+use crate::attention::float;
+use crate::dispatch::same;
+use burn::backend::Autodiff;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::nn::Embedding;
+use burn::tensor::backend::Backend;
+use burn::tensor::module::embedding;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{IndexingUpdateOp, Int, Tensor, TensorMetadata};
+
+/// Most bytes the `k` table copies may take together.
+const COPIES_BYTES: usize = 128 << 20;
+/// Most chunks.
+const MAX_CHUNKS: usize = 256;
+
+/// Rows `[m, l, d]` of `table` for ids `[m, l]`.
+pub fn embed<B: Backend>(table: &Embedding<B>, ids: Tensor<B, 2, Int>) -> Tensor<B, 3> {
+    let weight = table.weight.val();
+    let found = on::<B, burn::backend::Flex>();
+    #[cfg(feature = "cuda")]
+    let found = found.or_else(on::<B, burn::backend::Cuda>);
+    match found {
+        Some(op) => op(weight, ids),
+        None => embedding(weight, ids),
+    }
+}
+
+/// A lookup on `B`.
+type LookupFn<B> = fn(Tensor<B, 2>, Tensor<B, 2, Int>) -> Tensor<B, 3>;
+
+/// [`apply`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+fn on<B: Backend, I: Backend>() -> Option<LookupFn<B>> {
+    let plain: LookupFn<Autodiff<I>> = apply::<I, NoCheckpointing>;
+    let balanced: LookupFn<Autodiff<I, BalancedCheckpointing>> = apply::<I, BalancedCheckpointing>;
+    same(plain).or_else(|| same(balanced))
+}
+
+/// Chunks for `rows` looked-up rows of a `vocab × d` table: the largest divisor of `rows` whose copies
+/// fit [`COPIES_BYTES`], at most [`MAX_CHUNKS`] and at most `rows / 8` (1 if none).
+fn chunks(rows: usize, vocab: usize, d: usize) -> usize {
+    let limit = (COPIES_BYTES / (vocab * d * 4).max(1))
+        .min(MAX_CHUNKS)
+        .min(rows / 8);
+    (1..=limit.max(1)).rev().find(|k| rows.is_multiple_of(*k)).unwrap_or(1)
+}
+
+/// The table's gradient `[vocab, d]` from the output's gradient `g` `[rows, d]` and the ids `[rows]`.
+fn table_grad<I: Backend>(g: Tensor<I, 2>, ids: Tensor<I, 1, Int>, vocab: usize) -> Tensor<I, 2> {
+    let [rows, d] = g.dims();
+    let k = chunks(rows, vocab, d);
+    let r = rows / k;
+    let idx = ids.reshape([k, r, 1]).expand([k, r, d]);
+    Tensor::<I, 3>::zeros([k, vocab, d], &g.device())
+        .scatter(1, idx, g.reshape([k, r, d]), IndexingUpdateOp::Add)
+        .sum_dim(0)
+        .reshape([vocab, d])
+}
+
+#[derive(Debug)]
+struct Lookup;
+
+impl<I: Backend> Backward<I, 1> for Lookup {
+    /// The ids and the table's row count.
+    type State = (Tensor<I, 1, Int>, usize);
+
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let g = grads.consume::<I>(&ops.node);
+        let [node] = ops.parents;
+        let Some(node) = node else { return };
+        let (ids, vocab) = ops.state;
+        let shape = g.shape();
+        let d = shape[shape.num_dims() - 1];
+        let g = float::<I, 3>(g).reshape([-1, d as i32]);
+        grads.register::<I>(node.id, table_grad(g, ids, vocab).into_primitive().tensor());
+    }
+}
+
+/// The lookup as one operation on `Autodiff<I, C>`.
+fn apply<I: Backend, C: CheckpointStrategy>(
+    weight: Tensor<Autodiff<I, C>, 2>,
+    ids: Tensor<Autodiff<I, C>, 2, Int>,
+) -> Tensor<Autodiff<I, C>, 3> {
+    let w = weight.into_primitive().tensor();
+    let ids = Tensor::<I, 2, Int>::from_primitive(ids.into_primitive());
+    let table = float::<I, 2>(w.primitive.clone());
+    let vocab = table.dims()[0];
+    let y: FloatTensor<I> = embedding(table, ids.clone()).into_primitive().tensor();
+    let out = match Lookup.prepare::<C>([w.node.clone()]).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => prep.finish((ids.flatten(0, 1), vocab), y),
+        OpsKind::UnTracked(prep) => prep.finish(y),
+    };
+    float(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::Flex;
+    use burn::nn::EmbeddingConfig;
+    use burn::tensor::{Distribution, TensorData};
+
+    type A = Autodiff<Flex>;
+
+    #[test]
+    fn chunks_divide_the_rows_and_bound_the_copies() {
+        // 36 frames × 704 agent slots, a 1,030-row table of width 384: 84 copies fit 128 MiB,
+        // 72 divides the rows.
+        assert_eq!(chunks(25_344, 1030, 384), 72);
+        assert_eq!(chunks(36 * 1024, 8194, 64), 48);
+        assert_eq!(chunks(7, 10, 4), 1);
+        assert_eq!(chunks(1031 * 8, 10, 4), 8);
+    }
+
+    /// The lookup and the table's gradient equal burn's, with repeated ids (a pad-like id in most rows)
+    /// over a row count that takes several chunks.
+    #[test]
+    fn matches_burns_lookup_and_gradient() {
+        let dev = Default::default();
+        let table = EmbeddingConfig::new(12, 5).init::<A>(&dev);
+        let ids: Vec<i64> = (0..6 * 40)
+            .map(|i| if i % 3 == 0 { (i * 7) % 12 } else { 11 })
+            .collect();
+        let ids = Tensor::<A, 2, Int>::from_data(TensorData::new(ids, [6, 40]), &dev);
+        assert!(chunks(240, 12, 5) > 1);
+        let w = Tensor::<A, 3>::random([6, 40, 5], Distribution::Normal(0.0, 1.0), &dev);
+
+        let ours = embed(&table, ids.clone());
+        let theirs = embedding(table.weight.val(), ids);
+        let diff = |a: Tensor<Flex, 2>, b: Tensor<Flex, 2>| (a - b).abs().max().into_scalar();
+        assert_eq!(
+            diff(
+                ours.clone().inner().flatten(0, 1),
+                theirs.clone().inner().flatten(0, 1)
+            ),
+            0.0
+        );
+        let g_ours = (ours * w.clone()).sum().backward();
+        let g_theirs = (theirs * w).sum().backward();
+        let weight = table.weight.val();
+        let (a, b) = (
+            weight.grad(&g_ours).expect("grad"),
+            weight.grad(&g_theirs).expect("grad"),
+        );
+        assert!(diff(a, b) < 1e-5);
+    }
+}
