@@ -56,7 +56,10 @@ fn chunks(rows: usize, vocab: usize, d: usize) -> usize {
     let limit = (COPIES_BYTES / (vocab * d * 4).max(1))
         .min(MAX_CHUNKS)
         .min(rows / 8);
-    (1..=limit.max(1)).rev().find(|k| rows.is_multiple_of(*k)).unwrap_or(1)
+    (1..=limit.max(1))
+        .rev()
+        .find(|k| rows.is_multiple_of(*k))
+        .unwrap_or(1)
 }
 
 /// The table's gradient `[vocab, d]` from the output's gradient `g` `[rows, d]` and the ids `[rows]`.

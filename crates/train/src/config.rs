@@ -3,6 +3,7 @@
 use crate::error::{Result, TrainError};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+use umgen_backbone::LossOptions;
 use umgen_backbone::flash::AttentionKernel;
 use umgen_backbone::matmul::MatmulKernel;
 
@@ -139,6 +140,28 @@ impl TrainConfig {
         umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
         umgen_backbone::recompute::set_enabled(self.recompute);
         Ok(())
+    }
+
+    /// The options of the training loss (`ego_loss_weight`, `prior_drop`, `ordinal_sigma`), checked: an
+    /// error names the key and its value. `umgen train` and `umgen bench train` take the loss this way.
+    pub fn loss_options(&self) -> Result<LossOptions> {
+        if !(0.0..=1.0).contains(&self.prior_drop) {
+            return Err(TrainError::Setup(format!(
+                "train.prior_drop = {} must be a probability (0 to 1)",
+                self.prior_drop
+            )));
+        }
+        if !(self.ordinal_sigma.is_finite() && self.ordinal_sigma >= 0.0) {
+            return Err(TrainError::Setup(format!(
+                "train.ordinal_sigma = {} must be a spread in bins, 0 or more",
+                self.ordinal_sigma
+            )));
+        }
+        Ok(LossOptions {
+            ego_weight: self.ego_loss_weight,
+            prior_drop: self.prior_drop,
+            ordinal_sigma: self.ordinal_sigma,
+        })
     }
 
     /// The settings a resumed run must share with the run it continues (everything that changes the

@@ -9,7 +9,7 @@ use burn::tensor::{Int, Tensor, TensorData};
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::time::Instant;
-use umgen_backbone::{Backbone, BackboneConfig, BackboneSpec, LossOptions};
+use umgen_backbone::{Backbone, BackboneConfig, BackboneSpec};
 use umgen_checkpoint::CheckpointDir;
 use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
@@ -134,18 +134,7 @@ pub fn train<B: AutodiffBackend>(
             tc.eps
         )));
     };
-    if !(0.0..=1.0).contains(&tc.prior_drop) {
-        return Err(TrainError::Setup(format!(
-            "train.prior_drop = {} must be a probability (0 to 1)",
-            tc.prior_drop
-        )));
-    }
-    if !(tc.ordinal_sigma.is_finite() && tc.ordinal_sigma >= 0.0) {
-        return Err(TrainError::Setup(format!(
-            "train.ordinal_sigma = {} must be a spread in bins, 0 or more",
-            tc.ordinal_sigma
-        )));
-    }
+    let loss_options = tc.loss_options()?;
     if f > run.backbone.max_frames {
         return Err(TrainError::Setup(format!(
             "windows of {f} frames exceed backbone.max_frames = {}",
@@ -235,14 +224,7 @@ pub fn train<B: AutodiffBackend>(
         for micro in 0..tc.grad_accum {
             let picks = sampler.batch(step, micro, tc.grad_accum, tc.batch_size, rank, world);
             let batch = load_batch::<B>(tokens, &windows, &picks, f, tc.gap, n, device)?;
-            let losses = model.loss_with(
-                batch,
-                LossOptions {
-                    ego_weight: tc.ego_loss_weight,
-                    prior_drop: tc.prior_drop,
-                    ordinal_sigma: tc.ordinal_sigma,
-                },
-            )?;
+            let losses = model.loss_with(batch, loss_options)?;
             let grads = GradientsParams::from_grads(
                 losses.total.clone().div_scalar(tc.grad_accum as f64).backward(),
                 &model,

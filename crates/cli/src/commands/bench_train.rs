@@ -72,6 +72,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     let flops = spec.train_flops(cfg, b, tc.frames) * world as f64;
     let bucket = (tc.bucket_mib * 1048576.0) as usize;
     tc.select_kernels()?;
+    let loss_options = tc.loss_options()?;
     // Every rank runs the same binary, so std's hasher is stable enough to compare configs.
     let identity = {
         use std::hash::{Hash, Hasher};
@@ -120,7 +121,8 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                 }
                 Ok(())
             };
-            let losses = model.loss(batch.clone(), tc.ego_loss_weight)?;
+            // The loss as the trainer takes it (prior drop, ordinal smoothing): the step a run would take.
+            let losses = model.loss_with(batch.clone(), loss_options)?;
             let loss = losses.total.clone();
             if synced {
                 // Only a read of the loss makes the lazy graph run before the backward pass.
