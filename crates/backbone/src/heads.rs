@@ -5,7 +5,6 @@ use crate::precision::linear;
 use crate::spec::SegmentSpec;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
-use burn::tensor::activation::log_softmax;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
 
@@ -56,7 +55,8 @@ impl<B: Backend> Heads<B> {
 
     /// Summed cross-entropy per segment of features `[m, N, d]` against targets `[m, N]`, with the number
     /// of tokens each sum covers. Segment `s`'s first `ordinal[s]` ids are ordered bins, scored with
-    /// [`crate::smoothing::nll_sum`] at `sigma` bins (0: plain cross-entropy).
+    /// [`crate::smoothing::nll_sum`] at `sigma` bins (0: plain cross-entropy), through
+    /// one fused operation on the training backends (`xent.rs`).
     pub fn cross_entropy(
         &self,
         x: Tensor<B, 3>,
@@ -70,10 +70,10 @@ impl<B: Backend> Heads<B> {
                 let [offset, tokens] = self.content[s];
                 let logits = self.logits(s, x.clone());
                 let v = logits.dims()[2];
-                let lp = log_softmax(logits.reshape([m * tokens, v]), 1);
                 let t = targets.clone().narrow(1, offset, tokens).reshape([m * tokens, 1]);
                 let ord = ordinal.get(s).copied().unwrap_or(0);
-                (crate::smoothing::nll_sum(lp, t, ord, sigma), m * tokens)
+                let sum = crate::xent::sum(logits.reshape([m * tokens, v]), t, ord, sigma);
+                (sum, m * tokens)
             })
             .collect()
     }

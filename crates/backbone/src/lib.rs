@@ -20,7 +20,10 @@
 //! (`precision.rs`); training attention over long sequences runs fused kernels on CUDA ([`flash`]) and tiled
 //! passes elsewhere ([`attention`]), and training on CUDA runs the linear layers' products on a named matmul
 //! kernel ([`matmul`]). With [`recompute`] on, the self-attention layers keep only their inputs for the
-//! backward pass and are recomputed there (activation checkpointing).
+//! backward pass and are recomputed there (activation checkpointing). On the training backends three more
+//! custom autodiff operations replace burn's backward passes where those run on a handful of GPU units or
+//! pass over the logits several times: per-feature parameters (`rows.rs`), embedding lookups
+//! (`lookup.rs`) and the cross-entropy from logits (`xent.rs`, with [`smoothing`]'s targets).
 //!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
@@ -44,6 +47,7 @@ pub mod recompute;
 mod rows;
 pub mod smoothing;
 mod spec;
+mod xent;
 
 pub use ama::align;
 pub use config::{BackboneConfig, Precision};

@@ -356,10 +356,14 @@ impl<B: Backend> Backbone<B> {
         };
         if let (Some(logits), Some(ids)) = (self.ego_logits(e, false), next_action) {
             let [_, _, q, v] = logits.dims();
-            let lp = burn::tensor::activation::log_softmax(logits.reshape([b * t * q, v]), 1);
             let bins = self.spec.action.as_ref().map_or(0, |a| ordinal[a.segment]);
-            let ego = crate::smoothing::nll_sum(lp, ids.reshape([b * t * q, 1]), bins, sigma)
-                .div_scalar((b * t * q) as f64);
+            let ego = crate::xent::sum(
+                logits.reshape([b * t * q, v]),
+                ids.reshape([b * t * q, 1]),
+                bins,
+                sigma,
+            )
+            .div_scalar((b * t * q) as f64);
             parts.push(("ego".into(), ego.clone()));
             total = total + ego.mul_scalar(ego_weight);
         }

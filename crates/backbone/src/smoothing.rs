@@ -21,27 +21,56 @@ pub fn nll_sum<B: Backend>(
     ordinal: usize,
     sigma: f64,
 ) -> Tensor<B, 1> {
-    if sigma <= 0.0 || ordinal == 0 {
-        return lp.gather(1, targets).sum().neg();
-    }
-    let dev = lp.device();
-    let [rows, vocab] = lp.dims();
-    let (offsets, gauss) = window(sigma);
-    let k = offsets.len();
-    let offs = Tensor::<B, 2, Int>::from_data(TensorData::new(offsets.clone(), [1, k]), &dev);
-    let gauss = Tensor::<B, 2>::from_data(TensorData::new(gauss, [1, k]), &dev);
-    let centre: Vec<f32> = offsets.iter().map(|&o| if o == 0 { 1.0 } else { 0.0 }).collect();
-    let centre = Tensor::<B, 2>::from_data(TensorData::new(centre, [1, k]), &dev);
+    let vocab = lp.dims()[1];
+    let q = Targets::new(targets, ordinal, sigma, vocab);
+    q.entropy() - (lp.gather(1, q.ids.clone()) * q.weights).sum()
+}
 
-    let idx = targets.clone().expand([rows, k]) + offs.expand([rows, k]);
-    let inside = idx.clone().greater_equal_elem(0).float() * idx.clone().lower_elem(ordinal as i64).float();
-    let ordered = targets.lower_elem(ordinal as i64).float();
-    let w = gauss * inside * ordered.clone() + centre * ordered.neg().add_scalar(1.0);
-    let w = w.clone() / w.sum_dim(1);
-    let picked = lp.gather(1, idx.clamp(0, vocab as i64 - 1));
-    // 0 · log(0 + ε) is 0, so bins outside the window add nothing to the entropy.
-    let entropy = (w.clone() * w.clone().add_scalar(1e-30).log()).sum();
-    entropy - (picked * w).sum()
+/// The target distribution q of each row: ids `[rows, k]` (inside `0..vocab`) and their weights `[rows,
+/// k]`, which sum to 1 per row (`k` = 1 and weight 1 for hard targets).
+#[derive(Debug, Clone)]
+pub struct Targets<B: Backend> {
+    /// Ids with weight (ids of zero weight are clamped into the vocabulary).
+    pub ids: Tensor<B, 2, Int>,
+    /// Weights, summing to 1 per row.
+    pub weights: Tensor<B, 2>,
+}
+
+impl<B: Backend> Targets<B> {
+    /// q for `targets` `[rows, 1]` as [`nll_sum`] defines it.
+    pub fn new(targets: Tensor<B, 2, Int>, ordinal: usize, sigma: f64, vocab: usize) -> Self {
+        let dev = targets.device();
+        let rows = targets.dims()[0];
+        if sigma <= 0.0 || ordinal == 0 {
+            return Self {
+                ids: targets,
+                weights: Tensor::ones([rows, 1], &dev),
+            };
+        }
+        let (offsets, gauss) = window(sigma);
+        let k = offsets.len();
+        let offs = Tensor::<B, 2, Int>::from_data(TensorData::new(offsets.clone(), [1, k]), &dev);
+        let gauss = Tensor::<B, 2>::from_data(TensorData::new(gauss, [1, k]), &dev);
+        let centre: Vec<f32> = offsets.iter().map(|&o| if o == 0 { 1.0 } else { 0.0 }).collect();
+        let centre = Tensor::<B, 2>::from_data(TensorData::new(centre, [1, k]), &dev);
+
+        let idx = targets.clone().expand([rows, k]) + offs.expand([rows, k]);
+        let inside =
+            idx.clone().greater_equal_elem(0).float() * idx.clone().lower_elem(ordinal as i64).float();
+        let ordered = targets.lower_elem(ordinal as i64).float();
+        let w = gauss * inside * ordered.clone() + centre * ordered.neg().add_scalar(1.0);
+        Self {
+            ids: idx.clamp(0, vocab as i64 - 1),
+            weights: w.clone() / w.sum_dim(1),
+        }
+    }
+
+    /// Σ q log q over all rows (0 for hard targets): what turns −Σ q log p into KL(q ‖ p).
+    pub fn entropy(&self) -> Tensor<B, 1> {
+        let w = self.weights.clone();
+        // 0 · log(0 + ε) is 0, so bins outside the window add nothing.
+        (w.clone() * w.add_scalar(1e-30).log()).sum()
+    }
 }
 
 /// Offsets `−r..=r` (r = ⌈3σ⌉) and their unnormalised Gaussian weights.
