@@ -57,6 +57,26 @@ pub struct LossOptions {
     pub ordinal_sigma: f64,
 }
 
+impl LossOptions {
+    /// What is wrong with these options, as `key = value …` (the keys are those of `[train]`); `None` if
+    /// nothing is.
+    pub fn problem(&self) -> Option<String> {
+        if !(0.0..=1.0).contains(&self.prior_drop) {
+            return Some(format!(
+                "prior_drop = {} must be a probability (0 to 1)",
+                self.prior_drop
+            ));
+        }
+        if !(self.ordinal_sigma.is_finite() && self.ordinal_sigma >= 0.0) {
+            return Some(format!(
+                "ordinal_sigma = {} must be a spread in bins, 0 or more",
+                self.ordinal_sigma
+            ));
+        }
+        None
+    }
+}
+
 /// The TAR/OAR backbone.
 #[derive(Module, Debug)]
 pub struct Backbone<B: Backend> {
@@ -279,17 +299,8 @@ impl<B: Backend> Backbone<B> {
     /// the device from the backend's seed. The TAR's own loss always sees its output.
     pub fn loss_with(&self, tokens: Tensor<B, 3, Int>, opts: LossOptions) -> Result<Losses<B>> {
         let ego_weight = opts.ego_weight;
-        if !(0.0..=1.0).contains(&opts.prior_drop) {
-            return Err(BackboneError::Input(format!(
-                "prior_drop {} is not a probability",
-                opts.prior_drop
-            )));
-        }
-        if !(opts.ordinal_sigma.is_finite() && opts.ordinal_sigma >= 0.0) {
-            return Err(BackboneError::Input(format!(
-                "ordinal_sigma {} is not a spread in bins (≥ 0)",
-                opts.ordinal_sigma
-            )));
+        if let Some(problem) = opts.problem() {
+            return Err(BackboneError::Input(problem));
         }
         let ordinal: Vec<usize> = self.spec.segments.iter().map(|s| s.ordinal).collect();
         let sigma = opts.ordinal_sigma;

@@ -145,23 +145,15 @@ impl TrainConfig {
     /// The options of the training loss (`ego_loss_weight`, `prior_drop`, `ordinal_sigma`), checked: an
     /// error names the key and its value. `umgen train` and `umgen bench train` take the loss this way.
     pub fn loss_options(&self) -> Result<LossOptions> {
-        if !(0.0..=1.0).contains(&self.prior_drop) {
-            return Err(TrainError::Setup(format!(
-                "train.prior_drop = {} must be a probability (0 to 1)",
-                self.prior_drop
-            )));
-        }
-        if !(self.ordinal_sigma.is_finite() && self.ordinal_sigma >= 0.0) {
-            return Err(TrainError::Setup(format!(
-                "train.ordinal_sigma = {} must be a spread in bins, 0 or more",
-                self.ordinal_sigma
-            )));
-        }
-        Ok(LossOptions {
+        let options = LossOptions {
             ego_weight: self.ego_loss_weight,
             prior_drop: self.prior_drop,
             ordinal_sigma: self.ordinal_sigma,
-        })
+        };
+        match options.problem() {
+            Some(problem) => Err(TrainError::Setup(format!("train.{problem}"))),
+            None => Ok(options),
+        }
     }
 
     /// The settings a resumed run must share with the run it continues (everything that changes the

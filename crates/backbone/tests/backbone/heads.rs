@@ -143,7 +143,7 @@ fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
         ordinal_sigma: 0.0,
     };
     let err = m.loss_with(tensor::<F>(&ids, 1, f, n), bad).err().unwrap();
-    assert!(err.to_string().contains("prior_drop 1.5"), "{err}");
+    assert!(err.to_string().contains("prior_drop = 1.5"), "{err}");
 }
 
 /// `ordinal_sigma` rescores the ordered segments (ego, agent) and the ego action and leaves the coded
@@ -179,5 +179,5 @@ fn ordinal_smoothing_touches_only_ordered_bins() {
         ordinal_sigma: -1.0,
     };
     let err = m.loss_with(tensor::<F>(&ids, b, f, n), bad).err().unwrap();
-    assert!(err.to_string().contains("ordinal_sigma -1"), "{err}");
+    assert!(err.to_string().contains("ordinal_sigma = -1"), "{err}");
 }
