@@ -112,20 +112,27 @@ impl<I: Backend, const ADD: bool> Backward<I, 2> for Rows<ADD> {
         let flat =
             |t: FloatTensor<I>| float::<I, 2>(I::float_reshape(t, Shape::new([shape.num_elements() / d, d])));
         let [x_node, p_node] = ops.parents;
-        let (dx, dp) = match ops.state {
-            None => (g.clone(), sum(flat(g))),
+        // Each gradient only for a parent that asks for it (a frozen parameter, an untracked input).
+        match ops.state {
+            None => {
+                if let Some(node) = p_node {
+                    grads.register::<I>(node.id, sum(flat(g.clone())).into_primitive().tensor());
+                }
+                if let Some(node) = x_node {
+                    grads.register::<I>(node.id, g);
+                }
+            }
             Some((x, p)) => {
                 let g2 = flat(g);
-                let dp = sum(g2.clone() * flat(x));
-                let dx = g2 * float::<I, 1>(p).unsqueeze::<2>();
-                (I::float_reshape(dx.into_primitive().tensor(), shape), dp)
+                if let Some(node) = p_node {
+                    let dp = sum(g2.clone() * flat(x));
+                    grads.register::<I>(node.id, dp.into_primitive().tensor());
+                }
+                if let Some(node) = x_node {
+                    let dx = g2 * float::<I, 1>(p).unsqueeze::<2>();
+                    grads.register::<I>(node.id, I::float_reshape(dx.into_primitive().tensor(), shape));
+                }
             }
-        };
-        if let Some(node) = p_node {
-            grads.register::<I>(node.id, dp.into_primitive().tensor());
-        }
-        if let Some(node) = x_node {
-            grads.register::<I>(node.id, dx);
         }
     }
 }

@@ -68,6 +68,10 @@ impl<B: Backend> Targets<B> {
     /// Σ q log q over all rows (0 for hard targets): what turns −Σ q log p into KL(q ‖ p).
     pub fn entropy(&self) -> Tensor<B, 1> {
         let w = self.weights.clone();
+        // Hard targets (one id of weight 1 per row) have none; no pass over their rows for it.
+        if w.dims()[1] == 1 {
+            return Tensor::zeros([1], &w.device());
+        }
         // 0 · log(0 + ε) is 0, so bins outside the window add nothing.
         (w.clone() * w.add_scalar(1e-30).log()).sum()
     }

@@ -90,8 +90,7 @@ fn apply<I: Backend, C: CheckpointStrategy>(
     let q = Targets::new(targets, ordinal, sigma, x.dims()[1]);
     let lse = log_sum_exp(x.clone());
     // −Σ q log p = Σ_rows (lse − Σ_k q_k x_k), as the weights of a row sum to 1.
-    let cross = (lse.clone() * q.weights.clone().sum_dim(1)).sum()
-        - (x.clone().gather(1, q.ids.clone()) * q.weights.clone()).sum();
+    let cross = lse.clone().sum() - (x.clone().gather(1, q.ids.clone()) * q.weights.clone()).sum();
     let loss = (q.entropy() + cross).into_primitive().tensor();
     let out = match Xent.prepare::<C>([t.node.clone()]).compute_bound().stateful() {
         OpsKind::Tracked(prep) => prep.finish((x, lse, q), loss),
