@@ -31,6 +31,14 @@ pub struct BackboneConfig {
     pub action: Option<String>,
     /// The metric-grid modality that AMA moves by the ego action; `""` turns AMA off.
     pub align: Option<String>,
+    /// The modality whose slots of tracked objects the TAR also sees moved one frame ahead (each moved
+    /// by its own velocity and then into the next ego frame by the ego action, [`crate::track`]);
+    /// `""` or absent turns it off.
+    pub track: Option<String>,
+    /// Seconds between consecutive frames of a training window or a rollout (`train.gap` × the data's
+    /// frame interval): how far `track` moves an object at its velocity. Training and generation refuse
+    /// data that steps otherwise.
+    pub step_s: f64,
     /// Number format of the matrix products (`f32`, or `bf16` with f32 master weights; `precision.rs`).
     pub precision: Precision,
     /// Start the embedding and output-head rows of ordered value bins (segments with
@@ -83,6 +91,8 @@ impl Default for BackboneConfig {
             max_frames: 32,
             action: Some("ego".into()),
             align: Some("map".into()),
+            track: None,
+            step_s: 0.5,
             precision: Precision::F32,
             ordinal_init: true,
         }

@@ -108,6 +108,11 @@ impl<B: Backend> FrameEmbedding<B> {
         Some(self.rows(s, p, ids))
     }
 
+    /// The number format of its products (the backbone's).
+    pub(crate) fn precision(&self) -> Precision {
+        self.precision
+    }
+
     /// The segment whose block holds positions `p..p + l` (`l` ≥ 1).
     fn segment_of(&self, p: usize, l: usize) -> Option<usize> {
         self.blocks

@@ -10,6 +10,8 @@
 //! 2. predicts the next ego action from learned queries over the ego history (CA_hist) and the current
 //!    environment (CA_env);
 //! 3. moves the map features by the next action (AMA: affine grid, bilinear, zero padding) and adds them;
+//!    with `backbone.track`, adds to each tracked slot (the agents) the embedding of the slot moved by its
+//!    velocity and the next action ([`track`]);
 //! 4. runs TAR blocks (temporal causal + spatial bidirectional attention) to a coarse next frame `h`;
 //! 5. runs the OAR (causal attention over the next frame; input at position p = embedding of token p − 1 +
 //!    `h_p`);
@@ -47,6 +49,7 @@ pub mod recompute;
 mod rows;
 pub mod smoothing;
 mod spec;
+pub mod track;
 mod xent;
 
 pub use ama::align;
@@ -58,4 +61,4 @@ pub use error::{BackboneError, Result};
 pub use heads::Heads;
 pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
 pub use model::{Backbone, LossOptions, Losses, TarBlock};
-pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec};
+pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec, TrackSpec};

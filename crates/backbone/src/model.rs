@@ -8,6 +8,7 @@ use crate::error::{BackboneError, Result};
 use crate::heads::Heads;
 use crate::layers::{LayerSizes, SelfBlock};
 use crate::spec::BackboneSpec;
+use crate::track::TrackProjection;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig};
 use burn::tensor::backend::Backend;
@@ -90,6 +91,8 @@ pub struct Backbone<B: Backend> {
     oar_bos: Param<Tensor<B, 1>>,
     oar: Vec<SelfBlock<B>>,
     ln_oar: LayerNorm<B>,
+    /// Projections of the moved slots' embeddings (`backbone.track`).
+    track: Option<TrackProjection<B>>,
     /// Heads on the TAR output.
     pub tar_heads: Heads<B>,
     /// Heads on the OAR output.
@@ -155,6 +158,7 @@ impl<B: Backend> Backbone<B> {
             oar_bos: Param::from_tensor(Tensor::random([d], Distribution::Normal(0.0, 0.02), dev)),
             oar: (0..cfg.oar_layers).map(block).collect(),
             ln_oar: LayerNormConfig::new(d).init(dev),
+            track: spec.track.as_ref().map(|_| TrackProjection::new(d, dev)),
             tar_heads: Heads::new(&spec.segments, d, cfg.precision, &ordinal, dev),
             oar_heads: Heads::new(&spec.segments, d, cfg.precision, &ordinal, dev),
             spec: light,
@@ -186,11 +190,14 @@ impl<B: Backend> Backbone<B> {
         Some(ids.narrow(2, 0, 3).float().add_scalar(0.5) * width + lo)
     }
 
-    /// The TAR output `h` `[b, t, N, d]` for conditioning frames `e` `[b, t, N, d]`, given the embeddings
-    /// `e_next` `[b, t, N, d]` and action tokens `next_action` `[b, t, q]` of the frames that follow them:
-    /// frame i's action block is replaced by frame i+1's, and its map is moved by that action (AMA).
+    /// The TAR output `h` `[b, t, N, d]` for conditioning frames `tokens` `[b, t, N]` (embedded: `e`
+    /// `[b, t, N, d]`), given the embeddings `e_next` `[b, t, N, d]` and action tokens `next_action`
+    /// `[b, t, q]` of the frames that follow them: frame i's action block is replaced by frame i+1's, its
+    /// map is moved by that action (AMA) and its tracked slots by their velocity and that action
+    /// ([`crate::track`]).
     pub fn tar(
         &self,
+        tokens: Tensor<B, 3, Int>,
         e: Tensor<B, 4>,
         e_next: Tensor<B, 4>,
         next_action: Option<Tensor<B, 3, Int>>,
@@ -205,28 +212,44 @@ impl<B: Backend> Backbone<B> {
                 next,
             );
         }
-        if let (Some(al), Some(ids)) = (&self.spec.align, next_action)
-            && let Some(act) = self.decode_action(ids)
-        {
+        let act = next_action.and_then(|ids| self.decode_action(ids));
+        // The tracked slots moved one frame ahead, embedded `[b·t, L, d]`, at content offset `at`.
+        let moved = match (&self.spec.track, &act) {
+            (Some(k), Some(act)) => {
+                let s = &self.spec.segments[k.segment];
+                let ids = crate::track::moved(tokens.narrow(2, s.offset, s.tokens), act.clone(), k);
+                self.embed
+                    .forward_block(s.offset, ids.reshape([b * t, s.tokens]))
+                    .map(|e| (s.offset, e))
+            }
+            _ => None,
+        };
+        let track = self.track.as_ref().zip(moved);
+        if let Some((proj, (at, moved))) = &track {
+            x = add_at(x, *at, proj.input(moved.clone(), self.embed.precision()));
+        }
+        if let (Some(al), Some(act)) = (&self.spec.align, act) {
             let s = &self.spec.segments[al.segment];
             let map = x.clone().narrow(2, s.offset, s.tokens);
             let moved = align(
-                map.clone().reshape([b * t, s.tokens, d]),
+                map.reshape([b * t, s.tokens, d]),
                 act.reshape([b * t, 3]),
                 al.rows,
                 al.cols,
                 al.cell_m,
             );
-            x = x.slice_assign(
-                [0..b, 0..t, s.offset..s.offset + s.tokens, 0..d],
-                map + moved.reshape([b, t, s.tokens, d]),
-            );
+            x = add_at(x, s.offset, moved);
         }
         let mut x = x + self.time.val().narrow(0, 0, t).reshape([1, t, 1, d]);
         for blk in &self.tar {
             x = blk.forward(x);
         }
-        crate::rows::layer_norm(&self.ln_tar, x)
+        let h = crate::rows::layer_norm(&self.ln_tar, x);
+        match track {
+            // Also straight into the output, where the heads and the OAR read it.
+            Some((proj, (at, moved))) => add_at(h, at, proj.output(moved, self.embed.precision())),
+            None => h,
+        }
     }
 
     /// OAR input for a frame: position 0 gets the learned start vector, position p the embedding of token
@@ -314,12 +337,17 @@ impl<B: Backend> Backbone<B> {
         let t = f - 1;
         let e_all = self.embed.forward(tokens.clone());
         let (e, e_next) = (e_all.clone().narrow(1, 0, t), e_all.narrow(1, 1, t));
-        let target = tokens.narrow(1, 1, t);
+        let target = tokens.clone().narrow(1, 1, t);
         let next_action = self.spec.action.as_ref().map(|a| {
             let s = &self.spec.segments[a.segment];
             target.clone().narrow(2, s.offset, s.tokens)
         });
-        let h = self.tar(e.clone(), e_next.clone(), next_action.clone());
+        let h = self.tar(
+            tokens.narrow(1, 0, t),
+            e.clone(),
+            e_next.clone(),
+            next_action.clone(),
+        );
         let d = h.dims()[3];
         let prior = h.clone().reshape([b * t, n, d]);
         let prior = if opts.prior_drop > 0.0 {
@@ -380,4 +408,12 @@ impl<B: Backend> Backbone<B> {
         }
         Ok(Losses { total, parts })
     }
+}
+
+/// `x` `[b, t, N, d]` with `y` `[b·t, L, d]` added at positions `at..at + L`.
+fn add_at<B: Backend>(x: Tensor<B, 4>, at: usize, y: Tensor<B, 3>) -> Tensor<B, 4> {
+    let [b, t, _, d] = x.dims();
+    let l = y.dims()[1];
+    let own = x.clone().narrow(2, at, l);
+    x.slice_assign([0..b, 0..t, at..at + l, 0..d], own + y.reshape([b, t, l, d]))
 }

@@ -61,6 +61,21 @@ pub struct AlignSpec {
     pub cell_m: f64,
 }
 
+/// Slots of tracked objects that the TAR sees moved one frame ahead (`backbone.track`, [`crate::track`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrackSpec {
+    /// Segment index.
+    pub segment: usize,
+    /// Tokens per slot.
+    pub slot: usize,
+    /// Ids `0..values` are value bins.
+    pub values: u32,
+    /// Position in the slot and `(lo, hi, bins)` of x, y (m), vx, vy (m/s) and the heading (rad).
+    pub fields: [(usize, (f64, f64, u32)); 5],
+    /// Seconds from one frame of a window to the next.
+    pub step_s: f64,
+}
+
 /// Everything the backbone is built from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BackboneSpec {
@@ -72,6 +87,9 @@ pub struct BackboneSpec {
     pub action: Option<ActionSpec>,
     /// The map AMA moves, when enabled.
     pub align: Option<AlignSpec>,
+    /// The tracked objects moved by constant velocity and the ego motion, when enabled.
+    #[serde(default)]
+    pub track: Option<TrackSpec>,
 }
 
 impl BackboneSpec {
@@ -128,6 +146,22 @@ impl BackboneSpec {
                 return fail("the align segment must be a metric grid".into());
             }
         }
+        if let Some(k) = &self.track {
+            let tokens = self.segments.get(k.segment).map(|s| s.tokens).unwrap_or(0);
+            let fits = k.slot > 0
+                && tokens > 0
+                && tokens.is_multiple_of(k.slot)
+                && k.fields
+                    .iter()
+                    .all(|(i, (lo, hi, n))| *i < k.slot && lo < hi && *n > 0 && *n <= k.values);
+            if !fits || self.action.is_none() || !(k.step_s.is_finite() && k.step_s > 0.0) {
+                return fail(format!(
+                    "the tracked segment needs the ego action, slots of {} tokens that fill it, binned \
+                     fields inside a slot and a positive frame step ({} s)",
+                    k.slot, k.step_s
+                ));
+            }
+        }
         Ok(())
     }
 
@@ -152,6 +186,11 @@ impl BackboneSpec {
             }
             None => 0.0,
         };
+        // The moved slots: embedded like a frame's, then projected.
+        let track = match &self.track {
+            Some(k) => t * self.segments[k.segment].tokens as f64 * 2.0 * (e * d + 3.0 * d * d),
+            None => 0.0,
+        };
         let tar = cfg.tar_layers as f64 * (layer(t * n, t) + layer(t * n, n));
         let oar = cfg.oar_layers as f64 * layer(t * n, n);
         let heads: f64 = self
@@ -159,7 +198,7 @@ impl BackboneSpec {
             .iter()
             .map(|s| 2.0 * 2.0 * d * s.vocab as f64 * t * s.tokens as f64)
             .sum();
-        3.0 * batch as f64 * (embed + ego + tar + oar + heads)
+        3.0 * batch as f64 * (embed + track + ego + tar + oar + heads)
     }
 
     /// Parameters of a backbone of `cfg` on this spec (without building it).
@@ -190,7 +229,13 @@ impl BackboneSpec {
             }
             None => 0,
         };
+        let track = if self.track.is_some() {
+            2 * linear(d, d, true)
+        } else {
+            0
+        };
         embed
+            + track
             + cfg.max_frames * d
             + ego
             + cfg.tar_layers * 2 * self_block

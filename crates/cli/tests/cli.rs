@@ -125,6 +125,12 @@ fn config_errors_name_the_key_and_fail() {
         &[],
     );
     assert!(err.contains("duplicate modality name `map`"), "{err}");
+    // Only a modality of tracked slots can be moved as one.
+    let err = failure(&["layout", "--config", p, "--set", "backbone.track=\"map\""], &[]);
+    assert!(
+        err.contains("backbone.track") && err.contains("`map` does not declare slots"),
+        "{err}"
+    );
     let err = failure(&["layout", "--config", "/no/such/config.toml"], &[]);
     assert!(err.contains("/no/such/config.toml"), "{err}");
     let dir = tempfile::tempdir().unwrap();

@@ -115,6 +115,12 @@ fn training_learns_survives_sigkill_and_resumes_exactly() {
     assert!(err.contains("train.prior_drop = 1.5"), "{err}");
     let err = refused(&["train.ordinal_sigma=-1"]);
     assert!(err.contains("train.ordinal_sigma = -1"), "{err}");
+    // Slots moved by a time the windows do not step (the sample's frames are 0.5 s apart).
+    let err = refused(&["backbone.track=\"agent\"", "backbone.step_s=0.25"]);
+    assert!(
+        err.contains("backbone.step_s = 0.25") && err.contains("windows step 0.5 s"),
+        "{err}"
+    );
 
     // TensorBoard's own reader loads the scalars (CI sets UMGEN_TB_PYTHON to a Python with tensorboard).
     let tb = fx.run_dir("a").join("tb");

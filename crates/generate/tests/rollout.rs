@@ -5,7 +5,7 @@
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
-use umgen_backbone::{ActionSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec, Slot};
+use umgen_backbone::{ActionSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec, Slot, TrackSpec};
 use umgen_generate::{FrameControl, Generator, Sampling};
 
 type F = burn::backend::Flex;
@@ -33,6 +33,21 @@ fn model() -> Backbone<F> {
             bins: [(0.0, 8.0, 16), (-1.0, 1.0, 16), (-0.5, 0.5, 16)],
         }),
         align: None,
+        // The map segment's 6 tokens as one tracked slot, so that the comparison with the training
+        // pass covers the moved slots too.
+        track: Some(TrackSpec {
+            segment: 1,
+            slot: 6,
+            values: 10,
+            fields: [
+                (0, (-4.0, 4.0, 10)),
+                (1, (-4.0, 4.0, 10)),
+                (2, (-2.0, 2.0, 10)),
+                (3, (-2.0, 2.0, 10)),
+                (4, (-3.2, 3.2, 10)),
+            ],
+            step_s: 0.5,
+        }),
     };
     let cfg = BackboneConfig {
         d_model: 32,
@@ -47,6 +62,8 @@ fn model() -> Backbone<F> {
         max_frames: 8,
         action: None,
         align: None,
+        track: None,
+        step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,
     };
@@ -136,6 +153,7 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
     let all = ids(&[history.clone(), vec![z.clone()]].concat(), n);
     let e_all = m.embed.forward(all.clone());
     let h = m.tar(
+        all.clone().narrow(1, 0, 2),
         e_all.clone().narrow(1, 0, 2),
         e_all.clone().narrow(1, 1, 2),
         Some(all.narrow(1, 1, 2).narrow(2, 1, 3)),

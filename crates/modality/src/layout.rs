@@ -38,6 +38,10 @@ pub struct Segment {
     pub grid: Option<Grid>,
     /// Bins of the leading content tokens, when they are discretised scalars.
     pub bins: Vec<crate::scalar::ScalarBins>,
+    /// The slot layout of tracked objects. Not part of the fingerprint: the modality's settings, which
+    /// are, fix it, and token stores written before it existed stay valid.
+    #[serde(skip)]
+    pub tracks: Option<crate::spec::Tracks>,
 }
 
 impl Segment {
@@ -129,6 +133,7 @@ impl FrameLayout {
                 pad_id: spec.pad_id,
                 grid: spec.grid,
                 bins: spec.bins.clone(),
+                tracks: spec.tracks,
             });
         }
         let fingerprint = fingerprint(&segments, specs, boundary_tokens);

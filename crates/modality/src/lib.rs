@@ -50,4 +50,4 @@ pub use error::{ModalityError, Result};
 pub use layout::{FrameLayout, Position, Segment, Slot};
 pub use registry::{Factory, LayoutConfig, ModalityCatalog, ModalityRegistry, parse_settings};
 pub use scalar::{Clamp, ClampCount, Discretizer, ScalarBins};
-pub use spec::{Codebook, Grid, ModalitySpec, downsampling};
+pub use spec::{Codebook, Grid, ModalitySpec, Tracks, downsampling};

@@ -16,6 +16,20 @@ pub struct Grid {
     pub cell_m: Option<f64>,
 }
 
+/// Slots of tracked objects (the agents): fixed-size groups of tokens, each an object's state in the
+/// frame's ego coordinates, so that a model can move a slot to where constant velocity and the ego's own
+/// motion put it one frame later (`backbone.track`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Tracks {
+    /// Tokens per slot.
+    pub slot: usize,
+    /// Ids `0..values` are value bins; a slot whose `x` token is not one (a pad, say) is not moved.
+    pub values: u32,
+    /// Position in the slot and bins of `x`, `y` (m), `vx`, `vy` (m/s) and the heading (rad), in that
+    /// order.
+    pub fields: [(usize, crate::scalar::ScalarBins); 5],
+}
+
 impl Grid {
     /// Number of cells.
     pub fn cells(&self) -> usize {
@@ -69,6 +83,9 @@ pub struct ModalitySpec {
     /// may use it to start nearby bins with similar embeddings.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub ordinal: u32,
+    /// The slot layout, when the tokens are slots of tracked objects.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tracks: Option<Tracks>,
 }
 
 fn is_zero(n: &u32) -> bool {
@@ -94,6 +111,7 @@ impl ModalitySpec {
             grid: None,
             bins: Vec::new(),
             ordinal: 0,
+            tracks: None,
         }
     }
 
@@ -126,6 +144,12 @@ impl ModalitySpec {
     /// Sets the bins of the leading content tokens.
     pub fn with_bins(mut self, bins: Vec<crate::scalar::ScalarBins>) -> Self {
         self.bins = bins;
+        self
+    }
+
+    /// Declares the tokens as slots of tracked objects.
+    pub fn with_tracks(mut self, tracks: Tracks) -> Self {
+        self.tracks = Some(tracks);
         self
     }
 

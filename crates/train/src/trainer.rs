@@ -45,6 +45,11 @@ impl RunSpec {
         // nor to other ranks (they receive rank 0's weights); runs from before the setting stay resumable.
         if let Some(o) = backbone.as_object_mut() {
             o.remove("ordinal_init");
+            // Off, the moved slots leave no trace in the model: runs from before the setting resume.
+            if o.get("track").is_none_or(|t| t.is_null() || t == "") {
+                o.remove("track");
+                o.remove("step_s");
+            }
         }
         serde_json::json!({"fingerprint": self.fingerprint, "backbone": backbone, "train": self.train.identity()})
     }
@@ -127,6 +132,18 @@ pub fn train<B: AutodiffBackend>(
             "no training windows of {f} frames at gap {} in split `{}` (or a zero batch size / accumulation / frames)",
             tc.gap, tc.split
         )));
+    }
+    if run.spec.track.is_some() {
+        let step = tokens.index().frame_interval * tc.gap as f64;
+        if (step - run.backbone.step_s).abs() > 1e-6 * step {
+            return Err(TrainError::Setup(format!(
+                "backbone.step_s = {} s, but the windows step {step} s (frames {} s apart, train.gap {}): \
+                 the tracked slots would be moved by the wrong time; set backbone.step_s = {step}",
+                run.backbone.step_s,
+                tokens.index().frame_interval,
+                tc.gap
+            )));
+        }
     }
     let Some(eps) = adam_epsilon(tc.eps) else {
         return Err(TrainError::Setup(format!(

@@ -1,7 +1,7 @@
 //! The backbone's view of a registry.
 
 use crate::error::{Result, UmgenError};
-use umgen_backbone::{ActionSpec, AlignSpec, BackboneConfig, BackboneSpec, SegmentSpec};
+use umgen_backbone::{ActionSpec, AlignSpec, BackboneConfig, BackboneSpec, SegmentSpec, TrackSpec};
 use umgen_modality::{ModalityError, ModalityRegistry};
 
 fn config_error(key: &str, message: String) -> UmgenError {
@@ -12,7 +12,8 @@ fn config_error(key: &str, message: String) -> UmgenError {
 }
 
 /// The frame as the backbone sees it: segments with vocabularies and codebooks, the action segment and
-/// its bins (`backbone.action`), the map grid AMA moves (`backbone.align`).
+/// its bins (`backbone.action`), the map grid AMA moves (`backbone.align`), the tracked slots
+/// (`backbone.track`).
 pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Result<BackboneSpec> {
     let layout = registry.layout()?;
     let segments = layout
@@ -85,11 +86,43 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
             "AMA needs `backbone.action` to know how the ego moves".into(),
         ));
     }
+    let track = match cfg.track.as_deref().filter(|s| !s.is_empty()) {
+        None => None,
+        Some(name) => {
+            let i = index("backbone.track", name)?;
+            let Some(k) = layout.segments()[i].tracks else {
+                return Err(config_error(
+                    "backbone.track",
+                    format!("modality `{name}` does not declare slots of tracked objects"),
+                ));
+            };
+            if action.is_none() {
+                return Err(config_error(
+                    "backbone.track",
+                    "moving the tracked slots needs `backbone.action` to know how the ego moves".into(),
+                ));
+            }
+            if !(cfg.step_s.is_finite() && cfg.step_s > 0.0) {
+                return Err(config_error(
+                    "backbone.step_s",
+                    format!("{} s is not a positive time between frames", cfg.step_s),
+                ));
+            }
+            Some(TrackSpec {
+                segment: i,
+                slot: k.slot,
+                values: k.values,
+                fields: k.fields.map(|(j, b)| (j, (b.lo, b.hi, b.bins))),
+                step_s: cfg.step_s,
+            })
+        }
+    };
     let spec = BackboneSpec {
         n: layout.len(),
         segments,
         action,
         align,
+        track,
     };
     spec.validate(cfg)
         .map_err(|e| config_error("backbone", e.to_string()))?;

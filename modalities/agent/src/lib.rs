@@ -18,7 +18,8 @@ pub use slots::SlotPlan;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use umgen_modality::{
-    ClampCount, DecodeReport, Discretizer, Modality, ModalityError, ModalitySpec, Result, parse_settings,
+    ClampCount, DecodeReport, Discretizer, Modality, ModalityError, ModalitySpec, Result, Tracks,
+    parse_settings,
 };
 use umgen_scene::{Agent, AgentCategory, Frame, SceneClip, wrap_angle};
 
@@ -44,9 +45,16 @@ impl AgentModality {
                 message: "must be at least 1".into(),
             });
         }
+        // x, y, vx, vy, heading: what a backbone moves by constant velocity and the ego motion.
+        let moved = [0, 1, 3, 4, 6].map(|i| (i, fields[i].1));
         let spec = ModalitySpec::new(name, KIND, config.bins + 4, config.max_agents * ATTRIBUTES)
             .with_pad(config.pad_id())
-            .with_ordinal(config.bins);
+            .with_ordinal(config.bins)
+            .with_tracks(Tracks {
+                slot: ATTRIBUTES,
+                values: config.bins,
+                fields: moved,
+            });
         Ok(Self {
             spec,
             config,

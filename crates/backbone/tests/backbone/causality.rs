@@ -9,8 +9,8 @@ fn h_and_ego(m: &Backbone<F>, ids: &[i64], b: usize, f: usize) -> (Vec<f32>, Vec
     let t = f - 1;
     let e = m.embed.forward(toks.clone());
     let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
-    let action = toks.narrow(1, 1, t).narrow(2, 1, 3);
-    let h = m.tar(cond.clone(), next, Some(action));
+    let action = toks.clone().narrow(1, 1, t).narrow(2, 1, 3);
+    let h = m.tar(toks.clone().narrow(1, 0, t), cond.clone(), next, Some(action));
     let ego = m.ego_logits(cond, false).unwrap();
     (
         h.into_data().iter::<f32>().collect(),
@@ -33,7 +33,7 @@ fn tar_and_ego_outputs_of_a_frame_ignore_later_frames() {
         // Non-action tokens of frame k: outputs of frames < k are unchanged, frame k's (if any) move.
         let mut changed = ids.clone();
         for p in 5..n {
-            if (k * n + p) % 3 == 0 && ![5, 22, 23, 27, 28, 33].contains(&p) {
+            if (k * n + p) % 3 == 0 && ![5, 22, 23, 30, 31, 36].contains(&p) {
                 let v = changed[k * n + p];
                 changed[k * n + p] = if v > 0 { v - 1 } else { v + 1 };
             }
@@ -85,7 +85,12 @@ fn oar_causality(m: &Backbone<F>) {
         let e = m.embed.forward(toks.clone());
         let t = f - 1;
         let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
-        let h = m.tar(cond, next.clone(), Some(toks.narrow(1, 1, t).narrow(2, 1, 3)));
+        let h = m.tar(
+            toks.clone().narrow(1, 0, t),
+            cond,
+            next.clone(),
+            Some(toks.narrow(1, 1, t).narrow(2, 1, 3)),
+        );
         let d = h.dims()[3];
         let o = m.oar(m.oar_input(next.reshape([t, n, d]), h.reshape([t, n, d])));
         // Per position of the last target frame, its logits (through its segment's head).
@@ -103,7 +108,7 @@ fn oar_causality(m: &Backbone<F>) {
             .collect()
     };
     let base = run(&ids);
-    for i in [6, 14, 24, 26, 30] {
+    for i in [6, 14, 24, 27, 33] {
         let mut changed = ids.clone();
         let p = (f - 1) * n + i;
         changed[p] = if changed[p] > 0 {

@@ -140,5 +140,5 @@ fn slots_name_every_position() {
     assert_eq!(slots[1], Slot::Content(0, 0));
     assert_eq!(slots[4], Slot::End(0));
     assert_eq!(slots[6], Slot::Content(1, 0));
-    assert_eq!(slots[33], Slot::End(3));
+    assert_eq!(slots[36], Slot::End(3));
 }

@@ -41,7 +41,12 @@ fn the_loss_is_the_token_weighted_cross_entropy() {
     let t = f - 1;
     let e = m.embed.forward(toks.clone());
     let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
-    let h = m.tar(cond, next.clone(), Some(toks.narrow(1, 1, t).narrow(2, 1, 3)));
+    let h = m.tar(
+        toks.clone().narrow(1, 0, t),
+        cond,
+        next.clone(),
+        Some(toks.narrow(1, 1, t).narrow(2, 1, 3)),
+    );
     let d = config().d_model;
     let o = m.oar(m.oar_input(next.reshape([b * t, n, d]), h.reshape([b * t, n, d])));
     let (mut all, mut count) = (0.0, 0usize);

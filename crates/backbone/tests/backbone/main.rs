@@ -13,7 +13,10 @@ mod recompute;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
-use umgen_backbone::{ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, Precision, SegmentSpec};
+use std::f64::consts::PI;
+use umgen_backbone::{
+    ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, Precision, SegmentSpec, TrackSpec,
+};
 
 pub type F = burn::backend::Flex;
 pub type A = burn::backend::Autodiff<F>;
@@ -59,11 +62,11 @@ pub fn spec() -> BackboneSpec {
     let segments = vec![
         ordinal(seg("ego", 0, 3, 16, None), 16),
         seg("map", 5, 16, 32, Some(4)),
-        ordinal(seg("agent", 23, 3, 10, None), 8),
-        seg("image", 28, 4, 24, Some(4)),
+        ordinal(seg("agent", 23, 6, 10, None), 8),
+        seg("image", 31, 4, 24, Some(4)),
     ];
     BackboneSpec {
-        n: 34,
+        n: 37,
         segments,
         action: Some(ActionSpec {
             segment: 0,
@@ -74,6 +77,19 @@ pub fn spec() -> BackboneSpec {
             rows: 4,
             cols: 4,
             cell_m: 2.0,
+        }),
+        track: Some(TrackSpec {
+            segment: 2,
+            slot: 6,
+            values: 8,
+            fields: [
+                (0, (-4.0, 4.0, 8)),
+                (1, (-4.0, 4.0, 8)),
+                (2, (-2.0, 2.0, 8)),
+                (3, (-2.0, 2.0, 8)),
+                (4, (-PI, PI, 8)),
+            ],
+            step_s: 0.5,
         }),
     }
 }
@@ -92,6 +108,8 @@ pub fn config() -> BackboneConfig {
         max_frames: 8,
         action: None,
         align: None,
+        track: None,
+        step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,
     }
@@ -134,10 +152,27 @@ fn parameter_count_matches_the_built_model() {
     use burn::module::Module;
     let m = model::<F>();
     assert_eq!(m.num_params(), spec().param_count(&config()));
-    let mut no_ego = spec();
+    let mut untracked = spec();
+    untracked.track = None;
+    let m = Backbone::<F>::new(&config(), &untracked, &Default::default()).unwrap();
+    assert_eq!(m.num_params(), untracked.param_count(&config()));
+    assert_eq!(
+        spec().param_count(&config()) - untracked.param_count(&config()),
+        2 * (32 * 32 + 32),
+        "the moved slots' projections"
+    );
+    let mut no_ego = untracked.clone();
     no_ego.action = None;
     let m = Backbone::<F>::new(&config(), &no_ego, &Default::default()).unwrap();
     assert_eq!(m.num_params(), no_ego.param_count(&config()));
+    // Without the ego action nothing says how the ego moves.
+    let mut unmoved = spec();
+    unmoved.action = None;
+    let err = Backbone::<F>::new(&config(), &unmoved, &Default::default()).unwrap_err();
+    assert!(
+        err.to_string().contains("tracked segment needs the ego action"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -161,6 +196,20 @@ fn the_paper_layout_runs_at_a_small_width() {
             rows: 32,
             cols: 32,
             cell_m: 4.0,
+        }),
+        // The agent modality's slots at its default ranges.
+        track: Some(TrackSpec {
+            segment: 2,
+            slot: 11,
+            values: 1024,
+            fields: [
+                (0, (-64.0, 64.0, 1024)),
+                (1, (-64.0, 64.0, 1024)),
+                (3, (-20.0, 20.0, 1024)),
+                (4, (-20.0, 20.0, 1024)),
+                (6, (-PI, PI, 1024)),
+            ],
+            step_s: 0.5,
         }),
     };
     let cfg = BackboneConfig {

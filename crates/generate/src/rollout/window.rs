@@ -103,11 +103,11 @@ impl<B: Backend> Generator<'_, B> {
         };
         let next_action = spec.action.as_ref().filter(|_| action.is_some()).map(|a| {
             let s = &spec.segments[a.segment];
-            Tensor::cat(vec![tokens, new], 1)
+            Tensor::cat(vec![tokens.clone(), new], 1)
                 .narrow(1, 1, w)
                 .narrow(2, s.offset, s.tokens)
         });
-        let h = self.model.tar(e, e_next, next_action);
+        let h = self.model.tar(tokens, e, e_next, next_action);
         h.narrow(1, w - 1, 1).reshape([m, n, d])
     }
 }
