@@ -31,6 +31,11 @@ pub struct BackboneConfig {
     pub action: Option<String>,
     /// The metric-grid modality that AMA moves by the ego action; `""` turns AMA off.
     pub align: Option<String>,
+    /// Add to the ego module's queries of each frame the embedding of that frame's own action (the
+    /// motion that led to it): the history it attends to carries no time, so without it the module
+    /// cannot tell the latest motion from older ones, and "keep going" is hard to learn. `false` is
+    /// the paper's module.
+    pub ego_last: bool,
     /// The modality whose slots of tracked objects the TAR also sees moved one frame ahead (each moved
     /// by its own velocity and then into the next ego frame by the ego action, [`crate::track`]);
     /// `""` or absent turns it off.
@@ -91,6 +96,7 @@ impl Default for BackboneConfig {
             max_frames: 32,
             action: Some("ego".into()),
             align: Some("map".into()),
+            ego_last: false,
             track: None,
             step_s: 0.5,
             precision: Precision::F32,

@@ -19,6 +19,8 @@ pub struct EgoModule<B: Backend> {
     head: Linear<B>,
     heads: usize,
     block: [usize; 2],
+    /// Content position of the action tokens, when each frame's queries start from its own action.
+    last: Option<usize>,
     precision: Precision,
 }
 
@@ -27,6 +29,8 @@ pub struct EgoModule<B: Backend> {
 pub struct EgoSizes {
     /// Sizes of each cross-attention layer.
     pub layer: LayerSizes,
+    /// Add each frame's own action (the motion that led to it) to its queries (`backbone.ego_last`).
+    pub last: bool,
     /// CA_hist layers.
     pub hist: usize,
     /// CA_env layers.
@@ -35,14 +39,15 @@ pub struct EgoSizes {
 
 impl<B: Backend> EgoModule<B> {
     /// A module predicting `queries` tokens of vocabulary `vocab` from the action block `block`
-    /// (`[start, len]` positions, boundary tokens included); the head's first `ordinal` ids start as a
-    /// sinusoid ([`crate::ordinal`]).
+    /// (`[start, len]` positions, boundary tokens included; its content at `offset`); the head's first
+    /// `ordinal` ids start as a sinusoid ([`crate::ordinal`]).
     pub fn new(
         s: EgoSizes,
         queries: usize,
         vocab: usize,
         ordinal: usize,
         block: [usize; 2],
+        offset: usize,
         dev: &B::Device,
     ) -> Self {
         let blocks = |n: usize| (0..n).map(|_| CrossBlock::new(s.layer, dev)).collect();
@@ -61,6 +66,7 @@ impl<B: Backend> EgoModule<B> {
             ),
             heads: s.layer.heads,
             block,
+            last: s.last.then_some(offset),
             precision: s.layer.precision,
         }
     }
@@ -80,8 +86,14 @@ impl<B: Backend> EgoModule<B> {
             .unsqueeze_dim::<4>(0)
             .expand([b, tq, q, d])
             .reshape([b, tq * q, d]);
-        // The queries of frame i see the action blocks of frames 0..=i.
         let first = t - tq;
+        if let Some(at) = self.last {
+            // Frame i's own action: the history's embeddings carry no time, so without it the queries
+            // cannot tell the latest motion from older ones, and repeating it (constant velocity) is hard.
+            let own = e.clone().narrow(1, first, tq).narrow(2, at, q);
+            x = x + own.reshape([b, tq * q, d]);
+        }
+        // The queries of frame i see the action blocks of frames 0..=i.
         let mask: Vec<bool> = (0..tq * q)
             .flat_map(|r| (0..t * len).map(move |c| c / len > first + r / q))
             .collect();

@@ -125,6 +125,7 @@ impl<B: Backend> Backbone<B> {
                 layer,
                 hist: cfg.ego_hist_layers,
                 env: cfg.ego_env_layers,
+                last: cfg.ego_last,
             };
             EgoModule::new(
                 sizes,
@@ -132,6 +133,7 @@ impl<B: Backend> Backbone<B> {
                 s.vocab,
                 ordinal[a.segment],
                 [s.block_start, s.block_len],
+                s.offset,
                 dev,
             )
         });

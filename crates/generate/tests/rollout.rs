@@ -62,6 +62,7 @@ fn model() -> Backbone<F> {
         max_frames: 8,
         action: None,
         align: None,
+        ego_last: true,
         track: None,
         step_s: 0.5,
         precision: Default::default(),

@@ -108,6 +108,7 @@ pub fn config() -> BackboneConfig {
         max_frames: 8,
         action: None,
         align: None,
+        ego_last: true,
         track: None,
         step_s: 0.5,
         precision: Default::default(),

@@ -283,6 +283,8 @@ impl BenchPreset {
             "layout.boundary_tokens=false".to_string(),
             "modality.agent.max_agents=60".into(),
             "backbone.dropout=0.0".into(),
+            // The reference's model is the paper's: no agent slots moved ahead.
+            "backbone.track=\"\"".into(),
             format!("train.batch_size={batch}"),
             format!("train.frames={frames}"),
             format!("train.recompute={recompute}"),
