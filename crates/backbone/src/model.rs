@@ -7,6 +7,7 @@ use crate::embed::FrameEmbedding;
 use crate::error::{BackboneError, Result};
 use crate::heads::Heads;
 use crate::layers::{LayerSizes, SelfBlock};
+use crate::losses::{LossOptions, Losses};
 use crate::spec::BackboneSpec;
 use crate::track::TrackProjection;
 use burn::module::{Module, Param};
@@ -33,48 +34,6 @@ impl<B: Backend> TarBlock<B> {
             false,
         );
         xs.reshape([b, t, n, d])
-    }
-}
-
-/// Per-modality losses of one batch, each a mean over that modality's tokens, and their total.
-#[derive(Debug, Clone)]
-pub struct Losses<B: Backend> {
-    /// `CE(OAR) + CE(TAR) + ego_weight · CE(ego)`, the first two averaged over all content tokens.
-    pub total: Tensor<B, 1>,
-    /// Named parts: `oar`, `tar`, `ego`, and `oar/<label>`, `tar/<label>` per segment.
-    pub parts: Vec<(String, Tensor<B, 1>)>,
-}
-
-/// Options of [`Backbone::loss_with`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct LossOptions {
-    /// Weight of the ego-action cross-entropy.
-    pub ego_weight: f64,
-    /// Probability that a predicted frame's OAR is trained without its TAR prior, which is how
-    /// `umgen generate --from-scratch` runs it (0 = never).
-    pub prior_drop: f64,
-    /// Spread in bins of the targets of ordered value bins (agents' values, the ego action); 0 scores
-    /// the target bin alone. See [`crate::smoothing`].
-    pub ordinal_sigma: f64,
-}
-
-impl LossOptions {
-    /// What is wrong with these options, as `key = value …` (the keys are those of `[train]`); `None` if
-    /// nothing is.
-    pub fn problem(&self) -> Option<String> {
-        if !(0.0..=1.0).contains(&self.prior_drop) {
-            return Some(format!(
-                "prior_drop = {} must be a probability (0 to 1)",
-                self.prior_drop
-            ));
-        }
-        if !(self.ordinal_sigma.is_finite() && self.ordinal_sigma >= 0.0) {
-            return Some(format!(
-                "ordinal_sigma = {} must be a spread in bins, 0 or more",
-                self.ordinal_sigma
-            ));
-        }
-        None
     }
 }
 
@@ -216,16 +175,9 @@ impl<B: Backend> Backbone<B> {
         }
         let act = next_action.and_then(|ids| self.decode_action(ids));
         // The tracked slots moved one frame ahead, embedded `[b·t, L, d]`, at content offset `at`.
-        let moved = match (&self.spec.track, &act) {
-            (Some(k), Some(act)) => {
-                let s = &self.spec.segments[k.segment];
-                let ids = crate::track::moved(tokens.narrow(2, s.offset, s.tokens), act.clone(), k);
-                self.embed
-                    .forward_block(s.offset, ids.reshape([b * t, s.tokens]))
-                    .map(|e| (s.offset, e))
-            }
-            _ => None,
-        };
+        let moved = act
+            .as_ref()
+            .and_then(|a| crate::track::embed_moved(&self.spec, &self.embed, tokens, a.clone()));
         let track = self.track.as_ref().zip(moved);
         if let Some((proj, (at, moved))) = &track {
             x = add_at(x, *at, proj.input(moved.clone(), self.embed.precision()));

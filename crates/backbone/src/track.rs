@@ -10,8 +10,9 @@
 //! departure from it.
 
 use crate::config::Precision;
+use crate::embed::FrameEmbedding;
 use crate::precision::linear;
-use crate::spec::TrackSpec;
+use crate::spec::{BackboneSpec, TrackSpec};
 use burn::module::Module;
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
@@ -47,6 +48,24 @@ impl<B: Backend> TrackProjection<B> {
     pub fn output(&self, moved: Tensor<B, 3>, p: Precision) -> Tensor<B, 3> {
         linear(&self.output, moved, p)
     }
+}
+
+/// The tracked slots of frames `tokens` `[b, t, N]` moved by the next actions `action` `[b, t, 3]`
+/// ([`moved`]) and embedded like a frame's: their content offset and embeddings `[b·t, L, d]`; `None`
+/// when the spec tracks nothing.
+pub(crate) fn embed_moved<B: Backend>(
+    spec: &BackboneSpec,
+    embed: &FrameEmbedding<B>,
+    tokens: Tensor<B, 3, Int>,
+    action: Tensor<B, 3>,
+) -> Option<(usize, Tensor<B, 3>)> {
+    let k = spec.track.as_ref()?;
+    let s = spec.segments.get(k.segment)?;
+    let [b, t, _] = tokens.dims();
+    let ids = moved(tokens.narrow(2, s.offset, s.tokens), action, k);
+    embed
+        .forward_block(s.offset, ids.reshape([b * t, s.tokens]))
+        .map(|e| (s.offset, e))
 }
 
 /// Ids `[b, t, slots · slot]` of the tracked segment with every slot whose x is a value moved by its
