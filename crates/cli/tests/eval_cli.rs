@@ -71,6 +71,12 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     assert_eq!(tokens["context_of"], serde_json::json!([0, 1, 2]));
     let report = json(multi.join("eval/report.json"));
     assert_eq!(report["contexts"], 3);
+    for h in 0..2 {
+        for who in ["model", "constant_velocity"] {
+            let at = |k: &str| report["l2"][h][format!("agents_{who}_{k}")].as_f64().unwrap();
+            assert!(at("p90") >= at("median"), "{who} at horizon {h}: {report}");
+        }
+    }
     let singles: Vec<serde_json::Value> = ids
         .iter()
         .enumerate()

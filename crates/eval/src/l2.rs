@@ -72,14 +72,20 @@ pub fn agent_l2(predicted: &[(u64, [f64; 2])], truth: &[(u64, [f64; 2])]) -> Opt
 /// mean of agent errors is ruled by the few agents a model loses; the median says how close a typical
 /// one stays.
 pub fn median(values: &[f64]) -> Option<f64> {
+    quantile(values, 0.5)
+}
+
+/// The `q` quantile of `values` (`0 ≤ q ≤ 1`), interpolated linearly between the two nearest of the
+/// sorted values (as NumPy's default); `None` when empty or `q` is outside `[0, 1]`.
+pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
+    if values.is_empty() || !(0.0..=1.0).contains(&q) {
+        return None;
+    }
     let mut v = values.to_vec();
     v.sort_by(f64::total_cmp);
-    let n = v.len();
-    match n {
-        0 => None,
-        _ if n % 2 == 1 => Some(v[n / 2]),
-        _ => Some(0.5 * (v[n / 2 - 1] + v[n / 2])),
-    }
+    let at = q * (v.len() - 1) as f64;
+    let (lo, hi) = (at.floor() as usize, at.ceil() as usize);
+    Some(v[lo] + (at - lo as f64) * (v[hi] - v[lo]))
 }
 
 /// Global positions by track id of a frame's agents.
@@ -166,5 +172,18 @@ mod tests {
         assert_eq!(median(&[0.2, 110.0, 0.1, 0.3, 2.0]), Some(0.3));
         assert_eq!(median(&[4.0, 1.0, 3.0, 2.0]), Some(2.5));
         assert_eq!(median(&[]), None);
+    }
+
+    #[test]
+    fn quantiles_interpolate_between_sorted_values() {
+        let v = [5.0, 1.0, 4.0, 2.0, 3.0];
+        assert_eq!(quantile(&v, 0.0), Some(1.0));
+        assert_eq!(quantile(&v, 1.0), Some(5.0));
+        // 0.9 · 4 = 3.6: between the 4th (4.0) and 5th (5.0) values.
+        assert!((quantile(&v, 0.9).unwrap() - 4.6).abs() < 1e-12);
+        assert_eq!(quantile(&[7.0], 0.9), Some(7.0));
+        assert_eq!(quantile(&v, 1.5), None);
+        assert_eq!(quantile(&v, f64::NAN), None);
+        assert_eq!(quantile(&[], 0.5), None);
     }
 }

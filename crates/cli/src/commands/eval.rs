@@ -10,7 +10,7 @@ use umgen::modality_agent::{ATTRIBUTES, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{
-    agent_errors, constant_velocity_agents, constant_velocity_ego, ego_l2, median, positions,
+    agent_errors, constant_velocity_agents, constant_velocity_ego, ego_l2, median, positions, quantile,
 };
 use umgen_eval::mmd::{Group, mmd};
 
@@ -183,7 +183,7 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         for h in 1..=k {
             let (mut model_ego, mut model_agents, mut cv_ego, mut cv_agents) =
                 (vec![], vec![], vec![], vec![]);
-            // Every matched agent's error, for the medians.
+            // Every matched agent's error, for the medians and 90th percentiles.
             let (mut model_each, mut cv_each) = (vec![], vec![]);
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
             for (c, t) in truths.iter().enumerate() {
@@ -209,6 +209,8 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                 "agents_model": mean(&model_agents), "agents_constant_velocity": mean(&cv_agents),
                 "agents_model_median": median(&model_each),
                 "agents_constant_velocity_median": median(&cv_each),
+                "agents_model_p90": quantile(&model_each, 0.9),
+                "agents_constant_velocity_p90": quantile(&cv_each, 0.9),
             }));
             mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }
@@ -261,19 +263,22 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         writeln!(
             md,
             "\n| horizon (s) | ego L2 model | ego L2 const. vel. | agents L2 model | agents L2 const. vel. \
-             | agents median model | agents median const. vel. |\n|---|---|---|---|---|---|---|"
+             | agents median model | agents median const. vel. | agents p90 model | agents p90 const. vel. |\n\
+             |---|---|---|---|---|---|---|---|---|"
         )?;
         for r in &l2_rows {
             writeln!(
                 md,
-                "| {:.1} | {} | {} | {} | {} | {} | {} |",
+                "| {:.1} | {} | {} | {} | {} | {} | {} | {} | {} |",
                 r["seconds"].as_f64().unwrap_or(0.0),
                 f(&r["ego_model"]),
                 f(&r["ego_constant_velocity"]),
                 f(&r["agents_model"]),
                 f(&r["agents_constant_velocity"]),
                 f(&r["agents_model_median"]),
-                f(&r["agents_constant_velocity_median"])
+                f(&r["agents_constant_velocity_median"]),
+                f(&r["agents_model_p90"]),
+                f(&r["agents_constant_velocity_p90"])
             )?;
         }
         super::eval_plot::l2_plot(&l2_rows, &out.join("l2.png"))?;
