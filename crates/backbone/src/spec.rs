@@ -76,6 +76,13 @@ pub struct TrackSpec {
     pub step_s: f64,
 }
 
+impl TrackSpec {
+    /// Whether frames `seconds` apart step as the model moves its slots (`step_s`, to a millionth).
+    pub fn steps_by(&self, seconds: f64) -> bool {
+        (seconds - self.step_s).abs() <= 1e-6 * self.step_s
+    }
+}
+
 /// Everything the backbone is built from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BackboneSpec {

@@ -136,17 +136,17 @@ pub fn train<B: AutodiffBackend>(
             tc.gap, tc.split
         )));
     }
-    if run.spec.track.is_some() {
-        let step = tokens.index().frame_interval * tc.gap as f64;
-        if (step - run.backbone.step_s).abs() > 1e-6 * step {
-            return Err(TrainError::Setup(format!(
-                "backbone.step_s = {} s, but the windows step {step} s (frames {} s apart, train.gap {}): \
-                 the tracked slots would be moved by the wrong time; set backbone.step_s = {step}",
-                run.backbone.step_s,
-                tokens.index().frame_interval,
-                tc.gap
-            )));
-        }
+    let step = tokens.index().frame_interval * tc.gap as f64;
+    if let Some(k) = &run.spec.track
+        && !k.steps_by(step)
+    {
+        return Err(TrainError::Setup(format!(
+            "backbone.step_s = {} s, but the windows step {step} s (frames {} s apart, train.gap {}): \
+             the tracked slots would be moved by the wrong time; set backbone.step_s = {step}",
+            k.step_s,
+            tokens.index().frame_interval,
+            tc.gap
+        )));
     }
     let Some(eps) = adam_epsilon(tc.eps) else {
         return Err(TrainError::Setup(format!(
