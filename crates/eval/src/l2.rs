@@ -52,6 +52,23 @@ pub fn constant_velocity_agents(ego: &EgoPose, agents: &[Agent], dt: f64, h: usi
         .collect()
 }
 
+/// Global predictions moved onto a token model's grid: each position is taken into the frame of `ego` (the
+/// pose whose frame the tokens are in), rounded by `round` (to the centre of its bin per coordinate) and
+/// taken back. A token model can only name bin centres, so this is the baseline it would score if it
+/// implemented constant velocity exactly; the difference from the continuous baseline is the price of the
+/// bins alone.
+pub fn on_grid(
+    ego: &EgoPose,
+    predicted: &[(u64, [f64; 2])],
+    mut round: impl FnMut([f64; 2]) -> [f64; 2],
+) -> Vec<(u64, [f64; 2])> {
+    let frame = ego.pose2();
+    predicted
+        .iter()
+        .map(|(id, p)| (*id, frame.to_parent(round(frame.to_local(*p)))))
+        .collect()
+}
+
 /// Distances between predicted and true global positions of the agents present in both (matched by track
 /// id), in the order of `predicted`.
 pub fn agent_errors(predicted: &[(u64, [f64; 2])], truth: &[(u64, [f64; 2])]) -> Vec<f64> {
@@ -164,6 +181,30 @@ mod tests {
             &[(9, [1.0, 1.0]), (7, [0.0, 0.0])],
         );
         assert_eq!(each, vec![5.0, 1.0]);
+    }
+
+    #[test]
+    fn predictions_on_the_grid_of_the_ego_frame() {
+        // Ego at (10, 0) facing +y: global (9.7, 3.3) is local (3.3, 0.3), (9.7, -0.2) is local (-0.2, 0.3)
+        // (no point on a bin edge, where the rotation's rounding would pick the side).
+        let ego = EgoPose {
+            x: 10.0,
+            y: 0.0,
+            heading: std::f64::consts::FRAC_PI_2,
+            speed: 0.0,
+        };
+        // One-metre bins with centres at k + 0.5.
+        let round = |p: [f64; 2]| p.map(|v| v.floor() + 0.5);
+        let got = on_grid(&ego, &[(4, [9.7, 3.3]), (9, [9.7, -0.2])], round);
+        // Local (3.5, 0.5) → global (9.5, 3.5); local (-0.5, 0.5) → global (9.5, -0.5).
+        let want = [(4, [9.5, 3.5]), (9, [9.5, -0.5])];
+        for ((id, p), (wid, w)) in got.iter().zip(want) {
+            assert_eq!(*id, wid);
+            assert!(
+                (p[0] - w[0]).abs() < 1e-9 && (p[1] - w[1]).abs() < 1e-9,
+                "{p:?} vs {w:?}"
+            );
+        }
     }
 
     #[test]

@@ -60,6 +60,18 @@ impl AgentSlots {
         }))
     }
 
+    /// A position (ego frame) at the centres of its `x` and `y` bins, and whether either was outside its
+    /// range (then at the nearest edge bin).
+    pub fn round_xy(&self, p: [f64; 2]) -> ([f64; 2], bool) {
+        let mut clamped = false;
+        let out = [0, 1].map(|f| {
+            let (id, clamp) = self.bins[f].encode(p[f]);
+            clamped |= clamp.is_some();
+            self.bins[f].decode(id).unwrap_or(p[f])
+        });
+        (out, clamped)
+    }
+
     /// Tokens placed at generated frame `k`: each value the control file sets and the slot's category; the
     /// slot's other attributes are drawn from the value bins only (never pad or a category).
     pub fn placement(&self, control: &Control, k: usize) -> anyhow::Result<Placement> {

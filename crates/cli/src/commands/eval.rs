@@ -1,16 +1,16 @@
 //! `umgen eval`: the paper's measures on the output of `umgen generate` (docs/results.md explains them).
 
-use super::agents::agent_modality;
+use super::agents::{AgentSlots, agent_modality};
 use crate::cli::EvalArgs;
 use anyhow::Context;
-use std::fmt::Write as _;
 use umgen::data::Dataset;
 use umgen::modality::{Modality, ModalityRegistry};
 use umgen::modality_agent::{ATTRIBUTES, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{
-    agent_errors, constant_velocity_agents, constant_velocity_ego, ego_l2, median, positions, quantile,
+    agent_errors, constant_velocity_agents, constant_velocity_ego, ego_l2, median, on_grid, positions,
+    quantile,
 };
 use umgen_eval::mmd::{Group, mmd};
 
@@ -120,7 +120,10 @@ fn ground_truth(
 
 /// Evaluates.
 pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
-    let (meta, _bundle, registry) = super::scenes::open_output(&a.generated)?;
+    let (meta, bundle, registry) = super::scenes::open_output(&a.generated)?;
+    // The agents' bins, for the baseline a token model could reach.
+    let grid = AgentSlots::of(&bundle, &registry)?;
+    let mut off_grid = 0usize;
     let scenes: Vec<SceneClip> =
         serde_json::from_value(super::scenes::read_json(&a.generated, "scenes.json")?)
             .context("scenes.json")?;
@@ -157,8 +160,6 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         "real_frames": real_frames.len(),
     });
 
-    let mut md = String::new();
-    writeln!(md, "# Evaluation of {}\n", a.generated.display())?;
     let (mut l2_rows, mut mmd_rows) = (Vec::new(), Vec::new());
     let contexts = meta["contexts"].as_array().cloned().unwrap_or_default();
     if contexts.is_empty() {
@@ -185,6 +186,8 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                 (vec![], vec![], vec![], vec![]);
             // Every matched agent's error, for the medians and 90th percentiles.
             let (mut model_each, mut cv_each) = (vec![], vec![]);
+            // Constant velocity rounded to the agent bins of the real next ego frame.
+            let (mut grid_agents, mut grid_each) = (vec![], vec![]);
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
             for (c, t) in truths.iter().enumerate() {
                 let true_pos = positions(&t.poses[h - 1], &t.tracked[h - 1]);
@@ -201,6 +204,16 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                 let errors = agent_errors(&cv, &true_pos);
                 cv_agents.extend(mean(&errors));
                 cv_each.extend(errors);
+                if let Some(g) = &grid {
+                    let on = on_grid(&t.poses[h - 1], &cv, |p| {
+                        let (q, clamped) = g.round_xy(p);
+                        off_grid += usize::from(clamped);
+                        q
+                    });
+                    let errors = agent_errors(&on, &true_pos);
+                    grid_agents.extend(mean(&errors));
+                    grid_each.extend(errors);
+                }
                 real.extend(t.agents[h - 1].iter());
             }
             l2_rows.push(serde_json::json!({
@@ -211,10 +224,19 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                 "agents_constant_velocity_median": median(&cv_each),
                 "agents_model_p90": quantile(&model_each, 0.9),
                 "agents_constant_velocity_p90": quantile(&cv_each, 0.9),
+                "agents_constant_velocity_binned": mean(&grid_agents),
+                "agents_constant_velocity_binned_median": median(&grid_each),
+                "agents_constant_velocity_binned_p90": quantile(&grid_each, 0.9),
             }));
             mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }
         report["contexts"] = contexts.len().into();
+        if off_grid > 0 {
+            tracing::warn!(
+                "{off_grid} constant-velocity predictions fell outside the agent bins' range; the binned \
+                 baseline puts them in the edge bin"
+            );
+        }
     }
     // `generate --recorded-ego`: the ego followed its recorded actions, so the ego L2 is only their
     // rounding to bins, and the agents' L2 is the model's given the real ego motion.
@@ -234,55 +256,10 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     let out = a.out.clone().unwrap_or_else(|| a.generated.join("eval"));
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     std::fs::write(out.join("report.json"), serde_json::to_vec_pretty(&report)?)?;
-    let f = |v: &serde_json::Value| v.as_f64().map_or("-".to_string(), |x| format!("{x:.4}"));
-    writeln!(md, "| measure | value |\n|---|---|")?;
-    if let Some(n) = report["contexts"].as_u64() {
-        writeln!(md, "| contexts (clips continued) | {n} |")?;
-    }
-    if recorded_ego {
-        writeln!(
-            md,
-            "| ego actions | recorded (`--recorded-ego`): ego L2 is the bins' rounding |"
-        )?;
-    }
-    writeln!(
-        md,
-        "| collision rate, generated | {} |",
-        f(&report["collision_rate"]["generated"])
-    )?;
-    writeln!(
-        md,
-        "| collision rate, real ({} frames) | {} |",
-        real_frames.len(),
-        f(&report["collision_rate"]["real"])
-    )?;
-    for g in Group::ALL {
-        writeln!(md, "| MMD {} | {} |", g.name(), f(&report["mmd"][g.name()]))?;
-    }
     if !l2_rows.is_empty() {
-        writeln!(
-            md,
-            "\n| horizon (s) | ego L2 model | ego L2 const. vel. | agents L2 model | agents L2 const. vel. \
-             | agents median model | agents median const. vel. | agents p90 model | agents p90 const. vel. |\n\
-             |---|---|---|---|---|---|---|---|---|"
-        )?;
-        for r in &l2_rows {
-            writeln!(
-                md,
-                "| {:.1} | {} | {} | {} | {} | {} | {} | {} | {} |",
-                r["seconds"].as_f64().unwrap_or(0.0),
-                f(&r["ego_model"]),
-                f(&r["ego_constant_velocity"]),
-                f(&r["agents_model"]),
-                f(&r["agents_constant_velocity"]),
-                f(&r["agents_model_median"]),
-                f(&r["agents_constant_velocity_median"]),
-                f(&r["agents_model_p90"]),
-                f(&r["agents_constant_velocity_p90"])
-            )?;
-        }
         super::eval_plot::l2_plot(&l2_rows, &out.join("l2.png"))?;
     }
+    let md = super::eval_report::markdown(&a.generated, &report, real_frames.len())?;
     std::fs::write(out.join("report.md"), &md)?;
     tracing::info!(
         "{}: report.json, report.md{}",

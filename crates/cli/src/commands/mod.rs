@@ -13,6 +13,7 @@ mod data;
 mod doctor;
 mod eval;
 mod eval_plot;
+mod eval_report;
 mod export;
 mod generate;
 mod launch;

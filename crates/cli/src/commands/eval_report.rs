@@ -1,0 +1,85 @@
+//! The Markdown page of `umgen eval` (`report.md`), written from its `report.json` values.
+
+use std::fmt::Write as _;
+use std::path::Path;
+use umgen_eval::mmd::Group;
+
+/// A value to four decimals, `-` where the report has none.
+fn num(v: &serde_json::Value) -> String {
+    v.as_f64().map_or("-".to_string(), |x| format!("{x:.4}"))
+}
+
+/// `report.md`: the measures table, the L2 over the horizon, and the agents against the constant-velocity
+/// baseline rounded to the agent bins (what a token model that moved every agent at its last velocity
+/// would score).
+pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize) -> anyhow::Result<String> {
+    let mut md = String::new();
+    writeln!(md, "# Evaluation of {}\n", generated.display())?;
+    writeln!(md, "| measure | value |\n|---|---|")?;
+    if let Some(n) = report["contexts"].as_u64() {
+        writeln!(md, "| contexts (clips continued) | {n} |")?;
+    }
+    if report["recorded_ego"].as_bool().unwrap_or(false) {
+        writeln!(
+            md,
+            "| ego actions | recorded (`--recorded-ego`): ego L2 is the bins' rounding |"
+        )?;
+    }
+    let rates = &report["collision_rate"];
+    writeln!(md, "| collision rate, generated | {} |", num(&rates["generated"]))?;
+    writeln!(
+        md,
+        "| collision rate, real ({real_frames} frames) | {} |",
+        num(&rates["real"])
+    )?;
+    for g in Group::ALL {
+        writeln!(md, "| MMD {} | {} |", g.name(), num(&report["mmd"][g.name()]))?;
+    }
+    let rows = report["l2"].as_array().map_or(&[][..], |r| &r[..]);
+    if rows.is_empty() {
+        return Ok(md);
+    }
+    let cells = |r: &serde_json::Value, keys: &[&str]| {
+        let seconds = r["seconds"].as_f64().unwrap_or(0.0);
+        let values: Vec<String> = keys.iter().map(|k| num(&r[*k])).collect();
+        format!("| {seconds:.1} | {} |", values.join(" | "))
+    };
+    writeln!(
+        md,
+        "\n| horizon (s) | ego L2 model | ego L2 const. vel. | agents L2 model | agents L2 const. vel. \
+         | agents median model | agents median const. vel. | agents p90 model | agents p90 const. vel. |\n\
+         |---|---|---|---|---|---|---|---|---|"
+    )?;
+    for r in rows {
+        let keys = [
+            "ego_model",
+            "ego_constant_velocity",
+            "agents_model",
+            "agents_constant_velocity",
+            "agents_model_median",
+            "agents_constant_velocity_median",
+            "agents_model_p90",
+            "agents_constant_velocity_p90",
+        ];
+        writeln!(md, "{}", cells(r, &keys))?;
+    }
+    writeln!(
+        md,
+        "\nAgents against constant velocity rounded to the agent bins of the real next ego frame (the \
+         baseline as a token model could output it):\n\n\
+         | horizon (s) | model mean | binned const. vel. mean | model median | binned const. vel. median \
+         | model p90 | binned const. vel. p90 |\n|---|---|---|---|---|---|---|"
+    )?;
+    for r in rows {
+        let keys = [
+            "agents_model",
+            "agents_constant_velocity_binned",
+            "agents_model_median",
+            "agents_constant_velocity_binned_median",
+            "agents_model_p90",
+            "agents_constant_velocity_binned_p90",
+        ];
+        writeln!(md, "{}", cells(r, &keys))?;
+    }
+    Ok(md)
+}
