@@ -74,6 +74,10 @@ pub struct TrackSpec {
     pub fields: [(usize, (f64, f64, u32)); 5],
     /// Seconds from one frame of a window to the next.
     pub step_s: f64,
+    /// The segment's pad token: a slot moved past the x or y range is hinted as empty (every token
+    /// pad), as the data leaves out agents outside the window. `None`: it keeps the end bins.
+    #[serde(default)]
+    pub pad: Option<u32>,
 }
 
 impl TrackSpec {

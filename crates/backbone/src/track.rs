@@ -70,7 +70,10 @@ pub(crate) fn embed_moved<B: Backend>(
 
 /// Ids `[b, t, slots · slot]` of the tracked segment with every slot whose x is a value moved by its
 /// velocity over `spec.step_s` and into the frame reached by `action` `[b, t, 3]` = (dx, dy, dθ) of the
-/// next frame; values past a field's range land in its end bins (a hint, not a token to decode).
+/// next frame. A slot moved past the x or y range becomes empty (`spec.pad` in every token) where the spec
+/// has a pad: the data leaves such agents out, so a hint at the edge bin would tell the model to keep an
+/// agent there for good. Other values past a field's range land in its end bins (a hint, not a token to
+/// decode).
 pub fn moved<B: Backend>(
     ids: Tensor<B, 3, Int>,
     action: Tensor<B, 3>,
@@ -97,6 +100,12 @@ pub fn moved<B: Backend>(
         )
     };
     let (nx, ny) = turn(px, py);
+    let within = |v: &Tensor<B, 4>, (_, (lo, hi, _)): (usize, (f64, f64, u32))| {
+        v.clone()
+            .greater_equal_elem(lo)
+            .bool_and(v.clone().lower_elem(hi))
+    };
+    let stays = within(&nx, spec.fields[0]).bool_and(within(&ny, spec.fields[1]));
     let (nvx, nvy) = turn(vx, vy);
     let h = heading - dtheta;
     let h = h.clone() - h.add_scalar(PI).div_scalar(2.0 * PI).floor().mul_scalar(2.0 * PI);
@@ -111,7 +120,10 @@ pub fn moved<B: Backend>(
             .clamp(0.0, f64::from(*n - 1))
             .int();
     }
-    let moved = Tensor::cat(columns, 3);
+    let mut moved = Tensor::cat(columns, 3);
+    if let Some(pad) = spec.pad {
+        moved = moved.mask_fill(stays.bool_not().expand([b, t, s, k]), i64::from(pad));
+    }
     let x_index = spec.fields[0].0;
     let occupied = column(x_index)
         .lower_elem(spec.values as i64)
@@ -139,6 +151,7 @@ mod tests {
                 (4, (-PI, PI, 8)),
             ],
             step_s: 0.5,
+            pad: Some(9),
         }
     }
 
@@ -164,6 +177,10 @@ mod tests {
             let f = (x - lo) / ((hi - lo) / f64::from(*n));
             near_edge |= (f - f.round()).abs() < 1e-4;
             out[*i] = (f.floor() as i64).clamp(0, i64::from(*n) - 1);
+        }
+        let inside = |x: f64, j: usize| (k.fields[j].1.0..k.fields[j].1.1).contains(&x);
+        if let (Some(pad), false) = (k.pad, inside(q.0, 0) && inside(q.1, 1)) {
+            out = vec![i64::from(pad); slot.len()];
         }
         (out, near_edge)
     }
@@ -211,7 +228,7 @@ mod tests {
             &k,
         );
         let got: Vec<i64> = got.into_data().iter::<i64>().collect();
-        let (mut moved_slots, mut changed) = (0, 0);
+        let (mut moved_slots, mut changed, mut left) = (0, 0, 0);
         for (f, act) in acts.chunks(3).enumerate() {
             for slot in 0..s {
                 let at = (f * s + slot) * k.slot;
@@ -220,13 +237,19 @@ mod tests {
                 if !near_edge {
                     assert_eq!(have, want.as_slice(), "frame {f} slot {slot}");
                 }
-                assert_eq!(have[5], ids[at + 5], "the category stays");
+                if have.iter().all(|&id| id == 9) {
+                    left += usize::from(slot != 2);
+                } else {
+                    assert_eq!(have[5], ids[at + 5], "the category stays");
+                }
                 moved_slots += usize::from(slot != 2);
                 changed += usize::from(have != &ids[at..at + k.slot]);
             }
         }
         assert_eq!(moved_slots, 24);
         assert!(changed >= 20, "{changed} of 24 slots moved");
+        // Both cases occur: slots that leave the ±4 m window (empty) and slots that stay.
+        assert!((3..=21).contains(&left), "{left} of 24 slots left");
     }
 
     #[test]
@@ -242,5 +265,29 @@ mod tests {
             &k,
         );
         assert_eq!(got.into_data().iter::<i64>().collect::<Vec<_>>(), slot.to_vec());
+    }
+
+    #[test]
+    fn a_slot_moved_out_of_the_window_empties_where_there_is_a_pad() {
+        // x at bin 7 (3.5 m) with vx at bin 7 (1.75 m/s): 0.875 m further is past the +4 m edge.
+        let slot = [7i64, 5, 7, 4, 6, 8];
+        let dev = Default::default();
+        let run = |k: &TrackSpec| {
+            moved::<F>(
+                Tensor::from_data(TensorData::new(slot.to_vec(), [1, 1, 6]), &dev),
+                Tensor::from_data(TensorData::new(vec![0.0f32; 3], [1, 1, 3]), &dev),
+                k,
+            )
+            .into_data()
+            .iter::<i64>()
+            .collect::<Vec<_>>()
+        };
+        assert_eq!(
+            run(&spec()),
+            vec![9; 6],
+            "the data drops agents that leave the window"
+        );
+        let clamped = run(&TrackSpec { pad: None, ..spec() });
+        assert_eq!(clamped, vec![7, 5, 7, 4, 6, 8], "without a pad: the end bin");
     }
 }

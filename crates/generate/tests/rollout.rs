@@ -47,6 +47,7 @@ fn model() -> Backbone<F> {
                 (4, (-3.2, 3.2, 10)),
             ],
             step_s: 0.5,
+            pad: None,
         }),
     };
     let cfg = BackboneConfig {

@@ -114,6 +114,7 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
                 values: k.values,
                 fields: k.fields.map(|(j, b)| (j, (b.lo, b.hi, b.bins))),
                 step_s: cfg.step_s,
+                pad: layout.segments()[i].pad_id,
             })
         }
     };

@@ -90,6 +90,7 @@ pub fn spec() -> BackboneSpec {
                 (4, (-PI, PI, 8)),
             ],
             step_s: 0.5,
+            pad: Some(9),
         }),
     }
 }
@@ -211,6 +212,7 @@ fn the_paper_layout_runs_at_a_small_width() {
                 (6, (-PI, PI, 1024)),
             ],
             step_s: 0.5,
+            pad: Some(1027),
         }),
     };
     let cfg = BackboneConfig {
