@@ -312,13 +312,15 @@ impl<'a, B: Backend> Generator<'a, B> {
                                 let hp = h.clone().narrow(1, p, 1).reshape([m, d]);
                                 let tar = host_rows(self.model.logits_at(s, hp, true));
                                 for b in redraw {
-                                    let mut l = tar[b].clone();
-                                    let ok = match allowed(rules, p, &out[b], false) {
-                                        Allowed::Ids(ok) => ok,
-                                        Allowed::Only(_) => Box::new(|_| true),
+                                    // The TAR, which sees the history, decides: it may say pad again
+                                    // (the agent leaves). A slot already emptied by its first token
+                                    // stays empty.
+                                    let Allowed::Ids(ok) = allowed(rules, p, &out[b], false) else {
+                                        continue;
                                     };
+                                    let mut l = tar[b].clone();
                                     for (id, x) in l.iter_mut().enumerate() {
-                                        if id as u32 == *pad || !ok(id as u32) {
+                                        if !ok(id as u32) {
                                             *x = f32::NEG_INFINITY;
                                         }
                                     }
