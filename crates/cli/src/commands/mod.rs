@@ -9,6 +9,7 @@ mod bench_generate;
 mod bench_linear;
 mod bench_matmul;
 mod bench_train;
+mod contexts;
 mod data;
 mod doctor;
 mod eval;
