@@ -40,6 +40,9 @@ pub struct BackboneConfig {
     /// by its own velocity and then into the next ego frame by the ego action, [`crate::track`]);
     /// `""` or absent turns it off.
     pub track: Option<String>,
+    /// Move `track`'s slots by constant acceleration (the velocity's change since the window's previous
+    /// frame kept for one more frame) instead of constant velocity. Needs `track`.
+    pub track_accel: bool,
     /// Seconds between consecutive frames of a training window or a rollout (`train.gap` × the data's
     /// frame interval): how far `track` moves an object at its velocity. Training and generation refuse
     /// data that steps otherwise.
@@ -98,6 +101,7 @@ impl Default for BackboneConfig {
             align: Some("map".into()),
             ego_last: false,
             track: None,
+            track_accel: false,
             step_s: 0.5,
             precision: Precision::F32,
             ordinal_init: true,

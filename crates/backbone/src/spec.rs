@@ -78,6 +78,10 @@ pub struct TrackSpec {
     /// pad), as the data leaves out agents outside the window. `None`: it keeps the end bins.
     #[serde(default)]
     pub pad: Option<u32>,
+    /// Move by constant acceleration instead of constant velocity: the velocity's change since the
+    /// window's previous frame is kept for one more frame (`backbone.track_accel`).
+    #[serde(default)]
+    pub accel: bool,
 }
 
 impl TrackSpec {

@@ -83,16 +83,20 @@ pub fn moved<B: Backend>(
     let (k, s) = (spec.slot, l / spec.slot);
     let slots = ids.reshape([b, t, s, k]);
     let column = |i: usize| slots.clone().narrow(3, i, 1);
-    let [x, y, vx, vy, heading] = spec.fields.map(|(i, (lo, hi, n))| {
-        let width = (hi - lo) / f64::from(n);
-        column(i).float().add_scalar(0.5).mul_scalar(width).add_scalar(lo)
-    });
+    let [x, y, vx, vy, heading] = spec.fields.map(|(i, bins)| centre(column(i), bins));
     let act = |c: usize| action.clone().narrow(2, c, 1).reshape([b, t, 1, 1]);
     let (dx, dy, dtheta) = (act(0), act(1), act(2));
     let (cos, sin) = (dtheta.clone().cos(), dtheta.clone().sin());
+    // The velocity's change over the last frame, kept for one more (`spec.accel`).
+    let (dvx, dvy) = if spec.accel && t > 1 {
+        change(&slots, &action, spec, (vx.clone(), vy.clone()))
+    } else {
+        (vx.zeros_like(), vy.zeros_like())
+    };
     // Where the velocity takes the object, relative to where the ego will be, then turned by −dθ.
-    let px = x + vx.clone().mul_scalar(spec.step_s) - dx;
-    let py = y + vy.clone().mul_scalar(spec.step_s) - dy;
+    let ds = spec.step_s;
+    let px = x + (vx.clone() + dvx.clone().mul_scalar(0.5)).mul_scalar(ds) - dx;
+    let py = y + (vy.clone() + dvy.clone().mul_scalar(0.5)).mul_scalar(ds) - dy;
     let turn = |a: Tensor<B, 4>, b: Tensor<B, 4>| {
         (
             cos.clone() * a.clone() + sin.clone() * b.clone(),
@@ -106,7 +110,7 @@ pub fn moved<B: Backend>(
             .bool_and(v.clone().lower_elem(hi))
     };
     let stays = within(&nx, spec.fields[0]).bool_and(within(&ny, spec.fields[1]));
-    let (nvx, nvy) = turn(vx, vy);
+    let (nvx, nvy) = turn(vx + dvx, vy + dvy);
     let h = heading - dtheta;
     let h = h.clone() - h.add_scalar(PI).div_scalar(2.0 * PI).floor().mul_scalar(2.0 * PI);
     let new = [nx, ny, nvx, nvy, h];
@@ -131,6 +135,49 @@ pub fn moved<B: Backend>(
     slots.mask_where(occupied, moved).reshape([b, t, l])
 }
 
+/// The centres `[b, t, s, 1]` of the bins `(lo, hi, n)` that ids `[b, t, s, 1]` name.
+fn centre<B: Backend>(ids: Tensor<B, 4, Int>, (lo, hi, n): (f64, f64, u32)) -> Tensor<B, 4> {
+    let width = (hi - lo) / f64::from(n);
+    ids.float().add_scalar(0.5).mul_scalar(width).add_scalar(lo)
+}
+
+/// How much each slot's velocity `(vx, vy)` (frame t's coordinates) changed since frame t − 1 of the
+/// window `slots` `[b, t, s, k]` (`t > 1`), whose velocity is first turned into frame t by the ego's turn
+/// between them (the `action` of frame t − 1). Zero for the window's first frame, for a slot empty at
+/// t − 1, and where keeping the change would turn the velocity around (a braking object stops; constant
+/// acceleration would send it backwards).
+fn change<B: Backend>(
+    slots: &Tensor<B, 4, Int>,
+    action: &Tensor<B, 3>,
+    spec: &TrackSpec,
+    (vx, vy): (Tensor<B, 4>, Tensor<B, 4>),
+) -> (Tensor<B, 4>, Tensor<B, 4>) {
+    let [b, t, _, _] = slots.dims();
+    let before = Tensor::cat(
+        vec![slots.clone().narrow(1, 0, 1), slots.clone().narrow(1, 0, t - 1)],
+        1,
+    );
+    let column = |i: usize| before.clone().narrow(3, i, 1);
+    let [_, _, (ivx, bvx), (ivy, bvy), _] = spec.fields;
+    let (pvx, pvy) = (centre(column(ivx), bvx), centre(column(ivy), bvy));
+    let dtheta = action.clone().narrow(2, 2, 1);
+    let turn = Tensor::cat(
+        vec![
+            dtheta.clone().narrow(1, 0, 1).zeros_like(),
+            dtheta.narrow(1, 0, t - 1),
+        ],
+        1,
+    )
+    .reshape([b, t, 1, 1]);
+    let (cos, sin) = (turn.clone().cos(), turn.sin());
+    let dvx = vx.clone() - (cos.clone() * pvx.clone() + sin.clone() * pvy.clone());
+    let dvy = vy.clone() - (cos * pvy - sin * pvx);
+    let was_there = column(spec.fields[0].0).lower_elem(spec.values as i64);
+    let ahead = ((vx.clone() + dvx.clone()) * vx + (vy.clone() + dvy.clone()) * vy).greater_equal_elem(0.0);
+    let drop = was_there.bool_and(ahead).bool_not();
+    (dvx.mask_fill(drop.clone(), 0.0), dvy.mask_fill(drop, 0.0))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -152,24 +199,47 @@ mod tests {
             ],
             step_s: 0.5,
             pad: Some(9),
+            accel: false,
         }
     }
 
     /// The moved slot on the host: the object's place after `step_s` in the plane of the current frame,
     /// then seen from the next ego pose `(dx, dy, dθ)` as complex numbers (`(p − d)·e^{−iθ}`).
-    fn host(slot: &[i64], act: [f64; 3], k: &TrackSpec) -> (Vec<i64>, bool) {
+    fn host(slot: &[i64], before: Option<(&[i64], f64)>, act: [f64; 3], k: &TrackSpec) -> (Vec<i64>, bool) {
         if slot[0] >= i64::from(k.values) {
             return (slot.to_vec(), false);
         }
-        let value = |j: usize| {
+        let value = |s: &[i64], j: usize| {
             let (i, (lo, hi, n)) = k.fields[j];
-            lo + (slot[i] as f64 + 0.5) * (hi - lo) / f64::from(n)
+            lo + (s[i] as f64 + 0.5) * (hi - lo) / f64::from(n)
         };
+        let value = |j: usize| value(slot, j);
         let (p, v) = ((value(0), value(1)), (value(2), value(3)));
-        let (c, s) = (act[2].cos(), -act[2].sin());
-        let mul = |(a, b): (f64, f64)| (a * c - b * s, a * s + b * c);
-        let q = mul((p.0 + v.0 * k.step_s - act[0], p.1 + v.1 * k.step_s - act[1]));
-        let w = mul(v);
+        // e^{−iθ} as (cos, sin) of −θ, and complex multiplication by it.
+        let turn = |theta: f64, (a, b): (f64, f64)| {
+            let (c, s) = (theta.cos(), -theta.sin());
+            (a * c - b * s, a * s + b * c)
+        };
+        // Constant acceleration: the change since the previous frame's velocity (turned into this frame);
+        // none after an empty slot or where it would reverse the velocity.
+        let dv = match before {
+            Some((prev, theta)) if prev[0] < i64::from(k.values) => {
+                let u = turn(theta, (value_of(prev, 2, k), value_of(prev, 3, k)));
+                let d = (v.0 - u.0, v.1 - u.1);
+                if (v.0 + d.0) * v.0 + (v.1 + d.1) * v.1 >= 0.0 {
+                    d
+                } else {
+                    (0.0, 0.0)
+                }
+            }
+            _ => (0.0, 0.0),
+        };
+        let step = (v.0 + 0.5 * dv.0, v.1 + 0.5 * dv.1);
+        let q = turn(
+            act[2],
+            (p.0 + step.0 * k.step_s - act[0], p.1 + step.1 * k.step_s - act[1]),
+        );
+        let w = turn(act[2], (v.0 + dv.0, v.1 + dv.1));
         let h = (value(4) - act[2] + PI).rem_euclid(2.0 * PI) - PI;
         let mut out = slot.to_vec();
         let mut near_edge = false;
@@ -185,9 +255,13 @@ mod tests {
         (out, near_edge)
     }
 
+    fn value_of(s: &[i64], j: usize, k: &TrackSpec) -> f64 {
+        let (i, (lo, hi, n)) = k.fields[j];
+        lo + (s[i] as f64 + 0.5) * (hi - lo) / f64::from(n)
+    }
+
     #[test]
     fn slots_move_as_a_host_computation_says() {
-        let k = spec();
         let (b, t, s) = (2, 3, 5);
         let mut seed = 7u64;
         let mut draw = |n: u64| {
@@ -196,12 +270,13 @@ mod tests {
                 .wrapping_add(1442695040888963407);
             ((seed >> 33) % n) as i64
         };
-        // Values 0..8, category 8 in the last token; slot 2 of each frame empty (pad 9).
+        // Values 0..8, category 8 in the last token; slot 2 of each frame empty (pad 9), and a few
+        // others, so that some slots are new in their frame.
+        let empty = |i: usize| i % s == 2 || i % 7 == 3;
         let ids: Vec<i64> = (0..b * t * s)
             .flat_map(|i| {
-                let empty = i % s == 2;
-                (0..k.slot)
-                    .map(|j| match (empty, j) {
+                (0..6)
+                    .map(|j| match (empty(i), j) {
                         (true, _) => 9,
                         (false, 5) => 8,
                         _ => draw(8),
@@ -218,38 +293,76 @@ mod tests {
                 ]
             })
             .collect();
-        let dev = Default::default();
-        let got = moved::<F>(
-            Tensor::from_data(TensorData::new(ids.clone(), [b, t, s * k.slot]), &dev),
-            Tensor::from_data(
-                TensorData::new(acts.iter().map(|&a| a as f32).collect::<Vec<_>>(), [b, t, 3]),
-                &dev,
-            ),
-            &k,
-        );
-        let got: Vec<i64> = got.into_data().iter::<i64>().collect();
-        let (mut moved_slots, mut changed, mut left) = (0, 0, 0);
-        for (f, act) in acts.chunks(3).enumerate() {
-            for slot in 0..s {
-                let at = (f * s + slot) * k.slot;
-                let (want, near_edge) = host(&ids[at..at + k.slot], [act[0], act[1], act[2]], &k);
-                let have = &got[at..at + k.slot];
-                if !near_edge {
-                    assert_eq!(have, want.as_slice(), "frame {f} slot {slot}");
+        let occupied = (0..b * t * s).filter(|&i| !empty(i)).count();
+        for accel in [false, true] {
+            let k = TrackSpec { accel, ..spec() };
+            let dev = Default::default();
+            let got = moved::<F>(
+                Tensor::from_data(TensorData::new(ids.clone(), [b, t, s * k.slot]), &dev),
+                Tensor::from_data(
+                    TensorData::new(acts.iter().map(|&a| a as f32).collect::<Vec<_>>(), [b, t, 3]),
+                    &dev,
+                ),
+                &k,
+            );
+            let got: Vec<i64> = got.into_data().iter::<i64>().collect();
+            let (mut changed, mut left) = (0, 0);
+            for (f, act) in acts.chunks(3).enumerate() {
+                for slot in 0..s {
+                    let at = (f * s + slot) * k.slot;
+                    // The same slot one frame earlier in the window, and the ego's turn between them.
+                    let before = (accel && f % t > 0).then(|| {
+                        let p = at - s * k.slot;
+                        (&ids[p..p + k.slot], acts[3 * (f - 1) + 2])
+                    });
+                    let slot_ids = &ids[at..at + k.slot];
+                    let (want, near_edge) = host(slot_ids, before, [act[0], act[1], act[2]], &k);
+                    let have = &got[at..at + k.slot];
+                    if !near_edge {
+                        assert_eq!(have, want.as_slice(), "accel {accel}, frame {f}, slot {slot}");
+                    }
+                    if empty(f * s + slot) {
+                        continue;
+                    }
+                    if have.iter().all(|&id| id == 9) {
+                        left += 1;
+                    } else {
+                        assert_eq!(have[5], ids[at + 5], "the category stays");
+                    }
+                    changed += usize::from(have != slot_ids);
                 }
-                if have.iter().all(|&id| id == 9) {
-                    left += usize::from(slot != 2);
-                } else {
-                    assert_eq!(have[5], ids[at + 5], "the category stays");
-                }
-                moved_slots += usize::from(slot != 2);
-                changed += usize::from(have != &ids[at..at + k.slot]);
             }
+            assert!(changed + 4 >= occupied, "{changed} of {occupied} slots moved");
+            // Both cases occur: slots that leave the ±4 m window (empty) and slots that stay.
+            assert!(
+                left >= 3 && left + 3 <= occupied,
+                "{left} of {occupied} slots left"
+            );
         }
-        assert_eq!(moved_slots, 24);
-        assert!(changed >= 20, "{changed} of 24 slots moved");
-        // Both cases occur: slots that leave the ±4 m window (empty) and slots that stay.
-        assert!((3..=21).contains(&left), "{left} of 24 slots left");
+    }
+
+    #[test]
+    fn constant_acceleration_keeps_the_change_and_stops_rather_than_reverses() {
+        // Two frames of one slot (x 0.5 m, y 1.5 m, vy 0.25 m/s), no ego motion. vx 0.75 m/s after
+        // −1.75: the change (2.5 m/s) kept puts x at 0.5 + 0.5 · (0.75 + 1.25) = 1.5 m (bin 5; 0.875 m, bin
+        // 4, at constant velocity) and vx at 3.25 m/s (past the range: bin 7). Braking from 1.75 to 0.25
+        // m/s would reverse it (−1.25): constant velocity instead.
+        let dev = Default::default();
+        let run = |vx: [i64; 2], accel: bool| {
+            let ids = vec![4i64, 5, vx[0], 4, 4, 8, 4, 5, vx[1], 4, 4, 8];
+            moved::<F>(
+                Tensor::from_data(TensorData::new(ids, [1, 2, 6]), &dev),
+                Tensor::from_data(TensorData::new(vec![0.0f32; 6], [1, 2, 3]), &dev),
+                &TrackSpec { accel, ..spec() },
+            )
+            .into_data()
+            .iter::<i64>()
+            .collect::<Vec<_>>()
+        };
+        // The window's first frame has no past: constant velocity (x −0.375 m, bin 3).
+        assert_eq!(run([0, 5], true), vec![3, 5, 0, 4, 4, 8, 5, 5, 7, 4, 4, 8]);
+        assert_eq!(run([0, 5], false)[6..], [4, 5, 5, 4, 4, 8]);
+        assert_eq!(run([7, 4], true)[6..], [4, 5, 4, 4, 4, 8]);
     }
 
     #[test]

@@ -131,6 +131,17 @@ fn config_errors_name_the_key_and_fail() {
         err.contains("backbone.track") && err.contains("`map` does not declare slots"),
         "{err}"
     );
+    let off = [
+        "--set",
+        "backbone.track=\"\"",
+        "--set",
+        "backbone.track_accel=true",
+    ];
+    let err = failure(&[&["layout", "--config", p][..], &off].concat(), &[]);
+    assert!(
+        err.contains("backbone.track_accel") && err.contains("needs `backbone.track`"),
+        "{err}"
+    );
     let err = failure(&["layout", "--config", "/no/such/config.toml"], &[]);
     assert!(err.contains("/no/such/config.toml"), "{err}");
     let dir = tempfile::tempdir().unwrap();

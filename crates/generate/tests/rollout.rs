@@ -48,6 +48,9 @@ fn model() -> Backbone<F> {
             ],
             step_s: 0.5,
             pad: None,
+            // Constant acceleration reads the window's previous frame: generation must see it as the
+            // teacher-forced pass does.
+            accel: true,
         }),
     };
     let cfg = BackboneConfig {
@@ -65,6 +68,7 @@ fn model() -> Backbone<F> {
         align: None,
         ego_last: true,
         track: None,
+        track_accel: false,
         step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,

@@ -45,9 +45,11 @@ impl RunSpec {
         // nor to other ranks (they receive rank 0's weights); runs from before the setting stay resumable.
         if let Some(o) = backbone.as_object_mut() {
             o.remove("ordinal_init");
-            // Off, `ego_last` and `track` leave no trace in the model: runs from before them resume.
-            if o.get("ego_last") == Some(&serde_json::Value::Bool(false)) {
-                o.remove("ego_last");
+            // Off, `ego_last`, `track_accel` and `track` leave no trace in the model: runs from before them resume.
+            for flag in ["ego_last", "track_accel"] {
+                if o.get(flag) == Some(&serde_json::Value::Bool(false)) {
+                    o.remove(flag);
+                }
             }
             if o.get("track").is_none_or(|t| t.is_null() || t == "") {
                 o.remove("track");

@@ -87,6 +87,12 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
         ));
     }
     let track = match cfg.track.as_deref().filter(|s| !s.is_empty()) {
+        None if cfg.track_accel => {
+            return Err(config_error(
+                "backbone.track_accel",
+                "moving tracked slots by their acceleration needs `backbone.track`".into(),
+            ));
+        }
         None => None,
         Some(name) => {
             let i = index("backbone.track", name)?;
@@ -115,6 +121,7 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
                 fields: k.fields.map(|(j, b)| (j, (b.lo, b.hi, b.bins))),
                 step_s: cfg.step_s,
                 pad: layout.segments()[i].pad_id,
+                accel: cfg.track_accel,
             })
         }
     };

@@ -91,6 +91,7 @@ pub fn spec() -> BackboneSpec {
             ],
             step_s: 0.5,
             pad: Some(9),
+            accel: false,
         }),
     }
 }
@@ -111,6 +112,7 @@ pub fn config() -> BackboneConfig {
         align: None,
         ego_last: true,
         track: None,
+        track_accel: false,
         step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,
@@ -213,6 +215,7 @@ fn the_paper_layout_runs_at_a_small_width() {
             ],
             step_s: 0.5,
             pad: Some(1027),
+            accel: false,
         }),
     };
     let cfg = BackboneConfig {
