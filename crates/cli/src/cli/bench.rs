@@ -285,6 +285,7 @@ impl BenchPreset {
             "backbone.dropout=0.0".into(),
             // The reference's model is the paper's: no agent slots moved ahead.
             "backbone.track=\"\"".into(),
+            "backbone.track_accel=false".into(),
             format!("train.batch_size={batch}"),
             format!("train.frames={frames}"),
             format!("train.recompute={recompute}"),
