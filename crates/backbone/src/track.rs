@@ -7,7 +7,8 @@
 //! bin indices (and did not, docs/results.md). The TAR instead receives, at each slot, the embedding of
 //! the slot so moved (re-binned; other tokens, empty slots and categories as they are) next to the
 //! slot's own, and again at its output, so that "keep going" is a copy and what the model learns is the
-//! departure from it.
+//! departure from it. With `accel` the slot moves by constant acceleration instead: the velocity's change
+//! since the window's previous frame is kept for one more frame.
 
 use crate::config::Precision;
 use crate::embed::FrameEmbedding;
