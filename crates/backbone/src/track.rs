@@ -98,12 +98,7 @@ pub fn moved<B: Backend>(
     let ds = spec.step_s;
     let px = x + (vx.clone() + dvx.clone().mul_scalar(0.5)).mul_scalar(ds) - dx;
     let py = y + (vy.clone() + dvy.clone().mul_scalar(0.5)).mul_scalar(ds) - dy;
-    let turn = |a: Tensor<B, 4>, b: Tensor<B, 4>| {
-        (
-            cos.clone() * a.clone() + sin.clone() * b.clone(),
-            cos.clone() * b - sin.clone() * a,
-        )
-    };
+    let turn = |a, b| by_minus(&cos, &sin, a, b);
     let (nx, ny) = turn(px, py);
     let within = |v: &Tensor<B, 4>, (_, (lo, hi, _)): (usize, (f64, f64, u32))| {
         v.clone()
@@ -134,6 +129,19 @@ pub fn moved<B: Backend>(
         .lower_elem(spec.values as i64)
         .expand([b, t, s, k]);
     slots.mask_where(occupied, moved).reshape([b, t, l])
+}
+
+/// `(a, b)` turned by −θ, given `cos θ` and `sin θ` (broadcast): a vector seen from a frame turned by θ.
+fn by_minus<B: Backend>(
+    cos: &Tensor<B, 4>,
+    sin: &Tensor<B, 4>,
+    a: Tensor<B, 4>,
+    b: Tensor<B, 4>,
+) -> (Tensor<B, 4>, Tensor<B, 4>) {
+    (
+        cos.clone() * a.clone() + sin.clone() * b.clone(),
+        cos.clone() * b - sin.clone() * a,
+    )
 }
 
 /// The centres `[b, t, s, 1]` of the bins `(lo, hi, n)` that ids `[b, t, s, 1]` name.
@@ -170,9 +178,8 @@ fn change<B: Backend>(
         1,
     )
     .reshape([b, t, 1, 1]);
-    let (cos, sin) = (turn.clone().cos(), turn.sin());
-    let dvx = vx.clone() - (cos.clone() * pvx.clone() + sin.clone() * pvy.clone());
-    let dvy = vy.clone() - (cos * pvy - sin * pvx);
+    let (ux, uy) = by_minus(&turn.clone().cos(), &turn.sin(), pvx, pvy);
+    let (dvx, dvy) = (vx.clone() - ux, vy.clone() - uy);
     let was_there = column(spec.fields[0].0).lower_elem(spec.values as i64);
     let ahead = ((vx.clone() + dvx.clone()) * vx + (vy.clone() + dvy.clone()) * vy).greater_equal_elem(0.0);
     let drop = was_there.bool_and(ahead).bool_not();
