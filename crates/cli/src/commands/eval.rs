@@ -59,6 +59,29 @@ fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
+/// One predictor's agent errors at a horizon: the mean of each scene (or context), and every matched
+/// agent's error, for the median and 90th percentile.
+#[derive(Default)]
+struct AgentErrors {
+    means: Vec<f64>,
+    each: Vec<f64>,
+}
+
+impl AgentErrors {
+    /// One scene's (or context's) errors.
+    fn add(&mut self, errors: Vec<f64>) {
+        self.means.extend(mean(&errors));
+        self.each.extend(errors);
+    }
+
+    /// `agents_<name>` (mean of the means), `agents_<name>_median` and `agents_<name>_p90` into `row`.
+    fn report(&self, name: &str, row: &mut serde_json::Value) {
+        row[format!("agents_{name}")] = serde_json::json!(mean(&self.means));
+        row[format!("agents_{name}_median")] = serde_json::json!(median(&self.each));
+        row[format!("agents_{name}_p90")] = serde_json::json!(quantile(&self.each, 0.9));
+    }
+}
+
 /// What a context clip really did after its context frames.
 struct Truth {
     /// The last context frame.
@@ -182,52 +205,44 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
             .collect::<anyhow::Result<Vec<_>>>()?;
         let k = truths.iter().map(|t| t.poses.len()).min().unwrap_or(0);
         for h in 1..=k {
-            let (mut model_ego, mut model_agents, mut cv_ego, mut cv_agents) =
-                (vec![], vec![], vec![], vec![]);
-            // Every matched agent's error, for the medians and 90th percentiles.
-            let (mut model_each, mut cv_each) = (vec![], vec![]);
-            // Constant velocity rounded to the agent bins of the real next ego frame.
-            let (mut grid_agents, mut grid_each) = (vec![], vec![]);
+            let (mut model_ego, mut cv_ego) = (vec![], vec![]);
+            // The model, constant velocity, and constant velocity rounded to the agent bins of the real
+            // next ego frame.
+            let (mut model, mut cv_errors, mut binned) = (
+                AgentErrors::default(),
+                AgentErrors::default(),
+                AgentErrors::default(),
+            );
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
             for (c, t) in truths.iter().enumerate() {
                 let true_pos = positions(&t.poses[h - 1], &t.tracked[h - 1]);
                 for s in &scenes[c * per..(c + 1) * per] {
                     let f = &s.frames[h - 1];
                     model_ego.push(ego_l2(&[f.ego], &[t.poses[h - 1]])[0]);
-                    let errors = agent_errors(&positions(&f.ego, &f.agents), &true_pos);
-                    model_agents.extend(mean(&errors));
-                    model_each.extend(errors);
+                    model.add(agent_errors(&positions(&f.ego, &f.agents), &true_pos));
                     generated.extend(f.agents.iter());
                 }
                 cv_ego.push(t.cv_ego[h - 1]);
                 let cv = constant_velocity_agents(&t.last.ego, &t.last_agents, dt, h);
-                let errors = agent_errors(&cv, &true_pos);
-                cv_agents.extend(mean(&errors));
-                cv_each.extend(errors);
+                cv_errors.add(agent_errors(&cv, &true_pos));
                 if let Some(g) = &grid {
                     let on = on_grid(&t.poses[h - 1], &cv, |p| {
                         let (q, clamped) = g.round_xy(p);
                         off_grid += usize::from(clamped);
                         q
                     });
-                    let errors = agent_errors(&on, &true_pos);
-                    grid_agents.extend(mean(&errors));
-                    grid_each.extend(errors);
+                    binned.add(agent_errors(&on, &true_pos));
                 }
                 real.extend(t.agents[h - 1].iter());
             }
-            l2_rows.push(serde_json::json!({
+            let mut row = serde_json::json!({
                 "horizon": h, "seconds": dt * h as f64,
                 "ego_model": mean(&model_ego), "ego_constant_velocity": mean(&cv_ego),
-                "agents_model": mean(&model_agents), "agents_constant_velocity": mean(&cv_agents),
-                "agents_model_median": median(&model_each),
-                "agents_constant_velocity_median": median(&cv_each),
-                "agents_model_p90": quantile(&model_each, 0.9),
-                "agents_constant_velocity_p90": quantile(&cv_each, 0.9),
-                "agents_constant_velocity_binned": mean(&grid_agents),
-                "agents_constant_velocity_binned_median": median(&grid_each),
-                "agents_constant_velocity_binned_p90": quantile(&grid_each, 0.9),
-            }));
+            });
+            model.report("model", &mut row);
+            cv_errors.report("constant_velocity", &mut row);
+            binned.report("constant_velocity_binned", &mut row);
+            l2_rows.push(row);
             mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }
         report["contexts"] = contexts.len().into();
