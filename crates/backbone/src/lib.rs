@@ -48,6 +48,8 @@ pub mod ordinal;
 mod precision;
 pub mod recompute;
 mod rows;
+#[cfg(feature = "cuda")]
+mod side;
 pub mod smoothing;
 mod spec;
 pub mod track;

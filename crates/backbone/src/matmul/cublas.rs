@@ -2,79 +2,26 @@
 //! burn's memory, f32 or bf16 operands (f32 through TF32 tensor cores, as the cubek kernel does), an f32
 //! result, f32 accumulation.
 //!
-//! burn 0.21 gives no handle to cubecl's CUDA stream (each thread gets its own non-blocking stream), and
-//! waiting on the host around every product (as the NCCL group does) cost more than cuBLAS saves: the
-//! `small` step took 708 ms against 650 ms on the cubek kernel (H100), the GPU idling while the host
-//! caught up after each wait. So the two streams are ordered on the device, through two flags in device
-//! memory and a counter `v` per product:
-//!
-//! 1. cubecl's stream runs [`signal`], which stores `v` in flag 0 once everything queued before it is done;
-//! 2. this module's stream runs `umgen_wait` (one thread spinning until flag 0 is `v`), the product, then
-//!    `umgen_store` (flag 1 = `v`, after a fence);
-//! 3. cubecl's stream runs [`wait`], one thread spinning until flag 1 is `v`, so nothing queued after it
-//!    (readers of the result, reuse of the operands' memory) starts before the product is done.
-//!
-//! The host never waits. The work is queued in the order the dependencies run, so even streams that share
-//! a hardware queue cannot deadlock. Each thread keeps its own handle, stream and flags: cubecl gives
-//! each thread its own stream, and the protocol needs the two streams to take turns. (The driver's
-//! stream memory operations, `cuStreamWaitValue32`, would spare the kernels on this side, but refused
-//! cubecl's pool memory with `CUDA_ERROR_INVALID_VALUE` on an H100; the two small kernels are compiled
-//! with NVRTC, which cubecl loads anyway.)
+//! The products run on a [`Side`] stream, ordered with cubecl's stream on the device (`side.rs`).
 #![allow(unsafe_code)]
 
+use crate::side::{Side, pointer};
 use burn::cubecl::cuda::CudaRuntime;
-use burn::tensor::{DType, Shape};
-use burn_cubecl::ops::numeric::zeros_client;
+use burn::tensor::DType;
 use burn_cubecl::tensor::CubeTensor;
-use cubecl::prelude::*;
 use cudarc::cublas::{result as blas, sys};
-use cudarc::driver::{CudaContext, CudaFunction, CudaStream, LaunchConfig, PushKernelArg};
 use std::cell::RefCell;
 use std::ffi::c_void;
-use std::sync::Arc;
 
 type Primitive = CubeTensor<CudaRuntime>;
 
-/// Stores `value` in `flag[0]` (a single unit).
-#[cube(launch)]
-pub fn signal(flag: &mut Tensor<Atomic<u32>>, value: u32) {
-    flag[0].store(value);
-}
-
-/// Spins (a single unit) until `flag[1]` holds `value`.
-#[cube(launch)]
-pub fn wait(flag: &mut Tensor<Atomic<u32>>, value: u32) {
-    let mut seen = flag[1].load();
-    while seen != value {
-        seen = flag[1].load();
-    }
-}
-
-/// This module's side of the protocol, in CUDA C for NVRTC.
-const FLAG_KERNELS: &str = r#"
-extern "C" __global__ void umgen_wait(unsigned int* flag, unsigned int v) {
-    while (atomicAdd(flag, 0u) != v) {}
-}
-extern "C" __global__ void umgen_store(unsigned int* flag, unsigned int v) {
-    __threadfence();
-    atomicExch(flag, v);
-}
-"#;
-
-/// A cuBLAS handle on its own stream, and the two flags, for one device and the calling thread. The
-/// handle is never destroyed: it lives as long as its thread (training threads live as long as the
-/// process), and calling into cuBLAS from a thread-local destructor at process exit, while CUDA may be
-/// tearing down, is a risk this does not take; the driver reclaims it with the process.
+/// A cuBLAS handle on a side stream, for one device and the calling thread. The handle is never destroyed:
+/// it lives as long as its thread (training threads live as long as the process), and calling into cuBLAS
+/// from a thread-local destructor at process exit, while CUDA may be tearing down, is a risk this does not
+/// take; the driver reclaims it with the process.
 struct Blas {
-    ctx: Arc<CudaContext>,
-    stream: Arc<CudaStream>,
+    side: Side,
     handle: sys::cublasHandle_t,
-    wait_fn: CudaFunction,
-    store_fn: CudaFunction,
-    flags: Primitive,
-    flags_ptr: u64,
-    /// The last product's `v`.
-    count: u32,
 }
 
 thread_local! {
@@ -85,47 +32,16 @@ thread_local! {
 
 impl Blas {
     fn new(like: &Primitive) -> Result<Self, String> {
-        let device = like.device.index;
         // SAFETY: only asks whether the library could be loaded.
         if !unsafe { sys::is_culib_present() } {
             return Err("libcublas (CUDA 13: libcublas.so.13) is not on the library path".into());
         }
-        // The primary context, which cubecl uses too, so burn's pointers are valid here.
-        let ctx = CudaContext::new(device).map_err(|e| format!("CUDA context {device}: {e:?}"))?;
-        ctx.bind_to_thread()
-            .map_err(|e| format!("binding the context: {e:?}"))?;
-        let stream = ctx.new_stream().map_err(|e| format!("stream: {e:?}"))?;
-        let ptx = cudarc::nvrtc::compile_ptx(FLAG_KERNELS).map_err(|e| format!("NVRTC: {e:?}"))?;
-        let module = ctx
-            .load_module(ptx)
-            .map_err(|e| format!("loading the flag kernels: {e:?}"))?;
-        let function = |name: &str| {
-            module
-                .load_function(name)
-                .map_err(|e| format!("kernel {name}: {e:?}"))
-        };
-        let (wait_fn, store_fn) = (function("umgen_wait")?, function("umgen_store")?);
+        let side = Side::new(like)?;
         let handle = blas::create_handle().map_err(|e| format!("cublasCreate: {e:?}"))?;
         // SAFETY: a live handle and a live stream of the same context.
-        unsafe { blas::set_stream(handle, stream.cu_stream() as sys::cudaStream_t) }
+        unsafe { blas::set_stream(handle, side.stream().cu_stream() as sys::cudaStream_t) }
             .map_err(|e| format!("cublasSetStream: {e:?}"))?;
-        let flags = zeros_client(
-            like.client.clone(),
-            like.device.clone(),
-            Shape::new([2]),
-            DType::U32,
-        );
-        let (flags_ptr, _) = pointer(&flags)?;
-        Ok(Self {
-            ctx,
-            stream,
-            handle,
-            wait_fn,
-            store_fn,
-            flags,
-            flags_ptr,
-            count: 0,
-        })
+        Ok(Self { side, handle })
     }
 
     /// Runs `gemm` on this handle's stream between cubecl's queued work and what cubecl queues next.
@@ -133,40 +49,8 @@ impl Blas {
         &mut self,
         gemm: impl FnOnce(sys::cublasHandle_t) -> Result<(), String>,
     ) -> Result<(), String> {
-        self.ctx
-            .bind_to_thread()
-            .map_err(|e| format!("binding the context: {e:?}"))?;
-        self.count = self.count.wrapping_add(1).max(1);
-        let v = self.count;
-        let client = &self.flags.client;
-        let one = || (CubeCount::Static(1, 1, 1), CubeDim::new_1d(1));
-        let (count, dim) = one();
-        signal::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
-        // Submitted before this side's wait, so that the GPU meets the two in dependency order.
-        client
-            .flush()
-            .map_err(|e| format!("submitting the signal: {e:?}"))?;
-        let (flag0, flag1) = (self.flags_ptr, self.flags_ptr + 4);
-        let single = LaunchConfig {
-            grid_dim: (1, 1, 1),
-            block_dim: (1, 1, 1),
-            shared_mem_bytes: 0,
-        };
-        let stream = &self.stream;
-        let run = |f: &CudaFunction, flag: u64, what: &str| {
-            // SAFETY: `flags` (kept by `self`) holds two u32 at `flags_ptr`; the kernels take
-            // `(unsigned int*, unsigned int)`.
-            unsafe { stream.launch_builder(f).arg(&flag).arg(&v).launch(single) }
-                .map(|_| ())
-                .map_err(|e| format!("{what}: {e:?}"))
-        };
-        run(&self.wait_fn, flag0, "umgen_wait")?;
-        // Flag 1 is stored even when the product fails, so that cubecl's stream is never left spinning.
-        let done = gemm(self.handle);
-        run(&self.store_fn, flag1, "umgen_store")?;
-        let (count, dim) = one();
-        wait::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
-        done
+        let handle = self.handle;
+        self.side.ordered(|_| gemm(handle))
     }
 }
 
@@ -210,16 +94,6 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(sys::cublasOperatio
 
 fn int(what: &str, v: usize) -> Result<i32, String> {
     i32::try_from(v).map_err(|_| format!("{what} {v} exceeds cuBLAS's 32-bit sizes"))
-}
-
-/// The device pointer of `t`'s first element (cubecl's stream waits for `t`'s producer from here on), and
-/// what keeps it alive.
-fn pointer(t: &Primitive) -> Result<(u64, impl Sized), String> {
-    let res = t
-        .client
-        .get_resource(t.handle.clone())
-        .map_err(|e| format!("device buffer: {e:?}"))?;
-    Ok((res.resource().ptr, res))
 }
 
 /// `out = lhs · rhs` on cuBLAS: `lhs [m, k]`, `rhs [k, n]` of one float format, row- or column-major, and

@@ -1,0 +1,169 @@
+//! A CUDA stream of umgen's own beside cubecl's, for work cubecl cannot launch (cuBLAS products, the
+//! NVRTC attention kernels of `flash/flash2.cu`), ordered with cubecl's stream on the device.
+//!
+//! burn 0.21 gives no handle to cubecl's CUDA stream (each thread gets its own non-blocking stream), and
+//! waiting on the host around every launch (as the NCCL group does) cost more than cuBLAS saved: the
+//! `small` step took 708 ms against 650 ms on the cubek kernel (H100), the GPU idling while the host
+//! caught up after each wait. So the two streams are ordered on the device, through two flags in device
+//! memory and a counter `v` per piece of work:
+//!
+//! 1. cubecl's stream runs [`signal`], which stores `v` in flag 0 once everything queued before it is done;
+//! 2. the side stream runs `umgen_wait` (one thread spinning until flag 0 is `v`), the work, then
+//!    `umgen_store` (flag 1 = `v`, after a fence);
+//! 3. cubecl's stream runs [`wait`], one thread spinning until flag 1 is `v`, so nothing queued after it
+//!    (readers of the results, reuse of the operands' memory) starts before the work is done.
+//!
+//! The host never waits. The work is queued in the order the dependencies run, so even streams that share
+//! a hardware queue cannot deadlock. Each user keeps one [`Side`] per thread and device: cubecl gives each
+//! thread its own stream, and the protocol needs the two streams to take turns. (The driver's stream
+//! memory operations, `cuStreamWaitValue32`, would spare the kernels on this side, but refused cubecl's
+//! pool memory with `CUDA_ERROR_INVALID_VALUE` on an H100; the two small kernels are compiled with NVRTC,
+//! which cubecl loads anyway.)
+#![allow(unsafe_code)]
+
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::{DType, Shape};
+use burn_cubecl::ops::numeric::zeros_client;
+use burn_cubecl::tensor::CubeTensor;
+use cubecl::prelude::*;
+use cudarc::driver::{CudaContext, CudaFunction, CudaStream, LaunchConfig, PushKernelArg};
+use std::sync::Arc;
+
+type Primitive = CubeTensor<CudaRuntime>;
+
+/// Stores `value` in `flag[0]` (a single unit).
+#[cube(launch)]
+pub fn signal(flag: &mut Tensor<Atomic<u32>>, value: u32) {
+    flag[0].store(value);
+}
+
+/// Spins (a single unit) until `flag[1]` holds `value`.
+#[cube(launch)]
+pub fn wait(flag: &mut Tensor<Atomic<u32>>, value: u32) {
+    let mut seen = flag[1].load();
+    while seen != value {
+        seen = flag[1].load();
+    }
+}
+
+/// The side stream's half of the protocol, in CUDA C for NVRTC.
+const FLAG_KERNELS: &str = r#"
+extern "C" __global__ void umgen_wait(unsigned int* flag, unsigned int v) {
+    while (atomicAdd(flag, 0u) != v) {}
+}
+extern "C" __global__ void umgen_store(unsigned int* flag, unsigned int v) {
+    __threadfence();
+    atomicExch(flag, v);
+}
+"#;
+
+/// A stream of the device's primary context and the two flags, for one device and the calling thread.
+pub(crate) struct Side {
+    ctx: Arc<CudaContext>,
+    stream: Arc<CudaStream>,
+    wait_fn: CudaFunction,
+    store_fn: CudaFunction,
+    flags: Primitive,
+    flags_ptr: u64,
+    /// The last piece of work's `v`.
+    count: u32,
+}
+
+impl Side {
+    /// A side stream on `like`'s device.
+    pub(crate) fn new(like: &Primitive) -> Result<Self, String> {
+        let device = like.device.index;
+        // The primary context, which cubecl uses too, so burn's pointers are valid here.
+        let ctx = CudaContext::new(device).map_err(|e| format!("CUDA context {device}: {e:?}"))?;
+        ctx.bind_to_thread()
+            .map_err(|e| format!("binding the context: {e:?}"))?;
+        let stream = ctx.new_stream().map_err(|e| format!("stream: {e:?}"))?;
+        let ptx = cudarc::nvrtc::compile_ptx(FLAG_KERNELS).map_err(|e| format!("NVRTC: {e:?}"))?;
+        let module = ctx
+            .load_module(ptx)
+            .map_err(|e| format!("loading the flag kernels: {e:?}"))?;
+        let function = |name: &str| {
+            module
+                .load_function(name)
+                .map_err(|e| format!("kernel {name}: {e:?}"))
+        };
+        let (wait_fn, store_fn) = (function("umgen_wait")?, function("umgen_store")?);
+        let flags = zeros_client(
+            like.client.clone(),
+            like.device.clone(),
+            Shape::new([2]),
+            DType::U32,
+        );
+        let (flags_ptr, _) = pointer(&flags)?;
+        Ok(Self {
+            ctx,
+            stream,
+            wait_fn,
+            store_fn,
+            flags,
+            flags_ptr,
+            count: 0,
+        })
+    }
+
+    /// The device's primary context, bound to this thread by [`Side::new`] and [`Side::ordered`].
+    pub(crate) fn context(&self) -> &Arc<CudaContext> {
+        &self.ctx
+    }
+
+    /// The side stream (for libraries that take a stream, such as cuBLAS).
+    pub(crate) fn stream(&self) -> &Arc<CudaStream> {
+        &self.stream
+    }
+
+    /// Runs `work` on the side stream between cubecl's queued work and what cubecl queues next.
+    pub(crate) fn ordered<T>(
+        &mut self,
+        work: impl FnOnce(&Arc<CudaStream>) -> Result<T, String>,
+    ) -> Result<T, String> {
+        self.ctx
+            .bind_to_thread()
+            .map_err(|e| format!("binding the context: {e:?}"))?;
+        self.count = self.count.wrapping_add(1).max(1);
+        let v = self.count;
+        let client = &self.flags.client;
+        let one = || (CubeCount::Static(1, 1, 1), CubeDim::new_1d(1));
+        let (count, dim) = one();
+        signal::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
+        // Submitted before this side's wait, so that the GPU meets the two in dependency order.
+        client
+            .flush()
+            .map_err(|e| format!("submitting the signal: {e:?}"))?;
+        let (flag0, flag1) = (self.flags_ptr, self.flags_ptr + 4);
+        let single = LaunchConfig {
+            grid_dim: (1, 1, 1),
+            block_dim: (1, 1, 1),
+            shared_mem_bytes: 0,
+        };
+        let stream = &self.stream;
+        let run = |f: &CudaFunction, flag: u64, what: &str| {
+            // SAFETY: `flags` (kept by `self`) holds two u32 at `flags_ptr`; the kernels take
+            // `(unsigned int*, unsigned int)`.
+            unsafe { stream.launch_builder(f).arg(&flag).arg(&v).launch(single) }
+                .map(|_| ())
+                .map_err(|e| format!("{what}: {e:?}"))
+        };
+        run(&self.wait_fn, flag0, "umgen_wait")?;
+        // Flag 1 is stored even when the work fails, so that cubecl's stream is never left spinning.
+        let done = work(stream);
+        run(&self.store_fn, flag1, "umgen_store")?;
+        let (count, dim) = one();
+        wait::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
+        done
+    }
+}
+
+/// The device pointer of `t`'s first element (cubecl's stream waits for `t`'s producer from here on), and
+/// what keeps it alive.
+pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String> {
+    let res = t
+        .client
+        .get_resource(t.handle.clone())
+        .map_err(|e| format!("device buffer: {e:?}"))?;
+    Ok((res.resource().ptr, res))
+}
