@@ -1,10 +1,14 @@
-//! The training attention's kernels: fused (one kernel per pass, FlashAttention-2) on CUDA, tiled
-//! (FlashAttention's algorithm in backend tensor operations, [`crate::attention`]) elsewhere.
+//! The training attention's kernels: `flash2` (FlashAttention-2 in CUDA C) or fused (one cubecl kernel per
+//! pass) on CUDA, tiled (FlashAttention's algorithm in backend tensor operations, [`crate::attention`])
+//! elsewhere.
 //!
 //! [`crate::attention`]'s custom autodiff operation computes its forward and backward passes through
 //! [`FusedAttention`], a trait of the inner backend. On the CPU (`Flex`) both passes are the tiled ones.
-//! On CUDA, with [`AttentionKernel::Fused`] (the default), each pass is a custom operation in burn-fusion's
-//! stream that launches this module's cubecl kernels (`flash/kernels.rs`): the `lq × lk` scores and
+//! On CUDA, with [`AttentionKernel::Flash2`] (the default), each pass is a custom operation in
+//! burn-fusion's stream that launches the CUDA C kernels of `flash/flash2.cu` (compiled with NVRTC, run on
+//! a side stream ordered with cubecl's: `flash/flash2.rs`), whose products keep scores and probabilities in
+//! registers; head sizes other than 32 and 64 run the fused kernels. With [`AttentionKernel::Fused`] each
+//! pass launches this module's cubecl kernels (`flash/kernels.rs`): the `lq × lk` scores and
 //! probabilities live only in shared memory, so a pass costs its inputs, outputs and one log-sum-exp per
 //! query instead of a block of score matrices in global memory, and one launch instead of a few dozen per
 //! block. A head size the kernels do not take (not a multiple of 16, or over [`MAX_HEAD`]) runs the tiled
@@ -15,10 +19,12 @@ use crate::config::Precision;
 use burn::tensor::Tensor;
 use burn::tensor::backend::Backend;
 use serde::{Deserialize, Serialize};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
 
 #[cfg(feature = "cuda")]
 mod cuda;
+#[cfg(feature = "cuda")]
+mod flash2;
 #[cfg(feature = "cuda")]
 mod kernels;
 
@@ -69,14 +75,17 @@ pub(crate) const fn acc_stride(head: usize) -> usize {
 #[serde(rename_all = "lowercase")]
 pub enum AttentionKernel {
     /// One fused cubecl kernel per pass (forward; key/value gradients; query gradients).
-    #[default]
     Fused,
     /// The tiled passes in burn tensor operations (blocks of [`crate::attention::BLOCK_BYTES`]).
     Tiled,
+    /// FlashAttention-2 in CUDA C (`flash/flash2.cu`, NVRTC): products and softmax in registers; head
+    /// sizes 32 and 64 (others run [`AttentionKernel::Fused`]). The default: 1.7× the fused kernels' speed.
+    #[default]
+    Flash2,
 }
 
-/// The tiled kernels chosen (process-wide, as [`crate::matmul::select`]).
-static TILED: AtomicBool = AtomicBool::new(false);
+/// The kernels chosen (process-wide, as [`crate::matmul::select`]): 0 flash2, 1 tiled, 2 fused.
+static SELECTED: AtomicU8 = AtomicU8::new(0);
 /// Passes that wanted the fused kernels but ran the tiled ones.
 static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
 /// The fused kernels' loop step ([`set_step`]).
@@ -84,15 +93,20 @@ static STEP: AtomicUsize = AtomicUsize::new(DEFAULT_STEP);
 
 /// Chooses the attention kernels for every training pass this process runs from now on.
 pub fn select(kernel: AttentionKernel) {
-    TILED.store(kernel == AttentionKernel::Tiled, Ordering::Relaxed);
+    let code = match kernel {
+        AttentionKernel::Flash2 => 0,
+        AttentionKernel::Tiled => 1,
+        AttentionKernel::Fused => 2,
+    };
+    SELECTED.store(code, Ordering::Relaxed);
 }
 
-/// The kernels [`select`] chose ([`AttentionKernel::Fused`] unless told otherwise).
+/// The kernels [`select`] chose ([`AttentionKernel::Flash2`] unless told otherwise).
 pub fn selected() -> AttentionKernel {
-    if TILED.load(Ordering::Relaxed) {
-        AttentionKernel::Tiled
-    } else {
-        AttentionKernel::Fused
+    match SELECTED.load(Ordering::Relaxed) {
+        1 => AttentionKernel::Tiled,
+        2 => AttentionKernel::Fused,
+        _ => AttentionKernel::Flash2,
     }
 }
 
@@ -154,11 +168,12 @@ pub fn unfit(head: usize) -> Option<String> {
         .then(|| format!("head size {head} (the fused kernels take multiples of 16 up to {MAX_HEAD})"))
 }
 
-/// Counts a pass that runs the tiled kernels although the fused ones were chosen; logs the first.
+/// Counts a pass that runs other kernels than those chosen (`from`, which refused `why`, to `to`); logs
+/// the first.
 #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
-fn fell_back(why: &str) {
+fn fell_back(from: &str, why: &str, to: &str) {
     if FALLBACKS.fetch_add(1, Ordering::Relaxed) == 0 {
-        tracing::warn!("fused attention refused {why}; the tiled kernels run it (counted in fallbacks)");
+        tracing::warn!("{from} attention refused {why}; the {to} kernels run it (counted in fallbacks)");
     }
 }
 

@@ -74,7 +74,8 @@ pub struct TrainConfig {
     /// smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels.
     pub attention_block_mib: usize,
     /// Kernels of the training attention on CUDA: `fused` (one cubecl kernel per pass,
-    /// `umgen_backbone::flash`) or `tiled` (the tiled passes in burn tensor operations, in blocks of
+    /// `umgen_backbone::flash`), `flash2` (FlashAttention-2 in CUDA C through NVRTC, head sizes 32 and 64;
+    /// others run `fused`) or `tiled` (the tiled passes in burn tensor operations, in blocks of
     /// `attention_block_mib`).
     pub attention: AttentionKernel,
     /// Keys (or queries) per step of the fused attention kernels' loop, 16, 32 or 64
@@ -117,7 +118,7 @@ impl Default for TrainConfig {
             bucket_mib: 25.0,
             matmul: MatmulKernel::default(),
             attention_block_mib: umgen_backbone::attention::BLOCK_BYTES >> 20,
-            attention: AttentionKernel::Fused,
+            attention: AttentionKernel::default(),
             attention_step: umgen_backbone::flash::DEFAULT_STEP,
             recompute: false,
         }
@@ -219,16 +220,22 @@ mod tests {
         let blocks = parse(r#"{"attention_block_mib": 256}"#).expect("attention_block_mib");
         assert_eq!(named.identity(), blocks.identity());
         let tiled = parse(r#"{"attention": "tiled"}"#).expect("attention = tiled");
+        let fused = parse(r#"{"attention": "fused"}"#).expect("attention = fused");
         assert_eq!(
-            (named.attention, tiled.attention),
-            (AttentionKernel::Fused, AttentionKernel::Tiled)
+            (named.attention, tiled.attention, fused.attention),
+            (
+                AttentionKernel::Flash2,
+                AttentionKernel::Tiled,
+                AttentionKernel::Fused
+            )
         );
         assert_eq!(named.identity(), tiled.identity());
+        assert_eq!(named.identity(), fused.identity());
         let recompute = parse(r#"{"recompute": true}"#).expect("recompute = true");
         assert!(recompute.recompute && !named.recompute);
         assert_eq!(named.identity(), recompute.identity());
         let e = parse(r#"{"attention": "flash"}"#).unwrap_err().to_string();
-        assert!(e.contains("flash") && e.contains("fused"), "{e}");
+        assert!(e.contains("flash") && e.contains("flash2"), "{e}");
         let e = parse(r#"{"attention_block_mib": 0}"#)
             .expect("parses")
             .select_kernels()

@@ -2,6 +2,7 @@
 //! the fusion stream that launches the kernels of `kernels.rs` on the operands as they lie in memory (any
 //! strides) and writes f32 results.
 
+use super::flash2::{self, Buffers};
 use super::kernels;
 use super::{
     AttentionKernel, BLOCK, FusedAttention, fell_back, selected, shared_bytes, step, tiled_backward_pass,
@@ -28,9 +29,15 @@ type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::F
 
 /// Why the kernels cannot take these operands, if they cannot.
 fn refused(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> Option<String> {
-    let d = q.dims()[3];
+    let [b, h, _, d] = q.dims();
     if let Some(why) = unfit(d) {
         return Some(why);
+    }
+    // The launch grid's z and y extents.
+    if b > 65_535 || h > 65_535 {
+        return Some(format!(
+            "{b} sequences of {h} heads (the launch grid takes 65,535 of each)"
+        ));
     }
     let dt = q.dtype();
     if !matches!(dt, DType::F32 | DType::BF16) || k.dtype() != dt || v.dtype() != dt {
@@ -65,6 +72,7 @@ fn tile_format(dtype: DType) -> (StorageType, usize) {
 fn register<const N: usize>(
     kind: Kind,
     causal: bool,
+    flash2: bool,
     inputs: &[&Tensor<Cuda, 4>],
     shapes: [Shape; N],
 ) -> [Tensor<Cuda, 4>; N] {
@@ -88,6 +96,7 @@ fn register<const N: usize>(
         desc: desc.clone(),
         causal,
         kind,
+        flash2,
     };
     let out = client.register(streams, OperationIr::Custom(desc), pass);
     let tensors: Vec<Tensor<Cuda, 4>> = out.into_iter().map(float).collect();
@@ -108,13 +117,14 @@ impl FusedAttention for Cuda {
             return tiled_forward_pass(q, k, v, causal, precision);
         }
         if let Some(why) = refused(&q, &k, &v) {
-            fell_back(&why);
+            fell_back("fused", &why, "tiled");
             return tiled_forward_pass(q, k, v, causal, precision);
         }
         let [b, h, lq, d] = q.dims();
         let [out, lse] = register(
             Kind::Forward,
             causal,
+            use_flash2(&q),
             &[&q, &k, &v],
             [Shape::new([b, h, lq, d]), Shape::new([b, h, lq, 1])],
         );
@@ -139,9 +149,11 @@ impl FusedAttention for Cuda {
         let dout = crate::precision::operand(dout, precision);
         let [b, h, lq, d] = q.dims();
         let lk = k.dims()[2];
+        let flash2 = use_flash2(&q);
         let [dq, dk, dv] = register(
             Kind::Backward,
             causal,
+            flash2,
             &[&q, &k, &v, &dout, &lse, &delta],
             [
                 Shape::new([b, h, lq, d]),
@@ -162,12 +174,29 @@ enum Kind {
     Backward,
 }
 
+/// Whether the `flash2` kernels run a pass on `q`'s operands: chosen, and taking its head size and type
+/// (otherwise the fused kernels run it, counted as a fallback).
+fn use_flash2(q: &Tensor<Cuda, 4>) -> bool {
+    if selected() != AttentionKernel::Flash2 {
+        return false;
+    }
+    match flash2::unfit(q.dims()[3], q.dtype()) {
+        Some(why) => {
+            fell_back("flash2", &why, "fused");
+            false
+        }
+        None => true,
+    }
+}
+
 /// One pass as the fusion stream runs it.
 #[derive(Debug)]
 struct Pass {
     desc: CustomOpIr,
     causal: bool,
     kind: Kind,
+    /// The `flash2` kernels run it (the fused ones if they fail to launch).
+    flash2: bool,
 }
 
 impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
@@ -176,17 +205,66 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
             Kind::Forward => {
                 let ([q, k, v], _) = self.desc.as_fixed::<3, 2>();
                 let [q, k, v] = [q, k, v].map(|t| handles.get_float_tensor::<Inner>(t));
-                forward(&q, &k, &v, self.causal)
+                let on_flash2 = self.flash2.then(|| {
+                    let [b, h, lq, d] = dims(&q);
+                    let results = vec![empty(&q, [b, h, lq, d]), empty(&q, [b, h, lq, 1])];
+                    let bufs = Buffers {
+                        q: &q,
+                        k: &k,
+                        v: &v,
+                        dout: None,
+                        lse: None,
+                        delta: None,
+                        results: &results,
+                    };
+                    try_flash2(flash2::Pass::Forward, &bufs, self.causal).then_some(results)
+                });
+                on_flash2
+                    .flatten()
+                    .unwrap_or_else(|| forward(&q, &k, &v, self.causal))
             }
             Kind::Backward => {
                 let (inputs, _) = self.desc.as_fixed::<6, 3>();
                 let [q, k, v, dout, lse, delta] =
                     inputs.each_ref().map(|t| handles.get_float_tensor::<Inner>(t));
-                backward(&q, &k, &v, &dout, &lse, &delta, self.causal)
+                let on_flash2 = self.flash2.then(|| {
+                    let [b, h, lq, d] = dims(&q);
+                    let lk = k.meta.shape()[2];
+                    let results = vec![
+                        empty(&q, [b, h, lq, d]),
+                        empty(&q, [b, h, lk, d]),
+                        empty(&q, [b, h, lk, d]),
+                    ];
+                    let bufs = Buffers {
+                        q: &q,
+                        k: &k,
+                        v: &v,
+                        dout: Some(&dout),
+                        lse: Some(&lse),
+                        delta: Some(&delta),
+                        results: &results,
+                    };
+                    try_flash2(flash2::Pass::Backward, &bufs, self.causal).then_some(results)
+                });
+                on_flash2
+                    .flatten()
+                    .unwrap_or_else(|| backward(&q, &k, &v, &dout, &lse, &delta, self.causal))
             }
         };
         for (ir, t) in self.desc.outputs.iter().zip(outputs) {
             handles.register_float_tensor::<Inner>(&ir.id, t);
+        }
+    }
+}
+
+/// Runs a pass on the `flash2` kernels; false (counted as a fallback to the fused kernels) if they could
+/// not be launched.
+fn try_flash2(pass: flash2::Pass, bufs: &Buffers, causal: bool) -> bool {
+    match flash2::launch(pass, bufs, causal) {
+        Ok(()) => true,
+        Err(why) => {
+            fell_back("flash2", &why, "fused");
+            false
         }
     }
 }

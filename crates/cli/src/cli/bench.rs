@@ -126,6 +126,8 @@ pub enum AttentionArg {
     Fused,
     /// The tiled passes in burn tensor operations.
     Tiled,
+    /// FlashAttention-2 in CUDA C, NVRTC (CUDA; head sizes 32 and 64).
+    Flash2,
 }
 
 impl From<AttentionArg> for umgen::backbone::flash::AttentionKernel {
@@ -133,6 +135,7 @@ impl From<AttentionArg> for umgen::backbone::flash::AttentionKernel {
         match a {
             AttentionArg::Fused => Self::Fused,
             AttentionArg::Tiled => Self::Tiled,
+            AttentionArg::Flash2 => Self::Flash2,
         }
     }
 }

@@ -130,13 +130,17 @@ fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(Atten
     );
     let cuda = !matches!(device, Device::Cpu);
     let kernels: Vec<AttentionKernel> = match a.kernels.is_empty() {
-        true if cuda => vec![AttentionKernel::Fused, AttentionKernel::Tiled],
+        true if cuda => vec![
+            AttentionKernel::Flash2,
+            AttentionKernel::Fused,
+            AttentionKernel::Tiled,
+        ],
         true => vec![AttentionKernel::Tiled],
         false => a.kernels.iter().map(|&k| k.into()).collect(),
     };
     anyhow::ensure!(
-        cuda || !kernels.contains(&AttentionKernel::Fused),
-        "--kernels fused: the fused attention kernels are CUDA's; on {} only `tiled` runs",
+        cuda || kernels.iter().all(|&k| k == AttentionKernel::Tiled),
+        "--kernels fused and flash2 are CUDA's; on {} only `tiled` runs",
         a.device
     );
     let blocks: Vec<Option<usize>> = match a.block_mib.is_empty() {
@@ -155,6 +159,7 @@ fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(Atten
         .flat_map(|k| match k {
             AttentionKernel::Fused => steps.iter().map(|&s| (k, s)).collect::<Vec<_>>(),
             AttentionKernel::Tiled => blocks.iter().map(|&b| (k, b)).collect(),
+            AttentionKernel::Flash2 => vec![(k, None)],
         })
         .collect())
 }
@@ -202,6 +207,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                 match kernel {
                     AttentionKernel::Fused => flash::set_step(size).map_err(anyhow::Error::msg)?,
                     AttentionKernel::Tiled => umgen::backbone::attention::set_block_bytes(size),
+                    AttentionKernel::Flash2 => {}
                 }
                 runs.push(measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev));
             }
@@ -222,6 +228,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                 ];
                 let block = match kernel {
                     AttentionKernel::Fused => format!("step {}", size.unwrap_or(flash::DEFAULT_STEP)),
+                    AttentionKernel::Flash2 => "-".into(),
                     AttentionKernel::Tiled => {
                         (size.unwrap_or(umgen::backbone::attention::BLOCK_BYTES) >> 20).to_string()
                     }
@@ -234,6 +241,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
             let kernel = match kernel {
                 AttentionKernel::Fused => "fused",
                 AttentionKernel::Tiled => "tiled",
+                AttentionKernel::Flash2 => "flash2",
             };
             writeln!(
                 out,

@@ -189,7 +189,8 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     if matches!(device, Device::Cuda(_)) {
         writeln!(
             out,
-            "attention     {:?}, {} pass(es) fell back to the tiled kernels",
+            "attention     {:?}, {} pass(es) fell back (flash2 to the fused kernels, or those to the tiled; \
+             the first is logged with its reason)",
             tc.attention,
             umgen::backbone::flash::fallbacks()
         )?;

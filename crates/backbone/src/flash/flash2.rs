@@ -1,0 +1,313 @@
+//! Launches the `flash2` kernels (`flash2.cu`, CUDA C compiled once per thread and device with NVRTC) on a
+//! [`Side`] stream ordered with cubecl's, on burn's buffers as they lie in memory.
+//!
+//! They are FlashAttention-2 as its authors wrote it: `mma.sync` products with scores, probabilities and
+//! their gradients in registers, which cubecl's `cmma` abstraction cannot express (its fragments are
+//! opaque, so the softmax of the `fused` kernels goes through shared memory). Head sizes 32 and 64, f32 or
+//! bf16 operands (rounded to bf16 on the way into shared memory), compute capability 8.0 or newer; the
+//! caller runs the `fused` kernels for anything else. `flash2_emulator.cpp` checks the fragment layouts on
+//! the host.
+#![allow(unsafe_code)]
+
+use crate::side::{Side, pointer};
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::DType;
+use burn_cubecl::tensor::CubeTensor;
+use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
+use std::cell::RefCell;
+use std::sync::OnceLock;
+
+type Primitive = CubeTensor<CudaRuntime>;
+
+/// The kernels' source.
+const SOURCE: &str = include_str!("flash2.cu");
+
+/// The grid's largest y (and z) extent.
+const GRID_YZ: usize = 65_535;
+
+/// Warps per block (each owns 16 rows): `UMGEN_FLASH2_WARPS`, 4 or 8 (default 8, which was 10–18 %
+/// faster on an H100: docs/perf-notes.md), read once.
+fn warps() -> usize {
+    static WARPS: OnceLock<usize> = OnceLock::new();
+    *WARPS.get_or_init(|| match std::env::var("UMGEN_FLASH2_WARPS").as_deref() {
+        Ok("4") => 4,
+        Ok("8") | Err(_) => 8,
+        Ok(other) => {
+            tracing::warn!("UMGEN_FLASH2_WARPS={other}: the flash2 kernels take 4 or 8 warps; 8 run");
+            8
+        }
+    })
+}
+
+/// The kernels' source: `flash2.cu`, or the file `UMGEN_FLASH2_SOURCE` names (for trying a change to the
+/// kernels without rebuilding umgen; the file must keep `flash2.cu`'s kernels and `Params`).
+fn source() -> Result<String, String> {
+    match std::env::var_os("UMGEN_FLASH2_SOURCE") {
+        Some(path) => std::fs::read_to_string(&path)
+            .map_err(|e| format!("UMGEN_FLASH2_SOURCE {}: {e}", path.to_string_lossy())),
+        None => Ok(SOURCE.to_string()),
+    }
+}
+
+/// `Params` of `flash2.cu`, field for field.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+struct Params {
+    q: u64,
+    k: u64,
+    v: u64,
+    dout: u64,
+    lse: u64,
+    delta: u64,
+    out: u64,
+    lse_out: u64,
+    dq: u64,
+    dk: u64,
+    dv: u64,
+    qs: [i64; 3],
+    ks: [i64; 3],
+    vs: [i64; 3],
+    os: [i64; 3],
+    ls: [i64; 3],
+    es: [i64; 3],
+    heads: i32,
+    lq: i32,
+    lk: i32,
+    off: i32,
+    causal: i32,
+    scale: f32,
+    count: i32,
+}
+
+// SAFETY: plain old data, laid out as the C struct the kernels take by value.
+unsafe impl DeviceRepr for Params {}
+
+/// Why the kernels cannot take operands of head size `d` and type `dtype`, if they cannot.
+pub(super) fn unfit(d: usize, dtype: DType) -> Option<String> {
+    if d != 32 && d != 64 {
+        return Some(format!("head size {d} (the flash2 kernels take 32 and 64)"));
+    }
+    (!matches!(dtype, DType::F32 | DType::BF16))
+        .then(|| format!("{dtype:?} operands (the flash2 kernels take f32 and bf16)"))
+}
+
+/// The compiled kernels and their side stream, for one device and the calling thread.
+struct Kernels {
+    side: Side,
+    functions: Vec<(String, CudaFunction)>,
+}
+
+thread_local! {
+    /// This thread's kernels by device; `Err` remembers why a device has none.
+    static KERNELS: RefCell<Vec<(usize, Result<Kernels, String>)>> = const { RefCell::new(Vec::new()) };
+}
+
+impl Kernels {
+    fn new(like: &Primitive) -> Result<Self, String> {
+        let side = Side::new(like)?;
+        let (major, minor) = side
+            .context()
+            .compute_capability()
+            .map_err(|e| format!("compute capability: {e:?}"))?;
+        if major < 8 {
+            return Err(format!(
+                "compute capability {major}.{minor} (the flash2 kernels need 8.0: bf16 mma.sync)"
+            ));
+        }
+        let options = CompileOptions {
+            arch: Some("compute_80"),
+            use_fast_math: Some(true),
+            ..Default::default()
+        };
+        let ptx = compile_ptx_with_opts(source()?, options).map_err(|e| format!("NVRTC: {e:?}"))?;
+        let module = side
+            .context()
+            .load_module(ptx)
+            .map_err(|e| format!("loading the flash2 kernels: {e:?}"))?;
+        let mut functions = Vec::new();
+        for pass in ["forward", "backward_kv", "backward_q"] {
+            for dtype in ["f32", "bf16"] {
+                for d in [32, 64] {
+                    let name = format!("umgen_flash2_{pass}_{dtype}_{d}");
+                    let f = module
+                        .load_function(&name)
+                        .map_err(|e| format!("kernel {name}: {e:?}"))?;
+                    functions.push((name, f));
+                }
+            }
+        }
+        tracing::info!("flash2 kernels compiled: {}", resources(&functions));
+        Ok(Self { side, functions })
+    }
+}
+
+/// Registers, spilled bytes and blocks per SM of the head-size-64 kernels: what limits their occupancy.
+fn resources(functions: &[(String, CudaFunction)]) -> String {
+    let threads = 32 * warps() as u32;
+    functions
+        .iter()
+        .filter(|(name, _)| name.ends_with("_64"))
+        .map(|(name, f)| {
+            let short = name.trim_start_matches("umgen_flash2_");
+            match (
+                f.num_regs(),
+                f.local_size_bytes(),
+                f.occupancy_max_active_blocks_per_multiprocessor(threads, 0, None),
+            ) {
+                (Ok(r), Ok(l), Ok(b)) => format!("{short} {r} registers, {l} B spilled, {b} blocks/SM"),
+                _ => format!("{short} (attributes unavailable)"),
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// The strides (batch, head, row) of a `[b, h, rows, d]` operand whose last dimension is contiguous.
+fn strides(t: &Primitive, what: &str) -> Result<[i64; 3], String> {
+    let (shape, s) = (t.meta.shape(), t.meta.strides());
+    if shape.len() != 4 || (s[3] != 1 && shape[3] > 1) {
+        return Err(format!("{what}: shape {shape:?}, strides {s:?}"));
+    }
+    let int = |x: usize| i64::try_from(x).map_err(|_| format!("{what}: stride {x}"));
+    Ok([int(s[0])?, int(s[1])?, int(s[2])?])
+}
+
+/// The operands and results of one pass; `None` for those the pass does not use.
+pub(super) struct Buffers<'a> {
+    pub q: &'a Primitive,
+    pub k: &'a Primitive,
+    pub v: &'a Primitive,
+    pub dout: Option<&'a Primitive>,
+    pub lse: Option<&'a Primitive>,
+    pub delta: Option<&'a Primitive>,
+    /// Contiguous f32 results: output and log-sum-exp (forward), or dq, dk, dv (backward).
+    pub results: &'a [Primitive],
+}
+
+/// Which pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Pass {
+    Forward,
+    Backward,
+}
+
+/// Runs `pass` on `bufs`; an error says why it could not (nothing was launched on cubecl's stream but the
+/// flag kernels, so the caller may run another path).
+pub(super) fn launch(pass: Pass, bufs: &Buffers, causal: bool) -> Result<(), String> {
+    let (q, k, v) = (bufs.q, bufs.k, bufs.v);
+    let s = q.meta.shape();
+    let (b, h, lq, d) = (s[0], s[1], s[2], s[3]);
+    let lk = k.meta.shape()[2];
+    if let Some(why) = unfit(d, q.dtype) {
+        return Err(why);
+    }
+    let mut operands = vec![q, k, v];
+    operands.extend(bufs.dout);
+    if operands.iter().any(|t| t.dtype != q.dtype) {
+        return Err("operands of different types".into());
+    }
+    let bh = b * h;
+    if bh == 0 || lq == 0 || lk == 0 {
+        return Err("an empty dimension".into());
+    }
+    if bh > GRID_YZ * GRID_YZ || lq.max(lk) > i32::MAX as usize {
+        return Err(format!(
+            "{b} × {h} heads of {lq} × {lk}: over the launch grid's limits"
+        ));
+    }
+    let int = |x: usize| x as i32;
+    let mut p = Params {
+        heads: int(h),
+        lq: int(lq),
+        lk: int(lk),
+        off: int(lk.saturating_sub(lq)),
+        causal: i32::from(causal),
+        scale: 1.0 / (d as f32).sqrt(),
+        count: int(bh),
+        qs: strides(q, "q")?,
+        ks: strides(k, "k")?,
+        vs: strides(v, "v")?,
+        ..Params::default()
+    };
+    // The pointers, and what keeps the buffers alive until the launch is queued.
+    let mut keep = Vec::new();
+    let mut ptr = |t: &Primitive| -> Result<u64, String> {
+        let (address, guard) = pointer(t)?;
+        keep.push(guard);
+        Ok(address)
+    };
+    (p.q, p.k, p.v) = (ptr(q)?, ptr(k)?, ptr(v)?);
+    let rows = match pass {
+        Pass::Forward => {
+            let [out, lse] = bufs.results else {
+                return Err("the forward pass writes two results".into());
+            };
+            (p.out, p.lse_out) = (ptr(out)?, ptr(lse)?);
+            [lq, 0]
+        }
+        Pass::Backward => {
+            let (Some(dout), Some(lse), Some(delta), [dq, dk, dv]) =
+                (bufs.dout, bufs.lse, bufs.delta, bufs.results)
+            else {
+                return Err("the backward pass reads dout, lse and delta and writes three results".into());
+            };
+            (p.os, p.ls, p.es) = (
+                strides(dout, "dout")?,
+                strides(lse, "lse")?,
+                strides(delta, "delta")?,
+            );
+            (p.dout, p.lse, p.delta) = (ptr(dout)?, ptr(lse)?, ptr(delta)?);
+            (p.dq, p.dk, p.dv) = (ptr(dq)?, ptr(dk)?, ptr(dv)?);
+            [lk, lq]
+        }
+    };
+    let dtype = if q.dtype == DType::BF16 { "bf16" } else { "f32" };
+    let names: Vec<String> = match pass {
+        Pass::Forward => vec![format!("umgen_flash2_forward_{dtype}_{d}")],
+        Pass::Backward => vec![
+            format!("umgen_flash2_backward_kv_{dtype}_{d}"),
+            format!("umgen_flash2_backward_q_{dtype}_{d}"),
+        ],
+    };
+    let device = q.device.index;
+    KERNELS.with_borrow_mut(|all| {
+        if !all.iter().any(|(dev, _)| *dev == device) {
+            let made = Kernels::new(q);
+            if let Err(why) = &made {
+                tracing::warn!("flash2 attention on cuda:{device}: {why}");
+            }
+            all.push((device, made));
+        }
+        let kernels = match all.iter_mut().find(|(dev, _)| *dev == device) {
+            Some((_, Ok(kernels))) => kernels,
+            Some((_, Err(why))) => return Err(why.clone()),
+            None => return Err(format!("no flash2 kernels for cuda:{device}")),
+        };
+        let Kernels { side, functions } = kernels;
+        side.ordered(|stream| {
+            for (name, rows) in names.iter().zip(rows) {
+                let f = functions
+                    .iter()
+                    .find(|(n, _)| n == name)
+                    .map(|(_, f)| f)
+                    .ok_or_else(|| format!("kernel {name} not compiled"))?;
+                let config = LaunchConfig {
+                    grid_dim: (
+                        rows.div_ceil(16 * warps()) as u32,
+                        bh.min(GRID_YZ) as u32,
+                        bh.div_ceil(GRID_YZ) as u32,
+                    ),
+                    block_dim: (32 * warps() as u32, 1, 1),
+                    shared_mem_bytes: 0,
+                };
+                // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides
+                // recorded beside it, and cubecl's stream waits for the kernels before anything queued later
+                // can free or reuse them.
+                unsafe { stream.launch_builder(f).arg(&p).launch(config) }
+                    .map_err(|e| format!("{name}: {e:?}"))?;
+            }
+            Ok(())
+        })
+    })
+}

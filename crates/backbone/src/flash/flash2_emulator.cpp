@@ -1,0 +1,268 @@
+// Runs flash2.cu's kernels on the host, one std::thread per CUDA thread of a block, with the warp-level
+// primitives (mma.sync, ldmatrix, shuffles) emulated from their PTX definitions, and compares the results
+// with a double-precision reference. A development check of the fragment layouts, which no CPU test of the
+// Rust crate can make:
+//
+//   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas crates/backbone/src/flash/flash2_emulator.cpp \
+//       -o /tmp/flash2-emu && /tmp/flash2-emu
+//
+// (`crates/backbone/tests/flash2_emulator.rs` runs it in the test suite.)
+//
+// Exit status 0 when every case agrees within bf16 tolerance.
+#include <barrier>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <functional>
+#include <memory>
+#include <random>
+#include <thread>
+#include <vector>
+
+#define UMGEN_EMULATED
+typedef unsigned int u32;
+typedef unsigned short u16;
+#define DEV static inline
+#define KERNEL void
+#define SHARED static
+#define ALIGNED __attribute__((aligned(16)))
+#define __forceinline__
+
+static thread_local int g_tid, g_bx, g_by;
+static int g_threads;
+static std::barrier<>* g_block;
+static std::barrier<>* g_warp[8];
+
+struct Stage {
+    u32 a[4], b[2];
+    const u16* ptr;
+    float x;
+};
+static Stage g_stage[8][32];
+
+static inline float __int_as_float(int i) { float f; memcpy(&f, &i, 4); return f; }
+static inline u32 __float_as_uint(float f) { u32 u; memcpy(&u, &f, 4); return u; }
+static inline float bf(u32 bits16) { u32 u = bits16 << 16; float f; memcpy(&f, &u, 4); return f; }
+static inline float half_of(u32 r, int hi) { return bf(hi ? (r >> 16) : (r & 0xffffu)); }
+using std::max;
+using std::min;
+
+DEV int lane_id() { return g_tid & 31; }
+DEV int warp_id() { return g_tid >> 5; }
+DEV int thread_id() { return g_tid; }
+DEV int threads() { return g_threads; }
+DEV int block_x() { return g_bx; }
+DEV int block_y() { return g_by; }
+DEV void sync_block() { g_block->arrive_and_wait(); }
+DEV void sync_warp() { g_warp[warp_id()]->arrive_and_wait(); }
+
+DEV void mma(float* c, const u32* a, const u32* b) {
+    Stage& me = g_stage[warp_id()][lane_id()];
+    memcpy(me.a, a, 16);
+    memcpy(me.b, b, 8);
+    sync_warp();
+    const Stage* w = g_stage[warp_id()];
+    int g = lane_id() >> 2, t = lane_id() & 3;
+    auto A = [&](int row, int k) {
+        int lane = (row % 8) * 4 + (k % 8) / 2, reg = row / 8 + 2 * (k / 8);
+        return half_of(w[lane].a[reg], k % 2);
+    };
+    auto B = [&](int k, int n) { return half_of(w[n * 4 + (k % 8) / 2].b[k / 8], k % 2); };
+    float out[4];
+    for (int e = 0; e < 4; e++) {
+        int row = g + 8 * (e >> 1), col = 2 * t + (e & 1);
+        float acc = c[e];
+        for (int k = 0; k < 16; k++) acc += A(row, k) * B(k, col);
+        out[e] = acc;
+    }
+    sync_warp();
+    memcpy(c, out, 16);
+}
+
+static void ldsm(u32* r, const u16* p, bool trans) {
+    g_stage[warp_id()][lane_id()].ptr = p;
+    sync_warp();
+    const Stage* w = g_stage[warp_id()];
+    int g = lane_id() >> 2, t = lane_id() & 3;
+    for (int i = 0; i < 4; i++) {
+        u32 lo, hi;
+        if (!trans) {
+            lo = w[8 * i + g].ptr[2 * t];
+            hi = w[8 * i + g].ptr[2 * t + 1];
+        } else {
+            lo = w[8 * i + 2 * t].ptr[g];
+            hi = w[8 * i + 2 * t + 1].ptr[g];
+        }
+        r[i] = lo | (hi << 16);
+    }
+    sync_warp();
+}
+DEV void ldsm4(u32* r, const u16* p) { ldsm(r, p, false); }
+DEV void ldsm4t(u32* r, const u16* p) { ldsm(r, p, true); }
+
+static float shfl_xor(float x, int m) {
+    g_stage[warp_id()][lane_id()].x = x;
+    sync_warp();
+    float y = g_stage[warp_id()][lane_id() ^ m].x;
+    sync_warp();
+    return y;
+}
+DEV float quad_max(float x) {
+    x = fmaxf(x, shfl_xor(x, 1));
+    return fmaxf(x, shfl_xor(x, 2));
+}
+DEV float quad_sum(float x) {
+    x += shfl_xor(x, 1);
+    return x + shfl_xor(x, 2);
+}
+
+#include "flash2.cu"
+
+// Runs `kernel` on a grid of `gx × gy` blocks of `warps` warps, one block at a time; `gy` may exceed the
+// heads (`p.count`), as the device's grid does when it spans several rows of 65,535.
+static void launch(void (*kernel)(Params), Params p, int gx, int gy, int warps) {
+    g_threads = 32 * warps;
+    std::barrier<> block(g_threads);
+    std::vector<std::unique_ptr<std::barrier<>>> warp_barriers;
+    for (int w = 0; w < warps; w++) {
+        warp_barriers.push_back(std::make_unique<std::barrier<>>(32));
+        g_warp[w] = warp_barriers.back().get();
+    }
+    g_block = &block;
+    for (int by = 0; by < gy; by++)
+        for (int bx = 0; bx < gx; bx++) {
+            std::vector<std::thread> threads;
+            for (int t = 0; t < g_threads; t++)
+                threads.emplace_back([=] {
+                    g_tid = t, g_bx = bx, g_by = by;
+                    kernel(p);
+                });
+            for (auto& th : threads) th.join();
+        }
+}
+
+static float round_bf16(float x) { return bf(bf16_bits(x)); }
+
+// One case: b × h heads, lq queries, lk keys, head size d; operands laid out [b, l, h, d] (strided views of
+// [b, h, l, d], as the backbone passes them). Returns the worst relative error.
+static double run_case(int b, int h, int lq, int lk, int d, bool causal, bool bf16_in, int warps, unsigned seed) {
+    std::mt19937 rng(seed);
+    std::normal_distribution<float> normal(0.f, 1.f);
+    auto fill = [&](int rows) {
+        std::vector<float> x((size_t)b * rows * h * d);
+        for (auto& v : x) v = round_bf16(normal(rng));
+        return x;
+    };
+    std::vector<float> q = fill(lq), k = fill(lk), v = fill(lk), dout = fill(lq);
+    auto idx = [&](int bi, int hi, int row, int rows, int c) { return (((size_t)bi * rows + row) * h + hi) * d + c; };
+    int off = lk - lq;
+    double scale = 1.0 / std::sqrt((double)d);
+    // Reference in double.
+    std::vector<double> out((size_t)b * h * lq * d), lse((size_t)b * h * lq), delta((size_t)b * h * lq);
+    std::vector<double> dq(out.size(), 0.0), dk((size_t)b * h * lk * d, 0.0), dv(dk.size(), 0.0);
+    for (int bi = 0; bi < b; bi++)
+        for (int hi = 0; hi < h; hi++) {
+            size_t bh = (size_t)bi * h + hi;
+            std::vector<double> pr(lk), dp(lk);
+            for (int i = 0; i < lq; i++) {
+                double mx = -INFINITY;
+                for (int j = 0; j < lk; j++) {
+                    double s = 0;
+                    for (int c = 0; c < d; c++) s += (double)q[idx(bi, hi, i, lq, c)] * k[idx(bi, hi, j, lk, c)];
+                    pr[j] = (causal && j > i + off) ? -INFINITY : s * scale;
+                    mx = std::max(mx, pr[j]);
+                }
+                double sum = 0;
+                for (int j = 0; j < lk; j++) sum += std::exp(pr[j] - mx);
+                lse[bh * lq + i] = mx + std::log(sum);
+                for (int j = 0; j < lk; j++) pr[j] = std::exp(pr[j] - lse[bh * lq + i]);
+                double dl = 0;
+                for (int c = 0; c < d; c++) {
+                    double o = 0;
+                    for (int j = 0; j < lk; j++) o += pr[j] * v[idx(bi, hi, j, lk, c)];
+                    out[(bh * lq + i) * d + c] = o;
+                    dl += o * dout[idx(bi, hi, i, lq, c)];
+                }
+                delta[bh * lq + i] = dl;
+                for (int j = 0; j < lk; j++) {
+                    double s = 0;
+                    for (int c = 0; c < d; c++) s += (double)dout[idx(bi, hi, i, lq, c)] * v[idx(bi, hi, j, lk, c)];
+                    dp[j] = pr[j] * (s - dl);
+                    for (int c = 0; c < d; c++) {
+                        dv[(bh * lk + j) * d + c] += pr[j] * dout[idx(bi, hi, i, lq, c)];
+                        dk[(bh * lk + j) * d + c] += scale * dp[j] * q[idx(bi, hi, i, lq, c)];
+                        dq[(bh * lq + i) * d + c] += scale * dp[j] * k[idx(bi, hi, j, lk, c)];
+                    }
+                }
+            }
+        }
+    // Device-side operands.
+    auto as_input = [&](const std::vector<float>& x) -> std::vector<u32> {
+        std::vector<u32> raw(x.size());
+        for (size_t i = 0; i < x.size(); i++) raw[i] = bf16_in ? bf16_bits(x[i]) : __float_as_uint(x[i]);
+        return raw;
+    };
+    std::vector<u32> qr = as_input(q), kr = as_input(k), vr = as_input(v), dr = as_input(dout);
+    std::vector<u16> q16(q.size()), k16(k.size()), v16(v.size()), d16(dout.size());
+    for (size_t i = 0; i < q.size(); i++) q16[i] = qr[i], d16[i] = dr[i];
+    for (size_t i = 0; i < k.size(); i++) k16[i] = kr[i], v16[i] = vr[i];
+    auto ptr = [&](std::vector<u32>& raw, std::vector<u16>& r16) -> const void* {
+        return bf16_in ? (const void*)r16.data() : (const void*)raw.data();
+    };
+    std::vector<float> o_k(out.size()), lse_k(lse.size()), lse_f(lse.size()), delta_f(delta.size());
+    std::vector<float> dq_k(dq.size()), dk_k(dk.size()), dv_k(dv.size());
+    for (size_t i = 0; i < lse.size(); i++) lse_f[i] = lse[i], delta_f[i] = delta[i];
+    Params p;
+    memset(&p, 0, sizeof p);
+    p.q = ptr(qr, q16), p.k = ptr(kr, k16), p.v = ptr(vr, v16), p.dout = ptr(dr, d16);
+    p.lse = lse_f.data(), p.delta = delta_f.data();
+    p.out = o_k.data(), p.lse_out = lse_k.data(), p.dq = dq_k.data(), p.dk = dk_k.data(), p.dv = dv_k.data();
+    auto strides = [&](long long* s, int rows) { s[0] = (long long)rows * h * d, s[1] = d, s[2] = (long long)h * d; };
+    strides(p.qs, lq), strides(p.ks, lk), strides(p.vs, lk), strides(p.os, lq);
+    // The log-sum-exp and delta contiguous [b, h, lq].
+    p.ls[0] = p.es[0] = (long long)h * lq, p.ls[1] = p.es[1] = lq, p.ls[2] = p.es[2] = 1;
+    p.heads = h, p.lq = lq, p.lk = lk, p.off = off, p.causal = causal, p.scale = (float)scale, p.count = b * h;
+    bool f32 = !bf16_in;
+    void (*fw)(Params) = d == 64 ? (f32 ? umgen_flash2_forward_f32_64 : umgen_flash2_forward_bf16_64)
+                                 : (f32 ? umgen_flash2_forward_f32_32 : umgen_flash2_forward_bf16_32);
+    void (*kv)(Params) = d == 64 ? (f32 ? umgen_flash2_backward_kv_f32_64 : umgen_flash2_backward_kv_bf16_64)
+                                 : (f32 ? umgen_flash2_backward_kv_f32_32 : umgen_flash2_backward_kv_bf16_32);
+    void (*qk)(Params) = d == 64 ? (f32 ? umgen_flash2_backward_q_f32_64 : umgen_flash2_backward_q_bf16_64)
+                                 : (f32 ? umgen_flash2_backward_q_f32_32 : umgen_flash2_backward_q_bf16_32);
+    // One spare row of blocks past the heads, which must leave every result alone.
+    int rows = 16 * warps;
+    launch(fw, p, (lq + rows - 1) / rows, b * h + 1, warps);
+    launch(kv, p, (lk + rows - 1) / rows, b * h + 1, warps);
+    launch(qk, p, (lq + rows - 1) / rows, b * h + 1, warps);
+    auto err = [](const std::vector<double>& r, const std::vector<float>& x) {
+        double worst = 0, scale = 0;
+        for (size_t i = 0; i < r.size(); i++) {
+            worst = std::max(worst, std::fabs(r[i] - x[i]));
+            scale = std::max(scale, std::fabs(r[i]));
+        }
+        return worst / std::max(scale, 1e-30);
+    };
+    double e[5] = {err(out, o_k), err(lse, lse_k), err(dq, dq_k), err(dk, dk_k), err(dv, dv_k)};
+    printf("%d warps, b %d h %d lq %4d lk %4d d %d causal %d %s: out %.1e lse %.1e dq %.1e dk %.1e dv %.1e\n", warps, b, h, lq,
+           lk, d, causal, bf16_in ? "bf16" : "f32 ", e[0], e[1], e[2], e[3], e[4]);
+    double worst = 0;
+    for (double x : e) worst = std::max(worst, x);
+    return worst;
+}
+
+int main() {
+    struct Case {
+        int b, h, lq, lk, d;
+        bool causal, bf16;
+    } cases[] = {
+        {1, 2, 64, 64, 64, false, false}, {1, 1, 100, 100, 64, true, false}, {2, 1, 70, 130, 64, true, true},
+        {1, 2, 150, 90, 32, false, true}, {1, 1, 129, 129, 32, true, false}, {1, 1, 40, 200, 64, false, false},
+    };
+    double worst = 0;
+    unsigned seed = 1;
+    for (const Case& c : cases)
+        for (int warps : {4, 8})
+            worst = std::max(worst, run_case(c.b, c.h, c.lq, c.lk, c.d, c.causal, c.bf16, warps, seed++));
+    printf("worst relative error %.2e (tolerance 2e-2)\n", worst);
+    return worst < 2e-2 ? 0 : 1;
+}
