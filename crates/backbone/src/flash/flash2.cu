@@ -3,7 +3,8 @@
 // memory; products on the tensor cores (`mma.sync` m16n8k16, bf16 in, f32 accumulation); scores,
 // probabilities and their gradients stay in registers (the accumulator layout of one product is the operand
 // layout of the next). Each block of 4 or 8 warps owns 16 rows per warp (queries, or keys for the key/value
-// gradients) and walks the other side in tiles of 64. Head size `D`: 64 or 32.
+// gradients) and walks the other side in tiles of 64, the next tile read into registers while the
+// current one's products run (8 warps). Head size `D`: 64 or 32.
 //
 // The same source compiles on the host (`UMGEN_EMULATED`), where `flash2_emulator.cpp` runs every thread of
 // a block and defines the warp-level primitives below, so that fragment layouts are checked without a GPU.
@@ -13,7 +14,7 @@ typedef unsigned int u32;
 typedef unsigned short u16;
 #define DEV __device__ __forceinline__
 // At most 128 registers a thread, so that two blocks of 8 warps share an SM: the key/value-gradient kernel
-// spills 416 bytes a thread for it and still runs 10 % faster than with 254 registers and one block
+// spills about 500 bytes a thread for it and still runs 10 % faster than with 254 registers and one block
 // (H100, docs/perf-notes.md).
 #define KERNEL extern "C" __global__ void __launch_bounds__(256, 2)
 #define SHARED __shared__
@@ -117,6 +118,49 @@ DEV void load_tile(u16* tile, const T* src, long long stride, int row0, int rows
         int r = i / D, c = i % D;
         int row = row0 + r;
         tile[r * (D + 8) + c] = row < rows ? to_bf16(src[stride * row + c]) : (u16)0;
+    }
+}
+
+// The next tile of an operand on its way to shared memory: read from global memory into registers (as bf16
+// pairs) before the current tile's products, stored after them, so that the loads' latency overlaps the
+// products. Blocks of 8 warps only (8 pairs a thread); other block sizes load the tile when it is stored.
+template <typename T, int D>
+struct Staged {
+    const T* src;
+    long long stride;
+    int rows, next;
+    u32 r[ROWS * D / 2 / 256];
+};
+
+template <typename T, int D>
+DEV Staged<T, D> staged(const T* src, long long stride, int rows) {
+    Staged<T, D> s;
+    s.src = src, s.stride = stride, s.rows = rows, s.next = 0;
+    return s;
+}
+
+template <typename T, int D>
+DEV void stage_fetch(Staged<T, D>& s, int row0) {
+    s.next = row0;
+    if (threads() != 256) return;
+#pragma unroll
+    for (int k = 0; k < ROWS * D / 2 / 256; k++) {
+        int i = thread_id() + 256 * k, r = i / (D / 2), c = 2 * (i % (D / 2)), row = row0 + r;
+        const T* p = s.src + s.stride * row + c;
+        s.r[k] = row < s.rows ? (u32)to_bf16(p[0]) | ((u32)to_bf16(p[1]) << 16) : 0u;
+    }
+}
+
+template <typename T, int D>
+DEV void stage_store(const Staged<T, D>& s, u16* tile) {
+    if (threads() != 256) {
+        load_tile<T, D>(tile, s.src, s.stride, s.next, s.rows);
+        return;
+    }
+#pragma unroll
+    for (int k = 0; k < ROWS * D / 2 / 256; k++) {
+        int i = thread_id() + 256 * k, r = i / (D / 2), c = 2 * (i % (D / 2));
+        *(u32*)(tile + r * (D + 8) + c) = s.r[k];
     }
 }
 
@@ -224,12 +268,20 @@ DEV void forward(const Params& P) {
 #pragma unroll
         for (int e = 0; e < 4; e++) o[n][e] = 0.f;
     int blocks = key_blocks(P, q0);
+    Staged<T, D> kn = staged<T, D>(at<T>(P.k, head_base(P.ks, bh, P.heads)), P.ks[2], P.lk);
+    Staged<T, D> vn = staged<T, D>(at<T>(P.v, head_base(P.vs, bh, P.heads)), P.vs[2], P.lk);
+    stage_fetch(kn, 0);
+    stage_fetch(vn, 0);
     for (int kb = 0; kb < blocks; kb++) {
         int k0 = ROWS * kb;
         sync_block();
-        load_tile<T, D>(kt, at<T>(P.k, head_base(P.ks, bh, P.heads)), P.ks[2], k0, P.lk);
-        load_tile<T, D>(vt, at<T>(P.v, head_base(P.vs, bh, P.heads)), P.vs[2], k0, P.lk);
+        stage_store(kn, kt);
+        stage_store(vn, vt);
         sync_block();
+        if (kb + 1 < blocks) {
+            stage_fetch(kn, k0 + ROWS);
+            stage_fetch(vn, k0 + ROWS);
+        }
         float s[8][4];
         times_transposed<D>(s, qa, kt);
 #pragma unroll
@@ -336,14 +388,22 @@ DEV void backward_kv(const Params& P) {
     int first = 0;
     if (P.causal) first = max(0, k0 - P.off) / ROWS;
     int blocks = (P.lq + ROWS - 1) / ROWS;
+    Staged<T, D> qn = staged<T, D>(at<T>(P.q, head_base(P.qs, bh, P.heads)), P.qs[2], P.lq);
+    Staged<T, D> on = staged<T, D>(at<T>(P.dout, head_base(P.os, bh, P.heads)), P.os[2], P.lq);
+    stage_fetch(qn, ROWS * first);
+    stage_fetch(on, ROWS * first);
     for (int qb = first; qb < blocks; qb++) {
         int q0 = ROWS * qb;
         sync_block();
-        load_tile<T, D>(qt, at<T>(P.q, head_base(P.qs, bh, P.heads)), P.qs[2], q0, P.lq);
-        load_tile<T, D>(ot, at<T>(P.dout, head_base(P.os, bh, P.heads)), P.os[2], q0, P.lq);
+        stage_store(qn, qt);
+        stage_store(on, ot);
         load_row_values(lse2, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E);
         load_row_values(delta, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f);
         sync_block();
+        if (qb + 1 < blocks) {
+            stage_fetch(qn, q0 + ROWS);
+            stage_fetch(on, q0 + ROWS);
+        }
         float s[8][4], dp[8][4];
         times_transposed<D>(s, ka, qt);
         times_transposed<D>(dp, va, ot);
@@ -378,12 +438,20 @@ DEV void backward_q(const Params& P) {
 #pragma unroll
         for (int e = 0; e < 4; e++) dq[n][e] = 0.f;
     int blocks = key_blocks(P, q0);
+    Staged<T, D> kn = staged<T, D>(at<T>(P.k, head_base(P.ks, bh, P.heads)), P.ks[2], P.lk);
+    Staged<T, D> vn = staged<T, D>(at<T>(P.v, head_base(P.vs, bh, P.heads)), P.vs[2], P.lk);
+    stage_fetch(kn, 0);
+    stage_fetch(vn, 0);
     for (int kb = 0; kb < blocks; kb++) {
         int k0 = ROWS * kb;
         sync_block();
-        load_tile<T, D>(kt, at<T>(P.k, head_base(P.ks, bh, P.heads)), P.ks[2], k0, P.lk);
-        load_tile<T, D>(vt, at<T>(P.v, head_base(P.vs, bh, P.heads)), P.vs[2], k0, P.lk);
+        stage_store(kn, kt);
+        stage_store(vn, vt);
         sync_block();
+        if (kb + 1 < blocks) {
+            stage_fetch(kn, k0 + ROWS);
+            stage_fetch(vn, k0 + ROWS);
+        }
         float s[8][4], dp[8][4];
         times_transposed<D>(s, qa, kt);
         times_transposed<D>(dp, oa, vt);

@@ -3,8 +3,8 @@
 // with a double-precision reference. A development check of the fragment layouts, which no CPU test of the
 // Rust crate can make:
 //
-//   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas crates/backbone/src/flash/flash2_emulator.cpp \
-//       -o /tmp/flash2-emu && /tmp/flash2-emu
+//   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/flash2-emu
+//       crates/backbone/src/flash/flash2_emulator.cpp && /tmp/flash2-emu
 //
 // (`crates/backbone/tests/flash2_emulator.rs` runs it in the test suite.)
 //
