@@ -79,7 +79,8 @@ pub enum AttentionKernel {
     /// The tiled passes in burn tensor operations (blocks of [`crate::attention::BLOCK_BYTES`]).
     Tiled,
     /// FlashAttention-2 in CUDA C (`flash/flash2.cu`, NVRTC): products and softmax in registers; head
-    /// sizes 32 and 64 (others run [`AttentionKernel::Fused`]). The default: about 2× the fused kernels' speed.
+    /// sizes 32 and 64 (others run [`AttentionKernel::Fused`]). The default: about 2× the fused kernels'
+    /// speed.
     #[default]
     Flash2,
 }

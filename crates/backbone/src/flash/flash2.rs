@@ -1,5 +1,5 @@
-//! Launches the `flash2` kernels (`flash2.cu`, CUDA C compiled once per thread and device with NVRTC) on a
-//! [`Side`] stream ordered with cubecl's, on burn's buffers as they lie in memory.
+//! Launches the `flash2` kernels (`flash2_tiles.cu` and `flash2.cu`, CUDA C compiled once per thread and
+//! device with NVRTC) on a [`Side`] stream ordered with cubecl's, on burn's buffers as they lie in memory.
 //!
 //! They are FlashAttention-2 as its authors wrote it: `mma.sync` products with scores, probabilities and
 //! their gradients in registers, which cubecl's `cmma` abstraction cannot express (its fragments are
@@ -20,8 +20,8 @@ use std::sync::OnceLock;
 
 type Primitive = CubeTensor<CudaRuntime>;
 
-/// The kernels' source.
-const SOURCE: &str = include_str!("flash2.cu");
+/// The kernels' source: the building blocks, then the three passes.
+const SOURCE: &str = concat!(include_str!("flash2_tiles.cu"), include_str!("flash2.cu"));
 
 /// The grid's largest y (and z) extent.
 const GRID_YZ: usize = 65_535;
@@ -40,8 +40,9 @@ fn warps() -> usize {
     })
 }
 
-/// The kernels' source: `flash2.cu`, or the file `UMGEN_FLASH2_SOURCE` names (for trying a change to the
-/// kernels without rebuilding umgen; the file must keep `flash2.cu`'s kernels and `Params`).
+/// The kernels' source: [`SOURCE`], or the file `UMGEN_FLASH2_SOURCE` names (for trying a change to the
+/// kernels without rebuilding umgen: `cat flash2_tiles.cu flash2.cu > FILE`, then edit; it must keep the
+/// kernels' names and `Params`).
 fn source() -> Result<String, String> {
     match std::env::var_os("UMGEN_FLASH2_SOURCE") {
         Some(path) => std::fs::read_to_string(&path)
@@ -50,7 +51,7 @@ fn source() -> Result<String, String> {
     }
 }
 
-/// `Params` of `flash2.cu`, field for field.
+/// `Params` of `flash2_tiles.cu`, field for field.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default)]
 struct Params {

@@ -1,4 +1,4 @@
-// Runs flash2.cu's kernels on the host, one std::thread per CUDA thread of a block, with the warp-level
+// Runs the flash2 kernels (flash2_tiles.cu, flash2.cu) on the host, one std::thread per CUDA thread of a block, with the warp-level
 // primitives (mma.sync, ldmatrix, shuffles) emulated from their PTX definitions, and compares the results
 // with a double-precision reference. A development check of the fragment layouts, which no CPU test of the
 // Rust crate can make:
@@ -116,6 +116,7 @@ DEV float quad_sum(float x) {
     return x + shfl_xor(x, 2);
 }
 
+#include "flash2_tiles.cu"
 #include "flash2.cu"
 
 // Runs `kernel` on a grid of `gx × gy` blocks of `warps` warps, one block at a time; `gy` may exceed the

@@ -1,9 +1,10 @@
-//! The CUDA C attention kernels (`src/flash/flash2.cu`) run on the host: `flash2_emulator.cpp` compiles
-//! them with the system's C++ compiler, runs every thread of a block as a host thread with the warp-level
-//! primitives (`mma.sync`, `ldmatrix`, shuffles) emulated from their PTX definitions, and compares the
-//! output, log-sum-exp and the three gradients with a double-precision reference (causal and not, ragged
-//! lengths, head sizes 32 and 64, f32 and bf16 operands, 4 and 8 warps per block, a spare grid row). The
-//! fragment layouts are what a GPU run cannot debug cheaply; this checks them on every CI run.
+//! The CUDA C attention kernels (`src/flash/flash2_tiles.cu`, `flash2.cu`) run on the host:
+//! `flash2_emulator.cpp` compiles them with the system's C++ compiler, runs every thread of a block as a host
+//! thread with the warp-level primitives (`mma.sync`, `ldmatrix`, shuffles) emulated from their PTX
+//! definitions, and compares the output, log-sum-exp and the three gradients with a double-precision
+//! reference (causal and not, ragged lengths, head sizes 32 and 64, f32 and bf16 operands, 4 and 8 warps per
+//! block, a spare grid row). The fragment layouts are what a GPU run cannot debug cheaply; this checks them
+//! on every CI run.
 
 use std::path::Path;
 use std::process::Command;
