@@ -13,10 +13,12 @@
 
 mod config;
 mod error;
+mod run;
 mod sampler;
 mod trainer;
 
 pub use config::TrainConfig;
 pub use error::{Result, TrainError};
+pub use run::RunSpec;
 pub use sampler::Sampler;
-pub use trainer::{KIND, RunSpec, StepReport, Summary, train};
+pub use trainer::{KIND, StepReport, Summary, train};

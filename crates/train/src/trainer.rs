@@ -1,7 +1,7 @@
 //! The training loop.
 
-use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
+use crate::run::{RunSpec, describe_difference};
 use crate::sampler::Sampler;
 use burn::optim::{AdamWConfig, GradientsAccumulator, GradientsParams, Optimizer};
 use burn::tensor::backend::AutodiffBackend;
@@ -9,7 +9,7 @@ use burn::tensor::{Int, Tensor, TensorData};
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::time::Instant;
-use umgen_backbone::{Backbone, BackboneConfig, BackboneSpec};
+use umgen_backbone::Backbone;
 use umgen_checkpoint::CheckpointDir;
 use umgen_checkpoint::burn_io::{
     optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
@@ -21,49 +21,6 @@ use umgen_optim::{Schedule, adam_epsilon, clip_grad_norm};
 
 /// Checkpoint kind of backbone runs.
 pub const KIND: &str = "backbone";
-
-/// What a run trains.
-#[derive(Debug, Clone)]
-pub struct RunSpec {
-    /// Model sizes.
-    pub backbone: BackboneConfig,
-    /// The frame the model is built for.
-    pub spec: BackboneSpec,
-    /// Training settings.
-    pub train: TrainConfig,
-    /// Frame layout fingerprint; checkpoints and token caches must match it.
-    pub fingerprint: String,
-    /// The resolved configuration, saved with every checkpoint.
-    pub config: serde_json::Value,
-}
-
-impl RunSpec {
-    /// What a resumed run must share with the checkpoint.
-    fn identity(&self) -> serde_json::Value {
-        let mut backbone = serde_json::to_value(&self.backbone).unwrap_or(serde_json::Value::Null);
-        // How fresh weights start does not matter to a resumed run (its weights come from the checkpoint)
-        // nor to other ranks (they receive rank 0's weights); runs from before the setting stay resumable.
-        if let Some(o) = backbone.as_object_mut() {
-            o.remove("ordinal_init");
-            // Off, `ego_last`, `track_accel` and `track` leave no trace in the model: runs from before them resume.
-            for flag in ["ego_last", "track_accel"] {
-                if o.get(flag) == Some(&serde_json::Value::Bool(false)) {
-                    o.remove(flag);
-                }
-            }
-            if o.get("track").is_none_or(|t| t.is_null() || t == "") {
-                o.remove("track");
-                o.remove("step_s");
-            }
-        }
-        serde_json::json!({"fingerprint": self.fingerprint, "backbone": backbone, "train": self.train.identity()})
-    }
-
-    /// A digest of everything that must be equal on every rank of a data-parallel run.
-    pub fn identity_digest(&self) -> String {
-        umgen_checkpoint::sha256(self.identity().to_string().as_bytes())
-    }
-}
 
 /// One step, reported to the caller.
 #[derive(Debug, Clone)]
@@ -380,31 +337,4 @@ fn averaged_parts<B: AutodiffBackend>(
         .collect();
     out.extend([("lr".into(), lr), ("grad_norm".into(), grad_norm)]);
     Ok(out)
-}
-
-/// Which top-level keys of two identities differ, in words.
-fn describe_difference(saved: &serde_json::Value, now: &serde_json::Value) -> String {
-    let keys = ["fingerprint", "backbone", "train"];
-    let differing: Vec<String> = keys
-        .iter()
-        .filter(|k| saved.get(*k) != now.get(*k))
-        .map(|k| {
-            match (
-                saved.get(*k).and_then(|v| v.as_object()),
-                now.get(*k).and_then(|v| v.as_object()),
-            ) {
-                (Some(a), Some(b)) => {
-                    let inner: std::collections::BTreeSet<&str> = a
-                        .keys()
-                        .chain(b.keys())
-                        .filter(|x| a.get(*x) != b.get(*x))
-                        .map(String::as_str)
-                        .collect();
-                    format!("{k} ({})", inner.into_iter().collect::<Vec<_>>().join(", "))
-                }
-                _ => (*k).to_string(),
-            }
-        })
-        .collect();
-    format!("it was trained with another {}", differing.join(" and "))
 }

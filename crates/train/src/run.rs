@@ -1,0 +1,74 @@
+//! What a run trains ([`RunSpec`]) and what a resumed run, or another rank, must share with it.
+
+use crate::config::TrainConfig;
+use umgen_backbone::{BackboneConfig, BackboneSpec};
+
+/// What a run trains.
+#[derive(Debug, Clone)]
+pub struct RunSpec {
+    /// Model sizes.
+    pub backbone: BackboneConfig,
+    /// The frame the model is built for.
+    pub spec: BackboneSpec,
+    /// Training settings.
+    pub train: TrainConfig,
+    /// Frame layout fingerprint; checkpoints and token caches must match it.
+    pub fingerprint: String,
+    /// The resolved configuration, saved with every checkpoint.
+    pub config: serde_json::Value,
+}
+
+impl RunSpec {
+    /// What a resumed run must share with the checkpoint.
+    pub(crate) fn identity(&self) -> serde_json::Value {
+        let mut backbone = serde_json::to_value(&self.backbone).unwrap_or(serde_json::Value::Null);
+        // How fresh weights start does not matter to a resumed run (its weights come from the checkpoint)
+        // nor to other ranks (they receive rank 0's weights); runs from before the setting stay resumable.
+        if let Some(o) = backbone.as_object_mut() {
+            o.remove("ordinal_init");
+            // Off, `ego_last`, `track_accel` and `track` leave no trace in the model: runs from before them resume.
+            for flag in ["ego_last", "track_accel"] {
+                if o.get(flag) == Some(&serde_json::Value::Bool(false)) {
+                    o.remove(flag);
+                }
+            }
+            if o.get("track").is_none_or(|t| t.is_null() || t == "") {
+                o.remove("track");
+                o.remove("step_s");
+            }
+        }
+        serde_json::json!({"fingerprint": self.fingerprint, "backbone": backbone, "train": self.train.identity()})
+    }
+
+    /// A digest of everything that must be equal on every rank of a data-parallel run.
+    pub fn identity_digest(&self) -> String {
+        umgen_checkpoint::sha256(self.identity().to_string().as_bytes())
+    }
+}
+
+/// Which top-level keys of two identities differ, in words.
+pub(crate) fn describe_difference(saved: &serde_json::Value, now: &serde_json::Value) -> String {
+    let keys = ["fingerprint", "backbone", "train"];
+    let differing: Vec<String> = keys
+        .iter()
+        .filter(|k| saved.get(*k) != now.get(*k))
+        .map(|k| {
+            match (
+                saved.get(*k).and_then(|v| v.as_object()),
+                now.get(*k).and_then(|v| v.as_object()),
+            ) {
+                (Some(a), Some(b)) => {
+                    let inner: std::collections::BTreeSet<&str> = a
+                        .keys()
+                        .chain(b.keys())
+                        .filter(|x| a.get(*x) != b.get(*x))
+                        .map(String::as_str)
+                        .collect();
+                    format!("{k} ({})", inner.into_iter().collect::<Vec<_>>().join(", "))
+                }
+                _ => (*k).to_string(),
+            }
+        })
+        .collect();
+    format!("it was trained with another {}", differing.join(" and "))
+}
