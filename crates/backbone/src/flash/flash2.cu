@@ -11,6 +11,13 @@
 // `flash2_emulator.cpp` runs every thread of a block and defines the warp-level primitives, so that
 // fragment layouts are checked without a GPU.
 
+// Columns (queries, or keys for the query gradients) of a tile that the backward kernels take at a time:
+// 64 (the whole tile) or 32, which halves their score and score-gradient registers. Define it before
+// this file to change it (`UMGEN_FLASH2_SOURCE`).
+#ifndef SUB
+#define SUB 64
+#endif
+
 // Whether key `key` is hidden from query `query`.
 DEV bool hidden(const Params& P, int query, int key) {
     return key >= P.lk || query >= P.lq || (P.causal && key > query + P.off);
@@ -110,12 +117,12 @@ DEV void load_row_values(float* dst, const float* src, const long long* s, int b
 
 // p = exp2(s · sl − lse2) where the key is visible, else 0; then ds = p ∘ (dp − delta). Rows and columns of
 // the tiles are keys and queries (`keys_are_rows`) or queries and keys.
-template <bool keys_are_rows>
+template <bool keys_are_rows, int NT>
 DEV void probabilities(const Params& P, float (*s)[4], float (*dp)[4], const float* row_lse, const float* row_delta,
                        const float* col_lse, const float* col_delta, int r0, int c0, float sl) {
     int l = lane_id(), g = l >> 2, t = l & 3;
 #pragma unroll
-    for (int j = 0; j < 8; j++)
+    for (int j = 0; j < NT; j++)
 #pragma unroll
         for (int e = 0; e < 4; e++) {
             int r = 16 * warp_id() + g + 8 * (e >> 1), c = 8 * j + 2 * t + (e & 1);
@@ -154,12 +161,16 @@ DEV void backward_kv(const Params& P) {
         load_row_values(lse2, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E);
         load_row_values(delta, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f);
         fetch_next(qn, on, q0, qb + 1 < blocks);
-        float s[8][4], dp[8][4];
-        times_transposed<D>(s, ka, qt);
-        times_transposed<D>(dp, va, ot);
-        probabilities<true>(P, s, dp, 0, 0, lse2, delta, k0, q0, sl);
-        times<D>(dv, s, ot);
-        times<D>(dk, dp, qt);
+#pragma unroll
+        for (int c = 0; c < ROWS; c += SUB) {
+            float s[SUB / 8][4], dp[SUB / 8][4];
+            const u16 *qc = qt + c * (D + 8), *oc = ot + c * (D + 8);
+            times_transposed<D, SUB / 8>(s, ka, qc);
+            times_transposed<D, SUB / 8>(dp, va, oc);
+            probabilities<true, SUB / 8>(P, s, dp, 0, 0, lse2 + c, delta + c, k0, q0 + c, sl);
+            times<D, SUB / 8>(dv, s, oc);
+            times<D, SUB / 8>(dk, dp, qc);
+        }
     }
     long long base = (long long)bh * P.lk * D;
     store_rows<D>(P.dk + base, dk, k0, P.lk, P.scale);
@@ -189,11 +200,15 @@ DEV void backward_q(const Params& P) {
         int k0 = ROWS * kb;
         store_staged(kn, vn, kt, vt);
         fetch_next(kn, vn, k0, kb + 1 < blocks);
-        float s[8][4], dp[8][4];
-        times_transposed<D>(s, qa, kt);
-        times_transposed<D>(dp, oa, vt);
-        probabilities<false>(P, s, dp, lse2, delta, 0, 0, q0, k0, sl);
-        times<D>(dq, dp, kt);
+#pragma unroll
+        for (int c = 0; c < ROWS; c += SUB) {
+            float s[SUB / 8][4], dp[SUB / 8][4];
+            const u16 *kc = kt + c * (D + 8), *vc = vt + c * (D + 8);
+            times_transposed<D, SUB / 8>(s, qa, kc);
+            times_transposed<D, SUB / 8>(dp, oa, vc);
+            probabilities<false, SUB / 8>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
+            times<D, SUB / 8>(dq, dp, kc);
+        }
     }
     store_rows<D>(P.dq + (long long)bh * P.lq * D, dq, q0, P.lq, P.scale);
 }

@@ -220,18 +220,15 @@ DEV void block_fragments(u32 (*a)[4], u32 (*b)[4], u16* ta, u16* tb, const T* sr
     load_a<D>(b, tb);
 }
 
-// acc[j] (16 × 8 tiles, j < 8) = a · tileᵀ over the head dimension: `tile` holds 64 rows of D.
-template <int D>
+// acc[j] (16 × 8 tiles, j < NT) = a · tileᵀ over the head dimension: `tile` holds 8 · NT rows of D.
+template <int D, int NT = 8>
 DEV void times_transposed(float (*acc)[4], const u32 (*a)[4], const u16* tile) {
     int l = lane_id(), m = l >> 3;
-#pragma unroll
-    for (int j = 0; j < 8; j++)
-#pragma unroll
-        for (int e = 0; e < 4; e++) acc[j][e] = 0.f;
+    zero<NT>(acc);
 #pragma unroll
     for (int kk = 0; kk < D / 16; kk++)
 #pragma unroll
-        for (int j = 0; j < 8; j += 2) {
+        for (int j = 0; j < NT; j += 2) {
             u32 b[4];
             ldsm4(b, tile + (8 * (j + (m >> 1)) + (l & 7)) * (D + 8) + 16 * kk + (m & 1) * 8);
             mma(acc[j], a[kk], b);
@@ -239,12 +236,12 @@ DEV void times_transposed(float (*acc)[4], const u32 (*a)[4], const u16* tile) {
         }
 }
 
-// acc (16 × D) += p · tile, p given as accumulator tiles (16 × 64), `tile` 64 rows of D.
-template <int D>
+// acc (16 × D) += p · tile, p given as NT accumulator tiles (16 × 8 · NT), `tile` 8 · NT rows of D.
+template <int D, int NT = 8>
 DEV void times(float (*acc)[4], const float (*p)[4], const u16* tile) {
     int l = lane_id(), m = l >> 3;
 #pragma unroll
-    for (int kk = 0; kk < 4; kk++) {
+    for (int kk = 0; kk < NT / 2; kk++) {
         u32 a[4] = {pack(p[2 * kk][0], p[2 * kk][1]), pack(p[2 * kk][2], p[2 * kk][3]),
                     pack(p[2 * kk + 1][0], p[2 * kk + 1][1]), pack(p[2 * kk + 1][2], p[2 * kk + 1][3])};
 #pragma unroll

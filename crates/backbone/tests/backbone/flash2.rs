@@ -3,8 +3,8 @@
 //! thread with the warp-level primitives (`mma.sync`, `ldmatrix`, shuffles) emulated from their PTX
 //! definitions, and compares the output, log-sum-exp and the three gradients with a double-precision
 //! reference (causal and not, ragged lengths, head sizes 32 and 64, f32 and bf16 operands, 4 and 8 warps per
-//! block, a spare grid row). The fragment layouts are what a GPU run cannot debug cheaply; this checks them
-//! on every CI run.
+//! block, a spare grid row; the backward kernels' column step 64 and 32). The fragment layouts are what a GPU
+//! run cannot debug cheaply; this checks them on every CI run.
 
 use std::path::Path;
 use std::process::Command;
@@ -31,24 +31,35 @@ fn flash2_kernels_match_a_double_precision_reference_in_the_host_emulator() {
         eprintln!("no C++ compiler ($CXX, c++, g++, clang++): the flash2 emulator check did not run");
         return;
     };
-    let binary = std::env::temp_dir().join(format!("umgen-flash2-emulator-{}", std::process::id()));
-    let built = Command::new(&cxx)
-        .args(["-std=c++20", "-O2", "-pthread", "-Wno-unknown-pragmas"])
-        .arg(&source)
-        .arg("-o")
-        .arg(&binary)
-        .output()
-        .expect("running the C++ compiler");
-    assert!(
-        built.status.success(),
-        "{cxx} failed on {}:\n{}",
-        source.display(),
-        String::from_utf8_lossy(&built.stderr)
-    );
-    let run = Command::new(&binary).output().expect("running the emulator");
-    let _ = std::fs::remove_file(&binary);
-    let report = String::from_utf8_lossy(&run.stdout);
-    assert!(run.status.success(), "the emulated kernels disagree:\n{report}");
-    // Twelve cases (six shapes × 4 and 8 warps), each with its five errors.
-    assert_eq!(report.matches("warps, b").count(), 12, "{report}");
+    // The backward kernels' column step as shipped (64) and halved (the variant `SUB` selects).
+    for defines in [&[][..], &["-DSUB=32"][..]] {
+        let binary = std::env::temp_dir().join(format!(
+            "umgen-flash2-emulator-{}-{}",
+            std::process::id(),
+            defines.len()
+        ));
+        let built = Command::new(&cxx)
+            .args(["-std=c++20", "-O2", "-pthread", "-Wno-unknown-pragmas"])
+            .args(defines)
+            .arg(&source)
+            .arg("-o")
+            .arg(&binary)
+            .output()
+            .expect("running the C++ compiler");
+        assert!(
+            built.status.success(),
+            "{cxx} {defines:?} failed on {}:\n{}",
+            source.display(),
+            String::from_utf8_lossy(&built.stderr)
+        );
+        let run = Command::new(&binary).output().expect("running the emulator");
+        let _ = std::fs::remove_file(&binary);
+        let report = String::from_utf8_lossy(&run.stdout);
+        assert!(
+            run.status.success(),
+            "the emulated kernels ({defines:?}) disagree:\n{report}"
+        );
+        // Twelve cases (six shapes × 4 and 8 warps), each with its five errors.
+        assert_eq!(report.matches("warps, b").count(), 12, "{report}");
+    }
 }
