@@ -212,11 +212,13 @@ pub(super) fn launch(pass: Pass, bufs: &Buffers, causal: bool) -> Result<(), Str
     if bh == 0 || lq == 0 || lk == 0 {
         return Err("an empty dimension".into());
     }
-    if bh > GRID_YZ * GRID_YZ || lq.max(lk) > i32::MAX as usize {
+    // The kernels index heads and rows with 32-bit integers; the grid holds 65,535² heads.
+    if bh > GRID_YZ * GRID_YZ || bh > i32::MAX as usize || lq.max(lk) > i32::MAX as usize {
         return Err(format!(
             "{b} × {h} heads of {lq} × {lk}: over the launch grid's limits"
         ));
     }
+    // Every value was checked against i32::MAX above.
     let int = |x: usize| x as i32;
     let mut p = Params {
         heads: int(h),
