@@ -113,8 +113,8 @@ pub struct BenchAttentionArgs {
     #[arg(long, value_delimiter = ',')]
     pub step: Vec<usize>,
     /// Training attention kernels to measure (`train.attention`), comma-separated: one row each (the tiled
-    /// one once per `--block-mib` size). Default: `fused,tiled` on CUDA, `tiled` on the CPU, which has no
-    /// fused kernels.
+    /// one once per `--block-mib` size, the fused one once per `--step`). Default: `flash2,fused,tiled` on
+    /// CUDA, `tiled` on the CPU, which has neither of the others.
     #[arg(long, value_enum, value_delimiter = ',')]
     pub kernels: Vec<AttentionArg>,
 }
