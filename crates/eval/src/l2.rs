@@ -52,6 +52,34 @@ pub fn constant_velocity_agents(ego: &EgoPose, agents: &[Agent], dt: f64, h: usi
         .collect()
 }
 
+/// Global positions of agents by track id after `h` steps of `dt` at constant acceleration: each agent's
+/// global velocity change since the frame before (`before_ego`, `before`, matched by track id) per `dt`,
+/// kept; an agent not in the frame before keeps its velocity. The kinematic prediction `backbone.track`
+/// hints the model with when `track_accel` is on (there in each frame's coordinates, one frame ahead).
+pub fn constant_acceleration_agents(
+    before_ego: &EgoPose,
+    before: &[Agent],
+    ego: &EgoPose,
+    agents: &[Agent],
+    dt: f64,
+    h: usize,
+) -> Vec<(u64, [f64; 2])> {
+    let t = dt * h as f64;
+    agents
+        .iter()
+        .map(|a| {
+            let p = global_position(ego, a);
+            let v = global_velocity(ego, a);
+            let v0 = before
+                .iter()
+                .find(|b| b.track_id == a.track_id)
+                .map_or(v, |b| global_velocity(before_ego, b));
+            let at = |i: usize| p[i] + v[i] * t + 0.5 * (v[i] - v0[i]) / dt * t * t;
+            (a.track_id, [at(0), at(1)])
+        })
+        .collect()
+}
+
 /// Global predictions moved onto a token model's grid: each position is taken into the frame of `ego` (the
 /// pose whose frame the tokens are in), rounded by `round` (to the centre of its bin per coordinate) and
 /// taken back. A token model can only name bin centres, so this is the baseline it would score if it
@@ -181,6 +209,35 @@ mod tests {
             &[(9, [1.0, 1.0]), (7, [0.0, 0.0])],
         );
         assert_eq!(each, vec![5.0, 1.0]);
+    }
+
+    #[test]
+    fn constant_acceleration_keeps_the_velocity_change_of_the_last_frame() {
+        // Ego at the origin facing +y, then at (0, 2) still facing +y. Agent 3: local velocity (2, 0)
+        // before, (3, 0) now (globally (0, 2) → (0, 3)), at local (10, 0), i.e. global (0, 12): with
+        // dt 0.5 its acceleration is 2 m/s², so after 2 steps (1 s) it is at 12 + 3 · 1 + ½ · 2 · 1² = 16.
+        // Agent 5 is new in the frame: constant velocity, (1, 0) local = (0, 1) global, from (0, 2 + 4).
+        let facing_y = |y: f64| EgoPose {
+            x: 0.0,
+            y,
+            heading: std::f64::consts::FRAC_PI_2,
+            speed: 0.0,
+        };
+        let (before_ego, ego) = (facing_y(0.0), facing_y(2.0));
+        let before = [agent(3, 11.0, 0.0, 2.0, 0.0)];
+        let now = [agent(3, 10.0, 0.0, 3.0, 0.0), agent(5, 4.0, 0.0, 1.0, 0.0)];
+        let got = constant_acceleration_agents(&before_ego, &before, &ego, &now, 0.5, 2);
+        let want = [(3, [0.0, 16.0]), (5, [0.0, 7.0])];
+        for ((id, p), (wid, w)) in got.iter().zip(want) {
+            assert_eq!(*id, wid);
+            assert!(
+                (p[0] - w[0]).abs() < 1e-9 && (p[1] - w[1]).abs() < 1e-9,
+                "{id}: {p:?} vs {w:?}"
+            );
+        }
+        // Without a velocity change it is constant velocity.
+        let steady = constant_acceleration_agents(&ego, &now, &ego, &now, 0.5, 3);
+        assert_eq!(steady, constant_velocity_agents(&ego, &now, 0.5, 3));
     }
 
     #[test]

@@ -9,8 +9,8 @@ use umgen::modality_agent::{ATTRIBUTES, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{
-    agent_errors, constant_velocity_agents, constant_velocity_ego, ego_l2, median, on_grid, positions,
-    quantile,
+    agent_errors, constant_acceleration_agents, constant_velocity_agents, constant_velocity_ego, ego_l2,
+    median, on_grid, positions, quantile,
 };
 use umgen_eval::mmd::{Group, mmd};
 
@@ -88,6 +88,9 @@ struct Truth {
     last: Frame,
     /// Its agents as the bundle's tokens decode them (slot ids as track ids).
     last_agents: Vec<Agent>,
+    /// The context frame before it (ego pose and decoded agents), for the constant-acceleration baseline;
+    /// `None` for a one-frame context.
+    before: Option<(umgen::scene::EgoPose, Vec<Agent>)>,
     /// Real ego poses of the following frames.
     poses: Vec<umgen::scene::EgoPose>,
     /// Real agents of the following frames, decoded like `last_agents`: the context's tracks in the
@@ -128,11 +131,14 @@ fn ground_truth(
         None => (vec![Vec::new(); n + k], vec![Vec::new(); k]),
     };
     let future = tracked.split_off(n);
+    let last_agents = tracked.pop().unwrap_or_default();
+    let before = (n >= 2).then(|| (gt.frames[n - 2].ego, tracked.pop().unwrap_or_default()));
     let last = gt.frames[n - 1].clone();
     let poses: Vec<_> = gt.frames[n..n + k].iter().map(|f| f.ego).collect();
     let cv_ego = ego_l2(&constant_velocity_ego(&last.ego, &last.action, dt, k), &poses);
     Ok(Truth {
-        last_agents: tracked.pop().unwrap_or_default(),
+        last_agents,
+        before,
         last,
         poses,
         tracked: future,
@@ -206,13 +212,11 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         let k = truths.iter().map(|t| t.poses.len()).min().unwrap_or(0);
         for h in 1..=k {
             let (mut model_ego, mut cv_ego) = (vec![], vec![]);
-            // The model, constant velocity, and constant velocity rounded to the agent bins of the real
-            // next ego frame.
-            let (mut model, mut cv_errors, mut binned) = (
-                AgentErrors::default(),
-                AgentErrors::default(),
-                AgentErrors::default(),
-            );
+            // The model, then constant velocity and constant acceleration, each also rounded to the agent
+            // bins of the real next ego frame.
+            let mut model = AgentErrors::default();
+            let [mut cv_errors, mut binned, mut ca_errors, mut ca_binned] =
+                std::array::from_fn::<AgentErrors, 4, _>(|_| AgentErrors::default());
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
             for (c, t) in truths.iter().enumerate() {
                 let true_pos = positions(&t.poses[h - 1], &t.tracked[h - 1]);
@@ -224,14 +228,25 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                 }
                 cv_ego.push(t.cv_ego[h - 1]);
                 let cv = constant_velocity_agents(&t.last.ego, &t.last_agents, dt, h);
-                cv_errors.add(agent_errors(&cv, &true_pos));
-                if let Some(g) = &grid {
-                    let on = on_grid(&t.poses[h - 1], &cv, |p| {
-                        let (q, clamped) = g.round_xy(p);
-                        off_grid += usize::from(clamped);
-                        q
-                    });
-                    binned.add(agent_errors(&on, &true_pos));
+                let ca = match &t.before {
+                    Some((ego, agents)) => {
+                        constant_acceleration_agents(ego, agents, &t.last.ego, &t.last_agents, dt, h)
+                    }
+                    None => cv.clone(),
+                };
+                for (predicted, errors, on_bins) in [
+                    (&cv, &mut cv_errors, &mut binned),
+                    (&ca, &mut ca_errors, &mut ca_binned),
+                ] {
+                    errors.add(agent_errors(predicted, &true_pos));
+                    if let Some(g) = &grid {
+                        let on = on_grid(&t.poses[h - 1], predicted, |p| {
+                            let (q, clamped) = g.round_xy(p);
+                            off_grid += usize::from(clamped);
+                            q
+                        });
+                        on_bins.add(agent_errors(&on, &true_pos));
+                    }
                 }
                 real.extend(t.agents[h - 1].iter());
             }
@@ -242,14 +257,16 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
             model.report("model", &mut row);
             cv_errors.report("constant_velocity", &mut row);
             binned.report("constant_velocity_binned", &mut row);
+            ca_errors.report("constant_acceleration", &mut row);
+            ca_binned.report("constant_acceleration_binned", &mut row);
             l2_rows.push(row);
             mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }
         report["contexts"] = contexts.len().into();
         if off_grid > 0 {
             tracing::warn!(
-                "{off_grid} constant-velocity predictions fell outside the agent bins' range; the binned \
-                 baseline puts them in the edge bin"
+                "{off_grid} constant-velocity or constant-acceleration predictions fell outside the agent \
+                 bins' range; the binned baselines put them in the edge bin"
             );
         }
     }

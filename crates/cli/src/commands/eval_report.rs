@@ -9,9 +9,9 @@ fn num(v: &serde_json::Value) -> String {
     v.as_f64().map_or("-".to_string(), |x| format!("{x:.4}"))
 }
 
-/// `report.md`: the measures table, the L2 over the horizon, and the agents against the constant-velocity
+/// `report.md`: the measures table, the L2 over the horizon, the agents against the constant-velocity
 /// baseline rounded to the agent bins (what a token model that moved every agent at its last velocity
-/// would score).
+/// would score), and against constant acceleration, as is and rounded.
 pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize) -> anyhow::Result<String> {
     let mut md = String::new();
     writeln!(md, "# Evaluation of {}\n", generated.display())?;
@@ -78,6 +78,29 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
             "agents_constant_velocity_binned_median",
             "agents_model_p90",
             "agents_constant_velocity_binned_p90",
+        ];
+        writeln!(md, "{}", cells(r, &keys))?;
+    }
+    writeln!(
+        md,
+        "\nAgents against constant acceleration (each agent's velocity change over the last context frame \
+         kept; the prediction `backbone.track_accel` hints the model with), as is and rounded to the agent \
+         bins:\n\n\
+         | horizon (s) | model mean | const. acc. mean | binned const. acc. mean | model median \
+         | const. acc. median | binned const. acc. median | model p90 | const. acc. p90 \
+         | binned const. acc. p90 |\n|---|---|---|---|---|---|---|---|---|---|"
+    )?;
+    for r in rows {
+        let keys = [
+            "agents_model",
+            "agents_constant_acceleration",
+            "agents_constant_acceleration_binned",
+            "agents_model_median",
+            "agents_constant_acceleration_median",
+            "agents_constant_acceleration_binned_median",
+            "agents_model_p90",
+            "agents_constant_acceleration_p90",
+            "agents_constant_acceleration_binned_p90",
         ];
         writeln!(md, "{}", cells(r, &keys))?;
     }
