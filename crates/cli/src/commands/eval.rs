@@ -1,48 +1,17 @@
 //! `umgen eval`: the paper's measures on the output of `umgen generate` (docs/results.md explains them).
 
-use super::agents::{AgentSlots, agent_modality};
+use super::agents::AgentSlots;
+use super::eval_truth::ground_truth;
 use crate::cli::EvalArgs;
 use anyhow::Context;
 use umgen::data::Dataset;
-use umgen::modality::{Modality, ModalityRegistry};
-use umgen::modality_agent::{ATTRIBUTES, SlotPlan};
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::l2::{
-    agent_errors, constant_acceleration_agents, constant_velocity_agents, constant_velocity_ego, ego_l2,
-    median, on_grid, positions, quantile,
+    agent_errors, constant_acceleration_agents, constant_velocity_agents, ego_l2, median, on_grid, positions,
+    quantile,
 };
 use umgen_eval::mmd::{Group, mmd};
-
-/// Agents of every frame of `clip` as the model's agent tokens decode them (slot ids as track ids, binned
-/// values). Only the agent modality runs: the map and image tokenizers are not needed here, and on a CPU
-/// their encoders take seconds per frame.
-fn decoded_agents(agent: &dyn Modality, clip: &SceneClip) -> anyhow::Result<Vec<Vec<Agent>>> {
-    agent
-        .tokenize_clip(clip)?
-        .iter()
-        .map(|ids| {
-            let mut f = Frame::default();
-            agent.detokenize(ids, &mut f)?;
-            Ok(f.agents)
-        })
-        .collect()
-}
-
-/// `clip` with only the tracks that the slot plan of its first `n` frames keeps, in every frame. Generation
-/// tokenized those `n` context frames alone, so their slots are the generated scene's; tokenizing the
-/// whole clip instead would give tracks first seen after the context slots of their own (which the model's
-/// new agents would then be compared with) and, in crowded clips, keep other tracks.
-fn context_tracks_only(clip: &SceneClip, n: usize, slots: usize) -> anyhow::Result<SceneClip> {
-    let mut context = clip.clone();
-    context.frames.truncate(n);
-    let plan = SlotPlan::new(&context, slots)?;
-    let mut out = clip.clone();
-    for f in &mut out.frames {
-        f.agents.retain(|a| plan.slot(a.track_id).is_some());
-    }
-    Ok(out)
-}
 
 /// MMD per attribute group between two agent sets.
 fn mmd_groups(generated: &[&Agent], real: &[&Agent]) -> serde_json::Value {
@@ -80,71 +49,6 @@ impl AgentErrors {
         row[format!("agents_{name}_median")] = serde_json::json!(median(&self.each));
         row[format!("agents_{name}_p90")] = serde_json::json!(quantile(&self.each, 0.9));
     }
-}
-
-/// What a context clip really did after its context frames.
-struct Truth {
-    /// The last context frame.
-    last: Frame,
-    /// Its agents as the bundle's tokens decode them (slot ids as track ids).
-    last_agents: Vec<Agent>,
-    /// The context frame before it (ego pose and decoded agents), for the constant-acceleration baseline;
-    /// `None` for a one-frame context.
-    before: Option<(umgen::scene::EgoPose, Vec<Agent>)>,
-    /// Real ego poses of the following frames.
-    poses: Vec<umgen::scene::EgoPose>,
-    /// Real agents of the following frames, decoded like `last_agents`: the context's tracks in the
-    /// context's slots, for position errors.
-    tracked: Vec<Vec<Agent>>,
-    /// Every real agent of the following frames (decoded), for MMD.
-    agents: Vec<Vec<Agent>>,
-    /// Constant-velocity ego error at each following frame.
-    cv_ego: Vec<f64>,
-}
-
-/// The ground truth of `context` (`{"clip", "frames"}` of meta.json) for up to `k` frames after it.
-fn ground_truth(
-    ds: &Dataset,
-    registry: &ModalityRegistry,
-    context: &serde_json::Value,
-    k: usize,
-    dt: f64,
-) -> anyhow::Result<Truth> {
-    let clip_id = context["clip"].as_str().context("meta.json: contexts[].clip")?;
-    let n = context["frames"].as_u64().unwrap_or(1) as usize;
-    let idx = ds.find_clip(clip_id)?;
-    let k = k.min(ds.clips()[idx].frames.saturating_sub(n));
-    anyhow::ensure!(
-        n >= 1 && k >= 1,
-        "clip `{clip_id}` has no ground truth after its {n} context frames"
-    );
-    let gt = ds.read_window(idx, 0, n + k, 1)?;
-    let (mut tracked, agents) = match agent_modality(registry)? {
-        Some((m, seg)) => {
-            let slots = seg.tokens / ATTRIBUTES;
-            let mut all = decoded_agents(m, &gt)?;
-            (
-                decoded_agents(m, &context_tracks_only(&gt, n, slots)?)?,
-                all.split_off(n),
-            )
-        }
-        None => (vec![Vec::new(); n + k], vec![Vec::new(); k]),
-    };
-    let future = tracked.split_off(n);
-    let last_agents = tracked.pop().unwrap_or_default();
-    let before = (n >= 2).then(|| (gt.frames[n - 2].ego, tracked.pop().unwrap_or_default()));
-    let last = gt.frames[n - 1].clone();
-    let poses: Vec<_> = gt.frames[n..n + k].iter().map(|f| f.ego).collect();
-    let cv_ego = ego_l2(&constant_velocity_ego(&last.ego, &last.action, dt, k), &poses);
-    Ok(Truth {
-        last_agents,
-        before,
-        last,
-        poses,
-        tracked: future,
-        agents,
-        cv_ego,
-    })
 }
 
 /// The errors of a generated frame's agents against the true global positions. With the recorded ego
@@ -320,44 +224,7 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use umgen::scene::AgentCategory;
-
-    fn at(track_id: u64, x: f64) -> Agent {
-        Agent {
-            track_id,
-            category: AgentCategory::Vehicle,
-            x,
-            y: 0.0,
-            z: 0.0,
-            vx: 0.0,
-            vy: 0.0,
-            vz: 0.0,
-            heading: 0.0,
-            length: 4.0,
-            width: 2.0,
-            height: 1.5,
-        }
-    }
-
-    fn clip(frames: Vec<Vec<Agent>>) -> SceneClip {
-        let frames = frames
-            .into_iter()
-            .enumerate()
-            .map(|(t, agents)| Frame {
-                time: 0.5 * t as f64,
-                agents,
-                ..Frame::default()
-            })
-            .collect();
-        SceneClip::new("c", 0.5, frames).unwrap()
-    }
-
-    fn tracks(c: &SceneClip) -> Vec<Vec<u64>> {
-        c.frames
-            .iter()
-            .map(|f| f.agents.iter().map(|a| a.track_id).collect())
-            .collect()
-    }
+    use crate::commands::eval_truth::tests::at;
 
     #[test]
     fn recorded_ego_places_the_model_agents_from_the_real_pose() {
@@ -381,35 +248,5 @@ mod tests {
         assert_eq!(model_agent_errors(&f, &real, true, &truth), vec![0.0]);
         let own = model_agent_errors(&f, &real, false, &truth)[0];
         assert!((own - 0.5).abs() < 1e-3, "{own}");
-    }
-
-    #[test]
-    fn ground_truth_keeps_the_context_tracks_in_their_slots() {
-        // Two context frames with tracks 7 (20 m) and 3 (10 m); track 9 appears after the context; track 7
-        // comes to 1 m after it.
-        let gt = clip(vec![
-            vec![at(7, 20.0), at(3, 10.0)],
-            vec![at(7, 20.0), at(3, 10.0)],
-            vec![at(7, 1.0), at(3, 10.0), at(9, 5.0)],
-        ]);
-        // The new track goes: the model's new agents have no real identity to be compared with.
-        assert_eq!(tracks(&context_tracks_only(&gt, 2, 4).unwrap())[2], vec![7, 3]);
-        // One slot: the context keeps track 3 (nearest in the context), the whole clip would keep track 7
-        // (nearest over all frames). The context's choice holds in every frame.
-        let one = context_tracks_only(&gt, 2, 1).unwrap();
-        assert_eq!(tracks(&one), vec![vec![3], vec![3], vec![3]]);
-        assert_eq!(SlotPlan::new(&gt, 1).unwrap().slot(7), Some(0));
-        // Tokenized alone, the restricted clip gives the context's slots.
-        let context = SceneClip::new("c", 0.5, gt.frames[..2].to_vec()).unwrap();
-        let (plan, whole) = (
-            SlotPlan::new(&context, 4).unwrap(),
-            SlotPlan::new(&gt, 4).unwrap(),
-        );
-        let kept = SlotPlan::new(&context_tracks_only(&gt, 2, 4).unwrap(), 4).unwrap();
-        for track in [7, 3] {
-            assert_eq!(kept.slot(track), plan.slot(track));
-            assert_eq!(whole.slot(track), plan.slot(track));
-        }
-        assert_eq!((kept.slot(9), whole.slot(9)), (None, Some(2)));
     }
 }

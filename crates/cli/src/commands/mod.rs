@@ -15,6 +15,7 @@ mod doctor;
 mod eval;
 mod eval_plot;
 mod eval_report;
+mod eval_truth;
 mod export;
 mod generate;
 mod launch;
