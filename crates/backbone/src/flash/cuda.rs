@@ -2,7 +2,7 @@
 //! the fusion stream that launches the kernels of `kernels.rs` on the operands as they lie in memory (any
 //! strides) and writes f32 results.
 
-use super::flash2::{self, Buffers};
+use super::flash2;
 use super::kernels;
 use super::{
     AttentionKernel, BLOCK, FusedAttention, fell_back, selected, shared_bytes, step, tiled_backward_pass,
@@ -205,50 +205,19 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
             Kind::Forward => {
                 let ([q, k, v], _) = self.desc.as_fixed::<3, 2>();
                 let [q, k, v] = [q, k, v].map(|t| handles.get_float_tensor::<Inner>(t));
-                let on_flash2 = self.flash2.then(|| {
-                    let [b, h, lq, d] = dims(&q);
-                    let results = vec![empty(&q, [b, h, lq, d]), empty(&q, [b, h, lq, 1])];
-                    let bufs = Buffers {
-                        q: &q,
-                        k: &k,
-                        v: &v,
-                        dout: None,
-                        lse: None,
-                        delta: None,
-                        results: &results,
-                    };
-                    try_flash2(flash2::Pass::Forward, &bufs, self.causal).then_some(results)
-                });
-                on_flash2
-                    .flatten()
-                    .unwrap_or_else(|| forward(&q, &k, &v, self.causal))
+                self.flash2_or(
+                    || flash2::launch(&q, &k, &v, None, self.causal),
+                    || forward(&q, &k, &v, self.causal),
+                )
             }
             Kind::Backward => {
                 let (inputs, _) = self.desc.as_fixed::<6, 3>();
                 let [q, k, v, dout, lse, delta] =
                     inputs.each_ref().map(|t| handles.get_float_tensor::<Inner>(t));
-                let on_flash2 = self.flash2.then(|| {
-                    let [b, h, lq, d] = dims(&q);
-                    let lk = k.meta.shape()[2];
-                    let results = vec![
-                        empty(&q, [b, h, lq, d]),
-                        empty(&q, [b, h, lk, d]),
-                        empty(&q, [b, h, lk, d]),
-                    ];
-                    let bufs = Buffers {
-                        q: &q,
-                        k: &k,
-                        v: &v,
-                        dout: Some(&dout),
-                        lse: Some(&lse),
-                        delta: Some(&delta),
-                        results: &results,
-                    };
-                    try_flash2(flash2::Pass::Backward, &bufs, self.causal).then_some(results)
-                });
-                on_flash2
-                    .flatten()
-                    .unwrap_or_else(|| backward(&q, &k, &v, &dout, &lse, &delta, self.causal))
+                self.flash2_or(
+                    || flash2::launch(&q, &k, &v, Some([&dout, &lse, &delta]), self.causal),
+                    || backward(&q, &k, &v, &dout, &lse, &delta, self.causal),
+                )
             }
         };
         for (ir, t) in self.desc.outputs.iter().zip(outputs) {
@@ -257,20 +226,26 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
     }
 }
 
-/// Runs a pass on the `flash2` kernels; false (counted as a fallback to the fused kernels) if they could
-/// not be launched.
-fn try_flash2(pass: flash2::Pass, bufs: &Buffers, causal: bool) -> bool {
-    match flash2::launch(pass, bufs, causal) {
-        Ok(()) => true,
-        Err(why) => {
-            fell_back("flash2", &why, "fused");
-            false
+impl Pass {
+    /// The `flash2` kernels' results where this pass runs them and they launch; otherwise (a failure
+    /// counted as a fallback) the fused kernels'.
+    fn flash2_or(
+        &self,
+        flash2: impl FnOnce() -> Result<Vec<Primitive>, String>,
+        fused: impl FnOnce() -> Vec<Primitive>,
+    ) -> Vec<Primitive> {
+        if self.flash2 {
+            match flash2() {
+                Ok(results) => return results,
+                Err(why) => fell_back("flash2", &why, "fused"),
+            }
         }
+        fused()
     }
 }
 
 /// An uninitialised f32 tensor of `shape` on `like`'s device.
-fn empty(like: &Primitive, shape: [usize; 4]) -> Primitive {
+pub(super) fn empty(like: &Primitive, shape: [usize; 4]) -> Primitive {
     empty_device_dtype(
         like.client.clone(),
         like.device.clone(),

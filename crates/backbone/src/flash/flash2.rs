@@ -9,6 +9,7 @@
 //! the host.
 #![allow(unsafe_code)]
 
+use super::cuda::empty;
 use crate::side::{Side, pointer};
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::DType;
@@ -174,29 +175,17 @@ fn strides(t: &Primitive, what: &str) -> Result<[i64; 3], String> {
     Ok([int(s[0])?, int(s[1])?, int(s[2])?])
 }
 
-/// The operands and results of one pass; `None` for those the pass does not use.
-pub(super) struct Buffers<'a> {
-    pub q: &'a Primitive,
-    pub k: &'a Primitive,
-    pub v: &'a Primitive,
-    pub dout: Option<&'a Primitive>,
-    pub lse: Option<&'a Primitive>,
-    pub delta: Option<&'a Primitive>,
-    /// Contiguous f32 results: output and log-sum-exp (forward), or dq, dk, dv (backward).
-    pub results: &'a [Primitive],
-}
-
-/// Which pass.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Pass {
-    Forward,
-    Backward,
-}
-
-/// Runs `pass` on `bufs`; an error says why it could not (nothing was launched on cubecl's stream but the
-/// flag kernels, so the caller may run another path).
-pub(super) fn launch(pass: Pass, bufs: &Buffers, causal: bool) -> Result<(), String> {
-    let (q, k, v) = (bufs.q, bufs.k, bufs.v);
+/// Runs the forward pass on `q`, `k`, `v` (`grads` `None`: the output and the log-sum-exp) or the
+/// backward pass (`grads` = `[dout, lse, delta]`: dq, dk and dv), returning its contiguous f32 results; an
+/// error says why it could not (nothing was launched on cubecl's stream but the flag kernels, so the
+/// caller may run another path).
+pub(super) fn launch(
+    q: &Primitive,
+    k: &Primitive,
+    v: &Primitive,
+    grads: Option<[&Primitive; 3]>,
+    causal: bool,
+) -> Result<Vec<Primitive>, String> {
     let s = q.meta.shape();
     let (b, h, lq, d) = (s[0], s[1], s[2], s[3]);
     let lk = k.meta.shape()[2];
@@ -204,7 +193,7 @@ pub(super) fn launch(pass: Pass, bufs: &Buffers, causal: bool) -> Result<(), Str
         return Err(why);
     }
     let mut operands = vec![q, k, v];
-    operands.extend(bufs.dout);
+    operands.extend(grads.map(|[dout, _, _]| dout));
     if operands.iter().any(|t| t.dtype != q.dtype) {
         return Err("operands of different types".into());
     }
@@ -241,37 +230,33 @@ pub(super) fn launch(pass: Pass, bufs: &Buffers, causal: bool) -> Result<(), Str
         Ok(address)
     };
     (p.q, p.k, p.v) = (ptr(q)?, ptr(k)?, ptr(v)?);
-    let rows = match pass {
-        Pass::Forward => {
-            let [out, lse] = bufs.results else {
-                return Err("the forward pass writes two results".into());
-            };
-            (p.out, p.lse_out) = (ptr(out)?, ptr(lse)?);
-            [lq, 0]
+    let dtype = if q.dtype == DType::BF16 { "bf16" } else { "f32" };
+    // The results, each kernel's name and the rows its grid covers.
+    let (results, launches) = match grads {
+        None => {
+            let results = vec![empty(q, [b, h, lq, d]), empty(q, [b, h, lq, 1])];
+            (p.out, p.lse_out) = (ptr(&results[0])?, ptr(&results[1])?);
+            (results, vec![(format!("umgen_flash2_forward_{dtype}_{d}"), lq)])
         }
-        Pass::Backward => {
-            let (Some(dout), Some(lse), Some(delta), [dq, dk, dv]) =
-                (bufs.dout, bufs.lse, bufs.delta, bufs.results)
-            else {
-                return Err("the backward pass reads dout, lse and delta and writes three results".into());
-            };
+        Some([dout, lse, delta]) => {
             (p.os, p.ls, p.es) = (
                 strides(dout, "dout")?,
                 strides(lse, "lse")?,
                 strides(delta, "delta")?,
             );
             (p.dout, p.lse, p.delta) = (ptr(dout)?, ptr(lse)?, ptr(delta)?);
-            (p.dq, p.dk, p.dv) = (ptr(dq)?, ptr(dk)?, ptr(dv)?);
-            [lk, lq]
+            let results = vec![
+                empty(q, [b, h, lq, d]),
+                empty(q, [b, h, lk, d]),
+                empty(q, [b, h, lk, d]),
+            ];
+            (p.dq, p.dk, p.dv) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
+            let launches = vec![
+                (format!("umgen_flash2_backward_kv_{dtype}_{d}"), lk),
+                (format!("umgen_flash2_backward_q_{dtype}_{d}"), lq),
+            ];
+            (results, launches)
         }
-    };
-    let dtype = if q.dtype == DType::BF16 { "bf16" } else { "f32" };
-    let names: Vec<String> = match pass {
-        Pass::Forward => vec![format!("umgen_flash2_forward_{dtype}_{d}")],
-        Pass::Backward => vec![
-            format!("umgen_flash2_backward_kv_{dtype}_{d}"),
-            format!("umgen_flash2_backward_q_{dtype}_{d}"),
-        ],
     };
     let device = q.device.index;
     KERNELS.with_borrow_mut(|all| {
@@ -289,7 +274,7 @@ pub(super) fn launch(pass: Pass, bufs: &Buffers, causal: bool) -> Result<(), Str
         };
         let Kernels { side, functions } = kernels;
         side.ordered(|stream| {
-            for (name, rows) in names.iter().zip(rows) {
+            for (name, rows) in &launches {
                 let f = functions
                     .iter()
                     .find(|(n, _)| n == name)
@@ -312,5 +297,6 @@ pub(super) fn launch(pass: Pass, bufs: &Buffers, causal: bool) -> Result<(), Str
             }
             Ok(())
         })
-    })
+    })?;
+    Ok(results)
 }
