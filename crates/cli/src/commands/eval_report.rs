@@ -63,46 +63,61 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
         ];
         writeln!(md, "{}", cells(r, &keys))?;
     }
-    writeln!(
-        md,
-        "\nAgents against constant velocity rounded to the agent bins of the real next ego frame (the \
-         baseline as a token model could output it):\n\n\
-         | horizon (s) | model mean | binned const. vel. mean | model median | binned const. vel. median \
-         | model p90 | binned const. vel. p90 |\n|---|---|---|---|---|---|---|"
+    agents_table(
+        &mut md,
+        rows,
+        "Agents against constant velocity rounded to the agent bins of the real next ego frame (the \
+         baseline as a token model could output it):",
+        &[
+            ("model", "model"),
+            ("constant_velocity_binned", "binned const. vel."),
+        ],
     )?;
-    for r in rows {
-        let keys = [
-            "agents_model",
-            "agents_constant_velocity_binned",
-            "agents_model_median",
-            "agents_constant_velocity_binned_median",
-            "agents_model_p90",
-            "agents_constant_velocity_binned_p90",
-        ];
-        writeln!(md, "{}", cells(r, &keys))?;
-    }
-    writeln!(
-        md,
-        "\nAgents against constant acceleration (each agent's velocity change over the last context frame \
+    agents_table(
+        &mut md,
+        rows,
+        "Agents against constant acceleration (each agent's velocity change over the last context frame \
          kept; the prediction `backbone.track_accel` hints the model with), as is and rounded to the agent \
-         bins:\n\n\
-         | horizon (s) | model mean | const. acc. mean | binned const. acc. mean | model median \
-         | const. acc. median | binned const. acc. median | model p90 | const. acc. p90 \
-         | binned const. acc. p90 |\n|---|---|---|---|---|---|---|---|---|---|"
+         bins:",
+        &[
+            ("model", "model"),
+            ("constant_acceleration", "const. acc."),
+            ("constant_acceleration_binned", "binned const. acc."),
+        ],
+    )?;
+    Ok(md)
+}
+
+/// A table of the agents' mean, median and 90th percentile over the horizon for each predictor
+/// (`agents_<key>`, `_median`, `_p90` of each row; `label` in the header), after `intro`.
+fn agents_table(
+    md: &mut String,
+    rows: &[serde_json::Value],
+    intro: &str,
+    predictors: &[(&str, &str)],
+) -> anyhow::Result<()> {
+    let stats = [("", "mean"), ("_median", "median"), ("_p90", "p90")];
+    let header: Vec<String> = stats
+        .iter()
+        .flat_map(|(_, stat)| predictors.iter().map(move |(_, label)| format!("{label} {stat}")))
+        .collect();
+    writeln!(
+        md,
+        "\n{intro}\n\n| horizon (s) | {} |\n|---|{}",
+        header.join(" | "),
+        "---|".repeat(header.len())
     )?;
     for r in rows {
-        let keys = [
-            "agents_model",
-            "agents_constant_acceleration",
-            "agents_constant_acceleration_binned",
-            "agents_model_median",
-            "agents_constant_acceleration_median",
-            "agents_constant_acceleration_binned_median",
-            "agents_model_p90",
-            "agents_constant_acceleration_p90",
-            "agents_constant_acceleration_binned_p90",
-        ];
-        writeln!(md, "{}", cells(r, &keys))?;
+        let seconds = r["seconds"].as_f64().unwrap_or(0.0);
+        let values: Vec<String> = stats
+            .iter()
+            .flat_map(|(suffix, _)| {
+                predictors
+                    .iter()
+                    .map(move |(key, _)| num(&r[format!("agents_{key}{suffix}")]))
+            })
+            .collect();
+        writeln!(md, "| {seconds:.1} | {} |", values.join(" | "))?;
     }
-    Ok(md)
+    Ok(())
 }
