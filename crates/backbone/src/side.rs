@@ -27,7 +27,10 @@ use burn_cubecl::ops::numeric::zeros_client;
 use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
 use cudarc::driver::{CudaContext, CudaFunction, CudaStream, LaunchConfig, PushKernelArg};
+use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
+use std::cell::RefCell;
 use std::sync::Arc;
+use std::thread::LocalKey;
 
 type Primitive = CubeTensor<CudaRuntime>;
 
@@ -166,4 +169,93 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
         .get_resource(t.handle.clone())
         .map_err(|e| format!("device buffer: {e:?}"))?;
     Ok((res.resource().ptr, res))
+}
+
+/// Kernels compiled by NVRTC from one source and the side stream they run on, for one device and the
+/// calling thread.
+pub(crate) struct Kernels {
+    /// The stream they run on.
+    pub(crate) side: Side,
+    functions: Vec<(String, CudaFunction)>,
+}
+
+impl Kernels {
+    /// Compiles `source` with `options` for `like`'s device (which must have compute capability
+    /// `min_major` or newer) and loads the kernels `names`.
+    pub(crate) fn compile(
+        like: &Primitive,
+        source: String,
+        options: CompileOptions,
+        names: &[String],
+        min_major: i32,
+    ) -> Result<Self, String> {
+        let side = Side::new(like)?;
+        let (major, minor) = side
+            .context()
+            .compute_capability()
+            .map_err(|e| format!("compute capability: {e:?}"))?;
+        if major < min_major {
+            return Err(format!(
+                "compute capability {major}.{minor} (the kernels need {min_major}.0)"
+            ));
+        }
+        let ptx = compile_ptx_with_opts(source, options).map_err(|e| format!("NVRTC: {e:?}"))?;
+        let module = side
+            .context()
+            .load_module(ptx)
+            .map_err(|e| format!("loading the kernels: {e:?}"))?;
+        let functions = names
+            .iter()
+            .map(|name| {
+                let f = module
+                    .load_function(name)
+                    .map_err(|e| format!("kernel {name}: {e:?}"))?;
+                Ok((name.clone(), f))
+            })
+            .collect::<Result<_, String>>()?;
+        Ok(Self { side, functions })
+    }
+
+    /// The kernel `name`.
+    pub(crate) fn function(&self, name: &str) -> Result<&CudaFunction, String> {
+        self.functions
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, f)| f)
+            .ok_or_else(|| format!("kernel {name} not compiled"))
+    }
+
+    /// Every kernel, by name.
+    pub(crate) fn functions(&self) -> &[(String, CudaFunction)] {
+        &self.functions
+    }
+}
+
+/// A thread's [`Kernels`] of one source by device; `Err` remembers why a device has none.
+pub(crate) type KernelCache = RefCell<Vec<(usize, Result<Kernels, String>)>>;
+
+/// Runs `work` with `cache`'s kernels for `like`'s device, built by `build` on first use (a failure is
+/// logged once, naming `what`, and returned every time).
+pub(crate) fn with_kernels<T>(
+    cache: &'static LocalKey<KernelCache>,
+    like: &Primitive,
+    what: &str,
+    build: impl FnOnce() -> Result<Kernels, String>,
+    work: impl FnOnce(&mut Kernels) -> Result<T, String>,
+) -> Result<T, String> {
+    let device = like.device.index;
+    cache.with_borrow_mut(|all| {
+        if !all.iter().any(|(dev, _)| *dev == device) {
+            let made = build();
+            if let Err(why) = &made {
+                tracing::warn!("{what} on cuda:{device}: {why}");
+            }
+            all.push((device, made));
+        }
+        match all.iter_mut().find(|(dev, _)| *dev == device) {
+            Some((_, Ok(kernels))) => work(kernels),
+            Some((_, Err(why))) => Err(why.clone()),
+            None => Err(format!("no {what} kernels for cuda:{device}")),
+        }
+    })
 }

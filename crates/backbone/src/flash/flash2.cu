@@ -12,10 +12,11 @@
 // fragment layouts are checked without a GPU.
 
 // Columns (queries, or keys for the query gradients) of a tile that the backward kernels take at a time:
-// 64 (the whole tile) or 32, which halves their score and score-gradient registers. Define it before
-// this file to change it (`UMGEN_FLASH2_SOURCE`).
+// 32 (half a tile) or 64 (the whole tile). 32 halves their score and score-gradient registers and the
+// key/value kernel's spills (336 against 528 bytes a thread in bf16), and was 11-16 % faster on an H100
+// (docs/perf-notes.md). Define it before this file to change it (`UMGEN_FLASH2_SOURCE`).
 #ifndef SUB
-#define SUB 64
+#define SUB 32
 #endif
 
 // Whether key `key` is hidden from query `query`.

@@ -10,12 +10,12 @@
 #![allow(unsafe_code)]
 
 use super::cuda::empty;
-use crate::side::{Side, pointer};
+use crate::side::{KernelCache, Kernels, pointer, with_kernels};
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::DType;
 use burn_cubecl::tensor::CubeTensor;
 use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
-use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
+use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
 use std::sync::OnceLock;
 
@@ -94,54 +94,30 @@ pub(super) fn unfit(d: usize, dtype: DType) -> Option<String> {
         .then(|| format!("{dtype:?} operands (the flash2 kernels take f32 and bf16)"))
 }
 
-/// The compiled kernels and their side stream, for one device and the calling thread.
-struct Kernels {
-    side: Side,
-    functions: Vec<(String, CudaFunction)>,
-}
-
 thread_local! {
-    /// This thread's kernels by device; `Err` remembers why a device has none.
-    static KERNELS: RefCell<Vec<(usize, Result<Kernels, String>)>> = const { RefCell::new(Vec::new()) };
+    /// This thread's kernels by device.
+    static KERNELS: KernelCache = const { RefCell::new(Vec::new()) };
 }
 
-impl Kernels {
-    fn new(like: &Primitive) -> Result<Self, String> {
-        let side = Side::new(like)?;
-        let (major, minor) = side
-            .context()
-            .compute_capability()
-            .map_err(|e| format!("compute capability: {e:?}"))?;
-        if major < 8 {
-            return Err(format!(
-                "compute capability {major}.{minor} (the flash2 kernels need 8.0: bf16 mma.sync)"
-            ));
-        }
-        let options = CompileOptions {
-            arch: Some("compute_80"),
-            use_fast_math: Some(true),
-            ..Default::default()
-        };
-        let ptx = compile_ptx_with_opts(source()?, options).map_err(|e| format!("NVRTC: {e:?}"))?;
-        let module = side
-            .context()
-            .load_module(ptx)
-            .map_err(|e| format!("loading the flash2 kernels: {e:?}"))?;
-        let mut functions = Vec::new();
-        for pass in ["forward", "backward_kv", "backward_q"] {
-            for dtype in ["f32", "bf16"] {
-                for d in [32, 64] {
-                    let name = format!("umgen_flash2_{pass}_{dtype}_{d}");
-                    let f = module
-                        .load_function(&name)
-                        .map_err(|e| format!("kernel {name}: {e:?}"))?;
-                    functions.push((name, f));
-                }
+/// Compiles the kernels for `like`'s device (compute capability 8.0: bf16 `mma.sync`) and logs their
+/// resources.
+fn build(like: &Primitive) -> Result<Kernels, String> {
+    let options = CompileOptions {
+        arch: Some("compute_80"),
+        use_fast_math: Some(true),
+        ..Default::default()
+    };
+    let mut names = Vec::new();
+    for pass in ["forward", "backward_kv", "backward_q"] {
+        for dtype in ["f32", "bf16"] {
+            for d in [32, 64] {
+                names.push(format!("umgen_flash2_{pass}_{dtype}_{d}"));
             }
         }
-        tracing::info!("flash2 kernels compiled: {}", resources(&functions));
-        Ok(Self { side, functions })
     }
+    let kernels = Kernels::compile(like, source()?, options, &names, 8)?;
+    tracing::info!("flash2 kernels compiled: {}", resources(kernels.functions()));
+    Ok(kernels)
 }
 
 /// Registers, spilled bytes and blocks per SM of the head-size-64 kernels: what limits their occupancy.
@@ -258,45 +234,36 @@ pub(super) fn launch(
             (results, launches)
         }
     };
-    let device = q.device.index;
-    KERNELS.with_borrow_mut(|all| {
-        if !all.iter().any(|(dev, _)| *dev == device) {
-            let made = Kernels::new(q);
-            if let Err(why) = &made {
-                tracing::warn!("flash2 attention on cuda:{device}: {why}");
-            }
-            all.push((device, made));
-        }
-        let kernels = match all.iter_mut().find(|(dev, _)| *dev == device) {
-            Some((_, Ok(kernels))) => kernels,
-            Some((_, Err(why))) => return Err(why.clone()),
-            None => return Err(format!("no flash2 kernels for cuda:{device}")),
-        };
-        let Kernels { side, functions } = kernels;
-        side.ordered(|stream| {
-            for (name, rows) in &launches {
-                let f = functions
-                    .iter()
-                    .find(|(n, _)| n == name)
-                    .map(|(_, f)| f)
-                    .ok_or_else(|| format!("kernel {name} not compiled"))?;
-                let config = LaunchConfig {
-                    grid_dim: (
-                        rows.div_ceil(16 * warps()) as u32,
-                        bh.min(GRID_YZ) as u32,
-                        bh.div_ceil(GRID_YZ) as u32,
-                    ),
-                    block_dim: (32 * warps() as u32, 1, 1),
-                    shared_mem_bytes: 0,
-                };
-                // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides
-                // recorded beside it, and cubecl's stream waits for the kernels before anything queued later
-                // can free or reuse them.
-                unsafe { stream.launch_builder(f).arg(&p).launch(config) }
-                    .map_err(|e| format!("{name}: {e:?}"))?;
-            }
-            Ok(())
-        })
-    })?;
+    with_kernels(
+        &KERNELS,
+        q,
+        "flash2 attention",
+        || build(q),
+        |kernels| {
+            let functions = launches
+                .iter()
+                .map(|(name, rows)| Ok((name, *rows, kernels.function(name)?.clone())))
+                .collect::<Result<Vec<_>, String>>()?;
+            kernels.side.ordered(|stream| {
+                for (name, rows, f) in &functions {
+                    let config = LaunchConfig {
+                        grid_dim: (
+                            rows.div_ceil(16 * warps()) as u32,
+                            bh.min(GRID_YZ) as u32,
+                            bh.div_ceil(GRID_YZ) as u32,
+                        ),
+                        block_dim: (32 * warps() as u32, 1, 1),
+                        shared_mem_bytes: 0,
+                    };
+                    // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides
+                    // recorded beside it, and cubecl's stream waits for the kernels before anything queued later
+                    // can free or reuse them.
+                    unsafe { stream.launch_builder(f).arg(&p).launch(config) }
+                        .map_err(|e| format!("{name}: {e:?}"))?;
+                }
+                Ok(())
+            })
+        },
+    )?;
     Ok(results)
 }

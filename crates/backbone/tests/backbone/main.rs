@@ -5,6 +5,7 @@ mod ama;
 mod attention;
 mod causality;
 mod decode;
+mod emulator;
 mod flash2;
 mod heads;
 mod ordinal;
