@@ -117,7 +117,7 @@ impl<B: Backend> EgoModule<B> {
         for blk in &self.env {
             x = blk.forward(x, env.clone(), None);
         }
-        let logits = linear(&self.head, crate::rows::layer_norm(&self.ln, x), self.precision);
+        let logits = linear(&self.head, crate::norm::layer_norm(&self.ln, x), self.precision);
         let v = logits.dims()[2];
         logits.reshape([b, tq, q, v])
     }

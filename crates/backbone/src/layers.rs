@@ -2,7 +2,6 @@
 
 use crate::config::Precision;
 use crate::precision::linear;
-use crate::rows;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::{gelu, softmax};
@@ -197,9 +196,9 @@ impl<B: Backend> SelfBlock<B> {
 
     /// [`Self::forward`] through burn's operations (and their autodiff, on training backends).
     pub(crate) fn forward_autodiff(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
-        let n = rows::layer_norm(&self.ln1, x.clone());
+        let n = crate::norm::layer_norm(&self.ln1, x.clone());
         let x = x + self.attn.forward(n.clone(), n, None, causal);
-        x.clone() + self.mlp.forward(rows::layer_norm(&self.ln2, x))
+        x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
     }
 
     /// The causal layer on one new position `[m, 1, d]`, with the keys and values of the earlier ones in
@@ -281,11 +280,11 @@ impl<B: Backend> CrossBlock<B> {
     ) -> Tensor<B, 3> {
         let x = x.clone()
             + self.attn.forward(
-                rows::layer_norm(&self.ln_q, x),
-                rows::layer_norm(&self.ln_ctx, ctx),
+                crate::norm::layer_norm(&self.ln_q, x),
+                crate::norm::layer_norm(&self.ln_ctx, ctx),
                 mask,
                 false,
             );
-        x.clone() + self.mlp.forward(rows::layer_norm(&self.ln2, x))
+        x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
     }
 }

@@ -44,6 +44,7 @@ mod lookup;
 mod losses;
 pub mod matmul;
 mod model;
+pub mod norm;
 pub mod ordinal;
 mod precision;
 pub mod recompute;

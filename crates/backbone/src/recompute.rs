@@ -207,7 +207,7 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         heads: parts.heads,
         causal,
         precision: parts.precision,
-        eps: NORM_EPS,
+        eps: crate::norm::LN_EPS,
     };
     RUN.fetch_add(1, Ordering::Relaxed);
     let xi = float::<I, 3>(x.primitive);
@@ -233,9 +233,6 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
     };
     float(out)
 }
-
-/// The ε of burn's `LayerNormConfig`, which `layers.rs` keeps (burn does not expose a built norm's ε).
-const NORM_EPS: f64 = 1e-5;
 
 /// A dropout keep-mask for an output shaped like `x`, drawn as burn's `Dropout` draws it on an autodiff
 /// backend; none when `prob` is 0.

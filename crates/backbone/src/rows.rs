@@ -1,15 +1,14 @@
-//! Per-feature parameters applied to every row of an activation (linear biases, layer-norm scales and
-//! shifts), with their gradients summed in two stages.
+//! Per-feature biases added to every row of an activation, with their gradients summed in two stages.
 //!
 //! burn's autodiff reduces a broadcast operand's gradient one broadcast axis at a time, in axis order. For
 //! activations `[32, 2199, 384]` (the `small` preset) the last of those sums runs down 2,199 rows with only
 //! 384 outputs, and cubecl's reduction gives each output one unit that walks its column alone: a profiled
 //! `small` step spent 41 ms in 37 such sums of 1.1 ms each (docs/perf-notes.md), where the data they read
-//! takes 0.04 ms. [`add`] and [`mul`] are custom autodiff operations on the training backends whose
-//! forward pass is burn's broadcast (so element-wise fusion around them is unchanged) and whose backward
-//! pass sums the rows with [`sum`]: rows in groups, then the groups. The recomputed layers
-//! (`recompute/math.rs`) use [`sum`] in their hand-written backward pass. Elsewhere (inference backends,
-//! backends this workspace does not train on) both are burn's broadcast.
+//! takes 0.04 ms. [`add`] is a custom autodiff operation on the training backends whose forward pass is
+//! burn's broadcast (so element-wise fusion around it is unchanged) and whose backward pass sums the rows
+//! with [`sum`]: rows in groups, then the groups. The layer norms' scales and shifts (`norm.rs`) and the
+//! recomputed layers (`recompute/math.rs`) use [`sum`] in their hand-written backward passes. Elsewhere
+//! (inference backends, backends this workspace does not train on) [`add`] is burn's broadcast.
 
 use crate::attention::float;
 use crate::dispatch::same;
@@ -20,9 +19,7 @@ use burn::backend::autodiff::checkpoint::strategy::{
 };
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
-use burn::nn::LayerNorm;
 use burn::tensor::backend::Backend;
-use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Shape, Tensor, TensorMetadata};
 
 /// Row groups of [`sum`]'s first stage.
@@ -49,155 +46,90 @@ pub(crate) fn sum<I: Backend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
     total.reshape([d])
 }
 
-/// A row-wise operation `x ∘ p` on `B`.
+/// [`add`] on `B`.
 type RowOp<B, const D: usize> = fn(Tensor<B, D>, Tensor<B, 1>) -> Tensor<B, D>;
 
 /// `x + p` over the last axis (a linear layer's bias).
 pub fn add<B: Backend, const D: usize>(x: Tensor<B, D>, p: Tensor<B, 1>) -> Tensor<B, D> {
-    match tracked::<B, D>(true) {
+    match tracked::<B, D>() {
         Some(op) => op(x, p),
         None => x + p.unsqueeze::<D>(),
     }
 }
 
-/// `x · p` over the last axis (a layer norm's scale).
-pub fn mul<B: Backend, const D: usize>(x: Tensor<B, D>, p: Tensor<B, 1>) -> Tensor<B, D> {
-    match tracked::<B, D>(false) {
-        Some(op) => op(x, p),
-        None => x * p.unsqueeze::<D>(),
-    }
-}
-
-/// The custom operation ([`add`]'s if `add`, else [`mul`]'s) when `B` is a training backend.
-fn tracked<B: Backend, const D: usize>(add: bool) -> Option<RowOp<B, D>> {
-    let found = on::<B, burn::backend::Flex, D>(add);
+/// The custom operation when `B` is a training backend.
+fn tracked<B: Backend, const D: usize>() -> Option<RowOp<B, D>> {
+    let found = on::<B, burn::backend::Flex, D>();
     #[cfg(feature = "cuda")]
-    let found = found.or_else(|| on::<B, burn::backend::Cuda, D>(add));
+    let found = found.or_else(|| on::<B, burn::backend::Cuda, D>());
     found
 }
 
 /// The operation on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
-fn on<B: Backend, I: Backend, const D: usize>(add: bool) -> Option<RowOp<B, D>> {
-    let (plain, balanced): (
-        RowOp<Autodiff<I>, D>,
-        RowOp<Autodiff<I, BalancedCheckpointing>, D>,
-    ) = if add {
-        (
-            apply::<I, NoCheckpointing, D, true>,
-            apply::<I, BalancedCheckpointing, D, true>,
-        )
-    } else {
-        (
-            apply::<I, NoCheckpointing, D, false>,
-            apply::<I, BalancedCheckpointing, D, false>,
-        )
-    };
+fn on<B: Backend, I: Backend, const D: usize>() -> Option<RowOp<B, D>> {
+    let plain: RowOp<Autodiff<I>, D> = apply::<I, NoCheckpointing, D>;
+    let balanced: RowOp<Autodiff<I, BalancedCheckpointing>, D> = apply::<I, BalancedCheckpointing, D>;
     same(plain).or_else(|| same(balanced))
 }
 
-/// The backward pass of [`add`] (`ADD`) or [`mul`].
+/// The backward pass of [`add`].
 #[derive(Debug)]
-struct Rows<const ADD: bool>;
+struct Rows;
 
-/// What [`mul`] keeps: `x` and `p` on the inner backend ([`add`] keeps nothing).
-type Kept<I> = Option<(FloatTensor<I>, FloatTensor<I>)>;
-
-impl<I: Backend, const ADD: bool> Backward<I, 2> for Rows<ADD> {
-    type State = Kept<I>;
+impl<I: Backend> Backward<I, 2> for Rows {
+    type State = ();
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let g = grads.consume::<I>(&ops.node);
         let shape = g.shape();
         let d = shape[shape.num_dims() - 1];
-        let flat =
-            |t: FloatTensor<I>| float::<I, 2>(I::float_reshape(t, Shape::new([shape.num_elements() / d, d])));
         let [x_node, p_node] = ops.parents;
         // Each gradient only for a parent that asks for it (a frozen parameter, an untracked input).
-        match ops.state {
-            None => {
-                if let Some(node) = p_node {
-                    grads.register::<I>(node.id, sum(flat(g.clone())).into_primitive().tensor());
-                }
-                if let Some(node) = x_node {
-                    grads.register::<I>(node.id, g);
-                }
-            }
-            Some((x, p)) => {
-                let g2 = flat(g);
-                if let Some(node) = p_node {
-                    let dp = sum(g2.clone() * flat(x));
-                    grads.register::<I>(node.id, dp.into_primitive().tensor());
-                }
-                if let Some(node) = x_node {
-                    let dx = g2 * float::<I, 1>(p).unsqueeze::<2>();
-                    grads.register::<I>(node.id, I::float_reshape(dx.into_primitive().tensor(), shape));
-                }
-            }
+        if let Some(node) = p_node {
+            let flat = float::<I, 2>(I::float_reshape(
+                g.clone(),
+                Shape::new([shape.num_elements() / d, d]),
+            ));
+            grads.register::<I>(node.id, sum(flat).into_primitive().tensor());
+        }
+        if let Some(node) = x_node {
+            grads.register::<I>(node.id, g);
         }
     }
 }
 
-/// [`add`] (`ADD`) or [`mul`] as one operation on `Autodiff<I, C>`.
-fn apply<I: Backend, C: CheckpointStrategy, const D: usize, const ADD: bool>(
+/// [`add`] as one operation on `Autodiff<I, C>`.
+fn apply<I: Backend, C: CheckpointStrategy, const D: usize>(
     x: Tensor<Autodiff<I, C>, D>,
     p: Tensor<Autodiff<I, C>, 1>,
 ) -> Tensor<Autodiff<I, C>, D> {
     let (x, p) = (x.into_primitive().tensor(), p.into_primitive().tensor());
-    let (xi, pi) = (
-        float::<I, D>(x.primitive.clone()),
-        float::<I, 1>(p.primitive.clone()),
-    );
-    let y = if ADD {
-        xi + pi.unsqueeze::<D>()
-    } else {
-        xi * pi.unsqueeze::<D>()
-    };
+    let y = float::<I, D>(x.primitive.clone()) + float::<I, 1>(p.primitive.clone()).unsqueeze::<D>();
     let y = y.into_primitive().tensor();
-    let out = match Rows::<ADD>
+    let out = match Rows
         .prepare::<C>([x.node.clone(), p.node.clone()])
         .compute_bound()
         .stateful()
     {
-        OpsKind::Tracked(prep) => {
-            let kept = (!ADD).then(|| (x.primitive.clone(), p.primitive.clone()));
-            prep.finish(kept, y)
-        }
+        OpsKind::Tracked(prep) => prep.finish((), y),
         OpsKind::UnTracked(prep) => prep.finish(y),
     };
     float(out)
-}
-
-/// ε of every layer norm the backbone builds (`LayerNormConfig::new`'s default; burn keeps the field
-/// private, and the test below checks the two agree).
-const LN_EPS: f64 = 1e-5;
-
-/// `ln.forward(x)`, burn's own decomposition (mean, centred variance, `(x − mean) / √(var + ε)`), with
-/// the scale and shift applied through [`mul`] and [`add`].
-pub fn layer_norm<B: Backend, const D: usize>(ln: &LayerNorm<B>, x: Tensor<B, D>) -> Tensor<B, D> {
-    let centered = x.clone() - x.mean_dim(D - 1);
-    let var = centered.clone().powi_scalar(2).mean_dim(D - 1);
-    let y = mul(centered / var.add_scalar(LN_EPS).sqrt(), ln.gamma.val());
-    match &ln.beta {
-        Some(beta) => add(y, beta.val()),
-        None => y,
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use burn::backend::{Autodiff, Flex};
-    use burn::module::Param;
-    use burn::nn::LayerNormConfig;
     use burn::tensor::Distribution;
 
     type A = Autodiff<Flex>;
 
     #[test]
     fn training_backends_take_the_operation() {
-        assert!(tracked::<A, 3>(true).is_some());
-        assert!(tracked::<Autodiff<Flex, BalancedCheckpointing>, 4>(false).is_some());
-        assert!(tracked::<Flex, 3>(true).is_none());
+        assert!(tracked::<A, 3>().is_some());
+        assert!(tracked::<Autodiff<Flex, BalancedCheckpointing>, 4>().is_some());
+        assert!(tracked::<Flex, 3>().is_none());
     }
 
     /// Two stages with a remainder (1,000 rows: 256 groups of 3, 232 left) against one.
@@ -207,45 +139,35 @@ mod tests {
         close(sum(x.clone()), x.reshape([1000, 6]).sum_dim(0).reshape([6]), 1e-5);
     }
 
+    /// The value and both gradients equal plain broadcasting's, on 4 × 1026 = 4104 rows (256 groups of 16,
+    /// 8 left).
+    #[test]
+    fn bias_add_matches_broadcasting() {
+        let dev = Default::default();
+        let bias = Tensor::<A, 1>::random([24], Distribution::Normal(0.0, 1.0), &dev).require_grad();
+        let x = Tensor::<A, 3>::random([4, 1026, 24], Distribution::Normal(0.5, 2.0), &dev).require_grad();
+        let w = Tensor::<A, 3>::random([4, 1026, 24], Distribution::Normal(0.0, 1.0), &dev);
+        let ours = add(x.clone(), bias.clone());
+        let theirs = x.clone() + bias.clone().unsqueeze::<3>();
+        let flat = |t: Tensor<A, 3>| t.inner().flatten::<1>(0, 2);
+        close(flat(ours.clone()), flat(theirs.clone()), 1e-6);
+        let g_ours = (ours * w.clone()).sum().backward();
+        let g_theirs = (theirs * w).sum().backward();
+        close(
+            x.grad(&g_ours).expect("x").flatten::<1>(0, 2),
+            x.grad(&g_theirs).expect("x").flatten::<1>(0, 2),
+            1e-6,
+        );
+        close(
+            bias.grad(&g_ours).expect("bias"),
+            bias.grad(&g_theirs).expect("bias"),
+            1e-4,
+        );
+    }
+
     fn close(a: Tensor<Flex, 1>, b: Tensor<Flex, 1>, tol: f32) {
         let scale = b.clone().abs().max().into_scalar().max(1e-6);
         let err = (a - b).abs().max().into_scalar() / scale;
         assert!(err < tol, "relative error {err}");
-    }
-
-    /// Values and gradients (input, scale, shift) equal to burn's `LayerNorm` and plain broadcasting, on
-    /// 4 × 1026 = 4104 rows (256 groups of 16, 8 left), through the custom operations.
-    #[test]
-    fn layer_norm_and_bias_match_burns() {
-        let dev = Default::default();
-        let mut ln = LayerNormConfig::new(24).init::<A>(&dev);
-        ln.gamma = Param::from_tensor(Tensor::random([24], Distribution::Normal(1.0, 0.3), &dev));
-        ln.beta = Some(Param::from_tensor(Tensor::random(
-            [24],
-            Distribution::Normal(0.0, 0.3),
-            &dev,
-        )));
-        let bias = Tensor::<A, 1>::random([24], Distribution::Normal(0.0, 1.0), &dev).require_grad();
-        let x = Tensor::<A, 3>::random([4, 1026, 24], Distribution::Normal(0.5, 2.0), &dev).require_grad();
-        let w = Tensor::<A, 3>::random([4, 1026, 24], Distribution::Normal(0.0, 1.0), &dev);
-
-        let ours = add(layer_norm(&ln, x.clone()), bias.clone());
-        let theirs = ln.forward(x.clone()) + bias.clone().unsqueeze::<3>();
-        let flat = |t: Tensor<A, 3>| t.inner().flatten::<1>(0, 2);
-        close(flat(ours.clone()), flat(theirs.clone()), 1e-5);
-
-        let g_ours = (ours * w.clone()).sum().backward();
-        let g_theirs = (theirs * w).sum().backward();
-        let grad = |t: &Tensor<A, 1>, g| t.grad(g).expect("grad");
-        close(
-            x.grad(&g_ours).expect("x").flatten::<1>(0, 2),
-            x.grad(&g_theirs).expect("x").flatten::<1>(0, 2),
-            1e-4,
-        );
-        let gamma = ln.gamma.val();
-        close(grad(&gamma, &g_ours), grad(&gamma, &g_theirs), 1e-4);
-        let beta = ln.beta.as_ref().expect("beta").val();
-        close(grad(&beta, &g_ours), grad(&beta, &g_theirs), 1e-4);
-        close(grad(&bias, &g_ours), grad(&bias, &g_theirs), 1e-4);
     }
 }

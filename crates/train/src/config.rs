@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use umgen_backbone::LossOptions;
 use umgen_backbone::flash::AttentionKernel;
 use umgen_backbone::matmul::MatmulKernel;
+use umgen_backbone::norm::NormKernel;
 
 /// How the backbone is trained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -86,6 +87,9 @@ pub struct TrainConfig {
     /// (activation checkpointing, `umgen_backbone::recompute`): the step keeps one activation per layer
     /// instead of about twenty, for one more forward pass of those layers.
     pub recompute: bool,
+    /// What computes the layer norms when training on CUDA: `fused` (one CUDA C kernel per pass,
+    /// `umgen_backbone::norm`) or `burn` (burn's decomposition). The CPU runs the decomposition.
+    pub norm: NormKernel,
 }
 
 impl Default for TrainConfig {
@@ -121,13 +125,14 @@ impl Default for TrainConfig {
             attention: AttentionKernel::default(),
             attention_step: umgen_backbone::flash::DEFAULT_STEP,
             recompute: false,
+            norm: NormKernel::default(),
         }
     }
 }
 
 impl TrainConfig {
     /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
-    /// `attention_step`, `recompute`) to this process, before any product runs.
+    /// `attention_step`, `recompute`, `norm`) to this process, before any product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
@@ -140,6 +145,7 @@ impl TrainConfig {
         umgen_backbone::flash::select(self.attention);
         umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
         umgen_backbone::recompute::set_enabled(self.recompute);
+        umgen_backbone::norm::select(self.norm);
         Ok(())
     }
 
@@ -176,8 +182,9 @@ impl TrainConfig {
                 "attention_block_mib",
                 "attention",
                 "attention_step",
-                // Recomputed layers give the same gradients to rounding.
+                // Recomputed layers and the layer-norm kernels give the same gradients to rounding.
                 "recompute",
+                "norm",
             ] {
                 o.remove(k);
             }
@@ -231,6 +238,14 @@ mod tests {
         );
         assert_eq!(named.identity(), tiled.identity());
         assert_eq!(named.identity(), fused.identity());
+        let burn_norm = parse(r#"{"norm": "burn"}"#).expect("norm = burn");
+        assert_eq!(
+            (named.norm, burn_norm.norm),
+            (NormKernel::Fused, NormKernel::Burn)
+        );
+        assert_eq!(named.identity(), burn_norm.identity());
+        let e = parse(r#"{"norm": "fast"}"#).unwrap_err().to_string();
+        assert!(e.contains("fast") && e.contains("fused"), "{e}");
         let recompute = parse(r#"{"recompute": true}"#).expect("recompute = true");
         assert!(recompute.recompute && !named.recompute);
         assert_eq!(named.identity(), recompute.identity());

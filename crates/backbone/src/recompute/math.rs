@@ -12,13 +12,14 @@ use crate::config::Precision;
 use crate::flash::FusedAttention;
 use crate::layers::{merge_heads, split_heads};
 use crate::matmul::{NamedMatmul, product};
+use crate::norm::FusedNorm;
 use crate::precision::operand;
 use burn::tensor::activation::gelu;
 use burn::tensor::{Bool, Tensor, TensorPrimitive};
 
-/// What both passes need from the inner backend: the attention and the matmul kernels.
-pub trait LayerBackend: FusedAttention + NamedMatmul {}
-impl<B: FusedAttention + NamedMatmul> LayerBackend for B {}
+/// What both passes need from the inner backend: the attention, matmul and layer-norm kernels.
+pub trait LayerBackend: FusedAttention + NamedMatmul + FusedNorm {}
+impl<B: FusedAttention + NamedMatmul + FusedNorm> LayerBackend for B {}
 
 /// A layer norm's scale and shift.
 #[derive(Debug, Clone)]
@@ -79,8 +80,8 @@ fn drop<I: LayerBackend>(mask: &Mask<I>, x: Tensor<I, 3>) -> Tensor<I, 3> {
 
 /// What the backward pass reads of the forward pass.
 struct Saved<I: LayerBackend> {
-    xhat1: Tensor<I, 3>,
-    rstd1: Tensor<I, 3>,
+    x: Tensor<I, 3>,
+    stats1: Stats<I>,
     n1: Tensor<I, 3>,
     q: Tensor<I, 4>,
     k: Tensor<I, 4>,
@@ -88,38 +89,34 @@ struct Saved<I: LayerBackend> {
     att: Tensor<I, 4>,
     lse: Tensor<I, 4>,
     merged: Tensor<I, 3>,
-    xhat2: Tensor<I, 3>,
-    rstd2: Tensor<I, 3>,
+    x1: Tensor<I, 3>,
+    stats2: Stats<I>,
     n2: Tensor<I, 3>,
     hidden: Tensor<I, 3>,
     act: Tensor<I, 3>,
 }
 
-/// `(x − mean) / √(var + ε) · γ + β` over the last axis, with the normalised input and `1/√(var + ε)`.
-fn norm<I: LayerBackend>(
-    x: Tensor<I, 3>,
-    n: &Norm<I>,
-    eps: f64,
-) -> (Tensor<I, 3>, Tensor<I, 3>, Tensor<I, 3>) {
-    let centered = x.clone() - x.mean_dim(2);
-    let rstd = (centered.clone().powi_scalar(2).mean_dim(2) + eps).sqrt().recip();
-    let xhat = centered * rstd.clone();
-    let y = xhat.clone() * n.gamma.clone().unsqueeze::<3>() + n.beta.clone().unsqueeze::<3>();
-    (y, xhat, rstd)
+/// A layer norm's row means and `1/√(var + ε)`, `[rows]`.
+type Stats<I> = (Tensor<I, 1>, Tensor<I, 1>);
+
+/// `(x − mean) / √(var + ε) · γ + β` over the last axis ([`FusedNorm`]'s kernels), with the rows' statistics.
+fn norm<I: LayerBackend>(x: Tensor<I, 3>, n: &Norm<I>, eps: f64) -> (Tensor<I, 3>, Stats<I>) {
+    let [b, l, d] = x.dims();
+    let (y, mean, rstd) = I::norm_forward(x.reshape([b * l, d]), n.gamma.clone(), n.beta.clone(), eps);
+    (y.reshape([b, l, d]), (mean, rstd))
 }
 
 /// Gradients of a layer norm's input, scale and shift from its output's gradient `dy`.
 fn norm_grad<I: LayerBackend>(
-    xhat: Tensor<I, 3>,
-    rstd: Tensor<I, 3>,
+    x: Tensor<I, 3>,
+    (mean, rstd): Stats<I>,
     n: &Norm<I>,
     dy: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Tensor<I, 1>, Tensor<I, 1>) {
-    let dgamma = crate::rows::sum(dy.clone() * xhat.clone());
-    let dbeta = crate::rows::sum(dy.clone());
-    let dxhat = dy * n.gamma.clone().unsqueeze::<3>();
-    let dx = (dxhat.clone() - dxhat.clone().mean_dim(2) - xhat.clone() * (dxhat * xhat).mean_dim(2)) * rstd;
-    (dx, dgamma, dbeta)
+    let [b, l, d] = x.dims();
+    let flat = |t: Tensor<I, 3>| t.reshape([b * l, d]);
+    let (dx, dgamma, dbeta) = I::norm_backward(flat(dy), flat(x), mean, rstd, n.gamma.clone());
+    (dx.reshape([b, l, d]), dgamma, dbeta)
 }
 
 /// `x · w + b` with the product in `p`'s format (as `precision::linear` on the named kernel).
@@ -194,7 +191,7 @@ fn run<I: LayerBackend>(
     x: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Saved<I>) {
     let p = s.precision;
-    let (n1, xhat1, rstd1) = norm(x.clone(), &w.ln1, s.eps);
+    let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps);
     let pa = p.attention();
     let q = operand(split_heads(linear(n1.clone(), &w.q, p), s.heads), pa);
     let kv = linear(n1.clone(), &w.kv, p);
@@ -203,13 +200,13 @@ fn run<I: LayerBackend>(
     let v = operand(split_heads(kv.narrow(2, d, d), s.heads), pa);
     let (att, lse) = attend(q.clone(), k.clone(), v.clone(), s);
     let merged = merge_heads(att.clone());
-    let x1 = x + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
-    let (n2, xhat2, rstd2) = norm(x1.clone(), &w.ln2, s.eps);
+    let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
+    let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps);
     let hidden = linear(n2.clone(), &w.fc, p);
     let act = gelu(hidden.clone());
     let saved = Saved {
-        xhat1,
-        rstd1,
+        x,
+        stats1,
         n1,
         q,
         k,
@@ -217,8 +214,8 @@ fn run<I: LayerBackend>(
         att,
         lse,
         merged,
-        xhat2,
-        rstd2,
+        x1: x1.clone(),
+        stats2,
         n2,
         hidden,
         act,
@@ -255,7 +252,7 @@ pub fn backward<I: LayerBackend>(
         d_act.into_primitive().tensor(),
     )));
     let (dn2, d_fc_w, d_fc_b) = linear_grad(f.n2, &w.fc, d_hidden, p);
-    let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.xhat2, f.rstd2, &w.ln2, dn2);
+    let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2);
     let dx1 = dy + dx1_norm;
     let d_proj = drop(&masks.attn, dx1.clone());
     let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p);
@@ -264,7 +261,7 @@ pub fn backward<I: LayerBackend>(
     let dkv = Tensor::cat(vec![merge_heads(dk), merge_heads(dv)], 2);
     let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, merge_heads(dq), p);
     let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p);
-    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.xhat1, f.rstd1, &w.ln1, dn1_q + dn1_kv);
+    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv);
     let dx = dx1 + dx_norm;
     let one = |t: Tensor<I, 1>| t.into_primitive();
     let two = |t: Tensor<I, 2>| t.into_primitive();

@@ -147,7 +147,7 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
         heads: 2,
         causal: false,
         precision: Precision::F32,
-        eps: NORM_EPS,
+        eps: crate::norm::LN_EPS,
     };
     let y1 = math::forward(&weights, setting, &masks, x.clone());
     let (dx1, dp1) = math::backward(&weights, setting, &masks, x, r);

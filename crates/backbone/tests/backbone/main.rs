@@ -8,6 +8,7 @@ mod decode;
 mod emulator;
 mod flash2;
 mod heads;
+mod norm;
 mod ordinal;
 mod precision;
 mod recompute;

@@ -185,7 +185,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             umgen::backbone::matmul::fallbacks()
         )?;
     }
-    // Likewise the fused attention kernels.
+    // Likewise the fused attention and layer-norm kernels.
     if matches!(device, Device::Cuda(_)) {
         writeln!(
             out,
@@ -193,6 +193,12 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
              the first is logged with its reason)",
             tc.attention,
             umgen::backbone::flash::fallbacks()
+        )?;
+        writeln!(
+            out,
+            "layer norm    {} pass(es) fell back (the CUDA kernels to burn's decomposition; the first is \
+             logged with its reason)",
+            umgen::backbone::norm::fallbacks()
         )?;
     }
     writeln!(

@@ -1,0 +1,339 @@
+//! [`FusedNorm`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
+//! fusion stream that launches `norm.cu`'s kernels (compiled once per thread and device with NVRTC) on a
+//! side stream ordered with cubecl's ([`crate::side`]), unless `train.norm = "burn"` ([`super::select`]). Rows wider than 1,024, other types than f32, or a
+//! failure to compile or launch run the decomposition instead, counted by [`super::fallbacks`].
+#![allow(unsafe_code)]
+
+use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
+use crate::attention::float;
+use crate::side::{KernelCache, Kernels, pointer, with_kernels};
+use burn::backend::Cuda;
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::{DType, Shape, Tensor};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::tensor::CubeTensor;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use cudarc::driver::{DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::nvrtc::CompileOptions;
+use std::cell::RefCell;
+
+type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+type Primitive = CubeTensor<CudaRuntime>;
+type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
+
+/// Values a lane keeps of its row, one kernel each: rows up to 32 times as wide.
+const PER_LANE: [usize; 6] = [4, 8, 12, 16, 24, 32];
+
+/// Warps a block (the kernels' `__launch_bounds__(256)`).
+const WARPS: usize = 8;
+
+/// Blocks of the backward kernel: each warp loops over rows and writes one row of column sums, so this
+/// bounds the sums the caller adds (8,192 rows of `d`) while filling an H100 (132 SMs) in one wave.
+const BACKWARD_BLOCKS: usize = 1024;
+
+/// `NormParams` of `norm.cu`, field for field.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+struct Params {
+    x: u64,
+    gamma: u64,
+    beta: u64,
+    dy: u64,
+    mean: u64,
+    rstd: u64,
+    y: u64,
+    mean_out: u64,
+    rstd_out: u64,
+    dx: u64,
+    dgamma: u64,
+    dbeta: u64,
+    rows: i64,
+    d: i32,
+    eps: f32,
+}
+
+// SAFETY: plain old data, laid out as the C struct the kernels take by value.
+unsafe impl DeviceRepr for Params {}
+
+/// The kernels' per-lane capacity for rows of `d`, if one takes them.
+fn per_lane(d: usize) -> Option<usize> {
+    PER_LANE.into_iter().find(|&p| 32 * p >= d)
+}
+
+/// Why the kernels cannot take `x` `[rows, d]`, if they cannot.
+fn refused(x: &Tensor<Cuda, 2>) -> Option<String> {
+    let [rows, d] = x.dims();
+    if rows == 0 || d == 0 {
+        return Some(format!("an empty input [{rows}, {d}]"));
+    }
+    if per_lane(d).is_none() {
+        return Some(format!("rows of {d} (the kernels take up to 1,024)"));
+    }
+    (x.dtype() != DType::F32).then(|| format!("{:?} input (the kernels take f32)", x.dtype()))
+}
+
+impl FusedNorm for Cuda {
+    fn norm_forward(
+        x: Tensor<Self, 2>,
+        gamma: Tensor<Self, 1>,
+        beta: Tensor<Self, 1>,
+        eps: f64,
+    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        if selected() == NormKernel::Burn {
+            return forward_decomposed(x, gamma, beta, eps);
+        }
+        if let Some(why) = refused(&x) {
+            fell_back(&why);
+            return forward_decomposed(x, gamma, beta, eps);
+        }
+        let [rows, d] = x.dims();
+        let pass = Pass::Forward { eps: eps as f32 };
+        let inputs = [x.into_primitive().tensor(), prim(gamma), prim(beta)];
+        let [y, mean, rstd] = register(pass, inputs, [vec![rows, d], vec![rows], vec![rows]]);
+        (float(y), float(mean), float(rstd))
+    }
+
+    fn norm_backward(
+        dy: Tensor<Self, 2>,
+        x: Tensor<Self, 2>,
+        mean: Tensor<Self, 1>,
+        rstd: Tensor<Self, 1>,
+        gamma: Tensor<Self, 1>,
+    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        // The forward pass counted a refusal.
+        if selected() == NormKernel::Burn || refused(&x).is_some() {
+            return backward_decomposed(dy, x, mean, rstd, gamma);
+        }
+        let [rows, d] = x.dims();
+        let warps = backward_warps(rows);
+        let inputs = [prim(dy), prim(x), prim(mean), prim(rstd), prim(gamma)];
+        let [dx, dgamma, dbeta] = register(
+            Pass::Backward,
+            inputs,
+            [vec![rows, d], vec![warps, d], vec![warps, d]],
+        );
+        let sum = |t| crate::rows::sum(float::<Cuda, 2>(t));
+        (float(dx), sum(dgamma), sum(dbeta))
+    }
+}
+
+fn prim<const D: usize>(t: Tensor<Cuda, D>) -> burn::tensor::ops::FloatTensor<Cuda> {
+    t.into_primitive().tensor()
+}
+
+/// Warps of the backward kernel's grid for `rows` rows (each writes a row of column sums).
+fn backward_warps(rows: usize) -> usize {
+    rows.div_ceil(WARPS).min(BACKWARD_BLOCKS) * WARPS
+}
+
+/// Registers `pass` on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
+fn register<const I: usize, const O: usize>(
+    pass: Pass,
+    inputs: [burn::tensor::ops::FloatTensor<Cuda>; I],
+    shapes: [Vec<usize>; O],
+) -> [burn::tensor::ops::FloatTensor<Cuda>; O] {
+    let client = inputs[0].client.clone();
+    let outs: Vec<TensorIr> = shapes
+        .into_iter()
+        .map(|s| TensorIr::uninit(client.create_empty_handle(), Shape::from(s), DType::F32))
+        .collect();
+    let streams = OperationStreams::with_inputs(inputs.iter());
+    let irs: Vec<TensorIr> = inputs.into_iter().map(|p| p.into_ir()).collect();
+    let id = match pass {
+        Pass::Forward { .. } => "umgen_norm_forward",
+        Pass::Backward => "umgen_norm_backward",
+    };
+    let desc = CustomOpIr::new(id, &irs, &outs);
+    let op = Op {
+        desc: desc.clone(),
+        pass,
+    };
+    client
+        .register(streams, OperationIr::Custom(desc), op)
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("the operation was described with {O} outputs"))
+}
+
+/// Which pass.
+#[derive(Debug, Clone, Copy)]
+enum Pass {
+    /// x, γ, β in; y, mean, rstd out.
+    Forward { eps: f32 },
+    /// dy, x, mean, rstd, γ in; dx and the warps' column sums of dy · x̂ and dy out.
+    Backward,
+}
+
+/// One pass as the fusion stream runs it.
+#[derive(Debug)]
+struct Op {
+    desc: CustomOpIr,
+    pass: Pass,
+}
+
+impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
+    fn execute(&self, handles: &mut Handles) {
+        let get = |handles: &mut Handles, t| into_contiguous(handles.get_float_tensor::<Inner>(t));
+        let outputs = match self.pass {
+            Pass::Forward { eps } => {
+                let ([x, gamma, beta], _) = self.desc.as_fixed::<3, 3>();
+                let [x, gamma, beta] = [x, gamma, beta].map(|t| get(handles, t));
+                launch(&x, &gamma, Some(&beta), None, eps).unwrap_or_else(|why| {
+                    fell_back(&why);
+                    let (y, mean, rstd) =
+                        forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
+                    vec![prim_of(y), prim_of(mean), prim_of(rstd)]
+                })
+            }
+            Pass::Backward => {
+                let (inputs, _) = self.desc.as_fixed::<5, 3>();
+                let [dy, x, mean, rstd, gamma] = inputs.each_ref().map(|t| get(handles, t));
+                launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0).unwrap_or_else(|why| {
+                    fell_back(&why);
+                    let warps = backward_warps(x.meta.shape()[0]);
+                    let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
+                        float(dy),
+                        float(x),
+                        float(mean),
+                        float(rstd),
+                        float(gamma),
+                    );
+                    // The registered shapes hold one row per warp: the sums in the first, zeros after.
+                    let rows = |t: Tensor<Inner, 1>| {
+                        let d = t.dims()[0];
+                        let zeros = Tensor::<Inner, 2>::zeros([warps - 1, d], &t.device());
+                        prim_of(Tensor::cat(vec![t.reshape([1, d]), zeros], 0))
+                    };
+                    vec![prim_of(dx), rows(dgamma), rows(dbeta)]
+                })
+            }
+        };
+        for (ir, t) in self.desc.outputs.iter().zip(outputs) {
+            handles.register_float_tensor::<Inner>(&ir.id, t);
+        }
+    }
+}
+
+fn prim_of<const D: usize>(t: Tensor<Inner, D>) -> Primitive {
+    t.into_primitive().tensor()
+}
+
+thread_local! {
+    /// This thread's kernels by device.
+    static KERNELS: KernelCache = const { RefCell::new(Vec::new()) };
+}
+
+/// Compiles the kernels for `like`'s device.
+fn build(like: &Primitive) -> Result<Kernels, String> {
+    let names: Vec<String> = PER_LANE
+        .iter()
+        .flat_map(|p| {
+            [
+                format!("umgen_norm_forward_{p}"),
+                format!("umgen_norm_backward_{p}"),
+            ]
+        })
+        .collect();
+    Kernels::compile(
+        like,
+        include_str!("norm.cu").to_string(),
+        CompileOptions::default(),
+        &names,
+        0,
+    )
+}
+
+/// An uninitialised f32 tensor of `shape` on `like`'s device.
+fn empty(like: &Primitive, shape: Vec<usize>) -> Primitive {
+    empty_device_dtype(
+        like.client.clone(),
+        like.device.clone(),
+        Shape::from(shape),
+        DType::F32,
+    )
+}
+
+/// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y, mean, rstd) or the
+/// backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
+/// error says why it could not (nothing was launched but the side stream's flag kernels, so the caller may
+/// run the decomposition).
+fn launch(
+    x: &Primitive,
+    gamma: &Primitive,
+    beta: Option<&Primitive>,
+    grads: Option<[&Primitive; 3]>,
+    eps: f32,
+) -> Result<Vec<Primitive>, String> {
+    let shape = x.meta.shape();
+    let (rows, d) = (shape[0], shape[1]);
+    let per = per_lane(d).ok_or_else(|| format!("rows of {d}"))?;
+    let int = |v: usize, what: &str| i32::try_from(v).map_err(|_| format!("{what} {v}"));
+    let mut p = Params {
+        rows: i64::try_from(rows).map_err(|_| format!("{rows} rows"))?,
+        d: int(d, "width")?,
+        eps,
+        ..Params::default()
+    };
+    // The pointers, and what keeps the buffers alive until the launch is queued.
+    let mut keep = Vec::new();
+    let mut ptr = |t: &Primitive| -> Result<u64, String> {
+        let (address, guard) = pointer(t)?;
+        keep.push(guard);
+        Ok(address)
+    };
+    (p.x, p.gamma) = (ptr(x)?, ptr(gamma)?);
+    let (results, name, blocks) = match (beta, grads) {
+        (Some(beta), None) => {
+            p.beta = ptr(beta)?;
+            let results = vec![
+                empty(x, vec![rows, d]),
+                empty(x, vec![rows]),
+                empty(x, vec![rows]),
+            ];
+            (p.y, p.mean_out, p.rstd_out) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
+            (results, format!("umgen_norm_forward_{per}"), rows.div_ceil(WARPS))
+        }
+        (None, Some([dy, mean, rstd])) => {
+            (p.dy, p.mean, p.rstd) = (ptr(dy)?, ptr(mean)?, ptr(rstd)?);
+            let warps = backward_warps(rows);
+            let results = vec![
+                empty(x, vec![rows, d]),
+                empty(x, vec![warps, d]),
+                empty(x, vec![warps, d]),
+            ];
+            (p.dx, p.dgamma, p.dbeta) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
+            (results, format!("umgen_norm_backward_{per}"), warps / WARPS)
+        }
+        _ => return Err("a pass takes β (forward) or the gradients (backward)".into()),
+    };
+    let config = LaunchConfig {
+        grid_dim: (
+            u32::try_from(blocks).map_err(|_| format!("{blocks} blocks"))?,
+            1,
+            1,
+        ),
+        block_dim: (32 * WARPS as u32, 1, 1),
+        shared_mem_bytes: 0,
+    };
+    with_kernels(
+        &KERNELS,
+        x,
+        "layer norm",
+        || build(x),
+        |kernels| {
+            let f = kernels.function(&name)?.clone();
+            kernels.side.ordered(|stream| {
+                // SAFETY: every pointer in `p` is a live contiguous buffer (kept by `keep`) of the shape the
+                // kernel reads or writes (`rows × d`, `rows`, `d`, or one row per warp of the grid), and cubecl's
+                // stream waits for the kernel before anything queued later can free or reuse them.
+                unsafe { stream.launch_builder(&f).arg(&p).launch(config) }
+                    .map(|_| ())
+                    .map_err(|e| format!("{name}: {e:?}"))
+            })
+        },
+    )?;
+    Ok(results)
+}

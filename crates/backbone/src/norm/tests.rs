@@ -1,0 +1,125 @@
+use super::*;
+use burn::backend::{Autodiff, Flex};
+use burn::module::{Module, Param};
+use burn::nn::LayerNormConfig;
+use burn::tensor::Distribution;
+
+type A = Autodiff<Flex>;
+
+fn close<const D: usize>(a: Tensor<Flex, D>, b: Tensor<Flex, D>, tol: f32, what: &str) {
+    let (a, b) = (a.flatten::<1>(0, D - 1), b.flatten::<1>(0, D - 1));
+    let scale = b.clone().abs().max().into_scalar().max(1e-6);
+    let err = (a - b).abs().max().into_scalar() / scale;
+    assert!(err < tol, "{what}: relative error {err}");
+}
+
+fn norm(d: usize, shift: bool, dev: &burn::tensor::Device<A>) -> LayerNorm<A> {
+    let mut ln = LayerNormConfig::new(d).with_bias(shift).init::<A>(dev);
+    ln.gamma = Param::from_tensor(Tensor::random([d], Distribution::Normal(1.0, 0.3), dev));
+    if shift {
+        ln.beta = Some(Param::from_tensor(Tensor::random(
+            [d],
+            Distribution::Normal(0.0, 0.3),
+            dev,
+        )));
+    }
+    ln
+}
+
+#[test]
+fn training_backends_take_the_operation() {
+    assert!(tracked::<A>().is_some());
+    assert!(tracked::<Autodiff<Flex, BalancedCheckpointing>>().is_some());
+    assert!(tracked::<Flex>().is_none());
+}
+
+/// Values and the gradients of the input, scale and shift equal burn's `LayerNorm` (whose ε is therefore
+/// [`LN_EPS`]), on 4 × 1026 rows of a 3-d input, with and without a shift; an input far from zero checks the
+/// centred variance.
+#[test]
+fn layer_norm_matches_burns() {
+    let dev = Default::default();
+    for shift in [true, false] {
+        let ln = norm(24, shift, &dev);
+        let x = Tensor::<A, 3>::random([4, 1026, 24], Distribution::Normal(50.0, 2.0), &dev).require_grad();
+        let w = Tensor::<A, 3>::random([4, 1026, 24], Distribution::Normal(0.0, 1.0), &dev);
+        let ours = layer_norm(&ln, x.clone());
+        let theirs = ln.forward(x.clone());
+        close(ours.clone().inner(), theirs.clone().inner(), 1e-5, "y");
+        let g_ours = (ours * w.clone()).sum().backward();
+        let g_theirs = (theirs * w).sum().backward();
+        let x_grad = |g| x.grad(g).expect("x");
+        close(x_grad(&g_ours), x_grad(&g_theirs), 1e-4, "dx");
+        let gamma = ln.gamma.val();
+        let grad = |t: &Tensor<A, 1>, g| t.grad(g).expect("grad");
+        close(grad(&gamma, &g_ours), grad(&gamma, &g_theirs), 1e-4, "dgamma");
+        if let Some(beta) = &ln.beta {
+            let beta = beta.val();
+            close(grad(&beta, &g_ours), grad(&beta, &g_theirs), 1e-4, "dbeta");
+        }
+    }
+}
+
+/// A frozen norm (no parameter gradients asked for) still passes the input's gradient.
+#[test]
+fn a_frozen_norm_passes_the_input_gradient() {
+    let dev = Default::default();
+    let ln = norm(8, true, &dev).no_grad();
+    let x = Tensor::<A, 2>::random([5, 8], Distribution::Normal(0.0, 1.0), &dev).require_grad();
+    let w = Tensor::<A, 2>::random([5, 8], Distribution::Normal(0.0, 1.0), &dev);
+    let g_ours = (layer_norm(&ln, x.clone()) * w.clone()).sum().backward();
+    let g_theirs = (ln.forward(x.clone()) * w).sum().backward();
+    close(
+        x.grad(&g_ours).expect("x"),
+        x.grad(&g_theirs).expect("x"),
+        1e-4,
+        "dx",
+    );
+    assert!(ln.gamma.val().grad(&g_ours).is_none());
+}
+
+/// The two decomposed passes against a hand-computed row: x = [1, 2, 3, 6] has mean 3, variance 3.5.
+#[test]
+fn decomposed_passes_match_a_hand_computed_row() {
+    let dev = Default::default();
+    let x = Tensor::<Flex, 2>::from_floats([[1.0, 2.0, 3.0, 6.0]], &dev);
+    let gamma = Tensor::<Flex, 1>::from_floats([1.0, 2.0, 1.0, 1.0], &dev);
+    let beta = Tensor::<Flex, 1>::from_floats([0.0, 0.0, 0.5, 0.0], &dev);
+    let (y, mean, rstd) = forward_decomposed(x.clone(), gamma.clone(), beta, 0.0);
+    let s = 1.0 / 3.5f32.sqrt();
+    close(mean.clone(), Tensor::from_floats([3.0], &dev), 1e-6, "mean");
+    close(rstd.clone(), Tensor::from_floats([s], &dev), 1e-6, "rstd");
+    close(
+        y,
+        Tensor::from_floats([[-2.0 * s, -2.0 * s, 0.5, 3.0 * s]], &dev),
+        1e-6,
+        "y",
+    );
+    // dy = 1 on the first column only: dγ = x̂ there, dβ = 1 there, and dx = s·(g − mean g − x̂·mean(g·x̂))
+    // with g = [1, 0, 0, 0].
+    let dy = Tensor::<Flex, 2>::from_floats([[1.0, 0.0, 0.0, 0.0]], &dev);
+    let (dx, dgamma, dbeta) = backward_decomposed(dy, x, mean, rstd, gamma);
+    let xh = [-2.0 * s, -s, 0.0, 3.0 * s];
+    let (mg, mgx) = (0.25, 0.25 * xh[0]);
+    let want: Vec<f32> = (0..4)
+        .map(|i| s * (f32::from(i == 0) - mg - xh[i] * mgx))
+        .collect();
+    close(
+        dx,
+        Tensor::<Flex, 1>::from_floats(want.as_slice(), &dev).reshape([1, 4]),
+        1e-5,
+        "dx",
+    );
+    close(
+        dgamma,
+        Tensor::from_floats([xh[0], 0.0, 0.0, 0.0], &dev),
+        1e-6,
+        "dgamma",
+    );
+    close(
+        dbeta,
+        Tensor::from_floats([1.0, 0.0, 0.0, 0.0], &dev),
+        1e-6,
+        "dbeta",
+    );
+}
