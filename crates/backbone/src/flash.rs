@@ -172,7 +172,7 @@ pub fn unfit(head: usize) -> Option<String> {
 /// Counts a pass that runs other kernels than those chosen (`from`, which refused `why`, to `to`); logs
 /// the first.
 #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
-fn fell_back(from: &str, why: &str, to: &str) {
+pub(crate) fn fell_back(from: &str, why: &str, to: &str) {
     if FALLBACKS.fetch_add(1, Ordering::Relaxed) == 0 {
         tracing::warn!("{from} attention refused {why}; the {to} kernels run it (counted in fallbacks)");
     }

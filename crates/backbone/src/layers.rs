@@ -100,8 +100,24 @@ impl<B: Backend> MultiHead<B> {
 
     /// Heads merged, projected back to width d, dropout.
     fn output(&self, y: Tensor<B, 4>) -> Tensor<B, 3> {
-        self.drop
-            .forward(linear(&self.proj, merge_heads(y), self.precision))
+        self.output_merged(merge_heads(y))
+    }
+
+    /// Merged heads `[b, l, d]` projected back to width d, dropout.
+    fn output_merged(&self, y: Tensor<B, 3>) -> Tensor<B, 3> {
+        self.drop.forward(linear(&self.proj, y, self.precision))
+    }
+
+    /// Attention over time of `x` `[b, t, n, d]` (each position over its own frames, `causal`) by `op`, the
+    /// training backends' [`crate::temporal`] operation: the products run on the rows as they lie.
+    fn over_time(&self, x: Tensor<B, 4>, op: crate::temporal::OverTime<B>) -> Tensor<B, 4> {
+        let [b, t, n, d] = x.dims();
+        let rows = x.reshape([b, t * n, d]);
+        let p = self.precision;
+        let q = linear(&self.q, rows.clone(), p).reshape([b, t, n, d]);
+        let kv = linear(&self.kv, rows, p).reshape([b, t, n, 2 * d]);
+        let y = op(q, kv, self.heads, true, p);
+        self.output_merged(y.reshape([b, t * n, d])).reshape([b, t, n, d])
     }
 
     /// Heads.
@@ -191,6 +207,25 @@ impl<B: Backend> SelfBlock<B> {
         match crate::recompute::recomputed_for::<B>() {
             Some(layer) => layer(self, x, causal),
             None => self.forward_autodiff(x, causal),
+        }
+    }
+
+    /// The causal layer over time of `x` `[b, t, n, d]`: each of the `n` positions attends over its own
+    /// `t` frames. Training backends without recomputation run [`crate::temporal`]'s operation on the rows
+    /// as they lie; the others group the frames of each position (`[b · n, t, d]`, a transposition each
+    /// way) for [`Self::forward`].
+    pub fn forward_over_time(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+        let [b, t, n, d] = x.dims();
+        match crate::temporal::over_time_for::<B>() {
+            Some(op) if crate::recompute::recomputed_for::<B>().is_none() => {
+                let n1 = crate::norm::layer_norm(&self.ln1, x.clone());
+                let x = x + self.attn.over_time(n1, op);
+                x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
+            }
+            _ => self
+                .forward(x.swap_dims(1, 2).reshape([b * n, t, d]), true)
+                .reshape([b, n, t, d])
+                .swap_dims(1, 2),
         }
     }
 

@@ -53,6 +53,7 @@ mod rows;
 mod side;
 pub mod smoothing;
 mod spec;
+pub mod temporal;
 pub mod track;
 mod xent;
 

@@ -26,13 +26,8 @@ pub struct TarBlock<B: Backend> {
 impl<B: Backend> TarBlock<B> {
     fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
-        let xt = self
-            .temporal
-            .forward(x.swap_dims(1, 2).reshape([b * n, t, d]), true);
-        let xs = self.spatial.forward(
-            xt.reshape([b, n, t, d]).swap_dims(1, 2).reshape([b * t, n, d]),
-            false,
-        );
+        let xt = self.temporal.forward_over_time(x);
+        let xs = self.spatial.forward(xt.reshape([b * t, n, d]), false);
         xs.reshape([b, t, n, d])
     }
 }

@@ -21,10 +21,16 @@
 //! which cubecl loads anyway.)
 #![allow(unsafe_code)]
 
+use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, Shape};
+use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::ops::numeric::zeros_client;
 use burn_cubecl::tensor::CubeTensor;
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_ir::{CustomOpIr, OperationIr, TensorIr};
 use cubecl::prelude::*;
 use cudarc::driver::{CudaContext, CudaFunction, CudaStream, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
@@ -258,4 +264,39 @@ pub(crate) fn with_kernels<T>(
             None => Err(format!("no {what} kernels for cuda:{device}")),
         }
     })
+}
+
+/// Registers a custom operation on the fusion stream: `inputs` in, f32 outputs of `shapes` out, run by the
+/// operation `make` builds from its description.
+pub(crate) fn register<O, const I: usize, const N: usize>(
+    id: &'static str,
+    inputs: [FloatTensor<Cuda>; I],
+    shapes: [Vec<usize>; N],
+    make: impl FnOnce(CustomOpIr) -> O,
+) -> [FloatTensor<Cuda>; N]
+where
+    O: Operation<FusionCubeRuntime<CudaRuntime>> + 'static,
+{
+    let client = inputs[0].client.clone();
+    let outs: Vec<TensorIr> = shapes
+        .into_iter()
+        .map(|s| TensorIr::uninit(client.create_empty_handle(), Shape::from(s), DType::F32))
+        .collect();
+    let streams = OperationStreams::with_inputs(inputs.iter());
+    let irs: Vec<TensorIr> = inputs.into_iter().map(|p| p.into_ir()).collect();
+    let desc = CustomOpIr::new(id, &irs, &outs);
+    client
+        .register(streams, OperationIr::Custom(desc.clone()), make(desc))
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("the operation was described with {N} outputs"))
+}
+
+/// An uninitialised f32 tensor of `shape` on `like`'s device.
+pub(crate) fn empty_f32(like: &Primitive, shape: Vec<usize>) -> Primitive {
+    empty_device_dtype(
+        like.client.clone(),
+        like.device.clone(),
+        Shape::from(shape),
+        DType::F32,
+    )
 }

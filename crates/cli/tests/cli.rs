@@ -316,6 +316,38 @@ fn bench_attention_agrees_with_the_decomposed_attention_and_names_bad_cases() {
 }
 
 #[test]
+fn bench_layers_agrees_with_burns_operations_and_checks_its_shape() {
+    let out = umgen(&[
+        "bench", "layers", "--shape", "2,5,7,64", "--heads", "2", "--iters", "1",
+    ]);
+    let table = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let rows: Vec<Vec<f64>> = ["layer norm", "attention over time, 2h"]
+        .iter()
+        .map(|name| {
+            let line = table
+                .lines()
+                .find(|l| l.starts_with(name))
+                .unwrap_or_else(|| panic!("{table}"));
+            line[name.len()..]
+                .split_whitespace()
+                .map(|c| c.parse().unwrap())
+                .collect()
+        })
+        .collect();
+    for cols in &rows {
+        // Two times, then the errors of the output and the two gradients: f32 rounding on the CPU.
+        assert_eq!(cols.len(), 5, "{table}");
+        assert!(cols[0] > 0.0 && cols[1] > 0.0, "{table}");
+        assert!(cols[2..].iter().all(|&e| e < 1e-5), "{table}");
+    }
+    let err = failure(&["bench", "layers", "--shape", "2,5,7,64", "--heads", "3"], &[]);
+    assert!(err.contains("--heads 3") && err.contains("multiple"), "{err}");
+    let err = failure(&["bench", "layers", "--shape", "2,5,64"], &[]);
+    assert!(err.contains("four sizes"), "{err}");
+}
+
+#[test]
 fn bench_train_preset_names_the_config_it_reads_and_flags_are_checked() {
     let dir = std::env::temp_dir().join(format!("umgen-preset-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

@@ -6,17 +6,17 @@
 
 use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
 use crate::attention::float;
-use crate::side::{KernelCache, Kernels, pointer, with_kernels};
+use crate::side::{self, KernelCache, Kernels, empty_f32, pointer, with_kernels};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
-use burn::tensor::{DType, Shape, Tensor};
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{DType, Tensor};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::tensor::CubeTensor;
-use burn_fusion::stream::{Operation, OperationStreams};
-use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use burn_fusion::stream::Operation;
+use burn_ir::{CustomOpIr, HandleContainer};
 use cudarc::driver::{DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
@@ -121,7 +121,7 @@ impl FusedNorm for Cuda {
     }
 }
 
-fn prim<const D: usize>(t: Tensor<Cuda, D>) -> burn::tensor::ops::FloatTensor<Cuda> {
+fn prim<const D: usize>(t: Tensor<Cuda, D>) -> FloatTensor<Cuda> {
     t.into_primitive().tensor()
 }
 
@@ -133,29 +133,14 @@ fn backward_warps(rows: usize) -> usize {
 /// Registers `pass` on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
 fn register<const I: usize, const O: usize>(
     pass: Pass,
-    inputs: [burn::tensor::ops::FloatTensor<Cuda>; I],
+    inputs: [FloatTensor<Cuda>; I],
     shapes: [Vec<usize>; O],
-) -> [burn::tensor::ops::FloatTensor<Cuda>; O] {
-    let client = inputs[0].client.clone();
-    let outs: Vec<TensorIr> = shapes
-        .into_iter()
-        .map(|s| TensorIr::uninit(client.create_empty_handle(), Shape::from(s), DType::F32))
-        .collect();
-    let streams = OperationStreams::with_inputs(inputs.iter());
-    let irs: Vec<TensorIr> = inputs.into_iter().map(|p| p.into_ir()).collect();
+) -> [FloatTensor<Cuda>; O] {
     let id = match pass {
         Pass::Forward { .. } => "umgen_norm_forward",
         Pass::Backward => "umgen_norm_backward",
     };
-    let desc = CustomOpIr::new(id, &irs, &outs);
-    let op = Op {
-        desc: desc.clone(),
-        pass,
-    };
-    client
-        .register(streams, OperationIr::Custom(desc), op)
-        .try_into()
-        .unwrap_or_else(|_| unreachable!("the operation was described with {O} outputs"))
+    side::register(id, inputs, shapes, |desc| Op { desc, pass })
 }
 
 /// Which pass.
@@ -246,16 +231,6 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
     )
 }
 
-/// An uninitialised f32 tensor of `shape` on `like`'s device.
-fn empty(like: &Primitive, shape: Vec<usize>) -> Primitive {
-    empty_device_dtype(
-        like.client.clone(),
-        like.device.clone(),
-        Shape::from(shape),
-        DType::F32,
-    )
-}
-
 /// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y, mean, rstd) or the
 /// backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
 /// error says why it could not (nothing was launched but the side stream's flag kernels, so the caller may
@@ -267,6 +242,12 @@ fn launch(
     grads: Option<[&Primitive; 3]>,
     eps: f32,
 ) -> Result<Vec<Primitive>, String> {
+    let mut operands = vec![x, gamma];
+    operands.extend(beta);
+    operands.extend(grads.into_iter().flatten());
+    if let Some(t) = operands.iter().find(|t| t.dtype != DType::F32) {
+        return Err(format!("{:?} operand (the layer-norm kernels take f32)", t.dtype));
+    }
     let shape = x.meta.shape();
     let (rows, d) = (shape[0], shape[1]);
     let per = per_lane(d).ok_or_else(|| format!("rows of {d}"))?;
@@ -289,9 +270,9 @@ fn launch(
         (Some(beta), None) => {
             p.beta = ptr(beta)?;
             let results = vec![
-                empty(x, vec![rows, d]),
-                empty(x, vec![rows]),
-                empty(x, vec![rows]),
+                empty_f32(x, vec![rows, d]),
+                empty_f32(x, vec![rows]),
+                empty_f32(x, vec![rows]),
             ];
             (p.y, p.mean_out, p.rstd_out) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
             (results, format!("umgen_norm_forward_{per}"), rows.div_ceil(WARPS))
@@ -300,9 +281,9 @@ fn launch(
             (p.dy, p.mean, p.rstd) = (ptr(dy)?, ptr(mean)?, ptr(rstd)?);
             let warps = backward_warps(rows);
             let results = vec![
-                empty(x, vec![rows, d]),
-                empty(x, vec![warps, d]),
-                empty(x, vec![warps, d]),
+                empty_f32(x, vec![rows, d]),
+                empty_f32(x, vec![warps, d]),
+                empty_f32(x, vec![warps, d]),
             ];
             (p.dx, p.dgamma, p.dbeta) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
             (results, format!("umgen_norm_backward_{per}"), warps / WARPS)

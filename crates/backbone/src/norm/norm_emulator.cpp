@@ -6,79 +6,16 @@
 //
 // (`crates/backbone/tests/backbone/norm.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees within f32 tolerance.
-#include <barrier>
-#include <cmath>
 #include <cstdio>
-#include <memory>
 #include <random>
-#include <thread>
-#include <vector>
 
-#define UMGEN_EMULATED
-#define DEV static inline
-#define KERNEL void
-
-static thread_local int g_tid;
-static thread_local long long g_bx;
-static long long g_blocks;
-static int g_warps;
-static std::barrier<>* g_warp[8];
-static float g_lane[8][32];
-
-DEV int lane_id() { return g_tid & 31; }
-DEV int warp_id() { return g_tid >> 5; }
-DEV int warps_per_block() { return g_warps; }
-DEV long long block_x() { return g_bx; }
-DEV long long blocks() { return g_blocks; }
-DEV float rsqrtf(float x) { return 1.f / std::sqrt(x); }
-// The butterfly of `__shfl_xor_sync`, one exchange at a time through a warp barrier.
-DEV float warp_sum(float x) {
-    for (int m = 16; m > 0; m >>= 1) {
-        g_lane[warp_id()][lane_id()] = x;
-        g_warp[warp_id()]->arrive_and_wait();
-        x += g_lane[warp_id()][lane_id() ^ m];
-        g_warp[warp_id()]->arrive_and_wait();
-    }
-    return x;
-}
-
+#include "../warp_emulator.h"
 #include "norm.cu"
-
-// Runs `kernel` on `grid` blocks of `warps` warps, one block at a time.
-static void launch(void (*kernel)(NormParams), NormParams p, long long grid, int warps) {
-    g_warps = warps;
-    g_blocks = grid;
-    std::vector<std::unique_ptr<std::barrier<>>> barriers;
-    for (int w = 0; w < warps; w++) {
-        barriers.push_back(std::make_unique<std::barrier<>>(32));
-        g_warp[w] = barriers.back().get();
-    }
-    for (long long b = 0; b < grid; b++) {
-        std::vector<std::thread> threads;
-        for (int t = 0; t < 32 * warps; t++)
-            threads.emplace_back([=] {
-                g_tid = t;
-                g_bx = b;
-                kernel(p);
-            });
-        for (auto& t : threads) t.join();
-    }
-}
 
 struct Case {
     long long rows;
     int d, per, grid, warps;
 };
-
-// The largest |a − b| over the largest |b|.
-static double rel(const std::vector<float>& a, const std::vector<double>& b) {
-    double err = 0, scale = 1e-12;
-    for (size_t i = 0; i < b.size(); i++) {
-        err = std::max(err, std::fabs(a[i] - b[i]));
-        scale = std::max(scale, std::fabs(b[i]));
-    }
-    return err / scale;
-}
 
 static bool run(const Case& c, std::mt19937& rng) {
     const long long n = c.rows * c.d;
@@ -134,8 +71,8 @@ static bool run(const Case& c, std::mt19937& rng) {
     std::vector<float> sdg(c.d, 0), sdb(c.d, 0);
     for (long long w = 0; w < warps; w++)
         for (int i = 0; i < c.d; i++) sdg[i] += dg[w * c.d + i], sdb[i] += db[w * c.d + i];
-    const double errs[] = {rel(y, ry), rel(mean, rmean), rel(rstd, rrstd),
-                           rel(dx, rdx), rel(sdg, rdg), rel(sdb, rdb)};
+    const double errs[] = {relative_error(y, ry), relative_error(mean, rmean), relative_error(rstd, rrstd),
+                           relative_error(dx, rdx), relative_error(sdg, rdg), relative_error(sdb, rdb)};
     const char* names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta"};
     bool ok = true;
     printf("rows %lld d %d per %d grid %d × %d warps:", c.rows, c.d, c.per, c.grid, c.warps);

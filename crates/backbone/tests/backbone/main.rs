@@ -12,6 +12,7 @@ mod norm;
 mod ordinal;
 mod precision;
 mod recompute;
+mod temporal;
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};

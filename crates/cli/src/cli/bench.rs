@@ -27,6 +27,26 @@ pub enum BenchCommand {
     /// (`train.matmul = "named"`, and `"cublas"` on CUDA) against burn's own path: agreement with burn's
     /// f32 result, and time.
     Linear(BenchLinearArgs),
+    /// The layer norm and the TAR's attention over time as training computes them (on CUDA, umgen's
+    /// kernels) against burn's operations: agreement of outputs and gradients, forward+backward time.
+    Layers(BenchLayersArgs),
+}
+
+/// Arguments of `umgen bench layers`.
+#[derive(Debug, Args)]
+pub struct BenchLayersArgs {
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Activation `[B, T, N, D]` (windows, frames, tokens a frame, width). Default: the `small` preset's.
+    #[arg(long, value_delimiter = ',', default_value = "4,8,2199,384")]
+    pub shape: Vec<usize>,
+    /// Attention heads (head size D / heads).
+    #[arg(long, default_value_t = 6)]
+    pub heads: usize,
+    /// Timed forward+backward passes per path (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub iters: usize,
 }
 
 /// Arguments of `umgen bench linear`.

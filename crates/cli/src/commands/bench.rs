@@ -16,6 +16,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Attention(args) => super::bench_attention::run(&args),
         BenchCommand::Matmul(args) => super::bench_matmul::run(&args),
         BenchCommand::Linear(args) => super::bench_linear::run(&args),
+        BenchCommand::Layers(args) => super::bench_layers::run(&args),
     }
 }
 

@@ -6,6 +6,7 @@ mod bench_attention;
 mod bench_decode;
 mod bench_flash;
 mod bench_generate;
+mod bench_layers;
 mod bench_linear;
 mod bench_matmul;
 mod bench_train;

@@ -1,0 +1,348 @@
+//! [`TemporalAttention`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation
+//! in the fusion stream that launches `temporal.cu`'s kernels (compiled once per thread and device with
+//! NVRTC) on a side stream ordered with cubecl's ([`crate::side`]). More than 32 frames, head sizes other
+//! than 32, 64 and 128, other types than f32, or a failure to compile or launch run the decomposition
+//! instead, counted by [`crate::flash::fallbacks`] with the attention's other fallbacks.
+#![allow(unsafe_code)]
+
+use super::{TemporalAttention, backward_decomposed, forward_decomposed};
+use crate::attention::float;
+use crate::config::Precision;
+use crate::side::{self, KernelCache, Kernels, empty_f32, pointer, with_kernels};
+use burn::backend::Cuda;
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{DType, Tensor};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::tensor::CubeTensor;
+use burn_fusion::stream::Operation;
+use burn_ir::{CustomOpIr, HandleContainer};
+use cudarc::driver::{DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::nvrtc::CompileOptions;
+use std::cell::RefCell;
+
+type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+type Primitive = CubeTensor<CudaRuntime>;
+type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
+
+/// The longest sequence the kernels take (lane t keeps query t's statistics).
+const MAX_FRAMES: usize = 32;
+
+/// Warps a block (the kernels' `__launch_bounds__(256)`).
+const WARPS: usize = 8;
+
+/// `Axes` of `temporal.cu`: strides of the b, t and n axes.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+struct Axes {
+    b: i64,
+    t: i64,
+    n: i64,
+}
+
+/// `TemporalParams` of `temporal.cu`, field for field.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+struct Params {
+    q: u64,
+    k: u64,
+    v: u64,
+    dout: u64,
+    out_w: u64,
+    lse_w: u64,
+    dq: u64,
+    dk: u64,
+    dv: u64,
+    qa: Axes,
+    ka: Axes,
+    va: Axes,
+    ga: Axes,
+    dka: Axes,
+    dva: Axes,
+    b: i32,
+    t: i32,
+    n: i32,
+    heads: i32,
+    causal: i32,
+    scale: f32,
+}
+
+// SAFETY: plain old data, laid out as the C struct the kernels take by value.
+unsafe impl DeviceRepr for Params {}
+
+/// Values a lane holds of a head of `dh`, if a kernel takes that head size.
+fn per_lane(dh: usize) -> Option<usize> {
+    [1, 2, 4].into_iter().find(|&p| 32 * p == dh)
+}
+
+/// Why the kernels cannot take `q` `[b, t, n, d]` with `heads` heads, if they cannot.
+fn refused(q: &Tensor<Cuda, 4>, heads: usize) -> Option<String> {
+    let [b, t, n, d] = q.dims();
+    if b * t * n * d == 0 || heads == 0 || !d.is_multiple_of(heads) {
+        return Some(format!(
+            "attention over time of [{b}, {t}, {n}, {d}] in {heads} heads"
+        ));
+    }
+    if t > MAX_FRAMES {
+        return Some(format!(
+            "{t} frames (the temporal kernels take up to {MAX_FRAMES})"
+        ));
+    }
+    if per_lane(d / heads).is_none() {
+        return Some(format!(
+            "head size {} (the temporal kernels take 32, 64 and 128)",
+            d / heads
+        ));
+    }
+    if i32::try_from(b.max(n).max(heads)).is_err() {
+        return Some(format!("[{b}, {t}, {n}] in {heads} heads: over 32-bit sizes"));
+    }
+    (q.dtype() != DType::F32).then(|| format!("{:?} operands (the temporal kernels take f32)", q.dtype()))
+}
+
+impl TemporalAttention for Cuda {
+    fn temporal_forward(
+        q: Tensor<Self, 4>,
+        kv: Tensor<Self, 4>,
+        heads: usize,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        if let Some(why) = refused(&q, heads) {
+            crate::flash::fell_back("temporal", &why, "decomposed");
+            return forward_decomposed(q, kv, heads, causal, precision);
+        }
+        let [b, t, n, d] = q.dims();
+        let pass = Pass {
+            heads,
+            causal,
+            backward: false,
+            precision,
+        };
+        let [out, lse] = side::register(
+            "umgen_temporal_forward",
+            [prim(q), prim(kv)],
+            [vec![b, t, n, d], vec![b, t, n, heads]],
+            |desc| Op { desc, pass },
+        );
+        (float(out), float(lse))
+    }
+
+    fn temporal_backward(
+        q: Tensor<Self, 4>,
+        kv: Tensor<Self, 4>,
+        out: Tensor<Self, 4>,
+        lse: Tensor<Self, 4>,
+        dout: Tensor<Self, 4>,
+        heads: usize,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        // The forward pass counted a refusal.
+        if refused(&q, heads).is_some() {
+            return backward_decomposed(q, kv, out, lse, dout, heads, causal, precision);
+        }
+        // The kernel recomputes the log-sum-exp and `dout · out` from q, kv and dout.
+        let [b, t, n, d] = q.dims();
+        let pass = Pass {
+            heads,
+            causal,
+            backward: true,
+            precision,
+        };
+        let [dq, dkv] = side::register(
+            "umgen_temporal_backward",
+            [prim(q), prim(kv), prim(dout)],
+            [vec![b, t, n, d], vec![b, t, n, 2 * d]],
+            |desc| Op { desc, pass },
+        );
+        (float(dq), float(dkv))
+    }
+}
+
+fn prim<const D: usize>(t: Tensor<Cuda, D>) -> FloatTensor<Cuda> {
+    t.into_primitive().tensor()
+}
+
+fn prim_of<const D: usize>(t: Tensor<Inner, D>) -> Primitive {
+    t.into_primitive().tensor()
+}
+
+/// What a pass computes.
+#[derive(Debug, Clone, Copy)]
+struct Pass {
+    heads: usize,
+    causal: bool,
+    /// q, kv, dout in; dq, dkv out (otherwise q, kv in; out, lse out).
+    backward: bool,
+    /// For the decomposition, should the kernels fail.
+    precision: Precision,
+}
+
+/// One pass as the fusion stream runs it.
+#[derive(Debug)]
+struct Op {
+    desc: CustomOpIr,
+    pass: Pass,
+}
+
+impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
+    fn execute(&self, handles: &mut Handles) {
+        let get = |handles: &mut Handles, t| into_contiguous(handles.get_float_tensor::<Inner>(t));
+        let Pass {
+            heads,
+            causal,
+            backward,
+            precision,
+        } = self.pass;
+        let outputs = if backward {
+            let ([q, kv, dout], _) = self.desc.as_fixed::<3, 2>();
+            let [q, kv, dout] = [q, kv, dout].map(|t| get(handles, t));
+            launch(&q, &kv, Some(&dout), heads, causal).unwrap_or_else(|why| {
+                crate::flash::fell_back("temporal", &why, "decomposed");
+                let (q, kv) = (float::<Inner, 4>(q), float::<Inner, 4>(kv));
+                let (out, lse) = forward_decomposed(q.clone(), kv.clone(), heads, causal, precision);
+                let (dq, dkv) = backward_decomposed(q, kv, out, lse, float(dout), heads, causal, precision);
+                vec![prim_of(dq), prim_of(dkv)]
+            })
+        } else {
+            let ([q, kv], _) = self.desc.as_fixed::<2, 2>();
+            let [q, kv] = [q, kv].map(|t| get(handles, t));
+            launch(&q, &kv, None, heads, causal).unwrap_or_else(|why| {
+                crate::flash::fell_back("temporal", &why, "decomposed");
+                let (out, lse) = forward_decomposed::<Inner>(float(q), float(kv), heads, causal, precision);
+                vec![prim_of(out), prim_of(lse)]
+            })
+        };
+        for (ir, t) in self.desc.outputs.iter().zip(outputs) {
+            handles.register_float_tensor::<Inner>(&ir.id, t);
+        }
+    }
+}
+
+thread_local! {
+    /// This thread's kernels by device.
+    static KERNELS: KernelCache = const { RefCell::new(Vec::new()) };
+}
+
+/// Compiles the kernels for `like`'s device.
+fn build(like: &Primitive) -> Result<Kernels, String> {
+    let names: Vec<String> = [1, 2, 4]
+        .iter()
+        .flat_map(|p| {
+            [
+                format!("umgen_temporal_forward_{p}"),
+                format!("umgen_temporal_backward_{p}"),
+            ]
+        })
+        .collect();
+    Kernels::compile(
+        like,
+        include_str!("temporal.cu").to_string(),
+        CompileOptions::default(),
+        &names,
+        0,
+    )
+}
+
+/// Strides of a contiguous `[b, t, n, width]` tensor's first three axes.
+fn axes(t: usize, n: usize, width: usize) -> Axes {
+    let i = |x: usize| x as i64;
+    Axes {
+        b: i(t * n * width),
+        t: i(n * width),
+        n: i(width),
+    }
+}
+
+/// Runs the forward pass on contiguous `q` `[b, t, n, d]` and `kv` `[b, t, n, 2d]` (`dout` `None`: the
+/// output and log-sum-exp) or the backward pass (`dout`, contiguous: dq and dkv),
+/// returning its results; an error says why it could not (nothing was launched but the side stream's flag
+/// kernels, so the caller may run the decomposition).
+fn launch(
+    q: &Primitive,
+    kv: &Primitive,
+    dout: Option<&Primitive>,
+    heads: usize,
+    causal: bool,
+) -> Result<Vec<Primitive>, String> {
+    let mut operands = vec![q, kv];
+    operands.extend(dout);
+    if let Some(t) = operands.iter().find(|t| t.dtype != DType::F32) {
+        return Err(format!("{:?} operand (the temporal kernels take f32)", t.dtype));
+    }
+    let s = q.meta.shape();
+    let (b, t, n, d) = (s[0], s[1], s[2], s[3]);
+    let dpl = per_lane(d / heads).ok_or_else(|| format!("head size {}", d / heads))?;
+    let int = |x: usize| i32::try_from(x).map_err(|_| format!("size {x} over 32 bits"));
+    let (plain, halves) = (axes(t, n, d), axes(t, n, 2 * d));
+    let mut p = Params {
+        qa: plain,
+        ka: halves,
+        va: halves,
+        ga: plain,
+        dka: halves,
+        dva: halves,
+        b: int(b)?,
+        t: int(t)?,
+        n: int(n)?,
+        heads: int(heads)?,
+        causal: i32::from(causal),
+        scale: 1.0 / ((d / heads) as f32).sqrt(),
+        ..Params::default()
+    };
+    // The pointers, and what keeps the buffers alive until the launch is queued.
+    let mut keep = Vec::new();
+    let mut ptr = |t: &Primitive| -> Result<u64, String> {
+        let (address, guard) = pointer(t)?;
+        keep.push(guard);
+        Ok(address)
+    };
+    let f32_bytes = 4;
+    (p.q, p.k) = (ptr(q)?, ptr(kv)?);
+    p.v = p.k + (d * f32_bytes) as u64;
+    let (results, name) = match dout {
+        None => {
+            let results = vec![empty_f32(q, vec![b, t, n, d]), empty_f32(q, vec![b, t, n, heads])];
+            (p.out_w, p.lse_w) = (ptr(&results[0])?, ptr(&results[1])?);
+            (results, format!("umgen_temporal_forward_{dpl}"))
+        }
+        Some(dout) => {
+            p.dout = ptr(dout)?;
+            let results = vec![empty_f32(q, vec![b, t, n, d]), empty_f32(q, vec![b, t, n, 2 * d])];
+            (p.dq, p.dk) = (ptr(&results[0])?, ptr(&results[1])?);
+            p.dv = p.dk + (d * f32_bytes) as u64;
+            (results, format!("umgen_temporal_backward_{dpl}"))
+        }
+    };
+    let blocks = (b * n * heads).div_ceil(WARPS);
+    let config = LaunchConfig {
+        grid_dim: (
+            u32::try_from(blocks).map_err(|_| format!("{blocks} blocks"))?,
+            1,
+            1,
+        ),
+        block_dim: (32 * WARPS as u32, 1, 1),
+        shared_mem_bytes: 0,
+    };
+    with_kernels(
+        &KERNELS,
+        q,
+        "attention over time",
+        || build(q),
+        |kernels| {
+            let f = kernels.function(&name)?.clone();
+            kernels.side.ordered(|stream| {
+                // SAFETY: every pointer in `p` is a live contiguous buffer (kept by `keep`) of the shape its
+                // strides in `p` describe (`v` and `dv` the second halves of `kv` and `dkv`), and cubecl's stream
+                // waits for the kernel before anything queued later can free or reuse them.
+                unsafe { stream.launch_builder(&f).arg(&p).launch(config) }
+                    .map(|_| ())
+                    .map_err(|e| format!("{name}: {e:?}"))
+            })
+        },
+    )?;
+    Ok(results)
+}

@@ -1,0 +1,82 @@
+// The warp-level primitives of the CUDA C kernels in this crate (`norm/norm.cu`, `temporal/temporal.cu`)
+// for the host: every CUDA thread of a block is a std::thread, shuffles go through a warp barrier, and a
+// grid runs one block at a time. Included by the `*_emulator.cpp` files before the kernel source.
+#pragma once
+#include <barrier>
+#include <cmath>
+#include <memory>
+#include <thread>
+#include <vector>
+
+#define UMGEN_EMULATED
+#define DEV static inline
+#define KERNEL void
+
+static thread_local int g_tid;
+static thread_local long long g_bx;
+static long long g_blocks;
+static int g_warps;
+static std::barrier<>* g_warp[8];
+static float g_lane[8][32];
+
+DEV int lane_id() { return g_tid & 31; }
+DEV int warp_id() { return g_tid >> 5; }
+DEV int warps_per_block() { return g_warps; }
+DEV long long block_x() { return g_bx; }
+DEV long long blocks() { return g_blocks; }
+DEV long long warp_index() { return g_bx * g_warps + warp_id(); }
+DEV float rsqrtf(float x) { return 1.f / std::sqrt(x); }
+
+// Every lane's `x`, read by the calling lane from `lane(i)` through the warp's barrier.
+template <class F>
+static float exchange(float x, F lane) {
+    g_lane[warp_id()][lane_id()] = x;
+    g_warp[warp_id()]->arrive_and_wait();
+    const float y = g_lane[warp_id()][lane(lane_id())];
+    g_warp[warp_id()]->arrive_and_wait();
+    return y;
+}
+
+// The butterfly of `__shfl_xor_sync`.
+DEV float warp_sum(float x) {
+    for (int m = 16; m > 0; m >>= 1) x += exchange(x, [m](int l) { return l ^ m; });
+    return x;
+}
+
+// `__shfl_sync(x, lane)`.
+DEV float from_lane(float x, int lane) {
+    return exchange(x, [lane](int) { return lane; });
+}
+
+// Runs `kernel` on `grid` blocks of `warps` warps (at most 8), one block at a time.
+template <class P>
+static void launch(void (*kernel)(P), P p, long long grid, int warps) {
+    g_warps = warps;
+    g_blocks = grid;
+    std::vector<std::unique_ptr<std::barrier<>>> barriers;
+    for (int w = 0; w < warps; w++) {
+        barriers.push_back(std::make_unique<std::barrier<>>(32));
+        g_warp[w] = barriers.back().get();
+    }
+    for (long long b = 0; b < grid; b++) {
+        std::vector<std::thread> threads;
+        for (int t = 0; t < 32 * warps; t++)
+            threads.emplace_back([=] {
+                g_tid = t;
+                g_bx = b;
+                kernel(p);
+            });
+        for (auto& t : threads) t.join();
+    }
+}
+
+// The largest |a − b| over the largest |b|.
+template <class A, class B>
+static double relative_error(const A& a, const B& b) {
+    double err = 0, scale = 1e-12;
+    for (size_t i = 0; i < b.size(); i++) {
+        err = std::max(err, std::fabs(a[i] - b[i]));
+        scale = std::max(scale, std::fabs((double)b[i]));
+    }
+    return err / scale;
+}
