@@ -30,6 +30,9 @@ use burn::tensor::ops::{AttentionModuleOptions, FloatTensor};
 use burn::tensor::{Bool, Tensor, TensorPrimitive};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
+mod kv;
+pub(crate) use kv::split_kv;
+
 /// Shorter key sequences take the decomposed path: their score matrices are no larger than a few copies of
 /// the keys, and the block loop only adds launches (H200, `umgen bench attention`: 70,352 sequences of 8
 /// tokens took 15.8 ms tiled against 8.1 ms decomposed; 32 × 6 heads × 2,199 causal tokens 34 ms against
@@ -81,6 +84,29 @@ pub fn attend<B: Backend>(
                 ..Default::default()
             };
             attention(q, k, v, mask, None, opts)
+        }
+    }
+}
+
+/// [`attend`] with keys and values as one tensor `kv` `[b, lk, 2d]` (keys' columns, then values'), split
+/// into `heads` heads: on the training backends (no mask, long key sequences) one operation whose
+/// backward pass returns `kv`'s gradient as one tensor ([`kv`]).
+pub fn attend_kv<B: Backend>(
+    q: Tensor<B, 4>,
+    kv: Tensor<B, 3>,
+    mask: Option<Tensor<B, 4, Bool>>,
+    causal: bool,
+    precision: Precision,
+) -> Tensor<B, 4> {
+    let [_, heads, lq, _] = q.dims();
+    let lk = kv.dims()[1];
+    match kv::kv_for::<B>() {
+        Some(f) if mask.is_none() && lk >= MIN_TILED_KEYS && (!causal || lk >= lq) => {
+            f(q, kv, causal, precision.attention())
+        }
+        _ => {
+            let (k, v) = split_kv(kv, heads);
+            attend(q, k, v, mask, causal, precision)
         }
     }
 }

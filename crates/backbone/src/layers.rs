@@ -82,19 +82,17 @@ impl<B: Backend> MultiHead<B> {
         mask: Option<Tensor<B, 4, Bool>>,
         causal: bool,
     ) -> Tensor<B, 3> {
-        let (q, k, v) = self.project(x, ctx);
-        let y = crate::attention::attend(q, k, v, mask, causal, self.precision);
-        self.output(y)
+        let p = self.precision;
+        let q = split_heads(linear(&self.q, x, p), self.heads);
+        let kv = linear(&self.kv, ctx, p);
+        self.output(crate::attention::attend_kv(q, kv, mask, causal, p))
     }
 
     /// Queries of `x` and keys and values of `ctx`, split into heads `[b, heads, l, dh]`.
     fn project(&self, x: Tensor<B, 3>, ctx: Tensor<B, 3>) -> (Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>) {
         let p = self.precision;
         let q = split_heads(linear(&self.q, x, p), self.heads);
-        let kv = linear(&self.kv, ctx, p);
-        let d = kv.dims()[2] / 2;
-        let k = split_heads(kv.clone().narrow(2, 0, d), self.heads);
-        let v = split_heads(kv.narrow(2, d, d), self.heads);
+        let (k, v) = crate::attention::split_kv(linear(&self.kv, ctx, p), self.heads);
         (q, k, v)
     }
 
