@@ -32,7 +32,7 @@ use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_ir::{CustomOpIr, OperationIr, TensorIr};
 use cubecl::prelude::*;
-use cudarc::driver::{CudaContext, CudaFunction, CudaStream, LaunchConfig, PushKernelArg};
+use cudarc::driver::{CudaContext, CudaFunction, CudaStream, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
 use std::cell::RefCell;
 use std::sync::Arc;
@@ -175,6 +175,58 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
         .get_resource(t.handle.clone())
         .map_err(|e| format!("device buffer: {e:?}"))?;
     Ok((res.resource().ptr, res))
+}
+
+/// Device pointers of burn's buffers for a kernel's parameters; each buffer stays alive while this is held
+/// (hold it until the launch is queued: cubecl's stream then waits for the kernel before it can reuse them).
+#[derive(Default)]
+pub(crate) struct Pointers(Vec<Box<dyn std::any::Any>>);
+
+impl Pointers {
+    /// The device pointer of `t`'s first element, `t`'s buffer kept alive.
+    pub(crate) fn of(&mut self, t: &Primitive) -> Result<u64, String> {
+        let (address, guard) = pointer(t)?;
+        self.0.push(Box::new(guard));
+        Ok(address)
+    }
+}
+
+/// Launches the kernel `name` of `cache`'s kernels for `like`'s device (built by `build` on first use;
+/// `what` names them in errors) on `blocks` blocks of `threads` threads with `params`, on the side stream
+/// ordered with cubecl's.
+///
+/// # Safety
+///
+/// Every pointer in `params` must be a live buffer (see [`Pointers`]) of the extent the kernel reads or
+/// writes through it.
+pub(crate) unsafe fn launch_kernel<P: DeviceRepr>(
+    cache: &'static LocalKey<KernelCache>,
+    like: &Primitive,
+    what: &str,
+    build: impl FnOnce() -> Result<Kernels, String>,
+    name: &str,
+    (blocks, threads): (usize, u32),
+    params: &P,
+) -> Result<(), String> {
+    let config = LaunchConfig {
+        grid_dim: (
+            u32::try_from(blocks).map_err(|_| format!("{name}: {blocks} blocks"))?,
+            1,
+            1,
+        ),
+        block_dim: (threads, 1, 1),
+        shared_mem_bytes: 0,
+    };
+    with_kernels(cache, like, what, build, |kernels| {
+        let f = kernels.function(name)?.clone();
+        kernels.side.ordered(|stream| {
+            // SAFETY: the caller's contract (live buffers of the kernel's extents); cubecl's stream waits for
+            // the kernel before anything queued later can free or reuse them.
+            unsafe { stream.launch_builder(&f).arg(params).launch(config) }
+                .map(|_| ())
+                .map_err(|e| format!("{name}: {e:?}"))
+        })
+    })
 }
 
 /// Kernels compiled by NVRTC from one source and the side stream they run on, for one device and the

@@ -10,7 +10,7 @@
 #![allow(unsafe_code)]
 
 use super::cuda::empty;
-use crate::side::{KernelCache, Kernels, pointer, with_kernels};
+use crate::side::{KernelCache, Kernels, Pointers, with_kernels};
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::DType;
 use burn_cubecl::tensor::CubeTensor;
@@ -199,12 +199,8 @@ pub(super) fn launch(
         ..Params::default()
     };
     // The pointers, and what keeps the buffers alive until the launch is queued.
-    let mut keep = Vec::new();
-    let mut ptr = |t: &Primitive| -> Result<u64, String> {
-        let (address, guard) = pointer(t)?;
-        keep.push(guard);
-        Ok(address)
-    };
+    let mut keep = Pointers::default();
+    let mut ptr = |t: &Primitive| keep.of(t);
     (p.q, p.k, p.v) = (ptr(q)?, ptr(k)?, ptr(v)?);
     let dtype = if q.dtype == DType::BF16 { "bf16" } else { "f32" };
     // The results, each kernel's name and the rows its grid covers.

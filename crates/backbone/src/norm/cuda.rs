@@ -6,7 +6,7 @@
 
 use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
 use crate::attention::float;
-use crate::side::{self, KernelCache, Kernels, empty_f32, pointer, with_kernels};
+use crate::side::{self, KernelCache, Kernels, empty_f32};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::FloatTensor;
@@ -17,7 +17,7 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::Operation;
 use burn_ir::{CustomOpIr, HandleContainer};
-use cudarc::driver::{DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
 
@@ -259,12 +259,8 @@ fn launch(
         ..Params::default()
     };
     // The pointers, and what keeps the buffers alive until the launch is queued.
-    let mut keep = Vec::new();
-    let mut ptr = |t: &Primitive| -> Result<u64, String> {
-        let (address, guard) = pointer(t)?;
-        keep.push(guard);
-        Ok(address)
-    };
+    let mut keep = side::Pointers::default();
+    let mut ptr = |t: &Primitive| keep.of(t);
     (p.x, p.gamma) = (ptr(x)?, ptr(gamma)?);
     let (results, name, blocks) = match (beta, grads) {
         (Some(beta), None) => {
@@ -290,31 +286,19 @@ fn launch(
         }
         _ => return Err("a pass takes β (forward) or the gradients (backward)".into()),
     };
-    let config = LaunchConfig {
-        grid_dim: (
-            u32::try_from(blocks).map_err(|_| format!("{blocks} blocks"))?,
-            1,
-            1,
-        ),
-        block_dim: (32 * WARPS as u32, 1, 1),
-        shared_mem_bytes: 0,
-    };
-    with_kernels(
-        &KERNELS,
-        x,
-        "layer norm",
-        || build(x),
-        |kernels| {
-            let f = kernels.function(&name)?.clone();
-            kernels.side.ordered(|stream| {
-                // SAFETY: every pointer in `p` is a live contiguous buffer (kept by `keep`) of the shape the
-                // kernel reads or writes (`rows × d`, `rows`, `d`, or one row per warp of the grid), and cubecl's
-                // stream waits for the kernel before anything queued later can free or reuse them.
-                unsafe { stream.launch_builder(&f).arg(&p).launch(config) }
-                    .map(|_| ())
-                    .map_err(|e| format!("{name}: {e:?}"))
-            })
-        },
-    )?;
+    // SAFETY: every pointer in `p` is a live contiguous buffer (kept by `keep`) of the shape the kernel reads or
+    // writes (`rows × d`, `rows`, `d`, or one row per warp of the grid).
+    unsafe {
+        side::launch_kernel(
+            &KERNELS,
+            x,
+            "layer norm",
+            || build(x),
+            &name,
+            (blocks, 32 * WARPS as u32),
+            &p,
+        )
+    }?;
+    drop(keep);
     Ok(results)
 }

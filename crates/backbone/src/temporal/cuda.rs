@@ -8,7 +8,7 @@
 use super::{TemporalAttention, backward_decomposed, forward_decomposed};
 use crate::attention::float;
 use crate::config::Precision;
-use crate::side::{self, KernelCache, Kernels, empty_f32, pointer, with_kernels};
+use crate::side::{self, KernelCache, Kernels, empty_f32};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::FloatTensor;
@@ -19,7 +19,7 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::Operation;
 use burn_ir::{CustomOpIr, HandleContainer};
-use cudarc::driver::{DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
 
@@ -294,12 +294,8 @@ fn launch(
         ..Params::default()
     };
     // The pointers, and what keeps the buffers alive until the launch is queued.
-    let mut keep = Vec::new();
-    let mut ptr = |t: &Primitive| -> Result<u64, String> {
-        let (address, guard) = pointer(t)?;
-        keep.push(guard);
-        Ok(address)
-    };
+    let mut keep = side::Pointers::default();
+    let mut ptr = |t: &Primitive| keep.of(t);
     let f32_bytes = 4;
     (p.q, p.k) = (ptr(q)?, ptr(kv)?);
     p.v = p.k + (d * f32_bytes) as u64;
@@ -318,31 +314,19 @@ fn launch(
         }
     };
     let blocks = (b * n * heads).div_ceil(WARPS);
-    let config = LaunchConfig {
-        grid_dim: (
-            u32::try_from(blocks).map_err(|_| format!("{blocks} blocks"))?,
-            1,
-            1,
-        ),
-        block_dim: (32 * WARPS as u32, 1, 1),
-        shared_mem_bytes: 0,
-    };
-    with_kernels(
-        &KERNELS,
-        q,
-        "attention over time",
-        || build(q),
-        |kernels| {
-            let f = kernels.function(&name)?.clone();
-            kernels.side.ordered(|stream| {
-                // SAFETY: every pointer in `p` is a live contiguous buffer (kept by `keep`) of the shape its
-                // strides in `p` describe (`v` and `dv` the second halves of `kv` and `dkv`), and cubecl's stream
-                // waits for the kernel before anything queued later can free or reuse them.
-                unsafe { stream.launch_builder(&f).arg(&p).launch(config) }
-                    .map(|_| ())
-                    .map_err(|e| format!("{name}: {e:?}"))
-            })
-        },
-    )?;
+    // SAFETY: every pointer in `p` is a live contiguous buffer (kept by `keep`) of the shape its strides in `p`
+    // describe (`v` and `dv` the second halves of `kv` and `dkv`).
+    unsafe {
+        side::launch_kernel(
+            &KERNELS,
+            q,
+            "attention over time",
+            || build(q),
+            &name,
+            (blocks, 32 * WARPS as u32),
+            &p,
+        )
+    }?;
+    drop(keep);
     Ok(results)
 }
