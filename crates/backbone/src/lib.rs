@@ -22,10 +22,12 @@
 //! (`precision.rs`); training attention over long sequences runs fused kernels on CUDA ([`flash`]) and tiled
 //! passes elsewhere ([`attention`]), and training on CUDA runs the linear layers' products on a named matmul
 //! kernel ([`matmul`]). With [`recompute`] on, the self-attention layers keep only their inputs for the
-//! backward pass and are recomputed there (activation checkpointing). On the training backends three more
-//! custom autodiff operations replace burn's backward passes where those run on a handful of GPU units or
-//! pass over the logits several times: per-feature parameters (`rows.rs`), embedding lookups
-//! (`lookup.rs`) and the cross-entropy from logits (`xent.rs`, with [`smoothing`]'s targets).
+//! backward pass and are recomputed there (activation checkpointing). On the training backends more custom
+//! autodiff operations replace burn's where those run on a handful of GPU units, pass over an activation
+//! many times or copy it: bias adds (`rows.rs`), embedding lookups (`lookup.rs`), the cross-entropy from
+//! logits (`xent.rs`, with [`smoothing`]'s targets), the layer norm ([`norm`]), the TAR's attention over
+//! time on the rows as they lie ([`temporal`]) and the attention over one kv tensor (`attention/kv.rs`);
+//! the norm's and the temporal attention's passes are CUDA C kernels on CUDA.
 //!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
