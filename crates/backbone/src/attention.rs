@@ -90,7 +90,7 @@ pub fn attend<B: Backend>(
 
 /// [`attend`] with keys and values as one tensor `kv` `[b, lk, 2d]` (keys' columns, then values'), split
 /// into `heads` heads: on the training backends (no mask, long key sequences) one operation whose
-/// backward pass returns `kv`'s gradient as one tensor ([`kv`]).
+/// backward pass returns `kv`'s gradient as one tensor (`attention/kv.rs`).
 pub fn attend_kv<B: Backend>(
     q: Tensor<B, 4>,
     kv: Tensor<B, 3>,
