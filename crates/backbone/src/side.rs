@@ -25,12 +25,14 @@ use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::ops::numeric::zeros_client;
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
-use burn_ir::{CustomOpIr, OperationIr, TensorIr};
+use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
 use cubecl::prelude::*;
 use cudarc::driver::{CudaContext, CudaFunction, CudaStream, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
@@ -38,7 +40,41 @@ use std::cell::RefCell;
 use std::sync::Arc;
 use std::thread::LocalKey;
 
-type Primitive = CubeTensor<CudaRuntime>;
+/// The cubecl backend under burn-fusion's `Cuda`: what a custom fusion operation's handles hold.
+pub(crate) type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
+/// A tensor of [`Inner`].
+pub(crate) type Primitive = CubeTensor<CudaRuntime>;
+/// The handles a custom fusion operation reads its inputs from and registers its outputs in.
+pub(crate) type Handles =
+    HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
+
+/// `t`'s fusion primitive (a custom operation's input).
+pub(crate) fn fused<const D: usize>(t: burn::tensor::Tensor<Cuda, D>) -> FloatTensor<Cuda> {
+    t.into_primitive().tensor()
+}
+
+/// `t`'s cubecl primitive (a custom operation's output computed with burn operations on [`Inner`]).
+pub(crate) fn inner<const D: usize>(t: burn::tensor::Tensor<Inner, D>) -> Primitive {
+    t.into_primitive().tensor()
+}
+
+/// The `N` inputs of the custom operation `desc` (with `M` outputs), each made contiguous.
+pub(crate) fn contiguous_inputs<const N: usize, const M: usize>(
+    handles: &mut Handles,
+    desc: &CustomOpIr,
+) -> [Primitive; N] {
+    let (inputs, _) = desc.as_fixed::<N, M>();
+    inputs
+        .each_ref()
+        .map(|t| into_contiguous(handles.get_float_tensor::<Inner>(t)))
+}
+
+/// Registers `outputs` as the outputs of the custom operation `desc`, in order.
+pub(crate) fn register_outputs(handles: &mut Handles, desc: &CustomOpIr, outputs: Vec<Primitive>) {
+    for (ir, t) in desc.outputs.iter().zip(outputs) {
+        handles.register_float_tensor::<Inner>(&ir.id, t);
+    }
+}
 
 /// Stores `value` in `flag[0]` (a single unit).
 #[cube(launch)]

@@ -10,22 +10,17 @@ use super::{
 };
 use crate::attention::{float, softmax_delta};
 use crate::config::Precision;
+use crate::side::{Handles, Inner, Primitive};
 use burn::backend::Cuda;
 use burn::cubecl::Runtime;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Shape, Tensor};
-use burn_cubecl::CubeBackend;
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_cubecl::ops::numeric::empty_device_dtype;
-use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
-use burn_ir::{CustomOpIr, HandleContainer, OperationIr, TensorIr};
+use burn_ir::{CustomOpIr, OperationIr, TensorIr};
 use cubecl::prelude::{CubeCount, CubeDim, CubePrimitive, StorageType};
 use cubecl::tf32;
-
-type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
-type Primitive = CubeTensor<CudaRuntime>;
-type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
 
 /// Why the kernels cannot take these operands, if they cannot.
 fn refused(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> Option<String> {
@@ -220,9 +215,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
                 )
             }
         };
-        for (ir, t) in self.desc.outputs.iter().zip(outputs) {
-            handles.register_float_tensor::<Inner>(&ir.id, t);
-        }
+        crate::side::register_outputs(handles, &self.desc, outputs);
     }
 }
 

@@ -10,16 +10,13 @@
 #![allow(unsafe_code)]
 
 use super::cuda::empty;
+use crate::side::Primitive;
 use crate::side::{KernelCache, Kernels, Pointers, with_kernels};
-use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::DType;
-use burn_cubecl::tensor::CubeTensor;
 use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
 use std::sync::OnceLock;
-
-type Primitive = CubeTensor<CudaRuntime>;
 
 /// The kernels' source: the building blocks, then the three passes.
 const SOURCE: &str = concat!(include_str!("flash2_tiles.cu"), include_str!("flash2.cu"));

@@ -5,15 +5,12 @@
 //! The products run on a [`Side`] stream, ordered with cubecl's stream on the device (`side.rs`).
 #![allow(unsafe_code)]
 
+use crate::side::Primitive;
 use crate::side::{Side, pointer};
-use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::DType;
-use burn_cubecl::tensor::CubeTensor;
 use cudarc::cublas::{result as blas, sys};
 use std::cell::RefCell;
 use std::ffi::c_void;
-
-type Primitive = CubeTensor<CudaRuntime>;
 
 /// A cuBLAS handle on a side stream, for one device and the calling thread. The handle is never destroyed:
 /// it lives as long as its thread (training threads live as long as the process), and calling into cuBLAS

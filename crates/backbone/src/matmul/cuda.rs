@@ -7,25 +7,20 @@
 //! many times over on the training step's shapes (`umgen bench matmul`, `docs/perf-notes.md`).
 
 use super::NamedMatmul;
+use crate::side::{Handles, Inner, Primitive};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
 use burn::tensor::{DType, FloatDType, Shape};
-use burn_cubecl::CubeBackend;
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_cubecl::kernel::matmul::{MatmulStrategy, init_matmul_output, matmul};
-use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
-use burn_ir::{CustomOpIr, HandleContainer, OperationIr, OperationOutput, TensorIr};
+use burn_ir::{CustomOpIr, OperationIr, OperationOutput, TensorIr};
 use cubek::matmul::definition::{MatmulElems, MatmulGlobalElems};
 use cubek::matmul::launch::Strategy;
 use cubek::matmul::routines::BlueprintStrategy;
 use cubek::std::InputBinding;
 use std::sync::atomic::{AtomicUsize, Ordering};
-
-type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
-type Primitive = CubeTensor<CudaRuntime>;
-type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
 
 /// Products that fell back: from cuBLAS to the named kernel, or from the named kernel to burn's default.
 static FALLBACKS: AtomicUsize = AtomicUsize::new(0);

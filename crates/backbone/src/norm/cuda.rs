@@ -6,24 +6,17 @@
 
 use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
 use crate::attention::float;
-use crate::side::{self, KernelCache, Kernels, empty_f32};
+use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, Tensor};
-use burn_cubecl::CubeBackend;
 use burn_cubecl::fusion::FusionCubeRuntime;
-use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::Operation;
-use burn_ir::{CustomOpIr, HandleContainer};
+use burn_ir::CustomOpIr;
 use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
-
-type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
-type Primitive = CubeTensor<CudaRuntime>;
-type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
 
 /// Values a lane keeps of its row, one kernel each: rows up to 32 times as wide.
 const PER_LANE: [usize; 6] = [4, 8, 12, 16, 24, 32];
@@ -92,7 +85,7 @@ impl FusedNorm for Cuda {
         }
         let [rows, d] = x.dims();
         let pass = Pass::Forward { eps: eps as f32 };
-        let inputs = [x.into_primitive().tensor(), prim(gamma), prim(beta)];
+        let inputs = [side::fused(x), side::fused(gamma), side::fused(beta)];
         let [y, mean, rstd] = register(pass, inputs, [vec![rows, d], vec![rows], vec![rows]]);
         (float(y), float(mean), float(rstd))
     }
@@ -110,7 +103,13 @@ impl FusedNorm for Cuda {
         }
         let [rows, d] = x.dims();
         let warps = backward_warps(rows);
-        let inputs = [prim(dy), prim(x), prim(mean), prim(rstd), prim(gamma)];
+        let inputs = [
+            side::fused(dy),
+            side::fused(x),
+            side::fused(mean),
+            side::fused(rstd),
+            side::fused(gamma),
+        ];
         let [dx, dgamma, dbeta] = register(
             Pass::Backward,
             inputs,
@@ -119,10 +118,6 @@ impl FusedNorm for Cuda {
         let sum = |t| crate::rows::sum(float::<Cuda, 2>(t));
         (float(dx), sum(dgamma), sum(dbeta))
     }
-}
-
-fn prim<const D: usize>(t: Tensor<Cuda, D>) -> FloatTensor<Cuda> {
-    t.into_primitive().tensor()
 }
 
 /// Warps of the backward kernel's grid for `rows` rows (each writes a row of column sums).
@@ -161,21 +156,18 @@ struct Op {
 
 impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
     fn execute(&self, handles: &mut Handles) {
-        let get = |handles: &mut Handles, t| into_contiguous(handles.get_float_tensor::<Inner>(t));
         let outputs = match self.pass {
             Pass::Forward { eps } => {
-                let ([x, gamma, beta], _) = self.desc.as_fixed::<3, 3>();
-                let [x, gamma, beta] = [x, gamma, beta].map(|t| get(handles, t));
+                let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, &self.desc);
                 launch(&x, &gamma, Some(&beta), None, eps).unwrap_or_else(|why| {
                     fell_back(&why);
                     let (y, mean, rstd) =
                         forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
-                    vec![prim_of(y), prim_of(mean), prim_of(rstd)]
+                    vec![side::inner(y), side::inner(mean), side::inner(rstd)]
                 })
             }
             Pass::Backward => {
-                let (inputs, _) = self.desc.as_fixed::<5, 3>();
-                let [dy, x, mean, rstd, gamma] = inputs.each_ref().map(|t| get(handles, t));
+                let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, &self.desc);
                 launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0).unwrap_or_else(|why| {
                     fell_back(&why);
                     let warps = backward_warps(x.meta.shape()[0]);
@@ -190,20 +182,14 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
                     let rows = |t: Tensor<Inner, 1>| {
                         let d = t.dims()[0];
                         let zeros = Tensor::<Inner, 2>::zeros([warps - 1, d], &t.device());
-                        prim_of(Tensor::cat(vec![t.reshape([1, d]), zeros], 0))
+                        side::inner(Tensor::cat(vec![t.reshape([1, d]), zeros], 0))
                     };
-                    vec![prim_of(dx), rows(dgamma), rows(dbeta)]
+                    vec![side::inner(dx), rows(dgamma), rows(dbeta)]
                 })
             }
         };
-        for (ir, t) in self.desc.outputs.iter().zip(outputs) {
-            handles.register_float_tensor::<Inner>(&ir.id, t);
-        }
+        side::register_outputs(handles, &self.desc, outputs);
     }
-}
-
-fn prim_of<const D: usize>(t: Tensor<Inner, D>) -> Primitive {
-    t.into_primitive().tensor()
 }
 
 thread_local! {

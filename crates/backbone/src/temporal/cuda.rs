@@ -8,24 +8,16 @@
 use super::{TemporalAttention, backward_decomposed, forward_decomposed};
 use crate::attention::float;
 use crate::config::Precision;
-use crate::side::{self, KernelCache, Kernels, empty_f32};
+use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
-use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, Tensor};
-use burn_cubecl::CubeBackend;
 use burn_cubecl::fusion::FusionCubeRuntime;
-use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::Operation;
-use burn_ir::{CustomOpIr, HandleContainer};
+use burn_ir::CustomOpIr;
 use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
-
-type Inner = CubeBackend<CudaRuntime, f32, i32, u8>;
-type Primitive = CubeTensor<CudaRuntime>;
-type Handles = HandleContainer<<FusionCubeRuntime<CudaRuntime> as burn_fusion::FusionRuntime>::FusionHandle>;
 
 /// The longest sequence the kernels take (lane t keeps query t's statistics).
 const MAX_FRAMES: usize = 32;
@@ -123,7 +115,7 @@ impl TemporalAttention for Cuda {
         };
         let [out, lse] = side::register(
             "umgen_temporal_forward",
-            [prim(q), prim(kv)],
+            [side::fused(q), side::fused(kv)],
             [vec![b, t, n, d], vec![b, t, n, heads]],
             |desc| Op { desc, pass },
         );
@@ -154,20 +146,12 @@ impl TemporalAttention for Cuda {
         };
         let [dq, dkv] = side::register(
             "umgen_temporal_backward",
-            [prim(q), prim(kv), prim(dout)],
+            [side::fused(q), side::fused(kv), side::fused(dout)],
             [vec![b, t, n, d], vec![b, t, n, 2 * d]],
             |desc| Op { desc, pass },
         );
         (float(dq), float(dkv))
     }
-}
-
-fn prim<const D: usize>(t: Tensor<Cuda, D>) -> FloatTensor<Cuda> {
-    t.into_primitive().tensor()
-}
-
-fn prim_of<const D: usize>(t: Tensor<Inner, D>) -> Primitive {
-    t.into_primitive().tensor()
 }
 
 /// What a pass computes.
@@ -190,7 +174,6 @@ struct Op {
 
 impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
     fn execute(&self, handles: &mut Handles) {
-        let get = |handles: &mut Handles, t| into_contiguous(handles.get_float_tensor::<Inner>(t));
         let Pass {
             heads,
             causal,
@@ -198,27 +181,23 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
             precision,
         } = self.pass;
         let outputs = if backward {
-            let ([q, kv, dout], _) = self.desc.as_fixed::<3, 2>();
-            let [q, kv, dout] = [q, kv, dout].map(|t| get(handles, t));
+            let [q, kv, dout] = side::contiguous_inputs::<3, 2>(handles, &self.desc);
             launch(&q, &kv, Some(&dout), heads, causal).unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
                 let (q, kv) = (float::<Inner, 4>(q), float::<Inner, 4>(kv));
                 let (out, lse) = forward_decomposed(q.clone(), kv.clone(), heads, causal, precision);
                 let (dq, dkv) = backward_decomposed(q, kv, out, lse, float(dout), heads, causal, precision);
-                vec![prim_of(dq), prim_of(dkv)]
+                vec![side::inner(dq), side::inner(dkv)]
             })
         } else {
-            let ([q, kv], _) = self.desc.as_fixed::<2, 2>();
-            let [q, kv] = [q, kv].map(|t| get(handles, t));
+            let [q, kv] = side::contiguous_inputs::<2, 2>(handles, &self.desc);
             launch(&q, &kv, None, heads, causal).unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
                 let (out, lse) = forward_decomposed::<Inner>(float(q), float(kv), heads, causal, precision);
-                vec![prim_of(out), prim_of(lse)]
+                vec![side::inner(out), side::inner(lse)]
             })
         };
-        for (ir, t) in self.desc.outputs.iter().zip(outputs) {
-            handles.register_float_tensor::<Inner>(&ir.id, t);
-        }
+        side::register_outputs(handles, &self.desc, outputs);
     }
 }
 
