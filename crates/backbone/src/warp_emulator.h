@@ -4,6 +4,8 @@
 #pragma once
 #include <barrier>
 #include <cmath>
+#include <cstdio>
+#include <random>
 #include <memory>
 #include <thread>
 #include <vector>
@@ -79,4 +81,29 @@ static double relative_error(const A& a, const B& b) {
         scale = std::max(scale, std::fabs((double)b[i]));
     }
     return err / scale;
+}
+
+// Prints each named error after the case's title (already printed), with " (FAIL)" beside any not under
+// `tolerance` (NaN, a result never written, fails too), and ends the line; true when every one passes.
+template <size_t N>
+static bool report(const double (&errs)[N], const char* const (&names)[N], double tolerance) {
+    bool ok = true;
+    for (size_t i = 0; i < N; i++) {
+        const bool good = errs[i] < tolerance;
+        ok = ok && good;
+        printf(" %s %.1e%s", names[i], errs[i], good ? "" : " (FAIL)");
+    }
+    printf("\n");
+    return ok;
+}
+
+// Runs every case (all of them, also after a failure) with one generator seeded `seed`; the process's exit
+// status: 0 when every case agrees.
+template <class Case, size_t N>
+static int run_cases(const Case (&cases)[N], bool (*run)(const Case&, std::mt19937&), unsigned seed) {
+    std::mt19937 rng(seed);
+    bool ok = true;
+    for (const Case& c : cases) ok = run(c, rng) && ok;
+    printf(ok ? "all cases agree\n" : "some cases disagree\n");
+    return ok ? 0 : 1;
 }

@@ -6,9 +6,6 @@
 //
 // (`crates/backbone/tests/backbone/norm.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees within f32 tolerance.
-#include <cstdio>
-#include <random>
-
 #include "../warp_emulator.h"
 #include "norm.cu"
 
@@ -73,21 +70,13 @@ static bool run(const Case& c, std::mt19937& rng) {
         for (int i = 0; i < c.d; i++) sdg[i] += dg[w * c.d + i], sdb[i] += db[w * c.d + i];
     const double errs[] = {relative_error(y, ry), relative_error(mean, rmean), relative_error(rstd, rrstd),
                            relative_error(dx, rdx), relative_error(sdg, rdg), relative_error(sdb, rdb)};
-    const char* names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta"};
-    bool ok = true;
+    const char* const names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta"};
     printf("rows %lld d %d per %d grid %d × %d warps:", c.rows, c.d, c.per, c.grid, c.warps);
-    for (int i = 0; i < 6; i++) {
-        // f32 sums of up to a few hundred terms; NaN (a partial never written) fails too.
-        const bool good = errs[i] < 2e-5;
-        ok = ok && good;
-        printf(" %s %.1e%s", names[i], errs[i], good ? "" : " (FAIL)");
-    }
-    printf("\n");
-    return ok;
+    // f32 sums of up to a few hundred terms.
+    return report(errs, names, 2e-5);
 }
 
 int main() {
-    std::mt19937 rng(7);
     const Case cases[] = {
         {37, 48, 4, 2, 4},     // rows looped by 8 warps, a row narrower than a warp's capacity
         {5, 384, 12, 1, 8},    // more warps than rows: idle warps write zero partial sums
@@ -96,8 +85,5 @@ int main() {
         {20, 768, 24, 1, 4},   // the `paper` width
         {9, 1024, 32, 1, 2},   // the widest kernel, full
     };
-    bool ok = true;
-    for (const Case& c : cases) ok = run(c, rng) && ok;
-    printf(ok ? "all cases agree\n" : "some cases disagree\n");
-    return ok ? 0 : 1;
+    return run_cases(cases, run, 7);
 }

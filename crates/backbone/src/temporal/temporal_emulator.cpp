@@ -9,9 +9,6 @@
 // d]` buffer, keys and values from the two halves of a `[b, t, n, 2d]` one (as the layers' products give
 // them), and the key and value gradients go to the two halves of one buffer. Exit status 0 when every case
 // agrees within f32 tolerance.
-#include <cstdio>
-#include <random>
-
 #include "../warp_emulator.h"
 #include "temporal.cu"
 
@@ -100,22 +97,14 @@ static bool run(const Case& c, std::mt19937& rng) {
         for (int j = 0; j < d; j++) gdk[r * d + j] = dkv[r * 2 * d + j], gdv[r * d + j] = dkv[r * 2 * d + d + j];
     const double errs[] = {relative_error(out, rout), relative_error(lse, rlse), relative_error(dq, rdq),
                            relative_error(gdk, rdk), relative_error(gdv, rdv)};
-    const char* names[] = {"out", "lse", "dq", "dk", "dv"};
-    bool ok = true;
+    const char* const names[] = {"out", "lse", "dq", "dk", "dv"};
     printf("b %d t %d n %d heads %d dh %d %s, %d warps:", c.b, c.t, c.n, c.heads, dh,
            c.causal ? "causal" : "bidirectional", c.warps);
-    for (int i = 0; i < 5; i++) {
-        // f32 sums of up to 128 terms; NaN (a result never written) fails too.
-        const bool good = errs[i] < 2e-5;
-        ok = ok && good;
-        printf(" %s %.1e%s", names[i], errs[i], good ? "" : " (FAIL)");
-    }
-    printf("\n");
-    return ok;
+    // f32 sums of up to 128 terms.
+    return report(errs, names, 2e-5);
 }
 
 int main() {
-    std::mt19937 rng(11);
     const Case cases[] = {
         {2, 8, 5, 2, 2, true, 8},    // the `small` preset's T, head size 64
         {1, 20, 3, 3, 1, true, 8},   // the `paper` preset's T, head size 32, idle warps in the last block
@@ -123,8 +112,5 @@ int main() {
         {1, 32, 2, 1, 2, false, 2},  // the longest sequence the kernels take, bidirectional
         {1, 5, 7, 6, 1, true, 8},    // more heads than warps a block
     };
-    bool ok = true;
-    for (const Case& c : cases) ok = run(c, rng) && ok;
-    printf(ok ? "all cases agree\n" : "some cases disagree\n");
-    return ok ? 0 : 1;
+    return run_cases(cases, run, 11);
 }
