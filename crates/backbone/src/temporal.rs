@@ -32,6 +32,10 @@ use burn::tensor::ops::FloatTensor;
 /// A backend that computes attention over time's two passes. `q` `[b, t, n, d]`, `kv` `[b, t, n, 2d]`
 /// (keys, then values), `heads` heads of `d / heads`; `causal` hides later frames.
 pub trait TemporalAttention: Backend {
+    /// Whether [`Self::temporal_backward`] reads the forward pass's output and log-sum-exp: the operation
+    /// keeps them for the backward pass only then (CUDA's backward kernel recomputes what it needs).
+    const KEEPS_FORWARD: bool = true;
+
     /// The output `[b, t, n, d]` and each query's log-sum-exp of its scaled scores `[b, t, n, heads]`.
     fn temporal_forward(
         q: Tensor<Self, 4>,
@@ -42,19 +46,20 @@ pub trait TemporalAttention: Backend {
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>);
 
     /// The gradients of `q` and `kv` from the output's gradient `dout`, given the forward pass's output and
-    /// log-sum-exp.
-    #[allow(clippy::too_many_arguments)]
+    /// log-sum-exp when [`Self::KEEPS_FORWARD`] (`saved`; `None` otherwise).
     fn temporal_backward(
         q: Tensor<Self, 4>,
         kv: Tensor<Self, 4>,
-        out: Tensor<Self, 4>,
-        lse: Tensor<Self, 4>,
+        saved: Option<Saved<Self>>,
         dout: Tensor<Self, 4>,
         heads: usize,
         causal: bool,
         precision: Precision,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>);
 }
+
+/// The forward pass's output and log-sum-exp.
+pub type Saved<B> = (Tensor<B, 4>, Tensor<B, 4>);
 
 /// `[b, t, n, heads · dh]` → `[b · n, heads, t, dh]` (a copy).
 pub fn to_heads<B: Backend>(x: Tensor<B, 4>, heads: usize) -> Tensor<B, 4> {
@@ -95,18 +100,19 @@ pub fn forward_decomposed<B: Backend>(
     (from_heads(out, b, n), lse)
 }
 
-/// [`TemporalAttention::temporal_backward`] through the transpositions and the tiled backward pass.
-#[allow(clippy::too_many_arguments)]
+/// [`TemporalAttention::temporal_backward`] through the transpositions and the tiled backward pass; the
+/// forward pass is recomputed when `saved` is `None`.
 pub fn backward_decomposed<B: Backend>(
     q: Tensor<B, 4>,
     kv: Tensor<B, 4>,
-    out: Tensor<B, 4>,
-    lse: Tensor<B, 4>,
+    saved: Option<Saved<B>>,
     dout: Tensor<B, 4>,
     heads: usize,
     causal: bool,
     precision: Precision,
 ) -> (Tensor<B, 4>, Tensor<B, 4>) {
+    let (out, lse) =
+        saved.unwrap_or_else(|| forward_decomposed(q.clone(), kv.clone(), heads, causal, precision));
     let [b, t, n, _] = q.dims();
     let (k, v) = split(kv);
     let h = |x| to_heads(x, heads);
@@ -141,14 +147,13 @@ impl TemporalAttention for burn::backend::Flex {
     fn temporal_backward(
         q: Tensor<Self, 4>,
         kv: Tensor<Self, 4>,
-        out: Tensor<Self, 4>,
-        lse: Tensor<Self, 4>,
+        saved: Option<Saved<Self>>,
         dout: Tensor<Self, 4>,
         heads: usize,
         causal: bool,
         precision: Precision,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
-        backward_decomposed(q, kv, out, lse, dout, heads, causal, precision)
+        backward_decomposed(q, kv, saved, dout, heads, causal, precision)
     }
 }
 
@@ -176,25 +181,24 @@ fn on<B: Backend, I: TemporalAttention>() -> Option<OverTime<B>> {
 #[derive(Debug)]
 struct Temporal;
 
-/// q, kv, the output and log-sum-exp (inner backend), heads, causal, precision.
-type Kept<I> = ([FloatTensor<I>; 4], usize, bool, Precision);
+/// q, kv, and the output and log-sum-exp where the backend's backward pass reads them (inner backend);
+/// heads, causal, precision.
+type Kept<I> = (
+    [FloatTensor<I>; 2],
+    Option<[FloatTensor<I>; 2]>,
+    usize,
+    bool,
+    Precision,
+);
 
 impl<I: TemporalAttention> Backward<I, 2> for Temporal {
     type State = Kept<I>;
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let dout = float::<I, 4>(grads.consume::<I>(&ops.node));
-        let ([q, kv, out, lse], heads, causal, precision) = ops.state;
-        let (dq, dkv) = I::temporal_backward(
-            float(q),
-            float(kv),
-            float(out),
-            float(lse),
-            dout,
-            heads,
-            causal,
-            precision,
-        );
+        let ([q, kv], saved, heads, causal, precision) = ops.state;
+        let saved = saved.map(|[out, lse]| (float(out), float(lse)));
+        let (dq, dkv) = I::temporal_backward(float(q), float(kv), saved, dout, heads, causal, precision);
         let [q_node, kv_node] = ops.parents;
         if let Some(node) = q_node {
             grads.register::<I>(node.id, dq.into_primitive().tensor());
@@ -228,13 +232,9 @@ fn apply<I: TemporalAttention, C: CheckpointStrategy>(
         .stateful()
     {
         OpsKind::Tracked(prep) => {
-            let kept = [
-                q.primitive.clone(),
-                kv.primitive.clone(),
-                out.clone(),
-                lse.into_primitive().tensor(),
-            ];
-            prep.finish((kept, heads, causal, precision), out)
+            let inputs = [q.primitive.clone(), kv.primitive.clone()];
+            let saved = I::KEEPS_FORWARD.then(|| [out.clone(), lse.into_primitive().tensor()]);
+            prep.finish((inputs, saved, heads, causal, precision), out)
         }
         OpsKind::UnTracked(prep) => prep.finish(out),
     };

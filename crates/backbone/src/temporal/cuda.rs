@@ -5,7 +5,7 @@
 //! instead, counted by [`crate::flash::fallbacks`] with the attention's other fallbacks.
 #![allow(unsafe_code)]
 
-use super::{TemporalAttention, backward_decomposed, forward_decomposed};
+use super::{Saved, TemporalAttention, backward_decomposed, forward_decomposed};
 use crate::attention::float;
 use crate::config::Precision;
 use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
@@ -95,6 +95,9 @@ fn refused(q: &Tensor<Cuda, 4>, heads: usize) -> Option<String> {
 }
 
 impl TemporalAttention for Cuda {
+    /// The backward kernel recomputes each query's log-sum-exp and `dout · out` from q, kv and dout.
+    const KEEPS_FORWARD: bool = false;
+
     fn temporal_forward(
         q: Tensor<Self, 4>,
         kv: Tensor<Self, 4>,
@@ -125,18 +128,16 @@ impl TemporalAttention for Cuda {
     fn temporal_backward(
         q: Tensor<Self, 4>,
         kv: Tensor<Self, 4>,
-        out: Tensor<Self, 4>,
-        lse: Tensor<Self, 4>,
+        saved: Option<Saved<Self>>,
         dout: Tensor<Self, 4>,
         heads: usize,
         causal: bool,
         precision: Precision,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
-        // The forward pass counted a refusal.
+        // The forward pass counted a refusal; the decomposition recomputes the forward pass it needs.
         if refused(&q, heads).is_some() {
-            return backward_decomposed(q, kv, out, lse, dout, heads, causal, precision);
+            return backward_decomposed(q, kv, saved, dout, heads, causal, precision);
         }
-        // The kernel recomputes the log-sum-exp and `dout · out` from q, kv and dout.
         let [b, t, n, d] = q.dims();
         let pass = Pass {
             heads,
@@ -184,9 +185,15 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
             let [q, kv, dout] = side::contiguous_inputs::<3, 2>(handles, &self.desc);
             launch(&q, &kv, Some(&dout), heads, causal).unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
-                let (q, kv) = (float::<Inner, 4>(q), float::<Inner, 4>(kv));
-                let (out, lse) = forward_decomposed(q.clone(), kv.clone(), heads, causal, precision);
-                let (dq, dkv) = backward_decomposed(q, kv, out, lse, float(dout), heads, causal, precision);
+                let (dq, dkv) = backward_decomposed::<Inner>(
+                    float(q),
+                    float(kv),
+                    None,
+                    float(dout),
+                    heads,
+                    causal,
+                    precision,
+                );
                 vec![side::inner(dq), side::inner(dkv)]
             })
         } else {

@@ -123,3 +123,28 @@ fn layer_over_time_matches_the_transposed_layer_and_is_causal() {
         .into_scalar();
     assert!(changed > 1e-3, "the changed frame's output moved by {changed}");
 }
+
+/// The decomposed backward pass gives the same gradients from the forward pass's saved output as when it
+/// recomputes them (the path of a backend that keeps nothing, such as CUDA's on a refused shape).
+#[test]
+fn decomposed_backward_recomputes_what_it_was_not_given() {
+    let (b, t, n, heads, d) = (1, 4, 3, 2, 16);
+    let (q, kv, dout) = (
+        random::<4>([b, t, n, d]).inner(),
+        random::<4>([b, t, n, 2 * d]).inner(),
+        random::<4>([b, t, n, d]).inner(),
+    );
+    let saved = forward_decomposed(q.clone(), kv.clone(), heads, true, Precision::F32);
+    let given = backward_decomposed(
+        q.clone(),
+        kv.clone(),
+        Some(saved),
+        dout.clone(),
+        heads,
+        true,
+        Precision::F32,
+    );
+    let recomputed = backward_decomposed(q, kv, None, dout, heads, true, Precision::F32);
+    close(given.0, recomputed.0, 0.0, "dq");
+    close(given.1, recomputed.1, 0.0, "dkv");
+}
