@@ -78,6 +78,8 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
             "constant_velocity_binned",
             "constant_acceleration",
             "constant_acceleration_binned",
+            "real_state_constant_acceleration",
+            "real_state_constant_acceleration_binned",
         ] {
             let at = |k: &str| report["l2"][h][format!("agents_{who}_{k}")].as_f64().unwrap();
             assert!(at("p90") >= at("median"), "{who} at horizon {h}: {report}");
@@ -86,6 +88,7 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     let md = std::fs::read_to_string(multi.join("eval/report.md")).unwrap();
     assert!(md.contains("| binned const. vel. mean |"), "{md}");
     assert!(md.contains("| binned const. acc. mean |"), "{md}");
+    assert!(md.contains("| binned real-state const. acc. mean |"), "{md}");
     let singles: Vec<serde_json::Value> = ids
         .iter()
         .enumerate()

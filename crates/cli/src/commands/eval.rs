@@ -137,8 +137,14 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
             // The model, then constant velocity and constant acceleration, each also rounded to the agent
             // bins of the real next ego frame.
             let mut model = AgentErrors::default();
-            let [mut cv_errors, mut binned, mut ca_errors, mut ca_binned] =
-                std::array::from_fn::<AgentErrors, 4, _>(|_| AgentErrors::default());
+            let [
+                mut cv_errors,
+                mut binned,
+                mut ca_errors,
+                mut ca_binned,
+                mut real_ca,
+                mut real_ca_binned,
+            ] = std::array::from_fn::<AgentErrors, 6, _>(|_| AgentErrors::default());
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
             for (c, t) in truths.iter().enumerate() {
                 let true_pos = positions(&t.poses[h - 1], &t.tracked[h - 1]);
@@ -156,9 +162,16 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
                     }
                     None => cv.clone(),
                 };
+                // The same from the recorded (unbinned) state: no rule that extrapolates the present alone
+                // does much better, so the model's margin past it is what it learned of the scene.
+                let [real_before, real_last] = &t.real_state;
+                let before_ego = t.before.as_ref().map_or(&t.last.ego, |(e, _)| e);
+                let ca_real =
+                    constant_acceleration_agents(before_ego, real_before, &t.last.ego, real_last, dt, h);
                 for (predicted, errors, on_bins) in [
                     (&cv, &mut cv_errors, &mut binned),
                     (&ca, &mut ca_errors, &mut ca_binned),
+                    (&ca_real, &mut real_ca, &mut real_ca_binned),
                 ] {
                     errors.add(agent_errors(predicted, &true_pos));
                     if let Some(g) = &grid {
@@ -181,6 +194,8 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
             binned.report("constant_velocity_binned", &mut row);
             ca_errors.report("constant_acceleration", &mut row);
             ca_binned.report("constant_acceleration_binned", &mut row);
+            real_ca.report("real_state_constant_acceleration", &mut row);
+            real_ca_binned.report("real_state_constant_acceleration_binned", &mut row);
             l2_rows.push(row);
             mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }

@@ -11,7 +11,8 @@ fn num(v: &serde_json::Value) -> String {
 
 /// `report.md`: the measures table, the L2 over the horizon, the agents against the constant-velocity
 /// baseline rounded to the agent bins (what a token model that moved every agent at its last velocity
-/// would score), and against constant acceleration, as is and rounded.
+/// would score), against constant acceleration, as is and rounded, and against constant acceleration
+/// from the unbinned state.
 pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize) -> anyhow::Result<String> {
     let mut md = String::new();
     writeln!(md, "# Evaluation of {}\n", generated.display())?;
@@ -83,6 +84,21 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
             ("model", "model"),
             ("constant_acceleration", "const. acc."),
             ("constant_acceleration_binned", "binned const. acc."),
+        ],
+    )?;
+    agents_table(
+        &mut md,
+        rows,
+        "Agents against constant acceleration from the recorded, unbinned state of the last two context \
+         frames (what the tokens round away given back: as well as extrapolating the present can do; the \
+         rest of the motion is velocity change):",
+        &[
+            ("model", "model"),
+            ("real_state_constant_acceleration", "real-state const. acc."),
+            (
+                "real_state_constant_acceleration_binned",
+                "binned real-state const. acc.",
+            ),
         ],
     )?;
     Ok(md)

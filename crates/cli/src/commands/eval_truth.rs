@@ -24,11 +24,11 @@ fn decoded_agents(agent: &dyn Modality, clip: &SceneClip) -> anyhow::Result<Vec<
         .collect()
 }
 
-/// `clip` with only the tracks that the slot plan of its first `n` frames keeps, in every frame. Generation
-/// tokenized those `n` context frames alone, so their slots are the generated scene's; tokenizing the
-/// whole clip instead would give tracks first seen after the context slots of their own (which the model's
-/// new agents would then be compared with) and, in crowded clips, keep other tracks.
-fn context_tracks_only(clip: &SceneClip, n: usize, slots: usize) -> anyhow::Result<SceneClip> {
+/// `clip` with only the tracks that the slot plan of its first `n` frames keeps, in every frame, and that
+/// plan. Generation tokenized those `n` context frames alone, so their slots are the generated scene's;
+/// tokenizing the whole clip instead would give tracks first seen after the context slots of their own
+/// (which the model's new agents would then be compared with) and, in crowded clips, keep other tracks.
+fn context_tracks_only(clip: &SceneClip, n: usize, slots: usize) -> anyhow::Result<(SceneClip, SlotPlan)> {
     let mut context = clip.clone();
     context.frames.truncate(n);
     let plan = SlotPlan::new(&context, slots)?;
@@ -36,7 +36,21 @@ fn context_tracks_only(clip: &SceneClip, n: usize, slots: usize) -> anyhow::Resu
     for f in &mut out.frames {
         f.agents.retain(|a| plan.slot(a.track_id).is_some());
     }
-    Ok(out)
+    Ok((out, plan))
+}
+
+/// A frame's agents as recorded (unbinned), with their slots of `plan` as track ids: the decoded agents'
+/// ids, so that a prediction from the real state is matched with the same truth.
+fn real_in_slots(f: &Frame, plan: &SlotPlan) -> Vec<Agent> {
+    f.agents
+        .iter()
+        .filter_map(|a| {
+            plan.slot(a.track_id).map(|s| Agent {
+                track_id: s as u64,
+                ..*a
+            })
+        })
+        .collect()
 }
 
 /// What a context clip really did after its context frames.
@@ -48,6 +62,10 @@ pub(super) struct Truth {
     /// The context frame before it (ego pose and decoded agents), for the constant-acceleration baseline;
     /// `None` for a one-frame context.
     pub(super) before: Option<(umgen::scene::EgoPose, Vec<Agent>)>,
+    /// The last two context frames' agents as recorded, unbinned (slot ids as track ids; the first
+    /// empty for a one-frame context): what constant acceleration does knowing the real state exactly,
+    /// the most a kinematic rule can take from the present.
+    pub(super) real_state: [Vec<Agent>; 2],
     /// Real ego poses of the following frames.
     pub(super) poses: Vec<umgen::scene::EgoPose>,
     /// Real agents of the following frames, decoded like `last_agents`: the context's tracks in the
@@ -76,16 +94,19 @@ pub(super) fn ground_truth(
         "clip `{clip_id}` has no ground truth after its {n} context frames"
     );
     let gt = ds.read_window(idx, 0, n + k, 1)?;
-    let (mut tracked, agents) = match agent_modality(registry)? {
+    let (mut tracked, agents, real_state) = match agent_modality(registry)? {
         Some((m, seg)) => {
             let slots = seg.tokens / ATTRIBUTES;
             let mut all = decoded_agents(m, &gt)?;
+            let (kept, plan) = context_tracks_only(&gt, n, slots)?;
+            let real = |i: Option<usize>| i.map_or_else(Vec::new, |i| real_in_slots(&gt.frames[i], &plan));
             (
-                decoded_agents(m, &context_tracks_only(&gt, n, slots)?)?,
+                decoded_agents(m, &kept)?,
                 all.split_off(n),
+                [real(n.checked_sub(2)), real(Some(n - 1))],
             )
         }
-        None => (vec![Vec::new(); n + k], vec![Vec::new(); k]),
+        None => (vec![Vec::new(); n + k], vec![Vec::new(); k], Default::default()),
     };
     let future = tracked.split_off(n);
     let last_agents = tracked.pop().unwrap_or_default();
@@ -96,6 +117,7 @@ pub(super) fn ground_truth(
     Ok(Truth {
         last_agents,
         before,
+        real_state,
         last,
         poses,
         tracked: future,
@@ -157,11 +179,18 @@ pub(super) mod tests {
             vec![at(7, 1.0), at(3, 10.0), at(9, 5.0)],
         ]);
         // The new track goes: the model's new agents have no real identity to be compared with.
-        assert_eq!(tracks(&context_tracks_only(&gt, 2, 4).unwrap())[2], vec![7, 3]);
+        assert_eq!(tracks(&context_tracks_only(&gt, 2, 4).unwrap().0)[2], vec![7, 3]);
         // One slot: the context keeps track 3 (nearest in the context), the whole clip would keep track 7
         // (nearest over all frames). The context's choice holds in every frame.
-        let one = context_tracks_only(&gt, 2, 1).unwrap();
+        let (one, one_plan) = context_tracks_only(&gt, 2, 1).unwrap();
         assert_eq!(tracks(&one), vec![vec![3], vec![3], vec![3]]);
+        // The recorded agents of a frame, by the same slots, values untouched (10.03 m is not a bin
+        // centre of the 0.125 m bins).
+        let mut moved = gt.frames[2].clone();
+        moved.agents[1].x = 10.03;
+        let real = real_in_slots(&moved, &one_plan);
+        assert_eq!(real.len(), 1);
+        assert_eq!((real[0].track_id, real[0].x), (0, 10.03));
         assert_eq!(SlotPlan::new(&gt, 1).unwrap().slot(7), Some(0));
         // Tokenized alone, the restricted clip gives the context's slots.
         let context = SceneClip::new("c", 0.5, gt.frames[..2].to_vec()).unwrap();
@@ -169,7 +198,7 @@ pub(super) mod tests {
             SlotPlan::new(&context, 4).unwrap(),
             SlotPlan::new(&gt, 4).unwrap(),
         );
-        let kept = SlotPlan::new(&context_tracks_only(&gt, 2, 4).unwrap(), 4).unwrap();
+        let kept = SlotPlan::new(&context_tracks_only(&gt, 2, 4).unwrap().0, 4).unwrap();
         for track in [7, 3] {
             assert_eq!(kept.slot(track), plan.slot(track));
             assert_eq!(whole.slot(track), plan.slot(track));
