@@ -28,7 +28,7 @@ use burn::tensor::{DType, Shape};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 use burn_cubecl::ops::numeric::zeros_client;
 use burn_cubecl::tensor::CubeTensor;
 use burn_fusion::stream::{Operation, OperationStreams};
@@ -219,8 +219,16 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
 pub(crate) struct Pointers(Vec<Box<dyn std::any::Any>>);
 
 impl Pointers {
-    /// The device pointer of `t`'s first element, `t`'s buffer kept alive.
+    /// The device pointer of `t`'s first element, `t`'s buffer kept alive; an error for a tensor not packed
+    /// row-major (strided or row-padded), which the kernels cannot index.
     pub(crate) fn of(&mut self, t: &Primitive) -> Result<u64, String> {
+        if !t.is_contiguous() {
+            return Err(format!(
+                "a tensor of shape {:?} with strides {:?} (the kernels take packed rows)",
+                t.meta.shape(),
+                t.meta.strides()
+            ));
+        }
         let (address, guard) = pointer(t)?;
         self.0.push(Box::new(guard));
         Ok(address)
@@ -379,9 +387,11 @@ where
         .unwrap_or_else(|_| unreachable!("the operation was described with {N} outputs"))
 }
 
-/// An uninitialised f32 tensor of `shape` on `like`'s device.
+/// An uninitialised f32 tensor of `shape` on `like`'s device, packed row-major as the kernels write it.
+/// (burn's `empty_device_dtype` pads each innermost row to an aligned pitch: a `[rows, 1028]` tensor has
+/// rows 1,088 apart, a `[.., 6]` one rows 8 apart, which a kernel indexing `row · width` would misplace.)
 pub(crate) fn empty_f32(like: &Primitive, shape: Vec<usize>) -> Primitive {
-    empty_device_dtype(
+    empty_device_contiguous_dtype(
         like.client.clone(),
         like.device.clone(),
         Shape::from(shape),

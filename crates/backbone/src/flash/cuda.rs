@@ -16,7 +16,7 @@ use burn::cubecl::Runtime;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Shape, Tensor};
 use burn_cubecl::fusion::FusionCubeRuntime;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_ir::{CustomOpIr, OperationIr, TensorIr};
 use cubecl::prelude::{CubeCount, CubeDim, CubePrimitive, StorageType};
@@ -237,9 +237,10 @@ impl Pass {
     }
 }
 
-/// An uninitialised f32 tensor of `shape` on `like`'s device.
+/// An uninitialised f32 tensor of `shape` on `like`'s device, packed row-major ([`crate::side::empty_f32`]
+/// says why).
 pub(super) fn empty(like: &Primitive, shape: [usize; 4]) -> Primitive {
-    empty_device_dtype(
+    empty_device_contiguous_dtype(
         like.client.clone(),
         like.device.clone(),
         Shape::new(shape),
