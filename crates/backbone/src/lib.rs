@@ -25,9 +25,9 @@
 //! backward pass and are recomputed there (activation checkpointing). On the training backends more custom
 //! autodiff operations replace burn's where those run on a handful of GPU units, pass over an activation
 //! many times or copy it: bias adds (`rows.rs`), embedding lookups (`lookup.rs`), the cross-entropy from
-//! logits (`xent.rs`, with [`smoothing`]'s targets), the layer norm ([`norm`]), the TAR's attention over
+//! logits ([`xent`], with [`smoothing`]'s targets), the layer norm ([`norm`]), the TAR's attention over
 //! time on the rows as they lie ([`temporal`]) and the attention over one kv tensor (`attention/kv.rs`);
-//! the norm's and the temporal attention's passes are CUDA C kernels on CUDA.
+//! the cross-entropy's, the norm's and the temporal attention's passes are CUDA C kernels on CUDA.
 //!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
@@ -57,7 +57,7 @@ pub mod smoothing;
 mod spec;
 pub mod temporal;
 pub mod track;
-mod xent;
+pub mod xent;
 
 pub use ama::align;
 pub use config::{BackboneConfig, Precision};

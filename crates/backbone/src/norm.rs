@@ -14,7 +14,7 @@
 mod cuda;
 
 use crate::attention::float;
-use crate::dispatch::same;
+use crate::dispatch::{Choice, same};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -27,7 +27,6 @@ use burn::tensor::Tensor;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use serde::{Deserialize, Serialize};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 /// What computes the training layer norms on CUDA (`train.norm`); the CPU always runs the decomposition.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -40,39 +39,32 @@ pub enum NormKernel {
     Burn,
 }
 
-/// Whether [`select`] chose [`NormKernel::Burn`] (process-wide, as the attention's choice).
-static BURN: AtomicBool = AtomicBool::new(false);
+/// The process's choice (as the attention's) and its fallbacks.
+static CHOICE: Choice = Choice::new("layer-norm");
 
 /// Chooses what computes the layer norms of every training pass this process runs from now on.
 pub fn select(kernel: NormKernel) {
-    BURN.store(kernel == NormKernel::Burn, Ordering::Relaxed);
+    CHOICE.set_burn(kernel == NormKernel::Burn);
 }
 
 /// What [`select`] chose ([`NormKernel::Fused`] unless told otherwise).
 pub fn selected() -> NormKernel {
-    if BURN.load(Ordering::Relaxed) {
+    if CHOICE.burn() {
         NormKernel::Burn
     } else {
         NormKernel::Fused
     }
 }
 
-/// Passes the CUDA kernels refused (or failed to launch) and the decomposition ran.
-static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
-
 /// How many layer-norm passes fell back from the CUDA kernels to the decomposition in this process.
 pub fn fallbacks() -> usize {
-    FALLBACKS.load(Ordering::Relaxed)
+    CHOICE.fallbacks()
 }
 
 /// Counts a pass the kernels refused for `why`; logs the first.
 #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
 fn fell_back(why: &str) {
-    if FALLBACKS.fetch_add(1, Ordering::Relaxed) == 0 {
-        tracing::warn!(
-            "the layer-norm kernels refused {why}; the decomposition runs it (counted in fallbacks)"
-        );
-    }
+    CHOICE.fell_back(why);
 }
 
 /// ε of every layer norm the backbone builds (`LayerNormConfig::new`'s default; burn keeps the field

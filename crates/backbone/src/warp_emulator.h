@@ -1,6 +1,7 @@
-// The warp-level primitives of the CUDA C kernels in this crate (`norm/norm.cu`, `temporal/temporal.cu`)
-// for the host: every CUDA thread of a block is a std::thread, shuffles go through a warp barrier, and a
-// grid runs one block at a time. Included by the `*_emulator.cpp` files before the kernel source.
+// The warp-level primitives of the CUDA C kernels in this crate (`norm/norm.cu`, `temporal/temporal.cu`,
+// `xent/xent.cu`) for the host: every CUDA thread of a block is a std::thread, shuffles go through a warp
+// barrier, and a grid runs one block at a time. Included by the `*_emulator.cpp` files before the kernel
+// source.
 #pragma once
 #include <barrier>
 #include <cmath>
@@ -44,6 +45,15 @@ DEV float warp_sum(float x) {
     for (int m = 16; m > 0; m >>= 1) x += exchange(x, [m](int l) { return l ^ m; });
     return x;
 }
+
+// The butterfly of `__shfl_xor_sync` taking the maximum.
+DEV float warp_max(float x) {
+    for (int m = 16; m > 0; m >>= 1) x = std::fmax(x, exchange(x, [m](int l) { return l ^ m; }));
+    return x;
+}
+
+// `__syncwarp()`: every lane of the warp arrives before any goes on.
+DEV void warp_sync() { g_warp[warp_id()]->arrive_and_wait(); }
 
 // `__shfl_sync(x, lane)`.
 DEV float from_lane(float x, int lane) {

@@ -7,6 +7,7 @@ use umgen_backbone::LossOptions;
 use umgen_backbone::flash::AttentionKernel;
 use umgen_backbone::matmul::MatmulKernel;
 use umgen_backbone::norm::NormKernel;
+use umgen_backbone::xent::XentKernel;
 
 /// How the backbone is trained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -90,6 +91,9 @@ pub struct TrainConfig {
     /// What computes the layer norms when training on CUDA: `fused` (one CUDA C kernel per pass,
     /// `umgen_backbone::norm`) or `burn` (burn's decomposition). The CPU runs the decomposition.
     pub norm: NormKernel,
+    /// What computes the cross-entropy's passes over the logits when training on CUDA: `fused` (one CUDA
+    /// C kernel per pass, `umgen_backbone::xent`) or `burn` (burn's operations). The CPU runs burn's.
+    pub xent: XentKernel,
 }
 
 impl Default for TrainConfig {
@@ -126,13 +130,14 @@ impl Default for TrainConfig {
             attention_step: umgen_backbone::flash::DEFAULT_STEP,
             recompute: false,
             norm: NormKernel::default(),
+            xent: XentKernel::default(),
         }
     }
 }
 
 impl TrainConfig {
     /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
-    /// `attention_step`, `recompute`, `norm`) to this process, before any product runs.
+    /// `attention_step`, `recompute`, `norm`, `xent`) to this process, before any product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
@@ -146,6 +151,7 @@ impl TrainConfig {
         umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
         umgen_backbone::recompute::set_enabled(self.recompute);
         umgen_backbone::norm::select(self.norm);
+        umgen_backbone::xent::select(self.xent);
         Ok(())
     }
 
@@ -182,9 +188,11 @@ impl TrainConfig {
                 "attention_block_mib",
                 "attention",
                 "attention_step",
-                // Recomputed layers and the layer-norm kernels give the same gradients to rounding.
+                // Recomputed layers and the layer-norm and cross-entropy kernels give the same gradients to
+                // rounding.
                 "recompute",
                 "norm",
+                "xent",
             ] {
                 o.remove(k);
             }
@@ -244,6 +252,12 @@ mod tests {
             (NormKernel::Fused, NormKernel::Burn)
         );
         assert_eq!(named.identity(), burn_norm.identity());
+        let burn_xent = parse(r#"{"xent": "burn"}"#).expect("xent = burn");
+        assert_eq!(
+            (named.xent, burn_xent.xent),
+            (XentKernel::Fused, XentKernel::Burn)
+        );
+        assert_eq!(named.identity(), burn_xent.identity());
         let e = parse(r#"{"norm": "fast"}"#).unwrap_err().to_string();
         assert!(e.contains("fast") && e.contains("fused"), "{e}");
         let recompute = parse(r#"{"recompute": true}"#).expect("recompute = true");

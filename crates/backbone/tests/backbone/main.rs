@@ -13,6 +13,7 @@ mod ordinal;
 mod precision;
 mod recompute;
 mod temporal;
+mod xent;
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};

@@ -44,6 +44,9 @@ pub struct BenchLayersArgs {
     /// Attention heads (head size D / heads).
     #[arg(long, default_value_t = 6)]
     pub heads: usize,
+    /// Vocabulary of the cross-entropy's logits (`[T · N, vocab]`). Default: the map and image heads'.
+    #[arg(long, default_value_t = 8192)]
+    pub vocab: usize,
     /// Timed forward+backward passes per path (the median is reported).
     #[arg(long, default_value_t = 5)]
     pub iters: usize,

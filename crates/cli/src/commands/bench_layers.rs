@@ -1,6 +1,7 @@
-//! `umgen bench layers`: the layer norm and the attention over time as training runs them (on CUDA, the
-//! kernels of `umgen_backbone::norm` and `umgen_backbone::temporal`) against burn's own operations on the
-//! same device: agreement of outputs and gradients, and forward+backward time.
+//! `umgen bench layers`: the layer norm, the attention over time and the cross-entropy as training runs
+//! them (on CUDA, the kernels of `umgen_backbone::norm`, `umgen_backbone::temporal` and
+//! `umgen_backbone::xent`) against burn's own operations on the same device: agreement of outputs and
+//! gradients, and forward+backward time.
 
 use super::bench_attention::rel_err;
 use crate::cli::BenchLayersArgs;
@@ -10,7 +11,7 @@ use burn::nn::{LayerNorm, LayerNormConfig};
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::module::attention_fallback;
 use burn::tensor::ops::AttentionModuleOptions;
-use burn::tensor::{Distribution, Tensor};
+use burn::tensor::{Distribution, Int, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
@@ -23,6 +24,7 @@ pub fn run(a: &BenchLayersArgs) -> anyhow::Result<()> {
     let [b, t, n, d] = a.shape[..] else {
         anyhow::bail!("--shape takes four sizes B,T,N,D, got {:?}", a.shape);
     };
+    anyhow::ensure!(a.vocab > 0, "--vocab must be at least 1");
     anyhow::ensure!(
         b * t * n * d > 0 && a.heads > 0 && d % a.heads == 0,
         "--shape {:?} with --heads {}: positive sizes, D a multiple of the heads",
@@ -144,12 +146,54 @@ fn measure<B: AutodiffBackend>(
         rel_err(dq, rdq),
         rel_err(dkv, rdkv)
     )?;
+    cross_entropy::<B>(a, t * n, dev, &mut out)?;
     writeln!(
         out,
-        "(err dp: the scale's gradient for the norm, the keys' and values' for the attention; fallbacks: \
-         {} norm pass(es), {} attention pass(es))",
+        "(err dp: the scale's gradient for the norm, the keys' and values' for the attention; err y of the \
+         cross-entropy: its summed loss; fallbacks: {} norm pass(es), {} attention pass(es), {} \
+         cross-entropy pass(es))",
         umgen::backbone::norm::fallbacks(),
-        umgen::backbone::flash::fallbacks()
+        umgen::backbone::flash::fallbacks(),
+        umgen::backbone::xent::fallbacks()
+    )?;
+    Ok(())
+}
+
+/// The cross-entropy of `rows` random logits `[rows, --vocab]` against random targets smoothed over
+/// neighbouring ids (σ 1.5, every id ordered): loss and logit gradient, with the kernels chosen and
+/// with burn's operations (the same custom operation with `train.xent = "burn"`).
+fn cross_entropy<B: AutodiffBackend>(
+    a: &BenchLayersArgs,
+    rows: usize,
+    dev: &B::Device,
+    out: &mut impl Write,
+) -> anyhow::Result<()> {
+    use umgen::backbone::xent::{self, XentKernel};
+    let v = a.vocab;
+    let logits = Tensor::<B::InnerBackend, 2>::random([rows, v], Distribution::Normal(0.0, 2.0), dev);
+    let targets = Tensor::<B, 2, Int>::random([rows, 1], Distribution::Uniform(0.0, v as f64), dev);
+    let pass = |kernel: XentKernel| {
+        xent::select(kernel);
+        let xa = Tensor::<B, 2>::from_inner(logits.clone()).require_grad();
+        let loss = xent::sum(xa.clone(), targets.clone(), v, 1.5);
+        let g = loss.clone().backward();
+        let dx = xa.grad(&g).context("no logit gradient")?;
+        Ok([loss.inner().reshape([1, 1, 1, 1]), dx.reshape([1, 1, rows, v])])
+    };
+    let chosen = xent::selected();
+    let ran = timed::<B, 2>(a.iters, dev, || pass(XentKernel::Fused))
+        .and_then(|ours| Ok((ours, timed::<B, 2>(a.iters, dev, || pass(XentKernel::Burn))?)));
+    xent::select(chosen);
+    let ((ms, [y, dx]), (burn_ms, [ry, rdx])) = ran?;
+    writeln!(
+        out,
+        "{:<26} {:>9.3} {:>9.3} {:>9.1e} {:>9.1e} {:>9}",
+        format!("cross-entropy, {v} ids"),
+        ms * 1e3,
+        burn_ms * 1e3,
+        rel_err(y, ry),
+        rel_err(dx, rdx),
+        "-"
     )?;
     Ok(())
 }

@@ -200,6 +200,13 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
              logged with its reason)",
             umgen::backbone::norm::fallbacks()
         )?;
+        writeln!(
+            out,
+            "cross-entropy {:?}, {} pass(es) fell back (the CUDA kernels to burn's operations; the first is \
+             logged with its reason)",
+            tc.xent,
+            umgen::backbone::xent::fallbacks()
+        )?;
     }
     writeln!(
         out,
