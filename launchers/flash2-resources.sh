@@ -3,7 +3,8 @@
 # crates/backbone/src/flash/flash2_tiles.cu + flash2.cu with NVRTC as umgen does (compute_80, fast math),
 # then assembles the PTX for sm_90 with ptxas and prints each kernel's registers and spill bytes.
 #
-#   launchers/flash2-resources.sh [SOURCE]     # SOURCE: one joined file (as UMGEN_FLASH2_SOURCE takes)
+#   launchers/flash2-resources.sh [SOURCE]     # SOURCE: one joined file (as UMGEN_FLASH2_SOURCE takes;
+#                                              # for norm.cu, temporal.cu or xent.cu: warp_device.cuh, then it)
 #
 # NVRTC and ptxas come from NVIDIA's PyPI wheels (nvidia-cuda-nvrtc-cu12, nvidia-cuda-nvcc-cu12), fetched
 # once into $TOOLS (default ~/.cache/umgen/cuda-tools). Run from the repository root.

@@ -333,6 +333,12 @@ impl Kernels {
     }
 }
 
+/// A kernel source (`norm/norm.cu`, …) as NVRTC compiles it: after the warp primitives of
+/// `warp_device.cuh`, which it cannot include itself (NVRTC resolves no include files).
+pub(crate) fn kernel_source(source: &str) -> String {
+    [include_str!("warp_device.cuh"), source].join("\n")
+}
+
 /// A thread's [`Kernels`] of one source by device; `Err` remembers why a device has none.
 pub(crate) type KernelCache = RefCell<Vec<(usize, Result<Kernels, String>)>>;
 

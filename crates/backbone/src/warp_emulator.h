@@ -1,7 +1,6 @@
-// The warp-level primitives of the CUDA C kernels in this crate (`norm/norm.cu`, `temporal/temporal.cu`,
-// `xent/xent.cu`) for the host: every CUDA thread of a block is a std::thread, shuffles go through a warp
-// barrier, and a grid runs one block at a time. Included by the `*_emulator.cpp` files before the kernel
-// source.
+// The warp-level primitives of the CUDA C kernels in this crate for the host (`warp_device.cuh` defines
+// them on the GPU): every CUDA thread of a block is a std::thread, shuffles go through a warp barrier, and
+// a grid runs one block at a time. Included by the `*_emulator.cpp` files before the kernel source.
 #pragma once
 #include <barrier>
 #include <cmath>
@@ -14,6 +13,7 @@
 #define UMGEN_EMULATED
 #define DEV static inline
 #define KERNEL void
+#define NEG_INF (-INFINITY)
 
 static thread_local int g_tid;
 static thread_local long long g_bx;

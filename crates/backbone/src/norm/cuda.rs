@@ -210,7 +210,7 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
         .collect();
     Kernels::compile(
         like,
-        include_str!("norm.cu").to_string(),
+        side::kernel_source(include_str!("norm.cu")),
         CompileOptions::default(),
         &names,
         0,

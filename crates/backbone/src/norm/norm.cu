@@ -10,22 +10,8 @@
 // and each warp's column sums of `dy · x̂` and `dy` (the scale's and shift's gradients, summed over the
 // warps by the caller).
 //
-// The same source compiles on the host (`UMGEN_EMULATED`), where `norm_emulator.cpp` runs it thread by
-// thread against a double-precision reference.
-
-#ifndef UMGEN_EMULATED
-#define DEV static __device__ __forceinline__
-#define KERNEL extern "C" __global__ void __launch_bounds__(256)
-DEV int lane_id() { return threadIdx.x & 31; }
-DEV int warp_id() { return threadIdx.x >> 5; }
-DEV int warps_per_block() { return blockDim.x >> 5; }
-DEV long long block_x() { return blockIdx.x; }
-DEV long long blocks() { return gridDim.x; }
-DEV float warp_sum(float x) {
-    for (int m = 16; m > 0; m >>= 1) x += __shfl_xor_sync(0xffffffffu, x, m);
-    return x;
-}
-#endif
+// NVRTC compiles it after `warp_device.cuh`'s primitives; on the host `norm_emulator.cpp` includes
+// it after `warp_emulator.h`'s and runs it thread by thread against a double-precision reference.
 
 // What both passes take (`NormParams` in `norm/cuda.rs`, field for field).
 struct NormParams {

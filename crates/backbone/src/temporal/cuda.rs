@@ -226,7 +226,7 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
         .collect();
     Kernels::compile(
         like,
-        include_str!("temporal.cu").to_string(),
+        side::kernel_source(include_str!("temporal.cu")),
         CompileOptions::default(),
         &names,
         0,

@@ -9,20 +9,8 @@
 // once for the query gradients (queries outer), with each query's log-sum-exp and `dout · out`
 // recomputed first and held by lane t (so the backward pass reads q, k, v and dout only). Rows this short leave nothing for tensor cores to do; the work is the reads and writes.
 //
-// The same source compiles on the host (`UMGEN_EMULATED`), where `temporal_emulator.cpp` runs it thread
-// by thread against a double-precision reference.
-
-#ifndef UMGEN_EMULATED
-#define DEV static __device__ __forceinline__
-#define KERNEL extern "C" __global__ void __launch_bounds__(256)
-DEV int lane_id() { return threadIdx.x & 31; }
-DEV long long warp_index() { return (long long)blockIdx.x * (blockDim.x >> 5) + (threadIdx.x >> 5); }
-DEV float warp_sum(float x) {
-    for (int m = 16; m > 0; m >>= 1) x += __shfl_xor_sync(0xffffffffu, x, m);
-    return x;
-}
-DEV float from_lane(float x, int lane) { return __shfl_sync(0xffffffffu, x, lane); }
-#endif
+// NVRTC compiles it after `warp_device.cuh`'s primitives; on the host `temporal_emulator.cpp` includes
+// it after `warp_emulator.h`'s and runs it thread by thread against a double-precision reference.
 
 // Strides (elements) of the b, t and n axes of one `[b, t, n, heads · dh]` operand.
 struct Axes {

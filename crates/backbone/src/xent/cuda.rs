@@ -155,7 +155,7 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
     ];
     Kernels::compile(
         like,
-        include_str!("xent.cu").to_string(),
+        side::kernel_source(include_str!("xent.cu")),
         CompileOptions::default(),
         &names,
         0,

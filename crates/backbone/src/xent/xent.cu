@@ -8,31 +8,8 @@
 // log-sum-exp), and the backward pass reads each logit once and writes its gradient once, then takes the
 // target distribution's few weights off the target ids.
 //
-// The same source compiles on the host (`UMGEN_EMULATED`), where `xent_emulator.cpp` runs it thread by
-// thread against a double-precision reference.
-
-#ifndef UMGEN_EMULATED
-#define DEV static __device__ __forceinline__
-#define KERNEL extern "C" __global__ void __launch_bounds__(256)
-DEV int lane_id() { return threadIdx.x & 31; }
-DEV int warp_id() { return threadIdx.x >> 5; }
-DEV int warps_per_block() { return blockDim.x >> 5; }
-DEV long long block_x() { return blockIdx.x; }
-DEV long long blocks() { return gridDim.x; }
-DEV float warp_sum(float x) {
-    for (int m = 16; m > 0; m >>= 1) x += __shfl_xor_sync(0xffffffffu, x, m);
-    return x;
-}
-DEV float warp_max(float x) {
-    for (int m = 16; m > 0; m >>= 1) x = fmaxf(x, __shfl_xor_sync(0xffffffffu, x, m));
-    return x;
-}
-DEV void warp_sync() { __syncwarp(); }
-// NVRTC has no <math.h>.
-#define NEG_INF __int_as_float(0xff800000)
-#else
-#define NEG_INF (-INFINITY)
-#endif
+// NVRTC compiles it after `warp_device.cuh`'s primitives; on the host `xent_emulator.cpp` includes
+// it after `warp_emulator.h`'s and runs it thread by thread against a double-precision reference.
 
 // What both passes take (`XentParams` in `xent/cuda.rs`, field for field).
 struct XentParams {
