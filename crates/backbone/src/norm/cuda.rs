@@ -8,11 +8,8 @@ use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decom
 use crate::attention::float;
 use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
 use burn::backend::Cuda;
-use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, Tensor};
-use burn_cubecl::fusion::FusionCubeRuntime;
-use burn_fusion::stream::Operation;
 use burn_ir::CustomOpIr;
 use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
@@ -135,7 +132,7 @@ fn register<const I: usize, const O: usize>(
         Pass::Forward { .. } => "umgen_norm_forward",
         Pass::Backward => "umgen_norm_backward",
     };
-    side::register(id, inputs, shapes, |desc| Op { desc, pass })
+    side::register(id, inputs, shapes, pass)
 }
 
 /// Which pass.
@@ -147,18 +144,11 @@ enum Pass {
     Backward,
 }
 
-/// One pass as the fusion stream runs it.
-#[derive(Debug)]
-struct Op {
-    desc: CustomOpIr,
-    pass: Pass,
-}
-
-impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
-    fn execute(&self, handles: &mut Handles) {
-        let outputs = match self.pass {
+impl side::SidePass for Pass {
+    fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
+        match *self {
             Pass::Forward { eps } => {
-                let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, &self.desc);
+                let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, desc);
                 launch(&x, &gamma, Some(&beta), None, eps).unwrap_or_else(|why| {
                     fell_back(&why);
                     let (y, mean, rstd) =
@@ -167,7 +157,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
                 })
             }
             Pass::Backward => {
-                let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, &self.desc);
+                let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
                 launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0).unwrap_or_else(|why| {
                     fell_back(&why);
                     let warps = backward_warps(x.meta.shape()[0]);
@@ -187,8 +177,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
                     vec![side::inner(dx), rows(dgamma), rows(dbeta)]
                 })
             }
-        };
-        side::register_outputs(handles, &self.desc, outputs);
+        }
     }
 }
 

@@ -10,10 +10,7 @@ use crate::attention::float;
 use crate::config::Precision;
 use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
 use burn::backend::Cuda;
-use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Tensor};
-use burn_cubecl::fusion::FusionCubeRuntime;
-use burn_fusion::stream::Operation;
 use burn_ir::CustomOpIr;
 use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
@@ -120,7 +117,7 @@ impl TemporalAttention for Cuda {
             "umgen_temporal_forward",
             [side::fused(q), side::fused(kv)],
             [vec![b, t, n, d], vec![b, t, n, heads]],
-            |desc| Op { desc, pass },
+            pass,
         );
         (float(out), float(lse))
     }
@@ -149,7 +146,7 @@ impl TemporalAttention for Cuda {
             "umgen_temporal_backward",
             [side::fused(q), side::fused(kv), side::fused(dout)],
             [vec![b, t, n, d], vec![b, t, n, 2 * d]],
-            |desc| Op { desc, pass },
+            pass,
         );
         (float(dq), float(dkv))
     }
@@ -166,23 +163,16 @@ struct Pass {
     precision: Precision,
 }
 
-/// One pass as the fusion stream runs it.
-#[derive(Debug)]
-struct Op {
-    desc: CustomOpIr,
-    pass: Pass,
-}
-
-impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
-    fn execute(&self, handles: &mut Handles) {
+impl side::SidePass for Pass {
+    fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
         let Pass {
             heads,
             causal,
             backward,
             precision,
-        } = self.pass;
-        let outputs = if backward {
-            let [q, kv, dout] = side::contiguous_inputs::<3, 2>(handles, &self.desc);
+        } = *self;
+        if backward {
+            let [q, kv, dout] = side::contiguous_inputs::<3, 2>(handles, desc);
             launch(&q, &kv, Some(&dout), heads, causal).unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
                 let (dq, dkv) = backward_decomposed::<Inner>(
@@ -197,14 +187,13 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
                 vec![side::inner(dq), side::inner(dkv)]
             })
         } else {
-            let [q, kv] = side::contiguous_inputs::<2, 2>(handles, &self.desc);
+            let [q, kv] = side::contiguous_inputs::<2, 2>(handles, desc);
             launch(&q, &kv, None, heads, causal).unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
                 let (out, lse) = forward_decomposed::<Inner>(float(q), float(kv), heads, causal, precision);
                 vec![side::inner(out), side::inner(lse)]
             })
-        };
-        side::register_outputs(handles, &self.desc, outputs);
+        }
     }
 }
 

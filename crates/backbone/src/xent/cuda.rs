@@ -9,10 +9,7 @@ use super::{CHOICE, FusedXent, XentKernel, grad_decomposed, lse_decomposed, sele
 use crate::attention::float;
 use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
 use burn::backend::Cuda;
-use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Int, Tensor};
-use burn_cubecl::fusion::FusionCubeRuntime;
-use burn_fusion::stream::Operation;
 use burn_ir::CustomOpIr;
 use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
@@ -66,10 +63,12 @@ impl FusedXent for Cuda {
             return lse_decomposed(x);
         }
         let rows = x.dims()[0];
-        let [lse] = side::register("umgen_xent_forward", [side::fused(x)], [vec![rows]], |desc| Op {
-            desc,
-            pass: Pass::Forward,
-        });
+        let [lse] = side::register(
+            "umgen_xent_forward",
+            [side::fused(x)],
+            [vec![rows]],
+            Pass::Forward,
+        );
         float::<Cuda, 1>(lse).reshape([rows, 1])
     }
 
@@ -93,10 +92,7 @@ impl FusedXent for Cuda {
             side::fused(ids.float()),
             side::fused(weights),
         ];
-        let [dx] = side::register("umgen_xent_backward", inputs, [vec![rows, v]], |desc| Op {
-            desc,
-            pass: Pass::Backward,
-        });
+        let [dx] = side::register("umgen_xent_backward", inputs, [vec![rows, v]], Pass::Backward);
         float(dx)
     }
 }
@@ -110,18 +106,11 @@ enum Pass {
     Backward,
 }
 
-/// One pass as the fusion stream runs it.
-#[derive(Debug)]
-struct Op {
-    desc: CustomOpIr,
-    pass: Pass,
-}
-
-impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
-    fn execute(&self, handles: &mut Handles) {
-        let outputs = match self.pass {
+impl side::SidePass for Pass {
+    fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
+        match self {
             Pass::Forward => {
-                let [x] = side::contiguous_inputs::<1, 1>(handles, &self.desc);
+                let [x] = side::contiguous_inputs::<1, 1>(handles, desc);
                 launch(&x, None).unwrap_or_else(|why| {
                     CHOICE.fell_back(&why);
                     let lse = lse_decomposed::<Inner>(float(x));
@@ -130,7 +119,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
                 })
             }
             Pass::Backward => {
-                let [x, lse, g, ids, weights] = side::contiguous_inputs::<5, 1>(handles, &self.desc);
+                let [x, lse, g, ids, weights] = side::contiguous_inputs::<5, 1>(handles, desc);
                 launch(&x, Some([&lse, &g, &ids, &weights])).unwrap_or_else(|why| {
                     CHOICE.fell_back(&why);
                     let ids = float::<Inner, 2>(ids).int();
@@ -138,8 +127,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Op {
                     vec![side::inner(dx)]
                 })
             }
-        };
-        side::register_outputs(handles, &self.desc, outputs);
+        }
     }
 }
 
