@@ -177,16 +177,10 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
 pub(crate) struct Pointers(Vec<Box<dyn std::any::Any>>);
 
 impl Pointers {
-    /// The device pointer of `t`'s first element, `t`'s buffer kept alive; an error for a tensor not packed
-    /// row-major (strided or row-padded), which the kernels cannot index.
+    /// The device pointer of `t`'s first element, `t`'s buffer kept alive. (Kernels that index packed rows
+    /// get their inputs through `contiguous_inputs` and their outputs from `empty_f32`; flash2 takes
+    /// strided operands and passes their strides.)
     pub(crate) fn of(&mut self, t: &Primitive) -> Result<u64, String> {
-        if !t.is_contiguous() {
-            return Err(format!(
-                "a tensor of shape {:?} with strides {:?} (the kernels take packed rows)",
-                t.meta.shape(),
-                t.meta.strides()
-            ));
-        }
         let (address, guard) = pointer(t)?;
         self.0.push(Box::new(guard));
         Ok(address)

@@ -10,13 +10,12 @@ use super::{
 };
 use crate::attention::{float, softmax_delta};
 use crate::config::Precision;
-use crate::side::{Handles, Inner, Primitive};
+use crate::side::{Handles, Inner, Primitive, empty_f32};
 use burn::backend::Cuda;
 use burn::cubecl::Runtime;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Shape, Tensor};
 use burn_cubecl::fusion::FusionCubeRuntime;
-use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_ir::{CustomOpIr, OperationIr, TensorIr};
 use cubecl::prelude::{CubeCount, CubeDim, CubePrimitive, StorageType};
@@ -237,17 +236,6 @@ impl Pass {
     }
 }
 
-/// An uninitialised f32 tensor of `shape` on `like`'s device, packed row-major ([`crate::side::empty_f32`]
-/// says why).
-pub(super) fn empty(like: &Primitive, shape: [usize; 4]) -> Primitive {
-    empty_device_contiguous_dtype(
-        like.client.clone(),
-        like.device.clone(),
-        Shape::new(shape),
-        DType::F32,
-    )
-}
-
 /// Launch geometry: one cube per block of `rows` rows of each (sequence, head); four planes of 32.
 fn geometry(rows: usize, b: usize, h: usize) -> (CubeCount, CubeDim) {
     let blocks = rows.div_ceil(BLOCK) as u32;
@@ -266,8 +254,8 @@ fn scale_and_offset(q: &Primitive, k: &Primitive) -> (f32, usize) {
 
 fn forward(q: &Primitive, k: &Primitive, v: &Primitive, causal: bool) -> Vec<Primitive> {
     let [b, h, lq, d] = dims(q);
-    let out = empty(q, [b, h, lq, d]);
-    let lse = empty(q, [b, h, lq, 1]);
+    let out = empty_f32(q, vec![b, h, lq, d]);
+    let lse = empty_f32(q, vec![b, h, lq, 1]);
     let (scale, off) = scale_and_offset(q, k);
     let (format, kstep) = tile_format(q.dtype);
     let step = step();
@@ -304,9 +292,9 @@ fn backward(
 ) -> Vec<Primitive> {
     let [b, h, lq, d] = dims(q);
     let lk = k.meta.shape()[2];
-    let dq = empty(q, [b, h, lq, d]);
-    let dk = empty(q, [b, h, lk, d]);
-    let dv = empty(q, [b, h, lk, d]);
+    let dq = empty_f32(q, vec![b, h, lq, d]);
+    let dk = empty_f32(q, vec![b, h, lk, d]);
+    let dv = empty_f32(q, vec![b, h, lk, d]);
     let (scale, off) = scale_and_offset(q, k);
     let (format, kstep) = tile_format(q.dtype);
     let step = step();

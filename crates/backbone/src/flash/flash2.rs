@@ -9,8 +9,8 @@
 //! the host.
 #![allow(unsafe_code)]
 
-use super::cuda::empty;
 use crate::side::Primitive;
+use crate::side::empty_f32;
 use crate::side::{KernelCache, Kernels, Pointers, with_kernels};
 use burn::tensor::DType;
 use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
@@ -203,7 +203,7 @@ pub(super) fn launch(
     // The results, each kernel's name and the rows its grid covers.
     let (results, launches) = match grads {
         None => {
-            let results = vec![empty(q, [b, h, lq, d]), empty(q, [b, h, lq, 1])];
+            let results = vec![empty_f32(q, vec![b, h, lq, d]), empty_f32(q, vec![b, h, lq, 1])];
             (p.out, p.lse_out) = (ptr(&results[0])?, ptr(&results[1])?);
             (results, vec![(format!("umgen_flash2_forward_{dtype}_{d}"), lq)])
         }
@@ -215,9 +215,9 @@ pub(super) fn launch(
             );
             (p.dout, p.lse, p.delta) = (ptr(dout)?, ptr(lse)?, ptr(delta)?);
             let results = vec![
-                empty(q, [b, h, lq, d]),
-                empty(q, [b, h, lk, d]),
-                empty(q, [b, h, lk, d]),
+                empty_f32(q, vec![b, h, lq, d]),
+                empty_f32(q, vec![b, h, lk, d]),
+                empty_f32(q, vec![b, h, lk, d]),
             ];
             (p.dq, p.dk, p.dv) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
             let launches = vec![
