@@ -31,6 +31,53 @@ DEV int key_blocks(const Params& P, int q0) {
     return last / ROWS + 1;
 }
 
+// One key tile's step of the forward pass's online softmax: the raw scores `s` become probabilities, the
+// running maximum `m` (log2 units) and sum move on, and the output accumulator `o` is rescaled. Only with
+// MASK are keys past the end and (causal) after each query hidden: tiles that hide nothing skip the checks,
+// which were most of the per-score instructions (the scores are scaled inside the exponent's FMA).
+template <bool MASK, int D>
+DEV void softmax_tile(const Params& P, float (*s)[4], float (*o)[4], float* m, float* s_sum, int q0, int k0,
+                      float sl) {
+    int l = lane_id(), g = l >> 2, t = l & 3;
+#pragma unroll
+    for (int half = 0; half < 2; half++) {
+        int query = q0 + 16 * warp_id() + g + 8 * half;
+        float mx = NEG_INF;
+#pragma unroll
+        for (int j = 0; j < 8; j++)
+#pragma unroll
+            for (int e = 0; e < 2; e++) {
+                float x = s[j][2 * half + e];
+                if (MASK) {
+                    int key = k0 + 8 * j + 2 * t + e;
+                    if (key >= P.lk || (P.causal && key > query + P.off)) x = NEG_INF;
+                    s[j][2 * half + e] = x;
+                }
+                mx = fmaxf(mx, x);
+            }
+        float m_new = fmaxf(m[half], quad_max(mx) * sl);
+        // A row that has seen no key yet keeps exponents finite.
+        float base = m_new == NEG_INF ? 0.f : m_new;
+        float alpha = exp2f(m[half] - base);
+        float sum = 0.f;
+#pragma unroll
+        for (int j = 0; j < 8; j++)
+#pragma unroll
+            for (int e = 0; e < 2; e++) {
+                float p = exp2f(fmaf(s[j][2 * half + e], sl, -base));
+                s[j][2 * half + e] = p;
+                sum += p;
+            }
+        s_sum[half] = s_sum[half] * alpha + sum;
+        m[half] = m_new;
+#pragma unroll
+        for (int n = 0; n < D / 8; n++) {
+            o[n][2 * half] *= alpha;
+            o[n][2 * half + 1] *= alpha;
+        }
+    }
+}
+
 template <typename T, int D>
 DEV void forward(const Params& P) {
     SHARED ALIGNED u16 qt[MAX_ROWS * (D + 8)];
@@ -55,41 +102,11 @@ DEV void forward(const Params& P) {
         fetch_next(kn, vn, k0, kb + 1 < blocks);
         float s[8][4];
         times_transposed<D>(s, qa, kt);
-#pragma unroll
-        for (int half = 0; half < 2; half++) {
-            int query = q0 + 16 * warp_id() + g + 8 * half;
-            float mx = NEG_INF;
-#pragma unroll
-            for (int j = 0; j < 8; j++)
-#pragma unroll
-                for (int e = 0; e < 2; e++) {
-                    int key = k0 + 8 * j + 2 * t + e;
-                    float x = (key >= P.lk || (P.causal && key > query + P.off)) ? NEG_INF
-                                                                                 : s[j][2 * half + e] * sl;
-                    s[j][2 * half + e] = x;
-                    mx = fmaxf(mx, x);
-                }
-            float m_new = fmaxf(m[half], quad_max(mx));
-            // A row that has seen no key yet keeps exponents finite.
-            float base = m_new == NEG_INF ? 0.f : m_new;
-            float alpha = exp2f(m[half] - base);
-            float sum = 0.f;
-#pragma unroll
-            for (int j = 0; j < 8; j++)
-#pragma unroll
-                for (int e = 0; e < 2; e++) {
-                    float p = exp2f(s[j][2 * half + e] - base);
-                    s[j][2 * half + e] = p;
-                    sum += p;
-                }
-            s_sum[half] = s_sum[half] * alpha + sum;
-            m[half] = m_new;
-#pragma unroll
-            for (int n = 0; n < D / 8; n++) {
-                o[n][2 * half] *= alpha;
-                o[n][2 * half + 1] *= alpha;
-            }
-        }
+        // The tile crosses the keys' end, or (causal) some key of it comes after the block's first query.
+        if (k0 + ROWS > P.lk || (P.causal && k0 + ROWS - 1 > q0 + P.off))
+            softmax_tile<true, D>(P, s, o, m, s_sum, q0, k0, sl);
+        else
+            softmax_tile<false, D>(P, s, o, m, s_sum, q0, k0, sl);
         times<D>(o, s, vt);
     }
     long long bh_rows = (long long)bh * P.lq;
@@ -117,8 +134,10 @@ DEV void load_row_values(float* dst, const float* src, const long long* s, int b
 }
 
 // p = exp2(s · sl − lse2) where the key is visible, else 0; then ds = p ∘ (dp − delta). Rows and columns of
-// the tiles are keys and queries (`keys_are_rows`) or queries and keys.
-template <bool keys_are_rows, int NT>
+// the tiles are keys and queries (`keys_are_rows`) or queries and keys. Only with MASK are causally hidden
+// pairs zeroed: keys past the end and queries past theirs meet zero-filled tiles (their products are zero,
+// or land in rows no one stores), so the tiles off a causal diagonal skip the checks.
+template <bool keys_are_rows, int NT, bool MASK>
 DEV void probabilities(const Params& P, float (*s)[4], float (*dp)[4], const float* row_lse, const float* row_delta,
                        const float* col_lse, const float* col_delta, int r0, int c0, float sl) {
     int l = lane_id(), g = l >> 2, t = l & 3;
@@ -130,7 +149,8 @@ DEV void probabilities(const Params& P, float (*s)[4], float (*dp)[4], const flo
             int query = keys_are_rows ? c0 + c : r0 + r, key = keys_are_rows ? r0 + r : c0 + c;
             float lse2 = keys_are_rows ? col_lse[c] : row_lse[r];
             float delta = keys_are_rows ? col_delta[c] : row_delta[r];
-            float p = hidden(P, query, key) ? 0.f : exp2f(s[j][e] * sl - lse2);
+            bool masked = MASK && hidden(P, query, key);
+            float p = masked ? 0.f : exp2f(fmaf(s[j][e], sl, -lse2));
             s[j][e] = p;
             dp[j][e] = p * (dp[j][e] - delta);
         }
@@ -168,7 +188,11 @@ DEV void backward_kv(const Params& P) {
             const u16 *qc = qt + c * (D + 8), *oc = ot + c * (D + 8);
             times_transposed<D, SUB / 8>(s, ka, qc);
             times_transposed<D, SUB / 8>(dp, va, oc);
-            probabilities<true, SUB / 8>(P, s, dp, 0, 0, lse2 + c, delta + c, k0, q0 + c, sl);
+            // Some key of the block comes after some query of these columns.
+            if (P.causal && k0 + block_rows() - 1 > q0 + c + P.off)
+                probabilities<true, SUB / 8, true>(P, s, dp, 0, 0, lse2 + c, delta + c, k0, q0 + c, sl);
+            else
+                probabilities<true, SUB / 8, false>(P, s, dp, 0, 0, lse2 + c, delta + c, k0, q0 + c, sl);
             times<D, SUB / 8>(dv, s, oc);
             times<D, SUB / 8>(dk, dp, qc);
         }
@@ -207,7 +231,11 @@ DEV void backward_q(const Params& P) {
             const u16 *kc = kt + c * (D + 8), *vc = vt + c * (D + 8);
             times_transposed<D, SUB / 8>(s, qa, kc);
             times_transposed<D, SUB / 8>(dp, oa, vc);
-            probabilities<false, SUB / 8>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
+            // Some key of these columns comes after the block's first query.
+            if (P.causal && k0 + c + SUB - 1 > q0 + P.off)
+                probabilities<false, SUB / 8, true>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
+            else
+                probabilities<false, SUB / 8, false>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
             times<D, SUB / 8>(dq, dp, kc);
         }
     }

@@ -258,6 +258,7 @@ int main() {
     } cases[] = {
         {1, 2, 64, 64, 64, false, false}, {1, 1, 100, 100, 64, true, false}, {2, 1, 70, 130, 64, true, true},
         {1, 2, 150, 90, 32, false, true}, {1, 1, 129, 129, 32, true, false}, {1, 1, 40, 200, 64, false, false},
+        {1, 1, 260, 300, 64, true, true},
     };
     double worst = 0;
     unsigned seed = 1;
