@@ -98,6 +98,11 @@ impl Side {
             DType::U32,
         );
         let (flags_ptr, _) = pointer(&flags)?;
+        // The zeros are written by a kernel on cubecl's stream, which the side stream does not wait for: until
+        // they land, the flags hold whatever the pool's memory held, and a stale 1 in flag 0 would let the
+        // first piece of work start before its operands are written. Wait for them, once per side stream.
+        burn::cubecl::future::block_on(like.client.sync())
+            .map_err(|e| format!("zeroing the flags: {e:?}"))?;
         Ok(Self {
             ctx,
             stream,
