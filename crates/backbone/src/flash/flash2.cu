@@ -134,9 +134,12 @@ DEV void load_row_values(float* dst, const float* src, const long long* s, int b
 }
 
 // p = exp2(s · sl − lse2) where the key is visible, else 0; then ds = p ∘ (dp − delta). Rows and columns of
-// the tiles are keys and queries (`keys_are_rows`) or queries and keys. Only with MASK are causally hidden
-// pairs zeroed: keys past the end and queries past theirs meet zero-filled tiles (their products are zero,
-// or land in rows no one stores), so the tiles off a causal diagonal skip the checks.
+// the tiles are keys and queries (`keys_are_rows`) or queries and keys. Only with MASK are hidden pairs
+// zeroed. Queries past their end meet zero-filled tiles, and in the key/value kernel so do keys past theirs
+// (their products are zero or land in rows no one stores), so there only the tiles crossing a causal
+// diagonal check. The query kernel also masks the tile crossing the keys' end: there a past-the-end key's
+// probability exp2(−lse2) meets a zero key row, and would make inf · 0 = NaN for a row whose log-sum-exp is
+// below about −88.
 template <bool keys_are_rows, int NT, bool MASK>
 DEV void probabilities(const Params& P, float (*s)[4], float (*dp)[4], const float* row_lse, const float* row_delta,
                        const float* col_lse, const float* col_delta, int r0, int c0, float sl) {
@@ -231,8 +234,8 @@ DEV void backward_q(const Params& P) {
             const u16 *kc = kt + c * (D + 8), *vc = vt + c * (D + 8);
             times_transposed<D, SUB / 8>(s, qa, kc);
             times_transposed<D, SUB / 8>(dp, oa, vc);
-            // Some key of these columns comes after the block's first query.
-            if (P.causal && k0 + c + SUB - 1 > q0 + P.off)
+            // Some key of these columns comes after the keys' end or (causal) the block's first query.
+            if (k0 + c + SUB > P.lk || (P.causal && k0 + c + SUB - 1 > q0 + P.off))
                 probabilities<false, SUB / 8, true>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
             else
                 probabilities<false, SUB / 8, false>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
