@@ -275,6 +275,13 @@ pub struct BenchTrainArgs {
     /// Peak dense throughput of the device in TFLOP/s, for MFU (default: 989, an H100/H200's bf16).
     #[arg(long, default_value_t = 989.0)]
     pub peak_tflops: f64,
+    /// Steps take turns between the values of one kernel setting, `KEY=V1,V2[,...]` (e.g.
+    /// `train.attention=flash2,fused`), and each value's median step is printed: a comparison inside one
+    /// process, free of the spread between processes. Only settings that leave the run the same alternate
+    /// (`train.matmul`, `train.attention`, `train.attention_step`, `train.attention_block_mib`,
+    /// `train.recompute`, `train.norm`, `train.xent`); `--warmup` must cover one step of each value.
+    #[arg(long, value_name = "KEY=V1,V2")]
+    pub alternate: Option<String>,
     /// Data-parallel settings.
     #[command(flatten)]
     pub dist: DistArgs,

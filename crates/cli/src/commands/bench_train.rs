@@ -72,6 +72,18 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     let flops = spec.train_flops(cfg, b, tc.frames) * world as f64;
     let bucket = (tc.bucket_mib * 1048576.0) as usize;
     tc.select_kernels()?;
+    let alternation = match &a.alternate {
+        Some(spec) => Some(super::bench_alternate::Alternation::parse(
+            spec, &path, &sets, &config,
+        )?),
+        None => None,
+    };
+    let turns = alternation.as_ref().map_or(1, |alt| alt.len());
+    anyhow::ensure!(
+        a.warmup >= turns || turns == 1,
+        "--alternate takes turns between {turns} values: give --warmup {turns} or more, so that each \
+         compiles its kernels before the timed steps"
+    );
     let loss_options = tc.loss_options()?;
     // Every rank runs the same binary, so std's hasher is stable enough to compare configs.
     let identity = {
@@ -80,7 +92,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         config.to_json().to_string().hash(&mut h);
         format!("{:016x}", h.finish())
     };
-    let (median, peak, backend, phases, first) = crate::with_autodiff!(device, |B, dev| {
+    let (median, peak, backend, phases, first, by_turn) = crate::with_autodiff!(device, |B, dev| {
         let mut group =
             <<B as AutodiffBackend>::InnerBackend as DistBackend>::join(&env, &identity, &a.dist)?;
         B::seed(&dev, 0);
@@ -91,6 +103,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             .init();
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
+        let mut by_turn = vec![Vec::new(); turns];
         let mut phases: [Vec<f64>; 4] = Default::default();
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
@@ -102,6 +115,10 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         for i in 0..a.warmup + a.steps + phase_steps {
             let split = i >= a.warmup + a.steps;
             let synced = split || i == 0;
+            let turn = match &alternation {
+                Some(alt) => alt.select(i)?,
+                None => 0,
+            };
             let mut mark = Instant::now();
             let t0 = mark;
             let mut lap = |k: usize| -> anyhow::Result<()> {
@@ -148,6 +165,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             }
             if i >= a.warmup && !split {
                 times.push(took);
+                by_turn[turn].push(took);
             }
         }
         group.barrier()?;
@@ -163,6 +181,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             group.backend(),
             phases,
             first,
+            by_turn,
         )
     });
     if env.rank != 0 {
@@ -259,6 +278,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         1e3 * median,
         a.steps
     )?;
+    if let Some(alt) = &alternation {
+        alt.report(&mut out, &by_turn)?;
+    }
     if let [Some(f), Some(b), Some(r), Some(o)] = phases {
         writeln!(
             out,
