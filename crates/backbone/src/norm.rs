@@ -71,7 +71,9 @@ fn fell_back(why: &str) {
 /// private, and a test checks the two agree).
 pub const LN_EPS: f64 = 1e-5;
 
-/// A backend that computes a layer norm's two passes over the rows of `[rows, d]` matrices (f32).
+/// A backend that computes a layer norm's two passes over the rows of `[rows, d]` matrices (f32). The
+/// passes default to burn's operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides
+/// them.
 pub trait FusedNorm: Backend {
     /// `(x − mean) / √(var + ε) · γ + β` row by row (centred variance), with each row's mean and
     /// `1/√(var + ε)` (`[rows]`) for the backward pass.
@@ -80,7 +82,9 @@ pub trait FusedNorm: Backend {
         gamma: Tensor<Self, 1>,
         beta: Tensor<Self, 1>,
         eps: f64,
-    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>);
+    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        forward_decomposed(x, gamma, beta, eps)
+    }
 
     /// The gradients of the input, the scale and the shift from the output's gradient `dy`, given the
     /// forward pass's input, means and `1/σ`.
@@ -90,7 +94,9 @@ pub trait FusedNorm: Backend {
         mean: Tensor<Self, 1>,
         rstd: Tensor<Self, 1>,
         gamma: Tensor<Self, 1>,
-    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>);
+    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        backward_decomposed(dy, x, mean, rstd, gamma)
+    }
 }
 
 /// [`FusedNorm::norm_forward`] as burn operations.
@@ -132,26 +138,7 @@ pub fn backward_decomposed<B: Backend>(
 }
 
 /// The CPU backend computes the decomposition.
-impl FusedNorm for burn::backend::Flex {
-    fn norm_forward(
-        x: Tensor<Self, 2>,
-        gamma: Tensor<Self, 1>,
-        beta: Tensor<Self, 1>,
-        eps: f64,
-    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
-        forward_decomposed(x, gamma, beta, eps)
-    }
-
-    fn norm_backward(
-        dy: Tensor<Self, 2>,
-        x: Tensor<Self, 2>,
-        mean: Tensor<Self, 1>,
-        rstd: Tensor<Self, 1>,
-        gamma: Tensor<Self, 1>,
-    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
-        backward_decomposed(dy, x, mean, rstd, gamma)
-    }
-}
+impl FusedNorm for burn::backend::Flex {}
 
 /// `ln.forward(x)` over the last axis: on the training backends one operation with [`FusedNorm`]'s
 /// passes, elsewhere (inference backends) the decomposition.

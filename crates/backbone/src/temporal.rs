@@ -30,7 +30,8 @@ use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 
 /// A backend that computes attention over time's two passes. `q` `[b, t, n, d]`, `kv` `[b, t, n, 2d]`
-/// (keys, then values), `heads` heads of `d / heads`; `causal` hides later frames.
+/// (keys, then values), `heads` heads of `d / heads`; `causal` hides later frames. The passes default to
+/// burn's operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides them.
 pub trait TemporalAttention: Backend {
     /// Whether [`Self::temporal_backward`] reads the forward pass's output and log-sum-exp: the operation
     /// keeps them for the backward pass only then (CUDA's backward kernel recomputes what it needs).
@@ -43,7 +44,9 @@ pub trait TemporalAttention: Backend {
         heads: usize,
         causal: bool,
         precision: Precision,
-    ) -> (Tensor<Self, 4>, Tensor<Self, 4>);
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        forward_decomposed(q, kv, heads, causal, precision)
+    }
 
     /// The gradients of `q` and `kv` from the output's gradient `dout`, given the forward pass's output and
     /// log-sum-exp when [`Self::KEEPS_FORWARD`] (`saved`; `None` otherwise).
@@ -55,7 +58,9 @@ pub trait TemporalAttention: Backend {
         heads: usize,
         causal: bool,
         precision: Precision,
-    ) -> (Tensor<Self, 4>, Tensor<Self, 4>);
+    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        backward_decomposed(q, kv, saved, dout, heads, causal, precision)
+    }
 }
 
 /// The forward pass's output and log-sum-exp.
@@ -133,29 +138,7 @@ pub fn backward_decomposed<B: Backend>(
 }
 
 /// The CPU computes the decomposition.
-impl TemporalAttention for burn::backend::Flex {
-    fn temporal_forward(
-        q: Tensor<Self, 4>,
-        kv: Tensor<Self, 4>,
-        heads: usize,
-        causal: bool,
-        precision: Precision,
-    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
-        forward_decomposed(q, kv, heads, causal, precision)
-    }
-
-    fn temporal_backward(
-        q: Tensor<Self, 4>,
-        kv: Tensor<Self, 4>,
-        saved: Option<Saved<Self>>,
-        dout: Tensor<Self, 4>,
-        heads: usize,
-        causal: bool,
-        precision: Precision,
-    ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
-        backward_decomposed(q, kv, saved, dout, heads, causal, precision)
-    }
-}
+impl TemporalAttention for burn::backend::Flex {}
 
 /// Attention over time on `B`: `q` `[b, t, n, d]`, `kv` `[b, t, n, 2d]`, heads, causal, the products'
 /// precision; the output `[b, t, n, d]`.

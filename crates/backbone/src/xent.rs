@@ -63,10 +63,13 @@ pub fn fallbacks() -> usize {
     CHOICE.fallbacks()
 }
 
-/// A backend that computes the two passes of a cross-entropy over the rows of `[rows, vocab]` logits.
+/// A backend that computes the two passes of a cross-entropy over the rows of `[rows, vocab]` logits. The
+/// passes default to burn's operations ([`lse_decomposed`], [`grad_decomposed`]); CUDA overrides them.
 pub trait FusedXent: Backend {
     /// Each row's `log Σ exp x` `[rows, 1]`.
-    fn xent_lse(x: Tensor<Self, 2>) -> Tensor<Self, 2>;
+    fn xent_lse(x: Tensor<Self, 2>) -> Tensor<Self, 2> {
+        lse_decomposed(x)
+    }
 
     /// The logits' gradient `g · (exp(x − lse) − q)` of the summed loss, with `g` `[1]` the loss's
     /// gradient and q the target weights `weights` `[rows, k]` at `ids` `[rows, k]` (repeated ids add up).
@@ -76,7 +79,9 @@ pub trait FusedXent: Backend {
         ids: Tensor<Self, 2, Int>,
         weights: Tensor<Self, 2>,
         g: Tensor<Self, 1>,
-    ) -> Tensor<Self, 2>;
+    ) -> Tensor<Self, 2> {
+        grad_decomposed(x, lse, ids, weights, g)
+    }
 }
 
 /// [`FusedXent::xent_lse`] as burn operations.
@@ -99,21 +104,7 @@ pub fn grad_decomposed<B: Backend>(
         * g.unsqueeze::<2>()
 }
 
-impl FusedXent for burn::backend::Flex {
-    fn xent_lse(x: Tensor<Self, 2>) -> Tensor<Self, 2> {
-        lse_decomposed(x)
-    }
-
-    fn xent_grad(
-        x: Tensor<Self, 2>,
-        lse: Tensor<Self, 2>,
-        ids: Tensor<Self, 2, Int>,
-        weights: Tensor<Self, 2>,
-        g: Tensor<Self, 1>,
-    ) -> Tensor<Self, 2> {
-        grad_decomposed(x, lse, ids, weights, g)
-    }
-}
+impl FusedXent for burn::backend::Flex {}
 
 /// The summed loss of logits `[rows, vocab]` against `targets` `[rows, 1]`, as
 /// [`crate::smoothing::nll_sum`] of their log-softmax defines it.
