@@ -1,31 +1,25 @@
 //! `umgen bench train --alternate`: steps take turns between a kernel setting's values in one process, and
-//! settings that would change the run are refused by name.
+//! settings that would change the run are refused by name, as is a bench with no timed step.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+mod common;
+
 use std::path::PathBuf;
-use std::process::{Command, Output};
+use std::process::Output;
 
-fn tiny() -> String {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml");
-    path.to_str().unwrap().to_string()
-}
-
+/// `umgen bench train` on the tiny config, one window a step, with `extra` arguments.
 fn bench(extra: &[&str]) -> Output {
-    let tiny = tiny();
+    let tiny = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../configs/tiny.toml");
     let mut args = vec![
         "bench",
         "train",
         "--config",
-        tiny.as_str(),
+        tiny.to_str().unwrap(),
         "--set",
         "train.batch_size=1",
     ];
     args.extend_from_slice(extra);
-    Command::new(env!("CARGO_BIN_EXE_umgen"))
-        .args(&args)
-        .env_remove("UMGEN_LOG")
-        .output()
-        .unwrap()
+    common::umgen(&args)
 }
 
 fn text(b: &[u8]) -> String {
@@ -84,4 +78,7 @@ fn alternation_refuses_what_is_not_a_kernel_choice() {
     assert!(err.contains("train.xent=fast"), "{err}");
     let err = refused(&["--warmup", "1", "--alternate", "train.xent=fused,burn"]);
     assert!(err.contains("--warmup 2"), "{err}");
+    // Without a timed step there is no median to print (this panicked on an empty list before).
+    let err = refused(&["--steps", "0"]);
+    assert!(err.contains("--steps 0"), "{err}");
 }

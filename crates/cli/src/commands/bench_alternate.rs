@@ -92,11 +92,7 @@ impl Alternation {
     pub(super) fn report(&self, out: &mut impl Write, times: &[Vec<f64>]) -> std::io::Result<()> {
         let medians: Vec<Option<f64>> = times
             .iter()
-            .map(|t| {
-                let mut t = t.clone();
-                t.sort_by(f64::total_cmp);
-                t.get(t.len() / 2).copied()
-            })
+            .map(|t| super::bench_train::median(t.clone()))
             .collect();
         for ((value, median), t) in self.values.iter().zip(&medians).zip(times) {
             match (median, medians[0]) {

@@ -15,6 +15,12 @@ use umgen::backbone::{Backbone, BackboneSpec};
 use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
 use umgen::{UmgenConfig, backbone_spec, builtin_catalog};
 
+/// The median of `times` (the upper one of an even count), `None` for none.
+pub(super) fn median(mut times: Vec<f64>) -> Option<f64> {
+    times.sort_by(f64::total_cmp);
+    times.get(times.len() / 2).copied()
+}
+
 /// Random windows `[b, f, N]` with every id valid at its position.
 fn random_tokens<B: AutodiffBackend>(
     spec: &BackboneSpec,
@@ -78,6 +84,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         )?),
         None => None,
     };
+    anyhow::ensure!(a.steps >= 1, "--steps 0: give one timed step or more");
     let turns = alternation.as_ref().map_or(1, |alt| alt.len());
     anyhow::ensure!(
         a.warmup >= turns || turns == 1,
@@ -170,13 +177,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         }
         group.barrier()?;
         group.finish();
-        times.sort_by(f64::total_cmp);
-        let phases = phases.map(|mut p| {
-            p.sort_by(f64::total_cmp);
-            p.get(p.len() / 2).copied()
-        });
+        let phases = phases.map(median);
         (
-            times[times.len() / 2],
+            median(times),
             (peak, live),
             group.backend(),
             phases,
@@ -187,6 +190,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     if env.rank != 0 {
         return Ok(());
     }
+    let median = median.context("no timed step ran")?;
     let mut out = std::io::stdout().lock();
     match a.preset {
         Some(p) => writeln!(out, "preset        {} ({})", p.name(), path.display())?,
