@@ -1,5 +1,6 @@
 //! `umgen bench train --alternate`: steps take turns between a kernel setting's values in one process, and
-//! settings that would change the run are refused by name, as is a bench with no timed step.
+//! settings that would change the run are refused by name; the train and all-reduce benches refuse to
+//! time nothing.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
@@ -78,7 +79,15 @@ fn alternation_refuses_what_is_not_a_kernel_choice() {
     assert!(err.contains("train.xent=fast"), "{err}");
     let err = refused(&["--warmup", "1", "--alternate", "train.xent=fused,burn"]);
     assert!(err.contains("--warmup 2"), "{err}");
-    // Without a timed step there is no median to print (this panicked on an empty list before).
-    let err = refused(&["--steps", "0"]);
-    assert!(err.contains("--steps 0"), "{err}");
+}
+
+#[test]
+fn benches_without_a_timed_run_are_refused() {
+    // Without a timed step there is no median to print (both panicked on an empty list before).
+    let out = bench(&["--steps", "0"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(text(&out.stderr).contains("--steps 0"), "{}", text(&out.stderr));
+    let out = common::umgen(&["bench", "allreduce", "--iters", "0"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(text(&out.stderr).contains("--iters 0"), "{}", text(&out.stderr));
 }
