@@ -69,4 +69,6 @@ pub use heads::Heads;
 pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
 pub use losses::{LossOptions, Losses};
 pub use model::{Backbone, TarBlock};
+#[cfg(feature = "cuda")]
+pub use side::foreign_streams;
 pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec, TrackSpec};

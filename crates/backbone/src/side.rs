@@ -32,7 +32,10 @@ use std::sync::Arc;
 use std::thread::LocalKey;
 
 mod fusion;
+mod waits;
 pub(crate) use fusion::*;
+pub use waits::foreign_streams;
+use waits::{foreign, host_sync};
 
 /// Stores `value` in `flag[0]` (a single unit).
 #[cube(launch)]
@@ -70,6 +73,8 @@ pub(crate) struct Side {
     flags_ptr: u64,
     /// The last piece of work's `v`.
     count: u32,
+    /// The cubecl stream the flags were made on.
+    home: cubecl::stream_id::StreamId,
 }
 
 impl Side {
@@ -111,6 +116,7 @@ impl Side {
             flags,
             flags_ptr,
             count: 0,
+            home: cubecl::stream_id::StreamId::current(),
         })
     }
 
@@ -124,17 +130,27 @@ impl Side {
         &self.stream
     }
 
-    /// Runs `work` on the side stream between cubecl's queued work and what cubecl queues next.
+    /// Runs `work` of the kernel family `family` (`cross-entropy`, …: see [`host_sync`]) on the side stream
+    /// between cubecl's queued work and what cubecl queues next.
     pub(crate) fn ordered<T>(
         &mut self,
+        family: &str,
         work: impl FnOnce(&Arc<CudaStream>) -> Result<T, String>,
     ) -> Result<T, String> {
         self.ctx
             .bind_to_thread()
             .map_err(|e| format!("binding the context: {e:?}"))?;
+        let now = cubecl::stream_id::StreamId::current();
+        if now != self.home {
+            foreign(format_args!("work queued from {now}, ordered with {}", self.home));
+        }
         self.count = self.count.wrapping_add(1).max(1);
         let v = self.count;
         let client = &self.flags.client;
+        let (sync_before, sync_after) = host_sync(family);
+        if sync_before {
+            burn::cubecl::future::block_on(client.sync()).map_err(|e| format!("UMGEN_SIDE_SYNC: {e:?}"))?;
+        }
         let one = || (CubeCount::Static(1, 1, 1), CubeDim::new_1d(1));
         let (count, dim) = one();
         signal::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
@@ -160,6 +176,11 @@ impl Side {
         // Flag 1 is stored even when the work fails, so that cubecl's stream is never left spinning.
         let done = work(stream);
         run(&self.store_fn, flag1, "umgen_store")?;
+        if sync_after {
+            stream
+                .synchronize()
+                .map_err(|e| format!("UMGEN_SIDE_SYNC: {e:?}"))?;
+        }
         let (count, dim) = one();
         wait::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
         done
@@ -169,6 +190,14 @@ impl Side {
 /// The device pointer of `t`'s first element (cubecl's stream waits for `t`'s producer from here on), and
 /// what keeps it alive.
 pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String> {
+    let now = cubecl::stream_id::StreamId::current();
+    if t.handle.stream != now {
+        foreign(format_args!(
+            "a {:?} buffer made on {} read from {now}",
+            t.meta.shape(),
+            t.handle.stream
+        ));
+    }
     let res = t
         .client
         .get_resource(t.handle.clone())
@@ -220,7 +249,7 @@ pub(crate) unsafe fn launch_kernel<P: DeviceRepr>(
     };
     with_kernels(cache, like, what, build, |kernels| {
         let f = kernels.function(name)?.clone();
-        kernels.side.ordered(|stream| {
+        kernels.side.ordered(what, |stream| {
             // SAFETY: the caller's contract (live buffers of the kernel's extents); cubecl's stream waits for
             // the kernel before anything queued later can free or reuse them.
             unsafe { stream.launch_builder(&f).arg(params).launch(config) }

@@ -237,7 +237,7 @@ pub(super) fn launch(
                 .iter()
                 .map(|(name, rows)| Ok((name, *rows, kernels.function(name)?.clone())))
                 .collect::<Result<Vec<_>, String>>()?;
-            kernels.side.ordered(|stream| {
+            kernels.side.ordered("attention", |stream| {
                 for (name, rows, f) in &functions {
                     let config = LaunchConfig {
                         grid_dim: (

@@ -47,7 +47,7 @@ impl Blas {
         gemm: impl FnOnce(sys::cublasHandle_t) -> Result<(), String>,
     ) -> Result<(), String> {
         let handle = self.handle;
-        self.side.ordered(|_| gemm(handle))
+        self.side.ordered("cuBLAS", |_| gemm(handle))
     }
 }
 
