@@ -30,6 +30,35 @@ pub enum BenchCommand {
     /// The layer norm and the TAR's attention over time as training computes them (on CUDA, umgen's
     /// kernels) against burn's operations: agreement of outputs and gradients, forward+backward time.
     Layers(BenchLayersArgs),
+    /// Trains a few steps from one seed several times in one process and reports the first step at which
+    /// a run's losses or gradient norm leave the first run's, and whether the final weights agree: kernel
+    /// changes must keep training reproducible, and a race between streams shows up here as a run that
+    /// leaves the others.
+    Repro(BenchReproArgs),
+}
+
+/// Arguments of `umgen bench repro`.
+#[derive(Debug, Args)]
+pub struct BenchReproArgs {
+    /// The config trained (its token cache is made from `train.data` if missing, as `umgen train` does).
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    /// `cpu`, or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Runs from the same seed (two or more).
+    #[arg(long, default_value_t = 4)]
+    pub runs: usize,
+    /// Steps each run trains.
+    #[arg(long, default_value_t = 20)]
+    pub steps: u64,
+    /// Steps between the read-outs compared (each read-out waits for the device, which changes how far
+    /// the host runs ahead of it).
+    #[arg(long, default_value_t = 1)]
+    pub log_every: u64,
+    /// Largest relative difference from the first run that still counts as agreeing (0: bit for bit).
+    #[arg(long, default_value_t = 0.0)]
+    pub tolerance: f64,
 }
 
 /// Arguments of `umgen bench layers`.

@@ -17,6 +17,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Matmul(args) => super::bench_matmul::run(&args),
         BenchCommand::Linear(args) => super::bench_linear::run(&args),
         BenchCommand::Layers(args) => super::bench_layers::run(&args),
+        BenchCommand::Repro(args) => super::bench_repro::run(&args),
     }
 }
 

@@ -10,6 +10,7 @@ mod bench_generate;
 mod bench_layers;
 mod bench_linear;
 mod bench_matmul;
+mod bench_repro;
 mod bench_train;
 mod contexts;
 mod data;

@@ -18,58 +18,8 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
     let lead = env.rank == 0;
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
     let device = Device::parse(&rank_device(&a.device, &env))?;
-    let registry = config.registry(&builtin_catalog_with(device.codec_loader())?)?;
-    let layout = registry.layout()?;
+    let (run, tokens) = prepare(&config, device, &env)?;
     let tc = &config.train;
-    if let (Some(data_dir), false) = (&tc.data, lead) {
-        // Rank 0 tokenizes; the others wait for the cache before they meet it (the launcher or the job
-        // scheduler stops them if rank 0 fails meanwhile).
-        let data = Dataset::open(data_dir)?;
-        let mut waited = false;
-        while tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
-            if !waited {
-                tracing::info!(
-                    "rank {}: waiting for rank 0 to tokenize {}",
-                    env.rank,
-                    data_dir.display()
-                );
-                waited = true;
-            }
-            std::thread::sleep(Duration::from_secs(1));
-        }
-    } else if let Some(data_dir) = &tc.data {
-        // Tokenize what is missing; finished shards are skipped.
-        let data = Dataset::open(data_dir)?;
-        let threads = super::tokenize::default_threads(&[device]);
-        let registries = if tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
-            super::tokenize::registries(&config, &[device], threads)?
-        } else {
-            vec![registry.clone()]
-        };
-        let r = super::tokenize::with_progress(&registries, &data, &tc.tokens, Some(&tc.split), threads)?;
-        if r.written > 0 {
-            tracing::info!(
-                "{}: tokenized {} frames of {}",
-                tc.tokens.display(),
-                r.frames,
-                data_dir.display()
-            );
-        }
-    }
-    let tokens = TokenSet::open(&tc.tokens, layout.fingerprint()).with_context(|| {
-        format!(
-            "token cache {} (set train.data to make it, or run `umgen tokenize`)",
-            tc.tokens.display()
-        )
-    })?;
-    let spec = backbone_spec(&registry, &config.backbone)?;
-    let run = RunSpec {
-        backbone: config.backbone.clone(),
-        spec,
-        train: tc.clone(),
-        fingerprint: layout.fingerprint().into(),
-        config: config.to_json(),
-    };
     if lead {
         std::fs::create_dir_all(&tc.out_dir).with_context(|| format!("creating {}", tc.out_dir.display()))?;
         std::fs::write(
@@ -84,7 +34,7 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         tc.tokens.display(),
         tokens.windows(tc.frames + 1, tc.gap, Some(&tc.split)).len(),
         tc.frames + 1,
-        layout.len(),
+        run.spec.n,
         tc.steps,
         tc.batch_size,
         tc.grad_accum,
@@ -134,4 +84,67 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
             .map_or("none".into(), |p| p.display().to_string())
     );
     Ok(())
+}
+
+/// The run `config` describes and its token cache, tokenizing on rank 0 (of `env`) what the cache lacks of
+/// `train.data`, the other ranks waiting for it.
+pub(super) fn prepare(
+    config: &UmgenConfig,
+    device: Device,
+    env: &DistEnv,
+) -> anyhow::Result<(RunSpec, TokenSet)> {
+    let lead = env.rank == 0;
+    let registry = config.registry(&builtin_catalog_with(device.codec_loader())?)?;
+    let layout = registry.layout()?;
+    let tc = &config.train;
+    if let (Some(data_dir), false) = (&tc.data, lead) {
+        // Rank 0 tokenizes; the others wait for the cache before they meet it (the launcher or the job
+        // scheduler stops them if rank 0 fails meanwhile).
+        let data = Dataset::open(data_dir)?;
+        let mut waited = false;
+        while tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
+            if !waited {
+                tracing::info!(
+                    "rank {}: waiting for rank 0 to tokenize {}",
+                    env.rank,
+                    data_dir.display()
+                );
+                waited = true;
+            }
+            std::thread::sleep(Duration::from_secs(1));
+        }
+    } else if let Some(data_dir) = &tc.data {
+        // Tokenize what is missing; finished shards are skipped.
+        let data = Dataset::open(data_dir)?;
+        let threads = super::tokenize::default_threads(&[device]);
+        let registries = if tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
+            super::tokenize::registries(config, &[device], threads)?
+        } else {
+            vec![registry.clone()]
+        };
+        let r = super::tokenize::with_progress(&registries, &data, &tc.tokens, Some(&tc.split), threads)?;
+        if r.written > 0 {
+            tracing::info!(
+                "{}: tokenized {} frames of {}",
+                tc.tokens.display(),
+                r.frames,
+                data_dir.display()
+            );
+        }
+    }
+    let tokens = TokenSet::open(&tc.tokens, layout.fingerprint()).with_context(|| {
+        format!(
+            "token cache {} (set train.data to make it, or run `umgen tokenize`)",
+            tc.tokens.display()
+        )
+    })?;
+    let spec = backbone_spec(&registry, &config.backbone)?;
+    let run = RunSpec {
+        backbone: config.backbone.clone(),
+        spec,
+        train: tc.clone(),
+        fingerprint: layout.fingerprint().into(),
+        config: config.to_json(),
+    };
+    Ok((run, tokens))
 }
