@@ -158,17 +158,18 @@ fn compare(first: &Trace, run: &Trace, tolerance: f64) -> anyhow::Result<(String
         }
         None => words.push("read-outs agree".into()),
     }
-    let differences = weights_difference(&first.weights, &run.weights)?;
-    let worst = differences.first().map_or(0.0, |(_, d)| *d);
+    let differences = weights_difference(&first.weights, &run.weights, tolerance)?;
+    let worst = differences.iter().map(|d| d.most).fold(0.0, f64::max);
     let over: Vec<String> = differences
         .iter()
-        .filter(|(_, d)| *d > tolerance)
-        .map(|(name, d)| format!("{name} {d:.1e}"))
+        .filter(|d| d.most > tolerance)
+        .map(|d| format!("{} {:.1e} in {:.0} %", d.name, d.most, 100.0 * d.share))
         .collect();
     if !over.is_empty() {
         agrees = false;
-        // The tensors that differ place the fault when the runs are short (one step: only the parameters
-        // whose gradients differed).
+        // The tensors that differ place the fault when the runs are short: after one step without gradient
+        // clipping, AdamW moves every weight by about ±lr, so the values that differ are those whose
+        // gradient changed sign, and a tensor with many of them is near the wrong computation.
         let shown = over
             .iter()
             .take(MAX_NAMED)
@@ -199,9 +200,19 @@ fn compare(first: &Trace, run: &Trace, tolerance: f64) -> anyhow::Result<(String
 /// Tensors named when weights differ.
 const MAX_NAMED: usize = 8;
 
-/// Each tensor of two weight files with its largest difference relative to the first's largest magnitude,
-/// the largest first.
-fn weights_difference(first: &[u8], other: &[u8]) -> anyhow::Result<Vec<(String, f64)>> {
+/// How one tensor of a later run differs from the first run's.
+struct Difference {
+    name: String,
+    /// The largest difference relative to the first run's largest magnitude (infinite where the dtype or
+    /// shape differ, or the first run's tensor is all zeros).
+    most: f64,
+    /// The share of values that differ by more than the tolerance.
+    share: f64,
+}
+
+/// Every tensor of two weight files compared, the largest share of differing values first (then the
+/// largest difference).
+fn weights_difference(first: &[u8], other: &[u8], tolerance: f64) -> anyhow::Result<Vec<Difference>> {
     let (a, b) = (
         SafeTensors::deserialize(first).context("the first run's weights")?,
         SafeTensors::deserialize(other).context("a later run's weights")?,
@@ -218,12 +229,13 @@ fn weights_difference(first: &[u8], other: &[u8]) -> anyhow::Result<Vec<(String,
             .with_context(|| format!("tensor {name} of the later run"))?;
         if x.dtype() != Dtype::F32 || y.dtype() != Dtype::F32 || x.shape() != y.shape() {
             let same = x.data() == y.data() && x.shape() == y.shape();
-            all.push((name, if same { 0.0 } else { f64::INFINITY }));
+            let (most, share) = if same { (0.0, 0.0) } else { (f64::INFINITY, 1.0) };
+            all.push(Difference { name, most, share });
             continue;
         }
         let (xs, ys) = (floats(x.data()), floats(y.data()));
         let scale = xs.iter().fold(0.0f32, |m, v| m.max(v.abs())) as f64;
-        let most = xs
+        let each: Vec<f64> = xs
             .iter()
             .zip(&ys)
             .map(
@@ -233,10 +245,17 @@ fn weights_difference(first: &[u8], other: &[u8]) -> anyhow::Result<Vec<(String,
                     (false, false) => f64::INFINITY,
                 },
             )
-            .fold(0.0f64, f64::max);
-        all.push((name, most));
+            .collect();
+        let most = each.iter().copied().fold(0.0f64, f64::max);
+        let share = each.iter().filter(|d| **d > tolerance).count() as f64 / each.len().max(1) as f64;
+        all.push(Difference { name, most, share });
     }
-    all.sort_by(|p, q| q.1.total_cmp(&p.1).then_with(|| p.0.cmp(&q.0)));
+    all.sort_by(|p, q| {
+        q.share
+            .total_cmp(&p.share)
+            .then_with(|| q.most.total_cmp(&p.most))
+            .then_with(|| p.name.cmp(&q.name))
+    });
     Ok(all)
 }
 
@@ -277,13 +296,50 @@ mod tests {
             "{words}"
         );
         assert!(
-            words.ends_with("weights differ in 1 of 1 tensors: w 2.5e-1"),
+            words.ends_with("weights differ in 1 of 1 tensors: w 2.5e-1 in 50 %"),
             "{words}"
         );
         // Within a tolerance the same runs agree.
         let (words, agrees) = compare(&first, &trace(&[3.0, 2.2, 1.6], &[1.0, -2.5]), 0.3).unwrap();
         assert!(agrees, "{words}");
         assert!(words.ends_with("weights within 2.5e-1"), "{words}");
+    }
+
+    fn named(tensors: &[(&str, &[f32])]) -> Vec<u8> {
+        let bytes: Vec<(String, Vec<u8>, usize)> = tensors
+            .iter()
+            .map(|(n, v)| {
+                (
+                    n.to_string(),
+                    v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                    v.len(),
+                )
+            })
+            .collect();
+        let views = bytes
+            .iter()
+            .map(|(n, b, len)| (n.clone(), TensorView::new(Dtype::F32, vec![*len], b).unwrap()));
+        safetensors::serialize(views, None).unwrap()
+    }
+
+    #[test]
+    fn tensors_with_more_differing_values_come_first() {
+        // `a` differs in one value of four by a lot, `b` in three of four by a little, `c` not at all.
+        let first = named(&[("a", &[1.0; 4]), ("b", &[1.0; 4]), ("c", &[1.0; 4])]);
+        let later = named(&[
+            ("a", &[1.0, 1.0, 1.0, 3.0]),
+            ("b", &[1.1, 1.1, 1.1, 1.0]),
+            ("c", &[1.0; 4]),
+        ]);
+        let d = weights_difference(&first, &later, 0.0).unwrap();
+        let order: Vec<(&str, f64)> = d.iter().map(|d| (d.name.as_str(), d.share)).collect();
+        assert_eq!(order, [("b", 0.75), ("a", 0.25), ("c", 0.0)]);
+        assert!((d[1].most - 2.0).abs() < 1e-6 && (d[0].most - 0.1).abs() < 1e-6);
+        // Above the tolerance only `a`'s value counts.
+        let d = weights_difference(&first, &later, 0.5).unwrap();
+        assert_eq!(d[0].name, "a");
+        assert_eq!(d[0].share, 0.25);
+        assert_eq!(d[1].share, 0.0);
     }
 
     #[test]
