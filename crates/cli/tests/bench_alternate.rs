@@ -4,6 +4,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
+use common::text;
 
 use std::path::PathBuf;
 use std::process::Output;
@@ -21,10 +22,6 @@ fn bench(extra: &[&str]) -> Output {
     ];
     args.extend_from_slice(extra);
     common::umgen(&args)
-}
-
-fn text(b: &[u8]) -> String {
-    String::from_utf8_lossy(b).into_owned()
 }
 
 #[test]

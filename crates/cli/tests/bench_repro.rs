@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{ok, umgen};
+use common::{ok, text, umgen};
 use umgen_tests::run_fixture::Fixture;
 
 #[test]
@@ -24,7 +24,7 @@ fn runs_from_one_seed_agree_bit_for_bit() {
         "--log-every",
         "2",
     ]);
-    let out = String::from_utf8_lossy(&done.stdout).into_owned();
+    let out = text(&done.stdout);
     ok(done);
     assert!(out.contains("3 runs of 4 steps"), "{out}");
     for run in 1..3 {
@@ -52,7 +52,7 @@ fn bad_arguments_are_refused_by_name() {
         all.extend(args);
         let out = umgen(&all);
         assert!(!out.status.success(), "{args:?} was accepted");
-        let err = String::from_utf8_lossy(&out.stderr);
+        let err = text(&out.stderr);
         assert!(err.contains(words), "{args:?}: {err}");
     }
 }

@@ -1,6 +1,9 @@
 //! The `umgen` binary end to end: output, exit codes and error messages.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+mod common;
+use common::text;
+
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
@@ -16,10 +19,6 @@ fn umgen(args: &[&str]) -> Output {
         .env_remove("UMGEN_LOG")
         .output()
         .unwrap()
-}
-
-fn text(b: &[u8]) -> String {
-    String::from_utf8_lossy(b).into_owned()
 }
 
 /// Runs a command that must fail cleanly and returns its stderr.

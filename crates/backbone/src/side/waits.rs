@@ -26,9 +26,10 @@ const FAMILIES: [&str; 5] = [
 pub(super) fn host_sync(family: &str) -> (bool, bool) {
     type Mode = (bool, bool, Option<String>);
     static MODE: std::sync::OnceLock<Mode> = std::sync::OnceLock::new();
+    let default = || (false, true, Some(WAITED_FOR.to_string()));
     let (before, after, only) = MODE.get_or_init(|| {
         let Ok(value) = std::env::var("UMGEN_SIDE_SYNC") else {
-            return (false, true, Some(WAITED_FOR.into()));
+            return default();
         };
         let (mode, only) = match value.split_once(':') {
             Some((m, f)) => (m.to_string(), Some(f.to_string())),
@@ -39,7 +40,7 @@ pub(super) fn host_sync(family: &str) -> (bool, bool) {
                 "UMGEN_SIDE_SYNC: no kernel family `{f}` (one of {}); the default applies",
                 FAMILIES.join(", ")
             );
-            return (false, true, Some(WAITED_FOR.into()));
+            return default();
         }
         match mode.as_str() {
             "before" => (true, false, only),
@@ -50,7 +51,7 @@ pub(super) fn host_sync(family: &str) -> (bool, bool) {
                 tracing::warn!(
                     "UMGEN_SIDE_SYNC={other}: expected before, after, both or none; the default applies"
                 );
-                (false, true, Some(WAITED_FOR.into()))
+                default()
             }
         }
     });

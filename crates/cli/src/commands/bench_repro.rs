@@ -60,23 +60,26 @@ pub fn run(a: &BenchReproArgs) -> anyhow::Result<()> {
         "{} runs of {} steps from seed {} on {}, read out every {} step(s)",
         a.runs, a.steps, run.train.seed, a.device, a.log_every
     )?;
-    let mut traces: Vec<Trace> = Vec::with_capacity(a.runs);
+    // Only the first run is kept: every later one is compared with it and dropped (a trace holds the weights).
+    let mut first: Option<Trace> = None;
     let mut differing = 0;
     for i in 0..a.runs {
         run.train.out_dir = scratch.path().join(format!("run-{i}"));
         let trace = crate::with_autodiff!(device, |B, dev| { once::<B>(&run, &tokens, &dev) })
             .with_context(|| format!("run {i}"))?;
-        let verdict = match traces.first() {
-            None => "the reference".to_string(),
-            Some(first) => {
-                let (words, agrees) = compare(first, &trace, a.tolerance)?;
+        let last = trace.steps.last().map_or(f64::NAN, |(_, v)| v[0].1);
+        let verdict = match &first {
+            None => {
+                first = Some(trace);
+                "the reference".to_string()
+            }
+            Some(reference) => {
+                let (words, agrees) = compare(reference, &trace, a.tolerance)?;
                 differing += usize::from(!agrees);
                 words
             }
         };
-        let last = trace.steps.last().map_or(f64::NAN, |(_, v)| v[0].1);
         writeln!(out, "run {i}: loss {last:.6} at step {}; {verdict}", a.steps)?;
-        traces.push(trace);
     }
     #[cfg(feature = "cuda")]
     if umgen::backbone::foreign_streams() > 0 {

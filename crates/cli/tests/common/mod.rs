@@ -15,6 +15,11 @@ pub fn umgen(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// Bytes of a child's output as text.
+pub fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
 /// Asserts success and returns stderr (the log).
 pub fn ok(out: Output) -> String {
     let err = String::from_utf8_lossy(&out.stderr).into_owned();
