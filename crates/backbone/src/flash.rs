@@ -6,7 +6,7 @@
 //! [`FusedAttention`], a trait of the inner backend. On the CPU (`Flex`) both passes are the tiled ones.
 //! On CUDA, with [`AttentionKernel::Flash2`] (the default), each pass is a custom operation in
 //! burn-fusion's stream that launches the CUDA C kernels of `flash/flash2.cu` (compiled with NVRTC, run on
-//! a side stream ordered with cubecl's: `flash/flash2.rs`), whose products keep scores and probabilities in
+//! cubecl's stream or a side stream: `flash/flash2.rs`), whose products keep scores and probabilities in
 //! registers; head sizes other than 32 and 64 run the fused kernels. With [`AttentionKernel::Fused`] each
 //! pass launches this module's cubecl kernels (`flash/kernels.rs`): the `lq × lk` scores and
 //! probabilities live only in shared memory, so a pass costs its inputs, outputs and one log-sum-exp per

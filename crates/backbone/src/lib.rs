@@ -41,6 +41,7 @@ mod embed;
 mod error;
 pub mod flash;
 mod heads;
+pub mod kernel_stream;
 mod layers;
 mod lookup;
 mod losses;

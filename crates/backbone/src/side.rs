@@ -1,5 +1,7 @@
-//! A CUDA stream of umgen's own beside cubecl's, for work cubecl cannot launch (cuBLAS products, the
-//! NVRTC attention kernels of `flash/flash2.cu`), ordered with cubecl's stream on the device.
+//! A CUDA stream of umgen's own beside cubecl's, for work cubecl cannot launch (cuBLAS's products; umgen's
+//! CUDA C kernels with `train.kernel_stream = "side"`), ordered with cubecl's stream on the device; and the
+//! launch of umgen's CUDA C kernels on cubecl's own stream ([`cubecl_stream`], the default), which needs
+//! no ordering at all.
 //!
 //! burn 0.21 gives no handle to cubecl's CUDA stream (each thread gets its own non-blocking stream), and
 //! waiting on the host around every launch (as the NCCL group does) cost more than cuBLAS saved: the
@@ -13,7 +15,11 @@
 //! 3. cubecl's stream runs [`wait`], one thread spinning until flag 1 is `v`, so nothing queued after it
 //!    (readers of the results, reuse of the operands' memory) starts before the work is done.
 //!
-//! The host never waits. The work is queued in the order the dependencies run, so even streams that share
+//! The host never waits for the GPU (it waits for cubecl's device thread to have launched the signal). The
+//! side streams showed a race this protocol does not explain: with the CUDA C kernels on side streams, 14
+//! of 15 same-seed one-step runs of `small-bundled` with burn's layer norm gave a wrong gradient (a host
+//! wait after the cross-entropy's launches, [`waits`], hides it), and none of 30 with the kernels on
+//! cubecl's stream (docs/perf-notes.md). The work is queued in the order the dependencies run, so even streams that share
 //! a hardware queue cannot deadlock. Each user keeps one [`Side`] per thread and device: cubecl gives each
 //! thread its own stream, and the protocol needs the two streams to take turns. (The driver's stream
 //! memory operations, `cuStreamWaitValue32`, would spare the kernels on this side, but refused cubecl's
@@ -21,16 +27,19 @@
 //! which cubecl loads anyway.)
 #![allow(unsafe_code)]
 
+use crate::kernel_stream::{KernelStream, selected};
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::ops::numeric::zeros_client;
 use cubecl::prelude::*;
+pub(crate) use cubecl_stream::launch as launch_on_cubecl;
 use cudarc::driver::{CudaContext, CudaFunction, CudaStream, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
 use std::cell::RefCell;
 use std::sync::Arc;
 use std::thread::LocalKey;
 
+mod cubecl_stream;
 mod fusion;
 mod waits;
 pub(crate) use fusion::*;
@@ -154,10 +163,16 @@ impl Side {
         let one = || (CubeCount::Static(1, 1, 1), CubeDim::new_1d(1));
         let (count, dim) = one();
         signal::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
-        // Submitted before this side's wait, so that the GPU meets the two in dependency order.
-        client
-            .flush()
-            .map_err(|e| format!("submitting the signal: {e:?}"))?;
+        // Submitted before this side's wait, so that the GPU meets the two in dependency order: cubecl's device
+        // thread answers a call only after the launches queued before it. (`client.flush()` did this until the
+        // twenty-third session, but it also waits on the host for the previous flush's fence, so the host never
+        // ran more than one side-stream launch ahead of the GPU: `small`'s step took 218–224 ms against
+        // 192 ms with this call, docs/perf-notes.md.)
+        drop(
+            client
+                .get_resource(self.flags.handle.clone())
+                .map_err(|e| format!("submitting the signal: {e:?}"))?,
+        );
         let (flag0, flag1) = (self.flags_ptr, self.flags_ptr + 4);
         let single = LaunchConfig {
             grid_dim: (1, 1, 1),
@@ -221,9 +236,10 @@ impl Pointers {
     }
 }
 
-/// Launches the kernel `name` of `cache`'s kernels for `like`'s device (built by `build` on first use;
-/// `what` names them in errors) on `blocks` blocks of `threads` threads with `params`, on the side stream
-/// ordered with cubecl's.
+/// Launches the kernel `name` of `cache`'s kernels for `like`'s device on `blocks` blocks of `threads`
+/// threads with `params`: on cubecl's stream (compiled from `instance`'s source, see
+/// [`cubecl_stream::launch`]) unless `train.kernel_stream = "side"`, else on the side stream ordered with
+/// cubecl's (built by `build` on first use; `what` names the kernels in errors).
 ///
 /// # Safety
 ///
@@ -232,18 +248,19 @@ impl Pointers {
 pub(crate) unsafe fn launch_kernel<P: DeviceRepr>(
     cache: &'static LocalKey<KernelCache>,
     like: &Primitive,
-    what: &str,
-    build: impl FnOnce() -> Result<Kernels, String>,
+    (what, build): (&str, &dyn Fn() -> Result<Kernels, String>),
     name: &str,
+    instance: (&str, &dyn Fn() -> Result<String, String>),
     (blocks, threads): (usize, u32),
     params: &P,
 ) -> Result<(), String> {
+    let grid = u32::try_from(blocks).map_err(|_| format!("{name}: {blocks} blocks"))?;
+    if selected() == KernelStream::Cubecl {
+        // SAFETY: the caller's contract.
+        return unsafe { cubecl_stream::launch(like, name, instance, (grid, 1, 1), threads, params) };
+    }
     let config = LaunchConfig {
-        grid_dim: (
-            u32::try_from(blocks).map_err(|_| format!("{name}: {blocks} blocks"))?,
-            1,
-            1,
-        ),
+        grid_dim: (grid, 1, 1),
         block_dim: (threads, 1, 1),
         shared_mem_bytes: 0,
     };

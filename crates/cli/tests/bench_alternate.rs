@@ -48,6 +48,37 @@ fn alternating_steps_are_timed_per_value() {
         "{report}"
     );
     assert!(lines[0].contains("1.000×"), "{report}");
+    // The host's queuing time is part of the step's: a median of its own, never above the step's.
+    let ms = |prefix: &str| -> f64 {
+        let line = report
+            .lines()
+            .find(|l| l.starts_with(prefix))
+            .unwrap_or_else(|| panic!("{report}"));
+        line.split_whitespace()
+            .nth(1)
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("{line}"))
+    };
+    let (host, step) = (ms("host "), ms("step "));
+    assert!(host > 0.0 && host <= step, "{report}");
+}
+
+#[test]
+fn the_kernels_stream_alternates() {
+    let out = bench(&[
+        "--steps",
+        "2",
+        "--warmup",
+        "2",
+        "--alternate",
+        "train.kernel_stream=cubecl,side",
+    ]);
+    let report = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(
+        report.contains("train.kernel_stream=cubecl") && report.contains("train.kernel_stream=side"),
+        "{report}"
+    );
 }
 
 #[test]

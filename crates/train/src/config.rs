@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use umgen_backbone::LossOptions;
 use umgen_backbone::flash::AttentionKernel;
+use umgen_backbone::kernel_stream::KernelStream;
 use umgen_backbone::matmul::MatmulKernel;
 use umgen_backbone::norm::NormKernel;
 use umgen_backbone::xent::XentKernel;
@@ -94,6 +95,10 @@ pub struct TrainConfig {
     /// What computes the cross-entropy's passes over the logits when training on CUDA: `fused` (one CUDA
     /// C kernel per pass, `umgen_backbone::xent`) or `burn` (burn's operations). The CPU runs burn's.
     pub xent: XentKernel,
+    /// Where the CUDA C kernels (attention, layer norm, attention over time, cross-entropy) run: `cubecl`
+    /// (on cubecl's own stream, launched as cubecl kernels) or `side` (a side stream per kernel family,
+    /// ordered with cubecl's through device flags), `umgen_backbone::kernel_stream`.
+    pub kernel_stream: KernelStream,
 }
 
 impl Default for TrainConfig {
@@ -131,13 +136,14 @@ impl Default for TrainConfig {
             recompute: false,
             norm: NormKernel::default(),
             xent: XentKernel::default(),
+            kernel_stream: KernelStream::default(),
         }
     }
 }
 
 impl TrainConfig {
     /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
-    /// `attention_step`, `recompute`, `norm`, `xent`) to this process, before any product runs.
+    /// `attention_step`, `recompute`, `norm`, `xent`, `kernel_stream`) to this process, before any product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
@@ -152,6 +158,7 @@ impl TrainConfig {
         umgen_backbone::recompute::set_enabled(self.recompute);
         umgen_backbone::norm::select(self.norm);
         umgen_backbone::xent::select(self.xent);
+        umgen_backbone::kernel_stream::select(self.kernel_stream);
         Ok(())
     }
 
@@ -193,6 +200,8 @@ impl TrainConfig {
                 "recompute",
                 "norm",
                 "xent",
+                // The same kernels on another stream.
+                "kernel_stream",
             ] {
                 o.remove(k);
             }
@@ -258,6 +267,14 @@ mod tests {
             (XentKernel::Fused, XentKernel::Burn)
         );
         assert_eq!(named.identity(), burn_xent.identity());
+        let side = parse(r#"{"kernel_stream": "side"}"#).expect("kernel_stream = side");
+        assert_eq!(
+            (named.kernel_stream, side.kernel_stream),
+            (KernelStream::Cubecl, KernelStream::Side)
+        );
+        assert_eq!(named.identity(), side.identity());
+        let e = parse(r#"{"kernel_stream": "main"}"#).unwrap_err().to_string();
+        assert!(e.contains("main") && e.contains("cubecl"), "{e}");
         let e = parse(r#"{"norm": "fast"}"#).unwrap_err().to_string();
         assert!(e.contains("fast") && e.contains("fused"), "{e}");
         let recompute = parse(r#"{"recompute": true}"#).expect("recompute = true");

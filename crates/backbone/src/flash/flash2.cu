@@ -250,7 +250,13 @@ DEV void backward_q(const Params& P) {
     KERNEL umgen_flash2_backward_kv_##NAME(Params p) { backward_kv<T, D>(p); }                                 \
     KERNEL umgen_flash2_backward_q_##NAME(Params p) { backward_q<T, D>(p); }
 
+// One type and head size only where `UMGEN_INSTANCE` says which (kernels launched on cubecl's stream,
+// `side/cubecl_stream.rs`).
+#ifdef UMGEN_INSTANCE
+UMGEN_INSTANCE
+#else
 INSTANCES(f32_64, float, 64)
 INSTANCES(bf16_64, u16, 64)
 INSTANCES(f32_32, float, 32)
 INSTANCES(bf16_32, u16, 32)
+#endif

@@ -1,5 +1,6 @@
-//! Launches the `flash2` kernels (`flash2_tiles.cu` and `flash2.cu`, CUDA C compiled once per thread and
-//! device with NVRTC) on a [`Side`] stream ordered with cubecl's, on burn's buffers as they lie in memory.
+//! Launches the `flash2` kernels (`flash2_tiles.cu` and `flash2.cu`, CUDA C compiled with NVRTC) on
+//! cubecl's stream (or, with `train.kernel_stream = "side"`, on a side stream ordered with cubecl's), on
+//! burn's buffers as they lie in memory.
 //!
 //! They are FlashAttention-2 as its authors wrote it: `mma.sync` products with scores, probabilities and
 //! their gradients in registers, which cubecl's `cmma` abstraction cannot express (its fragments are
@@ -9,9 +10,10 @@
 //! the host.
 #![allow(unsafe_code)]
 
+use crate::kernel_stream::{KernelStream, selected};
 use crate::side::Primitive;
 use crate::side::empty_f32;
-use crate::side::{KernelCache, Kernels, Pointers, with_kernels};
+use crate::side::{KernelCache, Kernels, Pointers, launch_on_cubecl, with_kernels};
 use burn::tensor::DType;
 use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::CompileOptions;
@@ -150,7 +152,7 @@ fn strides(t: &Primitive, what: &str) -> Result<[i64; 3], String> {
 
 /// Runs the forward pass on `q`, `k`, `v` (`grads` `None`: the output and the log-sum-exp) or the
 /// backward pass (`grads` = `[dout, lse, delta]`: dq, dk and dv), returning its contiguous f32 results; an
-/// error says why it could not (nothing was launched on cubecl's stream but the flag kernels, so the
+/// error says why it could not (no result was written that the caller keeps, so the
 /// caller may run another path).
 pub(super) fn launch(
     q: &Primitive,
@@ -227,6 +229,24 @@ pub(super) fn launch(
             (results, launches)
         }
     };
+    let grid = |rows: usize| {
+        (
+            rows.div_ceil(16 * warps()) as u32,
+            bh.min(GRID_YZ) as u32,
+            bh.div_ceil(GRID_YZ) as u32,
+        )
+    };
+    let threads = 32 * warps() as u32;
+    if selected() == KernelStream::Cubecl {
+        let element = if dtype == "bf16" { "u16" } else { "float" };
+        let instance = format!("INSTANCES({dtype}_{d}, {element}, {d})");
+        for (name, rows) in &launches {
+            // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides recorded
+            // beside it, made on `q`'s stream.
+            unsafe { launch_on_cubecl(q, name, (&instance, &source), grid(*rows), threads, &p) }?;
+        }
+        return Ok(results);
+    }
     with_kernels(
         &KERNELS,
         q,
@@ -240,12 +260,8 @@ pub(super) fn launch(
             kernels.side.ordered("attention", |stream| {
                 for (name, rows, f) in &functions {
                     let config = LaunchConfig {
-                        grid_dim: (
-                            rows.div_ceil(16 * warps()) as u32,
-                            bh.min(GRID_YZ) as u32,
-                            bh.div_ceil(GRID_YZ) as u32,
-                        ),
-                        block_dim: (32 * warps() as u32, 1, 1),
+                        grid_dim: grid(*rows),
+                        block_dim: (threads, 1, 1),
                         shared_mem_bytes: 0,
                     };
                     // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides

@@ -15,6 +15,22 @@ typedef unsigned short u16;
 #define SHARED __shared__
 #define ALIGNED __align__(16)
 
+// The softmax's base-2 exponent and logarithm as single approximate instructions, what `--use_fast_math`
+// makes of exp2f and log2f: the kernels are also compiled by cubecl (`train.kernel_stream = "cubecl"`),
+// which passes NVRTC no such option, and the precise exp2f adds range handling to every score.
+DEV float fast_exp2(float x) {
+    float y;
+    asm("ex2.approx.ftz.f32 %0, %1;" : "=f"(y) : "f"(x));
+    return y;
+}
+DEV float fast_log2(float x) {
+    float y;
+    asm("lg2.approx.ftz.f32 %0, %1;" : "=f"(y) : "f"(x));
+    return y;
+}
+#define exp2f fast_exp2
+#define log2f fast_log2
+
 // c += a · b on the tensor cores: a 16×16 (row-major fragments), b 16×8, c 16×8 f32.
 DEV void mma(float* c, const u32* a, const u32* b) {
     asm volatile(

@@ -1,6 +1,6 @@
 //! [`FusedNorm`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
-//! fusion stream that launches `norm.cu`'s kernels (compiled once per thread and device with NVRTC) on a
-//! side stream ordered with cubecl's ([`crate::side`]), unless `train.norm = "burn"` ([`super::select`]). Rows wider than 1,024, other types than f32, or a
+//! fusion stream that launches `norm.cu`'s kernels (compiled with NVRTC) on cubecl's stream, or on a side
+//! stream ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]), unless `train.norm = "burn"` ([`super::select`]). Rows wider than 1,024, other types than f32, or a
 //! failure to compile or launch run the decomposition instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
@@ -197,19 +197,18 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
             ]
         })
         .collect();
-    Kernels::compile(
-        like,
-        side::kernel_source(include_str!("norm.cu")),
-        CompileOptions::default(),
-        &names,
-        0,
-    )
+    Kernels::compile(like, source()?, CompileOptions::default(), &names, 0)
+}
+
+/// The kernels' source as NVRTC compiles it.
+fn source() -> Result<String, String> {
+    Ok(side::kernel_source(include_str!("norm.cu")))
 }
 
 /// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y, mean, rstd) or the
 /// backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
-/// error says why it could not (nothing was launched but the side stream's flag kernels, so the caller may
-/// run the decomposition).
+/// error says why it could not (no result was written that the caller keeps, so it may run the
+/// decomposition).
 fn launch(
     x: &Primitive,
     gamma: &Primitive,
@@ -267,9 +266,9 @@ fn launch(
         side::launch_kernel(
             &KERNELS,
             x,
-            "layer norm",
-            || build(x),
+            ("layer norm", &|| build(x)),
             &name,
+            (&format!("NORM_KERNELS({per})"), &source),
             (blocks, 32 * WARPS as u32),
             &p,
         )

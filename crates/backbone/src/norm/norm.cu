@@ -119,9 +119,14 @@ DEV void norm_backward(const NormParams& p) {
 #define NORM_KERNELS(PER)                                                          \
     KERNEL umgen_norm_forward_##PER(NormParams p) { norm_forward<PER>(p); }        \
     KERNEL umgen_norm_backward_##PER(NormParams p) { norm_backward<PER>(p); }
+// One family only where `UMGEN_INSTANCE` says which (kernels launched on cubecl's stream, `side/cubecl_stream.rs`).
+#ifdef UMGEN_INSTANCE
+UMGEN_INSTANCE
+#else
 NORM_KERNELS(4)
 NORM_KERNELS(8)
 NORM_KERNELS(12)
 NORM_KERNELS(16)
 NORM_KERNELS(24)
 NORM_KERNELS(32)
+#endif

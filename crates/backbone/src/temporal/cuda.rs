@@ -1,6 +1,7 @@
 //! [`TemporalAttention`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation
 //! in the fusion stream that launches `temporal.cu`'s kernels (compiled once per thread and device with
-//! NVRTC) on a side stream ordered with cubecl's ([`crate::side`]). More than 32 frames, head sizes other
+//! NVRTC) on cubecl's stream, or on a side stream ordered with cubecl's with `train.kernel_stream = "side"`
+//! ([`crate::side`]). More than 32 frames, head sizes other
 //! than 32, 64 and 128, other types than f32, or a failure to compile or launch run the decomposition
 //! instead, counted by [`crate::flash::fallbacks`] with the attention's other fallbacks.
 #![allow(unsafe_code)]
@@ -213,13 +214,12 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
             ]
         })
         .collect();
-    Kernels::compile(
-        like,
-        side::kernel_source(include_str!("temporal.cu")),
-        CompileOptions::default(),
-        &names,
-        0,
-    )
+    Kernels::compile(like, source()?, CompileOptions::default(), &names, 0)
+}
+
+/// The kernels' source as NVRTC compiles it.
+fn source() -> Result<String, String> {
+    Ok(side::kernel_source(include_str!("temporal.cu")))
 }
 
 /// Strides of a contiguous `[b, t, n, width]` tensor's first three axes.
@@ -234,8 +234,8 @@ fn axes(t: usize, n: usize, width: usize) -> Axes {
 
 /// Runs the forward pass on contiguous `q` `[b, t, n, d]` and `kv` `[b, t, n, 2d]` (`dout` `None`: the
 /// output and log-sum-exp) or the backward pass (`dout`, contiguous: dq and dkv),
-/// returning its results; an error says why it could not (nothing was launched but the side stream's flag
-/// kernels, so the caller may run the decomposition).
+/// returning its results; an error says why it could not (no result was written that the caller keeps, so
+/// it may run the decomposition).
 fn launch(
     q: &Primitive,
     kv: &Primitive,
@@ -295,9 +295,9 @@ fn launch(
         side::launch_kernel(
             &KERNELS,
             q,
-            "attention over time",
-            || build(q),
+            ("attention over time", &|| build(q)),
             &name,
+            (&format!("TEMPORAL_KERNELS({dpl})"), &source),
             (blocks, 32 * WARPS as u32),
             &p,
         )

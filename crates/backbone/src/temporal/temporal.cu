@@ -178,6 +178,11 @@ DEV void temporal_backward(const TemporalParams& p) {
 #define TEMPORAL_KERNELS(DPL)                                                            \
     KERNEL umgen_temporal_forward_##DPL(TemporalParams p) { temporal_forward<DPL>(p); }  \
     KERNEL umgen_temporal_backward_##DPL(TemporalParams p) { temporal_backward<DPL>(p); }
+// One family only where `UMGEN_INSTANCE` says which (kernels launched on cubecl's stream, `side/cubecl_stream.rs`).
+#ifdef UMGEN_INSTANCE
+UMGEN_INSTANCE
+#else
 TEMPORAL_KERNELS(1)
 TEMPORAL_KERNELS(2)
 TEMPORAL_KERNELS(4)
+#endif

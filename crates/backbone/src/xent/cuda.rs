@@ -1,6 +1,7 @@
 //! [`FusedXent`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
-//! fusion stream that launches `xent.cu`'s kernels (compiled once per thread and device with NVRTC) on a
-//! side stream ordered with cubecl's ([`crate::side`]), unless `train.xent = "burn"` ([`super::select`]).
+//! fusion stream that launches `xent.cu`'s kernels (compiled with NVRTC) on cubecl's
+//! stream, or on a side stream ordered with cubecl's with `train.kernel_stream = "side"`
+//! ([`crate::side`]), unless `train.xent = "burn"` ([`super::select`]).
 //! Other types than f32, or a failure to compile or launch, run burn's operations instead, counted by
 //! [`super::fallbacks`].
 #![allow(unsafe_code)]
@@ -142,19 +143,17 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
         "umgen_xent_forward".to_string(),
         "umgen_xent_backward".to_string(),
     ];
-    Kernels::compile(
-        like,
-        side::kernel_source(include_str!("xent.cu")),
-        CompileOptions::default(),
-        &names,
-        0,
-    )
+    Kernels::compile(like, source()?, CompileOptions::default(), &names, 0)
+}
+
+/// The kernels' source as NVRTC compiles it (two kernels: every entry compiles all of it).
+fn source() -> Result<String, String> {
+    Ok(side::kernel_source(include_str!("xent.cu")))
 }
 
 /// Runs the forward pass on contiguous logits `x` `[rows, v]` (`grads` `None`: the rows' log-sum-exp) or
 /// the backward pass (`grads` = `[lse, g, ids, weights]`: dx), returning the result; an error says why
-/// it could not (nothing was launched but the side stream's flag kernels, so the caller may run burn's
-/// operations).
+/// it could not (no result was written that the caller keeps, so it may run burn's operations).
 fn launch(x: &Primitive, grads: Option<[&Primitive; 4]>) -> Result<Vec<Primitive>, String> {
     let mut operands = vec![x];
     operands.extend(grads.into_iter().flatten());
@@ -197,9 +196,9 @@ fn launch(x: &Primitive, grads: Option<[&Primitive; 4]>) -> Result<Vec<Primitive
         side::launch_kernel(
             &KERNELS,
             x,
-            "cross-entropy",
-            || build(x),
+            ("cross-entropy", &|| build(x)),
             name,
+            ("", &source),
             (blocks, 32 * WARPS as u32),
             &p,
         )

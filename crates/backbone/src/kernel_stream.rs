@@ -1,0 +1,57 @@
+//! Where umgen's CUDA C kernels (attention, layer norm, attention over time, cross-entropy) run
+//! (`train.kernel_stream`): on cubecl's own stream, or on side streams of umgen's.
+//!
+//! On cubecl's stream each kernel is launched as a cubecl kernel whose source is umgen's CUDA C (cubecl
+//! compiles it with NVRTC, caches it and launches it in order with its own kernels), so nothing has to
+//! order two streams: no flag kernels, no host round trip per launch. On a side stream each launch is
+//! ordered with cubecl's through device flags (`side.rs`), as cuBLAS's products still are (cuBLAS takes a
+//! stream, and burn 0.21 hands out no handle of cubecl's).
+
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Where the CUDA C kernels run (`train.kernel_stream`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum KernelStream {
+    /// cubecl's own stream, launched as cubecl kernels. The default.
+    #[default]
+    Cubecl,
+    /// A side stream per kernel family, ordered with cubecl's through device flags (as before; for
+    /// comparing the two).
+    Side,
+}
+
+/// Whether [`KernelStream::Side`] was chosen.
+static SIDE: AtomicBool = AtomicBool::new(false);
+
+/// Chooses where the CUDA C kernels of every pass this process runs from now on go.
+pub fn select(stream: KernelStream) {
+    SIDE.store(stream == KernelStream::Side, Ordering::Relaxed);
+}
+
+/// What [`select`] chose ([`KernelStream::Cubecl`] unless told otherwise).
+pub fn selected() -> KernelStream {
+    if SIDE.load(Ordering::Relaxed) {
+        KernelStream::Side
+    } else {
+        KernelStream::Cubecl
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_parse_and_the_choice_is_kept() {
+        let parsed: Vec<KernelStream> =
+            serde_json::from_str(r#"["cubecl", "side"]"#).expect("both names parse");
+        assert_eq!(parsed, [KernelStream::Cubecl, KernelStream::Side]);
+        assert!(serde_json::from_str::<KernelStream>(r#""stream""#).is_err());
+        select(KernelStream::Side);
+        assert_eq!(selected(), KernelStream::Side);
+        select(KernelStream::Cubecl);
+        assert_eq!(selected(), KernelStream::Cubecl);
+    }
+}
