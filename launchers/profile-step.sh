@@ -51,6 +51,6 @@ total = sum(ms.values())
 if not total:
     sys.exit(f'no kernel timings in {sys.argv[1]}')
 print(f'{total:.1f} ms of kernel time in {sum(launches.values())} launches')
-for k, v in ms.most_common(12):
+for k, v in ms.most_common(24):
     print(f'{v:9.1f} ms {100 * v / total:5.1f} % {launches[k]:6d} launches  {k}')
 PY

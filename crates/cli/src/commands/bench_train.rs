@@ -110,8 +110,6 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             .init();
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
-        // How long the host took to queue each timed step, before waiting for the device.
-        let mut issued = Vec::new();
         let mut by_turn = vec![Vec::new(); turns];
         let mut phases: [Vec<f64>; 4] = Default::default();
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
@@ -161,7 +159,6 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             lap(2)?;
             model = optim.step(tc.lr, model, grads);
             lap(3)?;
-            let queued = t0.elapsed().as_secs_f64();
             // Wait for the step's work on the device before reading the clock.
             sync()?;
             peak = peak.max(crate::device::memory(device).reserved);
@@ -175,7 +172,6 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             }
             if i >= a.warmup && !split {
                 times.push(took);
-                issued.push(queued);
                 by_turn[turn].push(took);
             }
         }
@@ -183,7 +179,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         group.finish();
         let phases = phases.map(median);
         (
-            (median(times), median(issued)),
+            median(times),
             (peak, live),
             group.backend(),
             phases,
@@ -194,7 +190,6 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     if env.rank != 0 {
         return Ok(());
     }
-    let (median, issued) = median;
     let median = median.context("no timed step ran")?;
     let mut out = std::io::stdout().lock();
     match a.preset {
@@ -289,14 +284,6 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     )?;
     if let Some(alt) = &alternation {
         alt.report(&mut out, &by_turn)?;
-    }
-    if let Some(issued) = issued {
-        // Close to the step's time: the host is what limits it (the device idles between launches).
-        writeln!(
-            out,
-            "host          {:.1} ms queuing a step (median; the rest of the step waits for the device)",
-            1e3 * issued
-        )?;
     }
     if let [Some(f), Some(b), Some(r), Some(o)] = phases {
         writeln!(
