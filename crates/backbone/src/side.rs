@@ -16,12 +16,12 @@
 //!    (readers of the results, reuse of the operands' memory) starts before the work is done.
 //!
 //! The host never waits for the GPU (it waits for cubecl's device thread to have launched the signal). The
-//! side streams showed a race this protocol does not explain: with the CUDA C kernels on side streams, 14
-//! of 15 same-seed one-step runs of `small-bundled` with burn's layer norm gave a wrong gradient (a host
-//! wait after the cross-entropy's launches, [`waits`], hides it), and none of 30 with the kernels on
-//! cubecl's stream (docs/perf-notes.md). The work is queued in the order the dependencies run, so even streams that share
-//! a hardware queue cannot deadlock. Each user keeps one [`Side`] per thread and device: cubecl gives each
-//! thread its own stream, and the protocol needs the two streams to take turns. (The driver's stream
+//! work is queued in the order the dependencies run, so even streams that share a hardware queue cannot
+//! deadlock. The side streams showed a race this protocol does not explain: with the CUDA C kernels on
+//! side streams, 14 of 15 same-seed one-step runs of `small-bundled` with burn's layer norm gave a wrong
+//! gradient (a host wait after the cross-entropy's launches, [`waits`], hides it), and none of 30 with the
+//! kernels on cubecl's stream (docs/perf-notes.md). Each user keeps one [`Side`] per thread and device:
+//! cubecl gives each thread its own stream, and the protocol needs the two streams to take turns. (The driver's stream
 //! memory operations, `cuStreamWaitValue32`, would spare the kernels on this side, but refused cubecl's
 //! pool memory with `CUDA_ERROR_INVALID_VALUE` on an H100; the two small kernels are compiled with NVRTC,
 //! which cubecl loads anyway.)

@@ -24,48 +24,36 @@ fn bench(extra: &[&str]) -> Output {
     common::umgen(&args)
 }
 
-#[test]
-fn alternating_steps_are_timed_per_value() {
-    let out = bench(&[
-        "--steps",
-        "3",
-        "--warmup",
-        "2",
-        "--alternate",
-        "train.xent=fused,burn",
-    ]);
-    let report = text(&out.stdout);
+/// The report of five steps (two warm-up, three timed) alternating as `spec` says; the run must succeed.
+fn alternated(spec: &str) -> String {
+    let out = bench(&["--steps", "3", "--warmup", "2", "--alternate", spec]);
     assert!(out.status.success(), "{}", text(&out.stderr));
+    text(&out.stdout)
+}
+
+/// The report's `alternate` lines, checked to name `key`'s two values in turn: the warm-up took one turn
+/// each (steps 0 and 1), the timed steps 2, 3 and 4 ran the first, the second, the first.
+fn check_turns(report: &str, key: &str, [first, second]: [&str; 2]) {
     let lines: Vec<&str> = report.lines().filter(|l| l.starts_with("alternate")).collect();
     assert_eq!(lines.len(), 2, "{report}");
-    // The warm-up took one turn each (steps 0 and 1); the timed steps 2, 3 and 4 ran fused, burn, fused.
     assert!(
-        lines[0].contains("train.xent=fused") && lines[0].contains("median of 2 steps"),
+        lines[0].contains(&format!("{key}={first}")) && lines[0].contains("median of 2 steps"),
         "{report}"
     );
     assert!(
-        lines[1].contains("train.xent=burn") && lines[1].contains("median of 1 steps"),
+        lines[1].contains(&format!("{key}={second}")) && lines[1].contains("median of 1 steps"),
         "{report}"
     );
     assert!(lines[0].contains("1.000×"), "{report}");
 }
 
 #[test]
-fn the_kernels_stream_alternates() {
-    let out = bench(&[
-        "--steps",
-        "2",
-        "--warmup",
-        "2",
-        "--alternate",
-        "train.kernel_stream=cubecl,side",
-    ]);
-    let report = text(&out.stdout);
-    assert!(out.status.success(), "{}", text(&out.stderr));
-    assert!(
-        report.contains("train.kernel_stream=cubecl") && report.contains("train.kernel_stream=side"),
-        "{report}"
-    );
+fn alternating_steps_are_timed_per_value() {
+    let report = alternated("train.xent=fused,burn");
+    check_turns(&report, "train.xent", ["fused", "burn"]);
+    // The stream umgen's CUDA kernels run on is a kernel choice too (the CPU runs neither).
+    let report = alternated("train.kernel_stream=cubecl,side");
+    check_turns(&report, "train.kernel_stream", ["cubecl", "side"]);
 }
 
 #[test]

@@ -1,7 +1,8 @@
 //! [`FusedNorm`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
 //! fusion stream that launches `norm.cu`'s kernels (compiled with NVRTC) on cubecl's stream, or on a side
-//! stream ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]), unless `train.norm = "burn"` ([`super::select`]). Rows wider than 1,024, other types than f32, or a
-//! failure to compile or launch run the decomposition instead, counted by [`super::fallbacks`].
+//! stream ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]), unless `train.norm =
+//! "burn"` ([`super::select`]). Rows wider than 1,024, other types than f32, or a failure to compile or
+//! launch run the decomposition instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
 use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
