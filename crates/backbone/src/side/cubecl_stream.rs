@@ -138,7 +138,7 @@ thread_local! {
 
 /// The source NVRTC compiles for one entry: `source` with `UMGEN_INSTANCE` defined as `instance` (the
 /// source's instance list then instantiates that one family; an empty `instance` keeps the whole source).
-pub(crate) fn one_instance(source: &str, instance: &str) -> String {
+fn one_instance(source: &str, instance: &str) -> String {
     if instance.is_empty() {
         source.to_string()
     } else {

@@ -1,9 +1,9 @@
 //! [`TemporalAttention`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation
-//! in the fusion stream that launches `temporal.cu`'s kernels (compiled once per thread and device with
-//! NVRTC) on cubecl's stream, or on a side stream ordered with cubecl's with `train.kernel_stream = "side"`
-//! ([`crate::side`]). More than 32 frames, head sizes other
-//! than 32, 64 and 128, other types than f32, or a failure to compile or launch run the decomposition
-//! instead, counted by [`crate::flash::fallbacks`] with the attention's other fallbacks.
+//! in the fusion stream that launches `temporal.cu`'s kernels (compiled with NVRTC) on cubecl's stream, or
+//! on a side stream ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]). More than
+//! 32 frames, head sizes other than 32, 64 and 128, other types than f32, or a failure to compile or launch
+//! run the decomposition instead, counted by [`crate::flash::fallbacks`] with the attention's other
+//! fallbacks.
 #![allow(unsafe_code)]
 
 use super::{Saved, TemporalAttention, backward_decomposed, forward_decomposed};
