@@ -29,8 +29,11 @@
 //! time on the rows as they lie ([`temporal`]) and the attention over one kv tensor (`attention/kv.rs`);
 //! the cross-entropy's, the norm's and the temporal attention's passes are CUDA C kernels on CUDA.
 //!
-//! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
+//! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`]. The
+//! optimizer's multi-tensor kernels for CUDA (AdamW, the gradients' norm) live here too, in [`adamw`],
+//! beside the other CUDA C kernels they share their launch path with.
 
+pub mod adamw;
 mod ama;
 pub mod attention;
 mod config;

@@ -4,7 +4,16 @@
 //!   (and flat after it: unlike burn's cosine scheduler it never restarts).
 //! - [`clip_grad_norm`]: scales all gradients so that their global L2 norm is at most a bound (burn's own
 //!   clipping works per parameter), without a device-to-host transfer.
+//! - [`FusedAdamW`]: AdamW over all parameter tensors at once, through a backend's kernels where it has
+//!   them, with the same clipping applied as it reads the gradients ([`FusedAdamW::step_clipped`]).
 //! - [`adam_epsilon`]: a configured AdamW ε as the f32 the optimizer takes, or nothing if it is not usable.
+
+mod adamw;
+
+pub use adamw::{
+    AdamWKernel, AdamWRecord, AdamWSettings, AdamWSlot, AdamWStep, AdamWStepped, FusedAdamW, MultiTensor,
+    NormKernel, adamw_reference, norm_reference,
+};
 
 use burn::module::{AutodiffModule, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
@@ -93,9 +102,7 @@ pub fn clip_grad_norm<B: AutodiffBackend, M: AutodiffModule<B>>(
 ) -> Tensor<B::InnerBackend, 1> {
     let norm = grad_norm::<B, M>(model, grads);
     if max_norm > 0.0 {
-        // min(1, max / norm), and 1 where the norm is NaN or infinite (as if not clipped).
-        let factor = norm.clone().clamp_min(max_norm).recip().mul_scalar(max_norm);
-        let factor = factor.mask_fill(norm.clone().is_finite().bool_not(), 1.0);
+        let factor = adamw::clip_scale(norm.clone(), max_norm);
         model.visit(&mut Scale::<B> {
             grads,
             factor,

@@ -4,11 +4,13 @@ use crate::error::{Result, TrainError};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use umgen_backbone::LossOptions;
+use umgen_backbone::adamw::AdamWChoice;
 use umgen_backbone::flash::AttentionKernel;
 use umgen_backbone::kernel_stream::KernelStream;
 use umgen_backbone::matmul::MatmulKernel;
 use umgen_backbone::norm::NormKernel;
 use umgen_backbone::xent::XentKernel;
+use umgen_optim::{AdamWSettings, adam_epsilon};
 
 /// How the backbone is trained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -99,6 +101,10 @@ pub struct TrainConfig {
     /// (on cubecl's own stream, launched as cubecl kernels) or `side` (a side stream per kernel family,
     /// ordered with cubecl's through device flags), `umgen_backbone::kernel_stream`.
     pub kernel_stream: KernelStream,
+    /// What steps AdamW when training on CUDA: `fused` (one CUDA C kernel over all parameter tensors, the
+    /// clipping factor applied as it reads the gradients, `umgen_backbone::adamw`) or `burn` (burn's AdamW,
+    /// tensor by tensor). The CPU runs burn's.
+    pub adamw: AdamWChoice,
 }
 
 impl Default for TrainConfig {
@@ -137,13 +143,15 @@ impl Default for TrainConfig {
             norm: NormKernel::default(),
             xent: XentKernel::default(),
             kernel_stream: KernelStream::default(),
+            adamw: AdamWChoice::default(),
         }
     }
 }
 
 impl TrainConfig {
     /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
-    /// `attention_step`, `recompute`, `norm`, `xent`, `kernel_stream`) to this process, before any product runs.
+    /// `attention_step`, `recompute`, `norm`, `xent`, `kernel_stream`, `adamw`) to this process, before any
+    /// product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
@@ -159,7 +167,26 @@ impl TrainConfig {
         umgen_backbone::norm::select(self.norm);
         umgen_backbone::xent::select(self.xent);
         umgen_backbone::kernel_stream::select(self.kernel_stream);
+        umgen_backbone::adamw::select(self.adamw);
         Ok(())
+    }
+
+    /// AdamW's settings (`beta1`, `beta2`, `eps`, `weight_decay`) as the optimizer takes them, checked: an
+    /// ε that f32 cannot hold is an error naming `train.eps`. `umgen train` and `umgen bench train` step
+    /// with these.
+    pub fn adamw_settings(&self) -> Result<AdamWSettings> {
+        let Some(epsilon) = adam_epsilon(self.eps) else {
+            return Err(TrainError::Setup(format!(
+                "train.eps = {} must be a positive number that f32 holds",
+                self.eps
+            )));
+        };
+        Ok(AdamWSettings {
+            beta_1: self.beta1 as f32,
+            beta_2: self.beta2 as f32,
+            epsilon,
+            weight_decay: self.weight_decay as f32,
+        })
     }
 
     /// The options of the training loss (`ego_loss_weight`, `prior_drop`, `ordinal_sigma`), checked: an
@@ -202,6 +229,8 @@ impl TrainConfig {
                 "xent",
                 // The same kernels on another stream.
                 "kernel_stream",
+                // The same AdamW to rounding, with the same record.
+                "adamw",
             ] {
                 o.remove(k);
             }
@@ -273,6 +302,14 @@ mod tests {
             (KernelStream::Cubecl, KernelStream::Side)
         );
         assert_eq!(named.identity(), side.identity());
+        let burn_adamw = parse(r#"{"adamw": "burn"}"#).expect("adamw = burn");
+        assert_eq!(
+            (named.adamw, burn_adamw.adamw),
+            (AdamWChoice::Fused, AdamWChoice::Burn)
+        );
+        assert_eq!(named.identity(), burn_adamw.identity());
+        let e = parse(r#"{"adamw": "apex"}"#).unwrap_err().to_string();
+        assert!(e.contains("apex") && e.contains("fused"), "{e}");
         let e = parse(r#"{"kernel_stream": "main"}"#).unwrap_err().to_string();
         assert!(e.contains("main") && e.contains("cubecl"), "{e}");
         let e = parse(r#"{"norm": "fast"}"#).unwrap_err().to_string();

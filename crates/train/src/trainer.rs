@@ -3,7 +3,7 @@
 use crate::error::{Result, TrainError};
 use crate::run::{RunSpec, describe_difference};
 use crate::sampler::Sampler;
-use burn::optim::{AdamWConfig, GradientsAccumulator, GradientsParams, Optimizer};
+use burn::optim::{GradientsAccumulator, GradientsParams};
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::{Int, Tensor, TensorData};
 use std::ops::ControlFlow;
@@ -17,7 +17,7 @@ use umgen_checkpoint::burn_io::{
 use umgen_data::{TokenSet, Window};
 use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks};
 use umgen_metrics::MetricLog;
-use umgen_optim::{Schedule, adam_epsilon, clip_grad_norm};
+use umgen_optim::{FusedAdamW, Schedule};
 
 /// Checkpoint kind of backbone runs.
 pub const KIND: &str = "backbone";
@@ -107,12 +107,7 @@ pub fn train<B: AutodiffBackend>(
             tc.gap
         )));
     }
-    let Some(eps) = adam_epsilon(tc.eps) else {
-        return Err(TrainError::Setup(format!(
-            "train.eps = {} must be a positive number that f32 holds",
-            tc.eps
-        )));
-    };
+    let settings = tc.adamw_settings()?;
     let loss_options = tc.loss_options()?;
     if f > run.backbone.max_frames {
         return Err(TrainError::Setup(format!(
@@ -122,12 +117,8 @@ pub fn train<B: AutodiffBackend>(
     }
     B::seed(device, tc.seed);
     let mut model = stable_param_ids(Backbone::<B>::new(&run.backbone, &run.spec, device)?);
-    let mut optim = AdamWConfig::new()
-        .with_beta_1(tc.beta1 as f32)
-        .with_beta_2(tc.beta2 as f32)
-        .with_epsilon(eps)
-        .with_weight_decay(tc.weight_decay as f32)
-        .init();
+    let mut optim =
+        FusedAdamW::<_, B>::new(settings).with_kernels(umgen_backbone::adamw::kernels::<B::InnerBackend>());
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
     let mut step = 0u64;
     let mut last_ckpt = None;
@@ -211,10 +202,10 @@ pub fn train<B: AutodiffBackend>(
             acc.accumulate(&model, grads);
             parts.push(losses);
         }
-        let mut grads = all_reduce_grads(&model, acc.grads(), group, bucket)?;
-        let grad_norm = clip_grad_norm::<B, _>(&model, &mut grads, tc.grad_clip);
+        let grads = all_reduce_grads(&model, acc.grads(), group, bucket)?;
         let lr = schedule.lr(step);
-        model = optim.step(lr, model, grads);
+        let grad_norm;
+        (model, grad_norm) = optim.step_clipped(lr, model, grads, tc.grad_clip);
         step += 1;
         let mut seconds = t0.elapsed().as_secs_f64();
         let logging = step.is_multiple_of(tc.log_every.max(1)) || step == tc.steps || step == 1;

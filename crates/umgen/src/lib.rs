@@ -41,6 +41,7 @@ pub use umgen_generate as generate;
 pub use umgen_modality as modality;
 pub use umgen_modality_agent as modality_agent;
 pub use umgen_modality_map as modality_map;
+pub use umgen_optim as optim;
 pub use umgen_scene as scene;
 pub use umgen_tokenizer_vq as tokenizer_vq;
 pub use umgen_train as train;

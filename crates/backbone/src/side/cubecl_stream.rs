@@ -19,7 +19,7 @@
 use super::Primitive;
 use burn::cubecl::cuda::{CudaCompiler, CudaComputeKernel};
 use cubecl::prelude::*;
-use cubecl::server::{KernelArguments, MetadataBindingInfo};
+use cubecl::server::{Binding, KernelArguments, MetadataBindingInfo};
 use cubecl::{CompilationError, CubeTask};
 use cubecl_cpp::shared::{Body, CubeIndexFlags, Elem, Flags, Item};
 use cudarc::driver::DeviceRepr;
@@ -157,9 +157,29 @@ fn one_instance(source: &str, instance: &str) -> String {
 pub(crate) unsafe fn launch<P: DeviceRepr>(
     like: &Primitive,
     entry: &str,
-    (instance, source): (&str, &dyn Fn() -> Result<String, String>),
+    instance: (&str, &dyn Fn() -> Result<String, String>),
     grid: (u32, u32, u32),
     threads: u32,
+    params: &P,
+) -> Result<(), String> {
+    // SAFETY: the caller's contract.
+    unsafe { launch_bound(like, entry, instance, (grid, threads), Vec::new(), params) }
+}
+
+/// [`launch`] with `buffers` bound as the kernel's first parameters (one device pointer each, in order,
+/// before `params`): cubecl resolves them on its device thread as it launches, so the host neither waits
+/// for their addresses nor has to keep them alive, and cubecl orders the kernel after their writers on
+/// other streams.
+///
+/// # Safety
+///
+/// As [`launch`]; the kernel must read and write each buffer within its extent.
+pub(crate) unsafe fn launch_bound<P: DeviceRepr>(
+    like: &Primitive,
+    entry: &str,
+    (instance, source): (&str, &dyn Fn() -> Result<String, String>),
+    (grid, threads): ((u32, u32, u32), u32),
+    buffers: Vec<Binding>,
     params: &P,
 ) -> Result<(), String> {
     let key = (like.device.index, entry.to_string());
@@ -200,7 +220,9 @@ pub(crate) unsafe fn launch<P: DeviceRepr>(
     };
     let len = data.len();
     // The whole buffer is static metadata: cubecl passes it by value as the kernel's last parameter.
-    let arguments = KernelArguments::new().with_info(MetadataBindingInfo::new(data, len));
+    let arguments = KernelArguments::new()
+        .with_buffers(buffers)
+        .with_info(MetadataBindingInfo::new(data, len));
     let client = &like.client;
     client.launch(
         Box::new(task.clone()),

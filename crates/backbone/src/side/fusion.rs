@@ -78,7 +78,21 @@ pub(crate) fn register<P: SidePass, const I: usize, const N: usize>(
     shapes: [Vec<usize>; N],
     pass: P,
 ) -> [FloatTensor<Cuda>; N] {
-    let client = inputs[0].client.clone();
+    register_many(id, inputs.into(), shapes.into(), pass)
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("the operation was described with {N} outputs"))
+}
+
+/// [`register`] for any number of inputs and outputs (at least one input).
+pub(crate) fn register_many<P: SidePass>(
+    id: &'static str,
+    inputs: Vec<FloatTensor<Cuda>>,
+    shapes: Vec<Vec<usize>>,
+    pass: P,
+) -> Vec<FloatTensor<Cuda>> {
+    let Some(client) = inputs.first().map(|t| t.client.clone()) else {
+        unreachable!("{id} is registered with inputs")
+    };
     let outs: Vec<TensorIr> = shapes
         .into_iter()
         .map(|s| TensorIr::uninit(client.create_empty_handle(), Shape::from(s), DType::F32))
@@ -86,10 +100,7 @@ pub(crate) fn register<P: SidePass, const I: usize, const N: usize>(
     let streams = OperationStreams::with_inputs(inputs.iter());
     let irs: Vec<TensorIr> = inputs.into_iter().map(|p| p.into_ir()).collect();
     let desc = CustomOpIr::new(id, &irs, &outs);
-    client
-        .register(streams, OperationIr::Custom(desc.clone()), SideOp { desc, pass })
-        .try_into()
-        .unwrap_or_else(|_| unreachable!("the operation was described with {N} outputs"))
+    client.register(streams, OperationIr::Custom(desc.clone()), SideOp { desc, pass })
 }
 
 /// An uninitialised f32 tensor of `shape` on `like`'s device, packed row-major as the kernels write it.

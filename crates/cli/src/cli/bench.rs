@@ -27,8 +27,9 @@ pub enum BenchCommand {
     /// (`train.matmul = "named"`, and `"cublas"` on CUDA) against burn's own path: agreement with burn's
     /// f32 result, and time.
     Linear(BenchLinearArgs),
-    /// The layer norm and the TAR's attention over time as training computes them (on CUDA, umgen's
-    /// kernels) against burn's operations: agreement of outputs and gradients, forward+backward time.
+    /// The layer norm, the TAR's attention over time, the cross-entropy and an AdamW step as training
+    /// computes them (on CUDA, umgen's kernels) against burn's operations: agreement of outputs and
+    /// gradients, and time.
     Layers(BenchLayersArgs),
     /// Trains a few steps from one seed several times in one process and reports the first step at which
     /// a run's losses or gradient norm leave the first run's, and whether the final weights agree: kernel

@@ -1,7 +1,7 @@
-//! `umgen bench layers`: the layer norm, the attention over time and the cross-entropy as training runs
-//! them (on CUDA, the kernels of `umgen_backbone::norm`, `umgen_backbone::temporal` and
-//! `umgen_backbone::xent`) against burn's own operations on the same device: agreement of outputs and
-//! gradients, and forward+backward time.
+//! `umgen bench layers`: the layer norm, the attention over time, the cross-entropy and an AdamW step as
+//! training runs them (on CUDA, the kernels of `umgen_backbone::norm`, `umgen_backbone::temporal`,
+//! `umgen_backbone::xent` and `umgen_backbone::adamw`) against burn's own operations on the same device:
+//! agreement of outputs and gradients, and time.
 
 use super::bench_attention::rel_err;
 use crate::cli::BenchLayersArgs;
@@ -147,14 +147,17 @@ fn measure<B: AutodiffBackend>(
         rel_err(dkv, rdkv)
     )?;
     cross_entropy::<B>(a, t * n, dev, &mut out)?;
+    adamw::<B>(a, d, dev, &mut out)?;
     writeln!(
         out,
         "(err dp: the scale's gradient for the norm, the keys' and values' for the attention; err y of the \
-         cross-entropy: its summed loss; fallbacks: {} norm pass(es), {} attention pass(es), {} \
-         cross-entropy pass(es))",
+         cross-entropy: its summed loss; for AdamW err y, dx, dp: the new parameters, first and second \
+         moments, and burn ms its arithmetic in burn's operations; err y of the gradient norm: the norm; fallbacks: {} norm pass(es), {} attention \
+         pass(es), {} cross-entropy pass(es), {} AdamW step(s))",
         umgen::backbone::norm::fallbacks(),
         umgen::backbone::flash::fallbacks(),
-        umgen::backbone::xent::fallbacks()
+        umgen::backbone::xent::fallbacks(),
+        umgen::backbone::adamw::fallbacks()
     )?;
     Ok(())
 }
@@ -193,6 +196,146 @@ fn cross_entropy<B: AutodiffBackend>(
         burn_ms * 1e3,
         rel_err(y, ry),
         rel_err(dx, rdx),
+        "-"
+    )?;
+    Ok(())
+}
+
+/// One AdamW step over a model's worth of parameter tensors of width `d` (some at their first step, some
+/// later, with a clipping factor): the multi-tensor kernel against its arithmetic in burn's operations.
+fn adamw<B: AutodiffBackend>(
+    a: &BenchLayersArgs,
+    d: usize,
+    dev: &B::Device,
+    out: &mut impl Write,
+) -> anyhow::Result<()> {
+    use burn::tensor::TensorPrimitive;
+    use burn::tensor::ops::FloatTensorOps;
+    use umgen::optim::{AdamWSettings, AdamWSlot, AdamWStep, adamw_reference};
+    type Raw<B> = burn::tensor::ops::FloatTensor<<B as AutodiffBackend>::InnerBackend>;
+    let Some(kernels) = umgen::backbone::adamw::kernels::<B::InnerBackend>() else {
+        writeln!(out, "{:<26} no multi-tensor kernel on this backend", "adamw")?;
+        return Ok(());
+    };
+    let raw = |dims: Vec<usize>, dist| -> Raw<B> {
+        let n = dims.iter().product::<usize>();
+        let flat = Tensor::<B::InnerBackend, 1>::random([n], dist, dev);
+        B::InnerBackend::float_reshape(flat.into_primitive().tensor(), burn::tensor::Shape::from(dims))
+    };
+    // Matrices, biases, an odd length, and 3-D: 40 tensors, so that two launches share them.
+    let shapes: Vec<Vec<usize>> = (0..10)
+        .flat_map(|i| [vec![d, 4 * d], vec![4 * d], vec![1001 + i], vec![2, d, 3]])
+        .collect();
+    let normal = Distribution::Normal(0.0, 1.0);
+    let slots: Vec<AdamWSlot<B::InnerBackend>> = shapes
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let later = i % 3 != 0;
+            let moments = later.then(|| {
+                let v = raw(s.clone(), Distribution::Uniform(0.0, 2.0));
+                (raw(s.clone(), normal), v)
+            });
+            AdamWSlot {
+                param: raw(s.clone(), normal),
+                grad: raw(s.clone(), normal),
+                moments,
+                time: if later { 7 } else { 1 },
+            }
+        })
+        .collect();
+    let scale = Tensor::<B::InnerBackend, 1>::from_floats([0.25], dev);
+    let step = AdamWStep {
+        settings: AdamWSettings {
+            beta_1: 0.9,
+            beta_2: 0.95,
+            epsilon: 1e-8,
+            weight_decay: 0.1,
+        },
+        lr: 1e-3,
+        grad_scale: Some(scale.into_primitive().tensor()),
+    };
+    let flat = |outs: &[[Raw<B>; 3]], k: usize| {
+        let parts: Vec<Tensor<B::InnerBackend, 1>> = outs
+            .iter()
+            .map(|o| {
+                let t = Tensor::<B::InnerBackend, 1>::from_primitive(TensorPrimitive::Float(o[k].clone()));
+                let n = t.shape().num_elements();
+                t.reshape([n])
+            })
+            .collect();
+        let all = Tensor::cat(parts, 0);
+        let n = all.dims()[0];
+        all.reshape([1, 1, 1, n])
+    };
+    let run = |ours: bool| -> anyhow::Result<(f64, Vec<[Raw<B>; 3]>)> {
+        let mut times = Vec::new();
+        let mut last = Vec::new();
+        for i in 0..=a.iters {
+            let t0 = Instant::now();
+            last = if ours {
+                (kernels.adamw)(slots.clone(), &step)
+                    .map_err(|(_, why)| anyhow::anyhow!("the AdamW kernel declined: {why}"))?
+            } else {
+                adamw_reference(slots.clone(), &step)
+            };
+            B::sync(dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
+            if i > 0 {
+                times.push(t0.elapsed().as_secs_f64());
+            }
+        }
+        times.sort_by(f64::total_cmp);
+        Ok((times[times.len() / 2], last))
+    };
+    let (ms, ours) = run(true)?;
+    let (burn_ms, theirs) = run(false)?;
+    let errs: Vec<f64> = (0..3)
+        .map(|k| rel_err(flat(&ours, k), flat(&theirs, k)))
+        .collect();
+    writeln!(
+        out,
+        "{:<26} {:>9.3} {:>9.3} {:>9.1e} {:>9.1e} {:>9.1e}",
+        format!("adamw, {} tensors", shapes.len()),
+        ms * 1e3,
+        burn_ms * 1e3,
+        errs[0],
+        errs[1],
+        errs[2]
+    )?;
+    // The gradients' global norm, through the kernel and in burn's operations.
+    let grads: Vec<Raw<B>> = slots.iter().map(|s| s.grad.clone()).collect();
+    let as_4d = |t: Tensor<B::InnerBackend, 1>| t.reshape([1, 1, 1, 1]);
+    let norm = |ours: bool| -> anyhow::Result<(f64, Tensor<B::InnerBackend, 4>)> {
+        let mut times = Vec::new();
+        let mut last = None;
+        for i in 0..=a.iters {
+            let t0 = Instant::now();
+            let n = if ours {
+                let raw = (kernels.norm)(&grads)
+                    .map_err(|why| anyhow::anyhow!("the norm kernel declined: {why}"))?;
+                Tensor::from_primitive(TensorPrimitive::Float(raw))
+            } else {
+                umgen::optim::norm_reference::<B::InnerBackend>(&grads)
+            };
+            B::sync(dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
+            if i > 0 {
+                times.push(t0.elapsed().as_secs_f64());
+            }
+            last = Some(as_4d(n));
+        }
+        times.sort_by(f64::total_cmp);
+        Ok((times[times.len() / 2], last.context("no pass ran")?))
+    };
+    let (ms, ours) = norm(true)?;
+    let (burn_ms, theirs) = norm(false)?;
+    writeln!(
+        out,
+        "{:<26} {:>9.3} {:>9.3} {:>9.1e} {:>9} {:>9}",
+        format!("gradient norm, {} tensors", shapes.len()),
+        ms * 1e3,
+        burn_ms * 1e3,
+        rel_err(ours, theirs),
+        "-",
         "-"
     )?;
     Ok(())

@@ -4,7 +4,7 @@ use crate::cli::{BenchAllreduceArgs, BenchTrainArgs};
 use crate::device::Device;
 use crate::dist::{DistBackend, rank_device};
 use anyhow::Context;
-use burn::optim::{AdamWConfig, GradientsParams, Optimizer};
+use burn::optim::GradientsParams;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -13,6 +13,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec};
 use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
+use umgen::optim::FusedAdamW;
 use umgen::{UmgenConfig, backbone_spec, builtin_catalog};
 
 /// The median of `times` (the upper one of an even count), `None` for none.
@@ -105,9 +106,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         B::seed(&dev, 0);
         let model = Backbone::<B>::new(cfg, &spec, &dev)?;
         let mut model = broadcast_module(model, group.as_mut(), bucket)?;
-        let mut optim = AdamWConfig::new()
-            .with_weight_decay(tc.weight_decay as f32)
-            .init();
+        // The trainer's optimizer and clipping, so that the step is the one a run takes.
+        let kernels = umgen::backbone::adamw::kernels::<<B as AutodiffBackend>::InnerBackend>();
+        let mut optim = FusedAdamW::<_, B>::new(tc.adamw_settings()?).with_kernels(kernels);
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
         let mut by_turn = vec![Vec::new(); turns];
@@ -157,7 +158,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             lap(1)?;
             let grads = all_reduce_grads(&model, grads, group.as_mut(), bucket)?;
             lap(2)?;
-            model = optim.step(tc.lr, model, grads);
+            (model, _) = optim.step_clipped(tc.lr, model, grads, tc.grad_clip);
             lap(3)?;
             // Wait for the step's work on the device before reading the clock.
             sync()?;
@@ -229,6 +230,14 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
              logged with its reason)",
             tc.xent,
             umgen::backbone::xent::fallbacks()
+        )?;
+        writeln!(
+            out,
+            "adamw         {:?}, {} step(s) fell back (the CUDA kernel to burn's AdamW or its arithmetic; the \
+             first is logged with its reason), gradients clipped at {}",
+            tc.adamw,
+            umgen::backbone::adamw::fallbacks(),
+            tc.grad_clip
         )?;
     }
     writeln!(

@@ -1,0 +1,172 @@
+//! [`global_norm`]: the gradients' global L2 norm for `Cuda`, one custom operation in the fusion stream
+//! that launches `adamw.cu`'s `umgen_sumsq` once per 128 gradients (each block storing its part's sum of
+//! squares) and `umgen_sumsq_final` (one block adding the parts in a fixed order), on cubecl's stream with
+//! the gradients bound as buffers.
+#![allow(unsafe_code)]
+
+use super::cuda::Slotted;
+use super::{AdamWChoice, CHOICE, selected};
+use crate::side::{self, Handles, Inner, Primitive, SidePass, empty_f32};
+use burn::backend::Cuda;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{DType, TensorMetadata};
+use burn_cubecl::kernel::into_contiguous;
+use burn_ir::CustomOpIr;
+use cudarc::driver::DeviceRepr;
+use umgen_optim::norm_reference;
+
+/// Gradients a launch reads (`UMGEN_SUMSQ_SLOTS`).
+pub(super) const SLOTS: usize = 128;
+
+/// Elements a block reads (`UMGEN_ADAMW_SPAN`).
+const SPAN: usize = 4096;
+
+/// Threads a block (`UMGEN_ADAMW_THREADS`).
+const THREADS: u32 = 256;
+
+/// `SumsqParams` of `adamw.cu`, field for field.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+struct Params {
+    count: u32,
+    base: u32,
+    first: [u32; SLOTS + 1],
+    len: [u32; SLOTS],
+}
+
+// SAFETY: plain old data, laid out as the C struct the kernel takes by value.
+unsafe impl DeviceRepr for Params {}
+
+/// `SumsqFinalParams` of `adamw.cu`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+struct FinalParams {
+    n: u32,
+}
+
+// SAFETY: as `Params`.
+unsafe impl DeviceRepr for FinalParams {}
+
+/// The operation: each gradient's element count, in the inputs' order.
+#[derive(Debug)]
+struct Pass {
+    lens: Vec<usize>,
+}
+
+/// The global norm of `grads` on `Cuda` ([`umgen_optim::NormKernel`]).
+pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<FloatTensor<Cuda>, String> {
+    if selected() == AdamWChoice::Burn {
+        return Err("train.adamw = \"burn\"".into());
+    }
+    let lens: Vec<usize> = grads.iter().map(|g| g.shape().num_elements()).collect();
+    let refusal = if let Some(g) = grads.iter().find(|g| g.dtype() != DType::F32) {
+        Some(format!("a {:?} gradient (the norm kernel takes f32)", g.dtype()))
+    } else if lens.iter().sum::<usize>() > u32::MAX as usize / 2 {
+        Some(format!("{} gradient elements", lens.iter().sum::<usize>()))
+    } else {
+        grads.is_empty().then(|| "no gradients".to_string())
+    };
+    if let Some(why) = refusal {
+        CHOICE.fell_back(&why);
+        return Err(why);
+    }
+    let [norm] = side::register_many("umgen_grad_norm", grads.to_vec(), vec![vec![1]], Pass { lens })
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("one output"));
+    Ok(norm)
+}
+
+impl SidePass for Pass {
+    fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
+        let grads: Vec<Primitive> = desc
+            .inputs
+            .iter()
+            .map(|t| into_contiguous(handles.get_float_tensor::<Inner>(t)))
+            .collect();
+        match self.launch(&grads) {
+            Ok(norm) => vec![norm],
+            Err(why) => {
+                CHOICE.fell_back(&why);
+                vec![norm_reference::<Inner>(&grads).into_primitive().tensor()]
+            }
+        }
+    }
+}
+
+impl Pass {
+    /// The partial sums of squares, 128 gradients a launch, then their sum's square root.
+    fn launch(&self, grads: &[Primitive]) -> Result<Primitive, String> {
+        let Some(like) = grads.first() else {
+            return Err("no gradients".into());
+        };
+        let blocks: usize = self.lens.iter().map(|n| n.div_ceil(SPAN)).sum();
+        let partials = empty_f32(like, vec![blocks.max(1)]);
+        let norm = empty_f32(like, vec![1]);
+        let mut base = 0u32;
+        for (chunk, (gs, lens)) in grads.chunks(SLOTS).zip(self.lens.chunks(SLOTS)).enumerate() {
+            let mut p = Params {
+                count: gs.len() as u32,
+                base,
+                first: [0; SLOTS + 1],
+                len: [0; SLOTS],
+            };
+            let mut buffers = vec![partials.handle.clone().binding()];
+            for (i, (g, &len)) in gs.iter().zip(lens).enumerate() {
+                p.len[i] = len as u32;
+                p.first[i + 1] = p.first[i] + len.div_ceil(SPAN) as u32;
+                buffers.push(g.handle.clone().binding());
+            }
+            // Unused slots repeat the first gradient; the kernel reads only `count` of them.
+            while buffers.len() < 1 + SLOTS {
+                buffers.push(gs[0].handle.clone().binding());
+            }
+            let launched = p.first[gs.len()];
+            base += launched;
+            if launched == 0 {
+                continue;
+            }
+            // SAFETY: the buffers are bound (cubecl keeps them alive for the launch); the kernel reads a
+            // gradient below its `len` (its element count, the tensor made contiguous) and writes partial
+            // sums below `base + launched` ≤ `blocks`, the partials' length.
+            unsafe {
+                side::launch_bound_on_cubecl(
+                    like,
+                    "umgen_sumsq",
+                    ("", &source),
+                    ((launched, 1, 1), THREADS),
+                    buffers,
+                    &p,
+                )
+            }
+            .map_err(|e| format!("{e} (launch {chunk})"))?;
+        }
+        let buffers = vec![partials.handle.clone().binding(), norm.handle.clone().binding()];
+        // SAFETY: one block reads the `n` partial sums and writes the one-element norm.
+        unsafe {
+            side::launch_bound_on_cubecl(
+                like,
+                "umgen_sumsq_final",
+                ("", &source),
+                ((1, 1, 1), THREADS),
+                buffers,
+                &FinalParams { n: base },
+            )
+        }?;
+        Ok(norm)
+    }
+}
+
+/// `adamw.cu` and the entry point `umgen_sumsq`, which takes the partial sums and 128 gradients
+/// (`umgen_sumsq_final` is in the file itself).
+fn source() -> Result<String, String> {
+    let slotted = Slotted {
+        entry: "umgen_sumsq",
+        fixed: "float* partials",
+        per_slot: &[("g", true)],
+        slots: SLOTS,
+        params: "SumsqParams",
+        slot_type: "SumsqSlot",
+        call: "sumsq_update(p, i, s.g, partials)",
+    };
+    Ok(slotted.source())
+}
