@@ -54,6 +54,9 @@ fn alternating_steps_are_timed_per_value() {
     // The stream umgen's CUDA kernels run on is a kernel choice too (the CPU runs neither).
     let report = alternated("train.kernel_stream=cubecl,side");
     check_turns(&report, "train.kernel_stream", ["cubecl", "side"]);
+    // And what steps AdamW (a resumed run may switch it: it keeps the run's identity).
+    let report = alternated("train.adamw=burn,fused");
+    check_turns(&report, "train.adamw", ["burn", "fused"]);
 }
 
 #[test]

@@ -16,11 +16,11 @@ use umgen_optim::{AdamWSettings, AdamWSlot, AdamWStep, AdamWStepped, adamw_refer
 /// parameters (1,800 bytes of pointers and the 684 bytes of [`Params`]) stay within CUDA's 4 KiB.
 const SLOTS: usize = 32;
 
-/// Elements a block updates (`UMGEN_ADAMW_SPAN`).
-const SPAN: usize = 4096;
+/// Elements a block updates or reads (`UMGEN_ADAMW_SPAN`), in either kernel.
+pub(super) const SPAN: usize = 4096;
 
-/// Threads a block (`UMGEN_ADAMW_THREADS`).
-const THREADS: u32 = 256;
+/// Threads a block (`UMGEN_ADAMW_THREADS`), in either kernel.
+pub(super) const THREADS: u32 = 256;
 
 /// `AdamwParams` of `adamw.cu`, field for field.
 #[repr(C)]

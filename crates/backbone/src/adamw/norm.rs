@@ -4,7 +4,7 @@
 //! the gradients bound as buffers.
 #![allow(unsafe_code)]
 
-use super::cuda::Slotted;
+use super::cuda::{SPAN, Slotted, THREADS};
 use super::{AdamWChoice, CHOICE, selected};
 use crate::side::{self, Handles, Inner, Primitive, SidePass, empty_f32};
 use burn::backend::Cuda;
@@ -17,12 +17,6 @@ use umgen_optim::norm_reference;
 
 /// Gradients a launch reads (`UMGEN_SUMSQ_SLOTS`).
 pub(super) const SLOTS: usize = 128;
-
-/// Elements a block reads (`UMGEN_ADAMW_SPAN`).
-const SPAN: usize = 4096;
-
-/// Threads a block (`UMGEN_ADAMW_THREADS`).
-const THREADS: u32 = 256;
 
 /// `SumsqParams` of `adamw.cu`, field for field.
 #[repr(C)]
