@@ -6,6 +6,11 @@
 //! order two streams: no flag kernels, no host round trip per launch. On a side stream each launch is
 //! ordered with cubecl's through device flags (`side.rs`), as cuBLAS's products still are (cuBLAS takes a
 //! stream, and burn 0.21 hands out no handle of cubecl's).
+//!
+//! Independently, the custom operations' launches (with the device pointers they fetch) run on cubecl's
+//! device thread by default (`train.launch_thread = "device"`), each operation as one call the host waits
+//! for, rather than on the calling thread with one round trip to the device thread per pointer
+//! (`"caller"`, as before the twenty-fourth session).
 
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -39,6 +44,34 @@ pub fn selected() -> KernelStream {
     }
 }
 
+/// Which thread launches umgen's custom operations' work (`train.launch_thread`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LaunchThread {
+    /// cubecl's device thread, one blocking call per operation. The default.
+    #[default]
+    Device,
+    /// The calling thread, a blocking call per device pointer (as before; for comparing the two).
+    Caller,
+}
+
+/// Whether [`LaunchThread::Caller`] was chosen.
+static CALLER: AtomicBool = AtomicBool::new(false);
+
+/// Chooses which thread launches the custom operations' work of every pass this process runs from now on.
+pub fn select_thread(thread: LaunchThread) {
+    CALLER.store(thread == LaunchThread::Caller, Ordering::Relaxed);
+}
+
+/// What [`select_thread`] chose ([`LaunchThread::Device`] unless told otherwise).
+pub fn selected_thread() -> LaunchThread {
+    if CALLER.load(Ordering::Relaxed) {
+        LaunchThread::Caller
+    } else {
+        LaunchThread::Device
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -53,5 +86,12 @@ mod tests {
         assert_eq!(selected(), KernelStream::Side);
         select(KernelStream::Cubecl);
         assert_eq!(selected(), KernelStream::Cubecl);
+        let parsed: Vec<LaunchThread> =
+            serde_json::from_str(r#"["device", "caller"]"#).expect("both names parse");
+        assert_eq!(parsed, [LaunchThread::Device, LaunchThread::Caller]);
+        select_thread(LaunchThread::Caller);
+        assert_eq!(selected_thread(), LaunchThread::Caller);
+        select_thread(LaunchThread::Device);
+        assert_eq!(selected_thread(), LaunchThread::Device);
     }
 }

@@ -27,7 +27,7 @@
 //! compiled with NVRTC, which cubecl loads anyway.)
 #![allow(unsafe_code)]
 
-use crate::kernel_stream::{KernelStream, selected};
+use crate::kernel_stream::{KernelStream, LaunchThread, selected, selected_thread};
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::ops::numeric::zeros_client;
@@ -220,6 +220,29 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
     Ok((res.resource().ptr, res))
 }
 
+/// Runs `work` (a custom operation's launches and the device pointers they take) on cubecl's device
+/// thread for `like`'s device, as one call the host waits for; an error if that thread cannot be reached.
+/// With `train.launch_thread = "caller"` it runs `work` here.
+///
+/// Every call into cubecl that answers (a pointer fetch, `get_resource`) is a round trip to that thread,
+/// which first runs everything queued before it: a cuBLAS product made five (four pointers and the
+/// signal's submission), a kernel launch three to nine, each stopping the host until the device thread
+/// caught up. Made on the device thread those calls run at once (cubecl runs calls from its own thread
+/// inline), so a custom operation waits once. The work sees the caller's cubecl stream (cubecl's
+/// `exclusive` carries it), and thread-local state it keeps lives on the device thread, keyed by that
+/// stream ([`with_kernels`]).
+pub(crate) fn on_device_thread<T: Send + 'static>(
+    like: &Primitive,
+    work: impl FnOnce() -> Result<T, String> + Send,
+) -> Result<T, String> {
+    if selected_thread() == LaunchThread::Caller {
+        return work();
+    }
+    like.client
+        .exclusive(work)
+        .map_err(|e| format!("cubecl's device thread: {e:?}"))?
+}
+
 /// Device pointers of burn's buffers for a kernel's parameters; each buffer stays alive while this is held
 /// (hold it until the launch is queued: cubecl's stream then waits for the kernel before it can reuse them).
 #[derive(Default)]
@@ -342,8 +365,17 @@ pub(crate) fn kernel_source(source: &str) -> String {
     [include_str!("warp_device.cuh"), source].join("\n")
 }
 
-/// A thread's [`Kernels`] of one source by device; `Err` remembers why a device has none.
-pub(crate) type KernelCache = RefCell<Vec<(usize, Result<Kernels, String>)>>;
+/// A thread's [`Kernels`] of one source by device and cubecl stream; `Err` remembers why a device has
+/// none. (On cubecl's device thread, [`on_device_thread`], every caller's stream has its own.)
+pub(crate) type KernelCache = RefCell<Vec<(Owner, Result<Kernels, String>)>>;
+
+/// A device and a cubecl stream: who a [`Side`] stream or cuBLAS handle is for.
+pub(crate) type Owner = (usize, cubecl::stream_id::StreamId);
+
+/// The device of `like` and the calling cubecl stream.
+pub(crate) fn owner(like: &Primitive) -> Owner {
+    (like.device.index, cubecl::stream_id::StreamId::current())
+}
 
 /// Runs `work` with `cache`'s kernels for `like`'s device, built by `build` on first use (a failure is
 /// logged once, naming `what`, and returned every time).
@@ -354,16 +386,17 @@ pub(crate) fn with_kernels<T>(
     build: impl FnOnce() -> Result<Kernels, String>,
     work: impl FnOnce(&mut Kernels) -> Result<T, String>,
 ) -> Result<T, String> {
-    let device = like.device.index;
+    let key = owner(like);
+    let device = key.0;
     cache.with_borrow_mut(|all| {
-        if !all.iter().any(|(dev, _)| *dev == device) {
+        if !all.iter().any(|(k, _)| *k == key) {
             let made = build();
             if let Err(why) = &made {
                 tracing::warn!("{what} on cuda:{device}: {why}");
             }
-            all.push((device, made));
+            all.push((key, made));
         }
-        match all.iter_mut().find(|(dev, _)| *dev == device) {
+        match all.iter_mut().find(|(k, _)| *k == key) {
             Some((_, Ok(kernels))) => work(kernels),
             Some((_, Err(why))) => Err(why.clone()),
             None => Err(format!("no {what} kernels for cuda:{device}")),

@@ -57,6 +57,9 @@ fn alternating_steps_are_timed_per_value() {
     // And what steps AdamW (a resumed run may switch it: it keeps the run's identity).
     let report = alternated("train.adamw=burn,fused");
     check_turns(&report, "train.adamw", ["burn", "fused"]);
+    // And which thread launches the custom operations.
+    let report = alternated("train.launch_thread=caller,device");
+    check_turns(&report, "train.launch_thread", ["caller", "device"]);
 }
 
 #[test]

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use umgen_backbone::LossOptions;
 use umgen_backbone::adamw::AdamWChoice;
 use umgen_backbone::flash::AttentionKernel;
-use umgen_backbone::kernel_stream::KernelStream;
+use umgen_backbone::kernel_stream::{KernelStream, LaunchThread};
 use umgen_backbone::matmul::MatmulKernel;
 use umgen_backbone::norm::NormKernel;
 use umgen_backbone::xent::XentKernel;
@@ -105,6 +105,10 @@ pub struct TrainConfig {
     /// clipping factor applied as it reads the gradients, `umgen_backbone::adamw`) or `burn` (burn's AdamW,
     /// tensor by tensor). The CPU runs burn's.
     pub adamw: AdamWChoice,
+    /// Which thread launches the custom operations' kernels and cuBLAS products on CUDA: `device`
+    /// (cubecl's device thread, one blocking call per operation) or `caller` (the training thread, one
+    /// blocking call to cubecl's device thread per device pointer), `umgen_backbone::kernel_stream`.
+    pub launch_thread: LaunchThread,
 }
 
 impl Default for TrainConfig {
@@ -144,14 +148,15 @@ impl Default for TrainConfig {
             xent: XentKernel::default(),
             kernel_stream: KernelStream::default(),
             adamw: AdamWChoice::default(),
+            launch_thread: LaunchThread::default(),
         }
     }
 }
 
 impl TrainConfig {
     /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
-    /// `attention_step`, `recompute`, `norm`, `xent`, `kernel_stream`, `adamw`) to this process, before any
-    /// product runs.
+    /// `attention_step`, `recompute`, `norm`, `xent`, `kernel_stream`, `adamw`, `launch_thread`) to this
+    /// process, before any product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
             return Err(TrainError::Setup(
@@ -168,6 +173,7 @@ impl TrainConfig {
         umgen_backbone::xent::select(self.xent);
         umgen_backbone::kernel_stream::select(self.kernel_stream);
         umgen_backbone::adamw::select(self.adamw);
+        umgen_backbone::kernel_stream::select_thread(self.launch_thread);
         Ok(())
     }
 
@@ -231,6 +237,8 @@ impl TrainConfig {
                 "kernel_stream",
                 // The same AdamW to rounding, with the same record.
                 "adamw",
+                // The same launches from another thread.
+                "launch_thread",
             ] {
                 o.remove(k);
             }
@@ -308,6 +316,12 @@ mod tests {
             (AdamWChoice::Fused, AdamWChoice::Burn)
         );
         assert_eq!(named.identity(), burn_adamw.identity());
+        let caller = parse(r#"{"launch_thread": "caller"}"#).expect("launch_thread = caller");
+        assert_eq!(
+            (named.launch_thread, caller.launch_thread),
+            (LaunchThread::Device, LaunchThread::Caller)
+        );
+        assert_eq!(named.identity(), caller.identity());
         let e = parse(r#"{"adamw": "apex"}"#).unwrap_err().to_string();
         assert!(e.contains("apex") && e.contains("fused"), "{e}");
         let e = parse(r#"{"kernel_stream": "main"}"#).unwrap_err().to_string();

@@ -169,7 +169,11 @@ impl SidePass for Pass {
             });
         }
         let step = self.step(scale);
-        match self.launch(&slots, &step) {
+        let launched = match slots.first() {
+            Some(like) => side::on_device_thread(&like.param, || self.launch(&slots, &step)),
+            None => Ok(Vec::new()),
+        };
+        match launched {
             Ok(outputs) => outputs,
             Err(why) => {
                 CHOICE.fell_back(&why);

@@ -77,7 +77,11 @@ impl SidePass for Pass {
             .iter()
             .map(|t| into_contiguous(handles.get_float_tensor::<Inner>(t)))
             .collect();
-        match self.launch(&grads) {
+        let launched = match grads.first() {
+            Some(like) => side::on_device_thread(like, || self.launch(&grads)),
+            None => Err("no gradients".into()),
+        };
+        match launched {
             Ok(norm) => vec![norm],
             Err(why) => {
                 CHOICE.fell_back(&why);

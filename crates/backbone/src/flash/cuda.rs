@@ -200,7 +200,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
                 let ([q, k, v], _) = self.desc.as_fixed::<3, 2>();
                 let [q, k, v] = [q, k, v].map(|t| handles.get_float_tensor::<Inner>(t));
                 self.flash2_or(
-                    || flash2::launch(&q, &k, &v, None, self.causal),
+                    || crate::side::on_device_thread(&q, || flash2::launch(&q, &k, &v, None, self.causal)),
                     || forward(&q, &k, &v, self.causal),
                 )
             }
@@ -209,7 +209,11 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
                 let [q, k, v, dout, lse, delta] =
                     inputs.each_ref().map(|t| handles.get_float_tensor::<Inner>(t));
                 self.flash2_or(
-                    || flash2::launch(&q, &k, &v, Some([&dout, &lse, &delta]), self.causal),
+                    || {
+                        crate::side::on_device_thread(&q, || {
+                            flash2::launch(&q, &k, &v, Some([&dout, &lse, &delta]), self.causal)
+                        })
+                    },
                     || backward(&q, &k, &v, &dout, &lse, &delta, self.causal),
                 )
             }

@@ -6,7 +6,7 @@
 #![allow(unsafe_code)]
 
 use crate::side::Primitive;
-use crate::side::{Side, pointer};
+use crate::side::{Owner, Side, owner, pointer};
 use burn::tensor::DType;
 use cudarc::cublas::{result as blas, sys};
 use std::cell::RefCell;
@@ -22,9 +22,10 @@ struct Blas {
 }
 
 thread_local! {
-    /// This thread's handles by device; `Err` remembers why a device has none, so that the reason is found
-    /// once and every product falls back without retrying.
-    static HANDLES: RefCell<Vec<(usize, Result<Blas, String>)>> = const { RefCell::new(Vec::new()) };
+    /// This thread's handles by device and cubecl stream (the products run on cubecl's device thread, for
+    /// every caller: `side::on_device_thread`); `Err` remembers why a device has none, so that the reason
+    /// is found once and every product falls back without retrying.
+    static HANDLES: RefCell<Vec<(Owner, Result<Blas, String>)>> = const { RefCell::new(Vec::new()) };
 }
 
 impl Blas {
@@ -174,16 +175,17 @@ pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Resul
         }
         .map_err(|e| format!("cublasGemmEx: {e:?}"))
     };
-    let device = lhs.device.index;
+    let key = owner(lhs);
+    let device = key.0;
     HANDLES.with_borrow_mut(|handles| {
-        if !handles.iter().any(|(d, _)| *d == device) {
+        if !handles.iter().any(|(k, _)| *k == key) {
             let made = Blas::new(lhs);
             if let Err(why) = &made {
                 tracing::warn!("cuBLAS on cuda:{device}: {why}");
             }
-            handles.push((device, made));
+            handles.push((key, made));
         }
-        match handles.iter_mut().find(|(d, _)| *d == device) {
+        match handles.iter_mut().find(|(k, _)| *k == key) {
             Some((_, Ok(blas))) => blas.ordered(gemm),
             Some((_, Err(why))) => Err(why.clone()),
             None => Err(format!("no cuBLAS handle for cuda:{device}")),

@@ -136,7 +136,7 @@ fn fell_back(kernel: &str, instead: &str, lhs: &Primitive, rhs: &Primitive, why:
 fn run(lhs: Primitive, rhs: Primitive) -> Primitive {
     let out = init_matmul_output(&lhs, &rhs, DType::F32);
     if super::selected() == super::MatmulKernel::Cublas {
-        match super::cublas::launch(&lhs, &rhs, &out) {
+        match crate::side::on_device_thread(&lhs, || super::cublas::launch(&lhs, &rhs, &out)) {
             Ok(()) => return out,
             Err(why) => fell_back("cuBLAS", "the named kernel", &lhs, &rhs, &why),
         }

@@ -150,33 +150,36 @@ impl side::SidePass for Pass {
         match *self {
             Pass::Forward { eps } => {
                 let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, desc);
-                launch(&x, &gamma, Some(&beta), None, eps).unwrap_or_else(|why| {
-                    fell_back(&why);
-                    let (y, mean, rstd) =
-                        forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
-                    vec![side::inner(y), side::inner(mean), side::inner(rstd)]
-                })
+                side::on_device_thread(&x, || launch(&x, &gamma, Some(&beta), None, eps)).unwrap_or_else(
+                    |why| {
+                        fell_back(&why);
+                        let (y, mean, rstd) =
+                            forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
+                        vec![side::inner(y), side::inner(mean), side::inner(rstd)]
+                    },
+                )
             }
             Pass::Backward => {
                 let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
-                launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0).unwrap_or_else(|why| {
-                    fell_back(&why);
-                    let warps = backward_warps(x.meta.shape()[0]);
-                    let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
-                        float(dy),
-                        float(x),
-                        float(mean),
-                        float(rstd),
-                        float(gamma),
-                    );
-                    // The registered shapes hold one row per warp: the sums in the first, zeros after.
-                    let rows = |t: Tensor<Inner, 1>| {
-                        let d = t.dims()[0];
-                        let zeros = Tensor::<Inner, 2>::zeros([warps - 1, d], &t.device());
-                        side::inner(Tensor::cat(vec![t.reshape([1, d]), zeros], 0))
-                    };
-                    vec![side::inner(dx), rows(dgamma), rows(dbeta)]
-                })
+                side::on_device_thread(&x, || launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0))
+                    .unwrap_or_else(|why| {
+                        fell_back(&why);
+                        let warps = backward_warps(x.meta.shape()[0]);
+                        let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
+                            float(dy),
+                            float(x),
+                            float(mean),
+                            float(rstd),
+                            float(gamma),
+                        );
+                        // The registered shapes hold one row per warp: the sums in the first, zeros after.
+                        let rows = |t: Tensor<Inner, 1>| {
+                            let d = t.dims()[0];
+                            let zeros = Tensor::<Inner, 2>::zeros([warps - 1, d], &t.device());
+                            side::inner(Tensor::cat(vec![t.reshape([1, d]), zeros], 0))
+                        };
+                        vec![side::inner(dx), rows(dgamma), rows(dbeta)]
+                    })
             }
         }
     }

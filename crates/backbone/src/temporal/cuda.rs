@@ -174,7 +174,7 @@ impl side::SidePass for Pass {
         } = *self;
         if backward {
             let [q, kv, dout] = side::contiguous_inputs::<3, 2>(handles, desc);
-            launch(&q, &kv, Some(&dout), heads, causal).unwrap_or_else(|why| {
+            side::on_device_thread(&q, || launch(&q, &kv, Some(&dout), heads, causal)).unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
                 let (dq, dkv) = backward_decomposed::<Inner>(
                     float(q),
@@ -189,7 +189,7 @@ impl side::SidePass for Pass {
             })
         } else {
             let [q, kv] = side::contiguous_inputs::<2, 2>(handles, desc);
-            launch(&q, &kv, None, heads, causal).unwrap_or_else(|why| {
+            side::on_device_thread(&q, || launch(&q, &kv, None, heads, causal)).unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
                 let (out, lse) = forward_decomposed::<Inner>(float(q), float(kv), heads, causal, precision);
                 vec![side::inner(out), side::inner(lse)]

@@ -112,7 +112,7 @@ impl side::SidePass for Pass {
         match self {
             Pass::Forward => {
                 let [x] = side::contiguous_inputs::<1, 1>(handles, desc);
-                launch(&x, None).unwrap_or_else(|why| {
+                side::on_device_thread(&x, || launch(&x, None)).unwrap_or_else(|why| {
                     CHOICE.fell_back(&why);
                     let lse = lse_decomposed::<Inner>(float(x));
                     let rows = lse.dims()[0];
@@ -121,12 +121,15 @@ impl side::SidePass for Pass {
             }
             Pass::Backward => {
                 let [x, lse, g, ids, weights] = side::contiguous_inputs::<5, 1>(handles, desc);
-                launch(&x, Some([&lse, &g, &ids, &weights])).unwrap_or_else(|why| {
-                    CHOICE.fell_back(&why);
-                    let ids = float::<Inner, 2>(ids).int();
-                    let dx = grad_decomposed::<Inner>(float(x), float(lse), ids, float(weights), float(g));
-                    vec![side::inner(dx)]
-                })
+                side::on_device_thread(&x, || launch(&x, Some([&lse, &g, &ids, &weights]))).unwrap_or_else(
+                    |why| {
+                        CHOICE.fell_back(&why);
+                        let ids = float::<Inner, 2>(ids).int();
+                        let dx =
+                            grad_decomposed::<Inner>(float(x), float(lse), ids, float(weights), float(g));
+                        vec![side::inner(dx)]
+                    },
+                )
             }
         }
     }

@@ -239,6 +239,11 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             umgen::backbone::adamw::fallbacks(),
             tc.grad_clip
         )?;
+        writeln!(
+            out,
+            "launches      from the {:?} thread (umgen's kernels and cuBLAS's products)",
+            tc.launch_thread
+        )?;
     }
     writeln!(
         out,
