@@ -82,8 +82,6 @@ pub(crate) struct Side {
     flags_ptr: u64,
     /// The last piece of work's `v`.
     count: u32,
-    /// The cubecl stream the flags were made on.
-    home: cubecl::stream_id::StreamId,
 }
 
 impl Side {
@@ -125,7 +123,6 @@ impl Side {
             flags,
             flags_ptr,
             count: 0,
-            home: cubecl::stream_id::StreamId::current(),
         })
     }
 
@@ -149,10 +146,6 @@ impl Side {
         self.ctx
             .bind_to_thread()
             .map_err(|e| format!("binding the context: {e:?}"))?;
-        let now = cubecl::stream_id::StreamId::current();
-        if now != self.home {
-            foreign(format_args!("work queued from {now}, ordered with {}", self.home));
-        }
         self.count = self.count.wrapping_add(1).max(1);
         let v = self.count;
         let client = &self.flags.client;
@@ -230,7 +223,7 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
 /// caught up. Made on the device thread those calls run at once (cubecl runs calls from its own thread
 /// inline), so a custom operation waits once. The work sees the caller's cubecl stream (cubecl's
 /// `exclusive` carries it), and thread-local state it keeps lives on the device thread, keyed by that
-/// stream ([`with_kernels`]).
+/// stream ([`with_cached`]).
 pub(crate) fn on_device_thread<T: Send + 'static>(
     like: &Primitive,
     work: impl FnOnce() -> Result<T, String> + Send,
@@ -287,7 +280,7 @@ pub(crate) unsafe fn launch_kernel<P: DeviceRepr>(
         block_dim: (threads, 1, 1),
         shared_mem_bytes: 0,
     };
-    with_kernels(cache, like, what, build, |kernels| {
+    with_cached(cache, like, what, build, |kernels| {
         let f = kernels.function(name)?.clone();
         kernels.side.ordered(what, |stream| {
             // SAFETY: the caller's contract (live buffers of the kernel's extents); cubecl's stream waits for
@@ -365,28 +358,25 @@ pub(crate) fn kernel_source(source: &str) -> String {
     [include_str!("warp_device.cuh"), source].join("\n")
 }
 
-/// A thread's [`Kernels`] of one source by device and cubecl stream; `Err` remembers why a device has
-/// none. (On cubecl's device thread, [`on_device_thread`], every caller's stream has its own.)
-pub(crate) type KernelCache = RefCell<Vec<(Owner, Result<Kernels, String>)>>;
+/// A thread's state of one kind (a source's [`Kernels`], a cuBLAS handle) by device and cubecl stream;
+/// `Err` remembers why a device has none, so that the reason is found once. Every [`Side`] stream in it
+/// meets the one cubecl stream it is kept for, as the protocol needs. (On cubecl's device thread,
+/// [`on_device_thread`], every caller's stream has its own.)
+pub(crate) type Cache<T> = RefCell<Vec<((usize, cubecl::stream_id::StreamId), Result<T, String>)>>;
 
-/// A device and a cubecl stream: who a [`Side`] stream or cuBLAS handle is for.
-pub(crate) type Owner = (usize, cubecl::stream_id::StreamId);
+/// A thread's [`Kernels`] of one source ([`Cache`]).
+pub(crate) type KernelCache = Cache<Kernels>;
 
-/// The device of `like` and the calling cubecl stream.
-pub(crate) fn owner(like: &Primitive) -> Owner {
-    (like.device.index, cubecl::stream_id::StreamId::current())
-}
-
-/// Runs `work` with `cache`'s kernels for `like`'s device, built by `build` on first use (a failure is
-/// logged once, naming `what`, and returned every time).
-pub(crate) fn with_kernels<T>(
-    cache: &'static LocalKey<KernelCache>,
+/// Runs `work` with `cache`'s state for `like`'s device and the calling cubecl stream, built by `build` on
+/// first use (a failure is logged once, naming `what`, and returned every time).
+pub(crate) fn with_cached<T, R>(
+    cache: &'static LocalKey<Cache<T>>,
     like: &Primitive,
     what: &str,
-    build: impl FnOnce() -> Result<Kernels, String>,
-    work: impl FnOnce(&mut Kernels) -> Result<T, String>,
-) -> Result<T, String> {
-    let key = owner(like);
+    build: impl FnOnce() -> Result<T, String>,
+    work: impl FnOnce(&mut T) -> Result<R, String>,
+) -> Result<R, String> {
+    let key = (like.device.index, cubecl::stream_id::StreamId::current());
     let device = key.0;
     cache.with_borrow_mut(|all| {
         if !all.iter().any(|(k, _)| *k == key) {
@@ -399,7 +389,7 @@ pub(crate) fn with_kernels<T>(
         match all.iter_mut().find(|(k, _)| *k == key) {
             Some((_, Ok(kernels))) => work(kernels),
             Some((_, Err(why))) => Err(why.clone()),
-            None => Err(format!("no {what} kernels for cuda:{device}")),
+            None => Err(format!("no {what} for cuda:{device}")),
         }
     })
 }

@@ -13,7 +13,7 @@
 use crate::kernel_stream::{KernelStream, selected};
 use crate::side::Primitive;
 use crate::side::empty_f32;
-use crate::side::{KernelCache, Kernels, Pointers, launch_on_cubecl, with_kernels};
+use crate::side::{KernelCache, Kernels, Pointers, launch_on_cubecl, with_cached};
 use burn::tensor::DType;
 use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::CompileOptions;
@@ -247,7 +247,7 @@ pub(super) fn launch(
         }
         return Ok(results);
     }
-    with_kernels(
+    with_cached(
         &KERNELS,
         q,
         "flash2 attention",

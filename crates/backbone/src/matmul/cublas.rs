@@ -6,7 +6,7 @@
 #![allow(unsafe_code)]
 
 use crate::side::Primitive;
-use crate::side::{Owner, Side, owner, pointer};
+use crate::side::{Cache, Side, pointer, with_cached};
 use burn::tensor::DType;
 use cudarc::cublas::{result as blas, sys};
 use std::cell::RefCell;
@@ -23,9 +23,9 @@ struct Blas {
 
 thread_local! {
     /// This thread's handles by device and cubecl stream (the products run on cubecl's device thread, for
-    /// every caller: `side::on_device_thread`); `Err` remembers why a device has none, so that the reason
-    /// is found once and every product falls back without retrying.
-    static HANDLES: RefCell<Vec<(Owner, Result<Blas, String>)>> = const { RefCell::new(Vec::new()) };
+    /// every caller: `side::on_device_thread`); every product falls back without retrying where a device
+    /// has none.
+    static HANDLES: Cache<Blas> = const { RefCell::new(Vec::new()) };
 }
 
 impl Blas {
@@ -175,22 +175,13 @@ pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Resul
         }
         .map_err(|e| format!("cublasGemmEx: {e:?}"))
     };
-    let key = owner(lhs);
-    let device = key.0;
-    HANDLES.with_borrow_mut(|handles| {
-        if !handles.iter().any(|(k, _)| *k == key) {
-            let made = Blas::new(lhs);
-            if let Err(why) = &made {
-                tracing::warn!("cuBLAS on cuda:{device}: {why}");
-            }
-            handles.push((key, made));
-        }
-        match handles.iter_mut().find(|(k, _)| *k == key) {
-            Some((_, Ok(blas))) => blas.ordered(gemm),
-            Some((_, Err(why))) => Err(why.clone()),
-            None => Err(format!("no cuBLAS handle for cuda:{device}")),
-        }
-    })
+    with_cached(
+        &HANDLES,
+        lhs,
+        "cuBLAS",
+        || Blas::new(lhs),
+        |blas| blas.ordered(gemm),
+    )
 }
 
 #[cfg(test)]

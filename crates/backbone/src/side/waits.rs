@@ -61,8 +61,9 @@ pub(super) fn host_sync(family: &str) -> (bool, bool) {
     }
 }
 
-/// Times a side stream was used from another cubecl stream than its own, or took a buffer made on another
-/// cubecl stream: the protocol orders the work with one cubecl stream only (the first is logged).
+/// Times side-stream work took a buffer made on another cubecl stream than the one it is ordered with (a
+/// side stream meets only the stream it is kept for, `super::Cache`): the protocol orders the work with
+/// one cubecl stream only (the first is logged).
 static FOREIGN: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 
 /// Counts and logs (the first) use of side-stream work across cubecl streams.
