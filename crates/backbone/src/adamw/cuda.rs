@@ -9,6 +9,7 @@ use burn::backend::Cuda;
 use burn::tensor::{DType, TensorMetadata};
 use burn_cubecl::kernel::into_contiguous;
 use burn_ir::CustomOpIr;
+use cubecl::server::Binding;
 use cudarc::driver::DeviceRepr;
 use umgen_optim::{AdamWSettings, AdamWSlot, AdamWStep, AdamWStepped, adamw_reference};
 
@@ -251,11 +252,7 @@ impl Pass {
                 ]);
                 buffers.extend(out.iter().map(|t| t.handle.clone().binding()));
             }
-            // Unused slots repeat the first one's buffers; the kernel reads only `count` of them.
-            let first_slot: Vec<_> = buffers[1..8].to_vec();
-            while buffers.len() < 1 + 7 * SLOTS {
-                buffers.extend(first_slot.iter().cloned());
-            }
+            fill_slots(&mut buffers, 1, 7, SLOTS);
             let blocks = p.first[ins.len()];
             if blocks == 0 {
                 continue;
@@ -293,6 +290,15 @@ fn source() -> Result<String, String> {
         call: "adamw_update(p, i, s, scale)",
     };
     Ok(slotted.source())
+}
+
+/// Repeats the first slot's `per_slot` buffers (after the `fixed` ones) until `buffers` holds `slots`
+/// slots: a [`Slotted`] entry point takes every slot, and reads only the first `count`.
+pub(super) fn fill_slots(buffers: &mut Vec<Binding>, fixed: usize, per_slot: usize, slots: usize) {
+    let first: Vec<Binding> = buffers[fixed..fixed + per_slot].to_vec();
+    while buffers.len() < fixed + per_slot * slots {
+        buffers.extend(first.iter().cloned());
+    }
 }
 
 /// An entry point over slots of buffers: it takes the `fixed` parameters, then `slots` groups of

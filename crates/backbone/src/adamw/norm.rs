@@ -4,7 +4,7 @@
 //! the gradients bound as buffers.
 #![allow(unsafe_code)]
 
-use super::cuda::{SPAN, Slotted, THREADS};
+use super::cuda::{SPAN, Slotted, THREADS, fill_slots};
 use super::{AdamWChoice, CHOICE, selected};
 use crate::side::{self, Handles, Inner, Primitive, SidePass, empty_f32};
 use burn::backend::Cuda;
@@ -114,10 +114,7 @@ impl Pass {
                 p.first[i + 1] = p.first[i] + len.div_ceil(SPAN) as u32;
                 buffers.push(g.handle.clone().binding());
             }
-            // Unused slots repeat the first gradient; the kernel reads only `count` of them.
-            while buffers.len() < 1 + SLOTS {
-                buffers.push(gs[0].handle.clone().binding());
-            }
+            fill_slots(&mut buffers, 1, 1, SLOTS);
             let launched = p.first[gs.len()];
             base += launched;
             if launched == 0 {
