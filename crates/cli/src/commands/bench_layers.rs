@@ -35,13 +35,13 @@ pub fn run(a: &BenchLayersArgs) -> anyhow::Result<()> {
     crate::with_autodiff!(device, |B, dev| { measure::<B>(a, [b, t, n, d], &dev) })
 }
 
-/// The median forward+backward seconds of `pass` over `iters` runs (after one untimed), and its last
-/// result: the output and the gradients it returns.
-fn timed<B: AutodiffBackend, const K: usize>(
+/// The median seconds of `pass` over `iters` runs (after one untimed), each waited for on the device, and
+/// its last result (for the layers: the output and the gradients it returns).
+fn timed<B: AutodiffBackend, T>(
     iters: usize,
     dev: &B::Device,
-    pass: impl Fn() -> anyhow::Result<[Tensor<B::InnerBackend, 4>; K]>,
-) -> anyhow::Result<(f64, [Tensor<B::InnerBackend, 4>; K])> {
+    pass: impl Fn() -> anyhow::Result<T>,
+) -> anyhow::Result<(f64, T)> {
     let mut times = Vec::new();
     let mut last = None;
     for i in 0..=iters {
@@ -53,8 +53,8 @@ fn timed<B: AutodiffBackend, const K: usize>(
         }
         last = Some(result);
     }
-    times.sort_by(f64::total_cmp);
-    Ok((times[times.len() / 2], last.context("no pass ran")?))
+    let median = super::bench_train::median(times).context("no timed pass (--iters 0)")?;
+    Ok((median, last.context("no pass ran")?))
 }
 
 fn measure<B: AutodiffBackend>(
@@ -94,8 +94,8 @@ fn measure<B: AutodiffBackend>(
         let dgamma = ln.gamma.val().grad(&g).context("no scale gradient")?;
         Ok([y.inner(), dx, dgamma.reshape([1, 1, 1, d])])
     };
-    let (ms, [y, dx, dg]) = timed::<B, 3>(a.iters, dev, || norm_pass(true))?;
-    let (burn_ms, [ry, rdx, rdg]) = timed::<B, 3>(a.iters, dev, || norm_pass(false))?;
+    let (ms, [y, dx, dg]) = timed::<B, _>(a.iters, dev, || norm_pass(true))?;
+    let (burn_ms, [ry, rdx, rdg]) = timed::<B, _>(a.iters, dev, || norm_pass(false))?;
     writeln!(
         out,
         "{:<26} {:>9.3} {:>9.3} {:>9.1e} {:>9.1e} {:>9.1e}",
@@ -134,8 +134,8 @@ fn measure<B: AutodiffBackend>(
         let dkv = kva.grad(&g).context("no key/value gradient")?;
         Ok([y.inner(), dq, dkv])
     };
-    let (ms, [y, dq, dkv]) = timed::<B, 3>(a.iters, dev, || temporal_pass(true))?;
-    let (burn_ms, [ry, rdq, rdkv]) = timed::<B, 3>(a.iters, dev, || temporal_pass(false))?;
+    let (ms, [y, dq, dkv]) = timed::<B, _>(a.iters, dev, || temporal_pass(true))?;
+    let (burn_ms, [ry, rdq, rdkv]) = timed::<B, _>(a.iters, dev, || temporal_pass(false))?;
     writeln!(
         out,
         "{:<26} {:>9.3} {:>9.3} {:>9.1e} {:>9.1e} {:>9.1e}",
@@ -184,8 +184,8 @@ fn cross_entropy<B: AutodiffBackend>(
         Ok([loss.inner().reshape([1, 1, 1, 1]), dx.reshape([1, 1, rows, v])])
     };
     let chosen = xent::selected();
-    let ran = timed::<B, 2>(a.iters, dev, || pass(XentKernel::Fused))
-        .and_then(|ours| Ok((ours, timed::<B, 2>(a.iters, dev, || pass(XentKernel::Burn))?)));
+    let ran = timed::<B, _>(a.iters, dev, || pass(XentKernel::Fused))
+        .and_then(|ours| Ok((ours, timed::<B, _>(a.iters, dev, || pass(XentKernel::Burn))?)));
     xent::select(chosen);
     let ((ms, [y, dx]), (burn_ms, [ry, rdx])) = ran?;
     writeln!(
@@ -268,27 +268,11 @@ fn adamw<B: AutodiffBackend>(
         let n = all.dims()[0];
         all.reshape([1, 1, 1, n])
     };
-    let run = |ours: bool| -> anyhow::Result<(f64, Vec<[Raw<B>; 3]>)> {
-        let mut times = Vec::new();
-        let mut last = Vec::new();
-        for i in 0..=a.iters {
-            let t0 = Instant::now();
-            last = if ours {
-                (kernels.adamw)(slots.clone(), &step)
-                    .map_err(|(_, why)| anyhow::anyhow!("the AdamW kernel declined: {why}"))?
-            } else {
-                adamw_reference(slots.clone(), &step)
-            };
-            B::sync(dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
-            if i > 0 {
-                times.push(t0.elapsed().as_secs_f64());
-            }
-        }
-        times.sort_by(f64::total_cmp);
-        Ok((times[times.len() / 2], last))
-    };
-    let (ms, ours) = run(true)?;
-    let (burn_ms, theirs) = run(false)?;
+    let (ms, ours) = timed::<B, _>(a.iters, dev, || {
+        (kernels.adamw)(slots.clone(), &step)
+            .map_err(|(_, why)| anyhow::anyhow!("the AdamW kernel declined: {why}"))
+    })?;
+    let (burn_ms, theirs) = timed::<B, _>(a.iters, dev, || Ok(adamw_reference(slots.clone(), &step)))?;
     let errs: Vec<f64> = (0..3)
         .map(|k| rel_err(flat(&ours, k), flat(&theirs, k)))
         .collect();
@@ -304,30 +288,16 @@ fn adamw<B: AutodiffBackend>(
     )?;
     // The gradients' global norm, through the kernel and in burn's operations.
     let grads: Vec<Raw<B>> = slots.iter().map(|s| s.grad.clone()).collect();
-    let as_4d = |t: Tensor<B::InnerBackend, 1>| t.reshape([1, 1, 1, 1]);
-    let norm = |ours: bool| -> anyhow::Result<(f64, Tensor<B::InnerBackend, 4>)> {
-        let mut times = Vec::new();
-        let mut last = None;
-        for i in 0..=a.iters {
-            let t0 = Instant::now();
-            let n = if ours {
-                let raw = (kernels.norm)(&grads)
-                    .map_err(|why| anyhow::anyhow!("the norm kernel declined: {why}"))?;
-                Tensor::from_primitive(TensorPrimitive::Float(raw))
-            } else {
-                umgen::optim::norm_reference::<B::InnerBackend>(&grads)
-            };
-            B::sync(dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
-            if i > 0 {
-                times.push(t0.elapsed().as_secs_f64());
-            }
-            last = Some(as_4d(n));
-        }
-        times.sort_by(f64::total_cmp);
-        Ok((times[times.len() / 2], last.context("no pass ran")?))
-    };
-    let (ms, ours) = norm(true)?;
-    let (burn_ms, theirs) = norm(false)?;
+    let (ms, ours) = timed::<B, _>(a.iters, dev, || {
+        let raw = (kernels.norm)(&grads).map_err(|why| anyhow::anyhow!("the norm kernel declined: {why}"))?;
+        Ok(Tensor::<B::InnerBackend, 1>::from_primitive(
+            TensorPrimitive::Float(raw),
+        ))
+    })?;
+    let (burn_ms, theirs) = timed::<B, _>(a.iters, dev, || {
+        Ok(umgen::optim::norm_reference::<B::InnerBackend>(&grads))
+    })?;
+    let (ours, theirs) = (ours.reshape([1, 1, 1, 1]), theirs.reshape([1, 1, 1, 1]));
     writeln!(
         out,
         "{:<26} {:>9.3} {:>9.3} {:>9.1e} {:>9} {:>9}",
