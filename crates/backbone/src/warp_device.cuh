@@ -1,6 +1,6 @@
 // The warp-level primitives of the CUDA C kernels in this crate (`norm/norm.cu`, `temporal/temporal.cu`,
-// `xent/xent.cu`) on the GPU. `side::kernel_source` puts this before a kernel's source for NVRTC (which
-// resolves no includes); on the host `warp_emulator.h` defines the same names.
+// `xent/xent.cu`, `adamw/adamw.cu`) on the GPU. `side::kernel_source` puts this before a kernel's source
+// for NVRTC (which resolves no includes); on the host `warp_emulator.h` defines the same names.
 #define DEV static __device__ __forceinline__
 #define KERNEL extern "C" __global__ void __launch_bounds__(256)
 // NVRTC has no <math.h>.

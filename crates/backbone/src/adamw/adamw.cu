@@ -7,6 +7,7 @@
 // entry point that takes them (`umgen_adamw`) after this file, since its parameter list has
 // 1 + 7 * UMGEN_ADAMW_SLOTS pointers. A block updates UMGEN_ADAMW_SPAN elements of one slot; slot i owns
 // blocks first[i] .. first[i + 1].
+// NVRTC compiles it after `warp_device.cuh`'s primitives (`side::kernel_source`).
 //
 // The arithmetic is burn's AdamW's, in its order (burn-optim 0.21, adamw.rs):
 //   m = β1 m + (1 − β1) g            (m = (1 − β1) g at a slot's first step)
@@ -40,19 +41,14 @@ __device__ __forceinline__ unsigned int slot_of(const P& p, unsigned int block) 
 // thread 0.
 __device__ __forceinline__ float block_sum(float x) {
     __shared__ float warps[UMGEN_ADAMW_THREADS / 32];
-    for (int o = 16; o > 0; o >>= 1) {
-        x += __shfl_xor_sync(0xffffffffu, x, o);
-    }
+    x = warp_sum(x);
     if ((threadIdx.x & 31) == 0) {
         warps[threadIdx.x >> 5] = x;
     }
     __syncthreads();
     float t = 0.0f;
     if (threadIdx.x < 32) {
-        t = threadIdx.x < UMGEN_ADAMW_THREADS / 32 ? warps[threadIdx.x] : 0.0f;
-        for (int o = 16; o > 0; o >>= 1) {
-            t += __shfl_xor_sync(0xffffffffu, t, o);
-        }
+        t = warp_sum(threadIdx.x < UMGEN_ADAMW_THREADS / 32 ? warps[threadIdx.x] : 0.0f);
     }
     return t;
 }

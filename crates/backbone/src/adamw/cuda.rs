@@ -315,12 +315,13 @@ pub(super) struct Slotted<'a> {
 }
 
 impl Slotted<'_> {
-    /// `adamw.cu` (with its slot counts defined) and this entry point.
+    /// `adamw.cu` (with its slot counts defined, after the warp primitives of `side::kernel_source`) and
+    /// this entry point.
     pub(super) fn source(&self) -> String {
         let mut s = format!(
             "#define UMGEN_ADAMW_SLOTS {SLOTS}\n#define UMGEN_SUMSQ_SLOTS {}\n{}\n",
             super::norm::SLOTS,
-            include_str!("adamw.cu")
+            side::kernel_source(include_str!("adamw.cu"))
         );
         s.push_str(&format!(
             "extern \"C\" __global__ void __launch_bounds__(UMGEN_ADAMW_THREADS) {}({}",
