@@ -4,10 +4,12 @@
 // probabilities and their gradients stay in registers (the accumulator layout of one product is the operand
 // layout of the next). Each block of 4 or 8 warps owns 16 rows per warp (queries, or keys for the key/value
 // gradients) and walks the other side in tiles of 64, the next tile read into registers while the
-// current one's products run (8 warps). Head size `D`: 64 or 32.
+// current one's products run (8 warps). Head size `D`: 64 or 32. Where NVRTC targets sm_90a (cubecl's
+// stream on an H100), the head size 64 products run on `wgmma` (`flash2_warp.cu`): 64 rows a warpgroup, B
+// and the block's own rows read from swizzled tiles in shared memory, P and dS from registers.
 //
-// NVRTC compiles `flash2_tiles.cu` (primitives, parameters, tiles, fragment products) followed by this file
-// (`flash2.rs` joins them). The same source compiles on the host (`UMGEN_EMULATED`), where
+// NVRTC compiles `flash2_warp.cu` (primitives) and `flash2_tiles.cu` (parameters, tiles, fragment products)
+// followed by this file (`flash2.rs` joins them). The same source compiles on the host (`UMGEN_EMULATED`), where
 // `flash2_emulator.cpp` runs every thread of a block and defines the warp-level primitives, so that
 // fragment layouts are checked without a GPU.
 
@@ -80,17 +82,19 @@ DEV void softmax_tile(const Params& P, float (*s)[4], float (*o)[4], float* m, f
 
 template <typename T, int D>
 DEV void forward(const Params& P) {
-    SHARED ALIGNED u16 qt[MAX_ROWS * (D + 8)];
-    SHARED ALIGNED u16 kt[ROWS * (D + 8)];
-    SHARED ALIGNED u16 vt[ROWS * (D + 8)];
+    SHARED TILE_ALIGNED u16 qt[TILE(MAX_ROWS, D)];
+    SHARED TILE_ALIGNED u16 kt[TILE(ROWS, D)];
+    SHARED TILE_ALIGNED u16 vt[TILE(ROWS, D)];
     int bh = block_y(), q0 = block_rows() * block_x();
     if (bh >= P.count) return;
     int l = lane_id(), g = l >> 2, t = l & 3;
     const float sl = P.scale * LOG2E;
     load_tile<T, D>(qt, at<T>(P.q, head_base(P.qs, bh, P.heads)), P.qs[2], q0, P.lq, block_rows());
     sync_block();
-    u32 qa[D / 16][4];
-    load_a<D>(qa, qt);
+    // On `wgmma` the queries stay in shared memory (`rows_times_transposed`).
+    constexpr bool WG = WGMMA && D == 64;
+    u32 qa[WG ? 1 : D / 16][4];
+    if constexpr (!WG) load_a<D>(qa, qt);
     float o[D / 8][4], m[2] = {NEG_INF, NEG_INF}, s_sum[2] = {0.f, 0.f};
     zero<D / 8>(o);
     int blocks = key_blocks(P, q0);
@@ -101,7 +105,10 @@ DEV void forward(const Params& P) {
         store_staged(kn, vn, kt, vt);
         fetch_next(kn, vn, k0, kb + 1 < blocks);
         float s[8][4];
-        times_transposed<D>(s, qa, kt);
+        if constexpr (WG)
+            rows_times_transposed<D>(s, qt, kt);
+        else
+            times_transposed<D>(s, qa, kt);
         // The tile crosses the keys' end, or (causal) some key of it comes after the block's first query.
         if (k0 + ROWS > P.lk || (P.causal && k0 + ROWS - 1 > q0 + P.off))
             softmax_tile<true, D>(P, s, o, m, s_sum, q0, k0, sl);
@@ -125,12 +132,16 @@ DEV void forward(const Params& P) {
     store_rows<D>(P.out + bh_rows * D, o, q0, P.lq, 1.f);
 }
 
+// The f32 per-query value (log-sum-exp or delta, strides `s`) of query `q` of head `bh`, times `factor`; zero
+// past `lq`.
+DEV float query_value(const float* src, const long long* s, int bh, int heads, int q, int lq, float factor) {
+    return q < lq ? src[head_base(s, bh, heads) + s[2] * q] * factor : 0.f;
+}
+
 // Reads `count` f32 per-query values (log-sum-exp or delta) into `dst`, times `factor`; zeros past `lq`.
 DEV void load_row_values(float* dst, const float* src, const long long* s, int bh, int heads, int q0, int lq,
                          float factor, int count = ROWS) {
-    long long base = head_base(s, bh, heads);
-    for (int i = thread_id(); i < count; i += threads())
-        dst[i] = q0 + i < lq ? src[base + s[2] * (q0 + i)] * factor : 0.f;
+    for (int i = thread_id(); i < count; i += threads()) dst[i] = query_value(src, s, bh, heads, q0 + i, lq, factor);
 }
 
 // p = exp2(s · sl − lse2) where the key is visible, else 0; then ds = p ∘ (dp − delta). Rows and columns of
@@ -159,18 +170,66 @@ DEV void probabilities(const Params& P, float (*s)[4], float (*dp)[4], const flo
         }
 }
 
+// `probabilities` with the per-query values in registers (the `wgmma` kernels have no shared memory left
+// for them): this thread's two (`lse2[h]`, `delta[h]` for rows g and g + 8) when the queries are the rows;
+// when they are the columns, the tile's columns `lane` and `lane + 32`, each value read from the lane that
+// holds it (`c_off` is the columns' offset in the tile).
+template <bool keys_are_rows, int NT, bool MASK>
+DEV void lane_probabilities(const Params& P, float (*s)[4], float (*dp)[4], const float* lse2, const float* delta,
+                       int r0, int c0, int c_off, float sl) {
+    int l = lane_id(), g = l >> 2, t = l & 3;
+#pragma unroll
+    for (int j = 0; j < NT; j++)
+#pragma unroll
+        for (int b = 0; b < 2; b++) {
+            int c = 8 * j + 2 * t + b;
+            float col_lse = 0.f, col_delta = 0.f;
+            if (keys_are_rows) {
+                col_lse = from_lane(lse2[(c_off + 8 * j) >> 5], (c_off + c) & 31);
+                col_delta = from_lane(delta[(c_off + 8 * j) >> 5], (c_off + c) & 31);
+            }
+#pragma unroll
+            for (int h = 0; h < 2; h++) {
+                int e = 2 * h + b, r = 16 * warp_id() + g + 8 * h;
+                int query = keys_are_rows ? c0 + c : r0 + r, key = keys_are_rows ? r0 + r : c0 + c;
+                float l2 = keys_are_rows ? col_lse : lse2[h], dl = keys_are_rows ? col_delta : delta[h];
+                bool masked = MASK && hidden(P, query, key);
+                float p = masked ? 0.f : exp2f(fmaf(s[j][e], sl, -l2));
+                s[j][e] = p;
+                dp[j][e] = p * (dp[j][e] - dl);
+            }
+        }
+}
+
+// On `wgmma` (head size 64 on sm_90a) the two operands of the block's own rows stay in shared memory, read
+// by the products as A (`rows_times_transposed`), and the other side streams through tiles of ROWS rows;
+// elsewhere they enter registers once, through the streamed tiles (which then take MAX_ROWS rows). Either
+// way 48 KiB of static shared memory at most.
+#define OWN_ROWS(D) (WGMMA && (D) == 64 ? MAX_ROWS : 8)
+#define STREAM_ROWS(D) (WGMMA && (D) == 64 ? ROWS : MAX_ROWS)
+
 template <typename T, int D>
 DEV void backward_kv(const Params& P) {
-    SHARED ALIGNED u16 qt[MAX_ROWS * (D + 8)];
-    SHARED ALIGNED u16 ot[MAX_ROWS * (D + 8)];
-    SHARED float lse2[ROWS], delta[ROWS];
+    constexpr bool WG = WGMMA && D == 64;
+    SHARED TILE_ALIGNED u16 qt[TILE(STREAM_ROWS(D), D)];
+    SHARED TILE_ALIGNED u16 ot[TILE(STREAM_ROWS(D), D)];
+    SHARED TILE_ALIGNED u16 kr[TILE(OWN_ROWS(D), D)];
+    SHARED TILE_ALIGNED u16 vr[TILE(OWN_ROWS(D), D)];
+    // Without `wgmma`, the tile's log-sum-exps and deltas (with it, registers: no room).
+    SHARED float lse_s[WGMMA && D == 64 ? 1 : ROWS], delta_s[WGMMA && D == 64 ? 1 : ROWS];
     int bh = block_y(), k0 = block_rows() * block_x();
     if (bh >= P.count) return;
     const float sl = P.scale * LOG2E;
-    // K and V enter registers through the query-side tiles.
-    u32 ka[D / 16][4], va[D / 16][4];
-    block_fragments<T, D>(ka, va, qt, ot, at<T>(P.k, head_base(P.ks, bh, P.heads)), P.ks[2],
-                          at<T>(P.v, head_base(P.vs, bh, P.heads)), P.vs[2], k0, P.lk);
+    const T* k_src = at<T>(P.k, head_base(P.ks, bh, P.heads));
+    const T* v_src = at<T>(P.v, head_base(P.vs, bh, P.heads));
+    u32 ka[WG ? 1 : D / 16][4], va[WG ? 1 : D / 16][4];
+    if constexpr (WG) {
+        load_tile<T, D>(kr, k_src, P.ks[2], k0, P.lk, block_rows());
+        load_tile<T, D>(vr, v_src, P.vs[2], k0, P.lk, block_rows());
+    } else {
+        // K and V enter registers through the query-side tiles.
+        block_fragments<T, D>(ka, va, qt, ot, k_src, P.ks[2], v_src, P.vs[2], k0, P.lk);
+    }
     float dk[D / 8][4], dv[D / 8][4];
     zero<D / 8>(dk);
     zero<D / 8>(dv);
@@ -182,22 +241,38 @@ DEV void backward_kv(const Params& P) {
     for (int qb = first; qb < blocks; qb++) {
         int q0 = ROWS * qb;
         store_staged(qn, on, qt, ot);
-        load_row_values(lse2, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E);
-        load_row_values(delta, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f);
+        // With `wgmma`, this thread's queries' log-sum-exps and deltas: lane and lane + 32 of the tile.
+        float lse2[2], delta[2];
+        if constexpr (WG) {
+#pragma unroll
+            for (int h = 0; h < 2; h++) {
+                int q = q0 + lane_id() + 32 * h;
+                lse2[h] = query_value(P.lse, P.ls, bh, P.heads, q, P.lq, LOG2E);
+                delta[h] = query_value(P.delta, P.es, bh, P.heads, q, P.lq, 1.f);
+            }
+        } else {
+            load_row_values(lse_s, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E);
+            load_row_values(delta_s, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f);
+        }
         fetch_next(qn, on, q0, qb + 1 < blocks);
 #pragma unroll
         for (int c = 0; c < ROWS; c += SUB) {
             float s[SUB / 8][4], dp[SUB / 8][4];
-            const u16 *qc = qt + c * (D + 8), *oc = ot + c * (D + 8);
-            times_transposed<D, SUB / 8>(s, ka, qc);
-            times_transposed<D, SUB / 8>(dp, va, oc);
+            const u16 *qc = qt + at_tile<D>(c, 0), *oc = ot + at_tile<D>(c, 0);
+            both_times_transposed<D, SUB / 8>(s, kr, ka, qc, dp, vr, va, oc);
             // Some key of the block comes after some query of these columns.
-            if (P.causal && k0 + block_rows() - 1 > q0 + c + P.off)
-                probabilities<true, SUB / 8, true>(P, s, dp, 0, 0, lse2 + c, delta + c, k0, q0 + c, sl);
-            else
-                probabilities<true, SUB / 8, false>(P, s, dp, 0, 0, lse2 + c, delta + c, k0, q0 + c, sl);
-            times<D, SUB / 8>(dv, s, oc);
-            times<D, SUB / 8>(dk, dp, qc);
+            bool mask = P.causal && k0 + block_rows() - 1 > q0 + c + P.off;
+            if constexpr (WG) {
+                if (mask)
+                    lane_probabilities<true, SUB / 8, true>(P, s, dp, lse2, delta, k0, q0 + c, c, sl);
+                else
+                    lane_probabilities<true, SUB / 8, false>(P, s, dp, lse2, delta, k0, q0 + c, c, sl);
+            } else if (mask) {
+                probabilities<true, SUB / 8, true>(P, s, dp, 0, 0, lse_s + c, delta_s + c, k0, q0 + c, sl);
+            } else {
+                probabilities<true, SUB / 8, false>(P, s, dp, 0, 0, lse_s + c, delta_s + c, k0, q0 + c, sl);
+            }
+            both_times<D, SUB / 8>(dv, s, oc, dk, dp, qc);
         }
     }
     long long base = (long long)bh * P.lk * D;
@@ -207,18 +282,38 @@ DEV void backward_kv(const Params& P) {
 
 template <typename T, int D>
 DEV void backward_q(const Params& P) {
-    SHARED ALIGNED u16 kt[MAX_ROWS * (D + 8)];
-    SHARED ALIGNED u16 vt[MAX_ROWS * (D + 8)];
-    SHARED float lse2[MAX_ROWS], delta[MAX_ROWS];
+    constexpr bool WG = WGMMA && D == 64;
+    SHARED TILE_ALIGNED u16 kt[TILE(STREAM_ROWS(D), D)];
+    SHARED TILE_ALIGNED u16 vt[TILE(STREAM_ROWS(D), D)];
+    SHARED TILE_ALIGNED u16 qr[TILE(OWN_ROWS(D), D)];
+    SHARED TILE_ALIGNED u16 orows[TILE(OWN_ROWS(D), D)];
+    SHARED float lse_s[WGMMA && D == 64 ? 1 : MAX_ROWS], delta_s[WGMMA && D == 64 ? 1 : MAX_ROWS];
     int bh = block_y(), q0 = block_rows() * block_x();
     if (bh >= P.count) return;
     const float sl = P.scale * LOG2E;
-    load_row_values(lse2, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E, block_rows());
-    load_row_values(delta, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f, block_rows());
-    // Q and dO enter registers through the key-side tiles.
-    u32 qa[D / 16][4], oa[D / 16][4];
-    block_fragments<T, D>(qa, oa, kt, vt, at<T>(P.q, head_base(P.qs, bh, P.heads)), P.qs[2],
-                          at<T>(P.dout, head_base(P.os, bh, P.heads)), P.os[2], q0, P.lq);
+    // The rows' log-sum-exps and deltas: with `wgmma` this thread's (rows g and g + 8 of its warp).
+    float lse2[2], delta[2];
+    if constexpr (WG) {
+#pragma unroll
+        for (int h = 0; h < 2; h++) {
+            int q = q0 + 16 * warp_id() + (lane_id() >> 2) + 8 * h;
+            lse2[h] = query_value(P.lse, P.ls, bh, P.heads, q, P.lq, LOG2E);
+            delta[h] = query_value(P.delta, P.es, bh, P.heads, q, P.lq, 1.f);
+        }
+    } else {
+        load_row_values(lse_s, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E, block_rows());
+        load_row_values(delta_s, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f, block_rows());
+    }
+    const T* q_src = at<T>(P.q, head_base(P.qs, bh, P.heads));
+    const T* o_src = at<T>(P.dout, head_base(P.os, bh, P.heads));
+    u32 qa[WG ? 1 : D / 16][4], oa[WG ? 1 : D / 16][4];
+    if constexpr (WG) {
+        load_tile<T, D>(qr, q_src, P.qs[2], q0, P.lq, block_rows());
+        load_tile<T, D>(orows, o_src, P.os[2], q0, P.lq, block_rows());
+    } else {
+        // Q and dO enter registers through the key-side tiles.
+        block_fragments<T, D>(qa, oa, kt, vt, q_src, P.qs[2], o_src, P.os[2], q0, P.lq);
+    }
     float dq[D / 8][4];
     zero<D / 8>(dq);
     int blocks = key_blocks(P, q0);
@@ -231,14 +326,20 @@ DEV void backward_q(const Params& P) {
 #pragma unroll
         for (int c = 0; c < ROWS; c += SUB) {
             float s[SUB / 8][4], dp[SUB / 8][4];
-            const u16 *kc = kt + c * (D + 8), *vc = vt + c * (D + 8);
-            times_transposed<D, SUB / 8>(s, qa, kc);
-            times_transposed<D, SUB / 8>(dp, oa, vc);
+            const u16 *kc = kt + at_tile<D>(c, 0), *vc = vt + at_tile<D>(c, 0);
+            both_times_transposed<D, SUB / 8>(s, qr, qa, kc, dp, orows, oa, vc);
             // Some key of these columns comes after the keys' end or (causal) the block's first query.
-            if (k0 + c + SUB > P.lk || (P.causal && k0 + c + SUB - 1 > q0 + P.off))
-                probabilities<false, SUB / 8, true>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
-            else
-                probabilities<false, SUB / 8, false>(P, s, dp, lse2, delta, 0, 0, q0, k0 + c, sl);
+            bool mask = k0 + c + SUB > P.lk || (P.causal && k0 + c + SUB - 1 > q0 + P.off);
+            if constexpr (WG) {
+                if (mask)
+                    lane_probabilities<false, SUB / 8, true>(P, s, dp, lse2, delta, q0, k0 + c, c, sl);
+                else
+                    lane_probabilities<false, SUB / 8, false>(P, s, dp, lse2, delta, q0, k0 + c, c, sl);
+            } else if (mask) {
+                probabilities<false, SUB / 8, true>(P, s, dp, lse_s, delta_s, 0, 0, q0, k0 + c, sl);
+            } else {
+                probabilities<false, SUB / 8, false>(P, s, dp, lse_s, delta_s, 0, 0, q0, k0 + c, sl);
+            }
             times<D, SUB / 8>(dq, dp, kc);
         }
     }

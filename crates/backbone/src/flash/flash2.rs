@@ -1,4 +1,5 @@
-//! Launches the `flash2` kernels (`flash2_tiles.cu` and `flash2.cu`, CUDA C compiled with NVRTC) on
+//! Launches the `flash2` kernels (`flash2_warp.cu`, `flash2_tiles.cu` and `flash2.cu`, CUDA C compiled with
+//! NVRTC) on
 //! cubecl's stream (or, with `train.kernel_stream = "side"`, on a side stream ordered with cubecl's), on
 //! burn's buffers as they lie in memory.
 //!
@@ -6,7 +7,10 @@
 //! their gradients in registers, which cubecl's `cmma` abstraction cannot express (its fragments are
 //! opaque, so the softmax of the `fused` kernels goes through shared memory). Head sizes 32 and 64, f32 or
 //! bf16 operands (rounded to bf16 on the way into shared memory), compute capability 8.0 or newer; the
-//! caller runs the `fused` kernels for anything else. `flash2_emulator.cpp` checks the fragment layouts on
+//! caller runs the `fused` kernels for anything else. On cubecl's stream (the default
+//! `train.kernel_stream`), cubecl compiles for `sm_90a` on an H100, and there the head size 64 products
+//! run on Hopper's `wgmma` (12–17 % faster passes, docs/perf-notes.md); the side stream's build targets
+//! compute capability 8.0 and keeps `mma.sync`. `flash2_emulator.cpp` checks the fragment layouts on
 //! the host.
 #![allow(unsafe_code)]
 
@@ -20,8 +24,12 @@ use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
 use std::sync::OnceLock;
 
-/// The kernels' source: the building blocks, then the three passes.
-const SOURCE: &str = concat!(include_str!("flash2_tiles.cu"), include_str!("flash2.cu"));
+/// The kernels' source: the GPU's primitives, the building blocks, then the three passes.
+const SOURCE: &str = concat!(
+    include_str!("flash2_warp.cu"),
+    include_str!("flash2_tiles.cu"),
+    include_str!("flash2.cu")
+);
 
 /// The grid's largest y (and z) extent.
 const GRID_YZ: usize = 65_535;
@@ -41,7 +49,7 @@ fn warps() -> usize {
 }
 
 /// The kernels' source: [`SOURCE`], or the file `UMGEN_FLASH2_SOURCE` names (for trying a change to the
-/// kernels without rebuilding umgen: `cat flash2_tiles.cu flash2.cu > FILE`, then edit; it must keep the
+/// kernels without rebuilding umgen: `cat flash2_warp.cu flash2_tiles.cu flash2.cu > FILE`, then edit; it must keep the
 /// kernels' names and `Params`).
 fn source() -> Result<String, String> {
     match std::env::var_os("UMGEN_FLASH2_SOURCE") {

@@ -1,5 +1,7 @@
-// Runs the flash2 kernels (flash2_tiles.cu, flash2.cu) on the host, one std::thread per CUDA thread of a block, with the warp-level
-// primitives (mma.sync, ldmatrix, shuffles) emulated from their PTX definitions, and compares the results
+// Runs the flash2 kernels (flash2_tiles.cu, flash2.cu; flash2_warp.cu holds the GPU's primitives, which this
+// file replaces) on the host, one std::thread per CUDA thread of a block, with the warp-level
+// primitives (mma.sync, ldmatrix, shuffles; with -DUMGEN_WGMMA_EMULATED, wgmma on the swizzled tiles instead
+// of mma.sync for head size 64) emulated from their PTX definitions, and compares the results
 // with a double-precision reference. A development check of the fragment layouts, which no CPU test of the
 // Rust crate can make:
 //
@@ -107,6 +109,13 @@ static float shfl_xor(float x, int m) {
     sync_warp();
     return y;
 }
+DEV float from_lane(float x, int lane) {
+    g_stage[warp_id()][lane_id()].x = x;
+    sync_warp();
+    float y = g_stage[warp_id()][lane].x;
+    sync_warp();
+    return y;
+}
 DEV float quad_max(float x) {
     x = fmaxf(x, shfl_xor(x, 1));
     return fmaxf(x, shfl_xor(x, 2));
@@ -115,6 +124,57 @@ DEV float quad_sum(float x) {
     x += shfl_xor(x, 1);
     return x + shfl_xor(x, 2);
 }
+
+// Tiles as the GPU aligns them for `wgmma` (the emulator reads them through `at_tile` either way).
+#define TILE_ALIGNED __attribute__((aligned(1024)))
+DEV void to_async_proxy() {}
+template <int D>
+DEV int at_tile(int row, int col);
+
+#ifdef UMGEN_WGMMA_EMULATED
+// `wgmma.mma_async` m64nNk16 with A in registers: each warp of the warpgroup multiplies its own 16 rows (the
+// A fragment layout of `mma.sync`) by the same B, read from the tile in shared memory; synchronous here, so
+// the fence, commit and wait have nothing to do.
+template <int NT, bool MN>
+DEV void wg_mma(float (*acc)[4], const u32* a, const u16* tile, int k0) {
+    Stage& me = g_stage[warp_id()][lane_id()];
+    memcpy(me.a, a, 16);
+    sync_warp();
+    const Stage* w = g_stage[warp_id()];
+    int g = lane_id() >> 2, t = lane_id() & 3;
+    auto A = [&](int row, int k) {
+        int lane = (row % 8) * 4 + (k % 8) / 2, reg = row / 8 + 2 * (k / 8);
+        return half_of(w[lane].a[reg], k % 2);
+    };
+    auto B = [&](int k, int n) { return bf(MN ? tile[at_tile<64>(k0 + k, n)] : tile[at_tile<64>(n, k0 + k)]); };
+    float out[NT][4];
+    for (int j = 0; j < NT; j++)
+        for (int e = 0; e < 4; e++) {
+            int row = g + 8 * (e >> 1), col = 8 * j + 2 * t + (e & 1);
+            float sum = acc[j][e];
+            for (int k = 0; k < 16; k++) sum += A(row, k) * B(k, col);
+            out[j][e] = sum;
+        }
+    sync_warp();
+    memcpy(acc, out, sizeof out);
+}
+// The same with A read from rows [64 w, 64 w + 64) of `rows` for warpgroup w.
+template <int NT, bool MN>
+DEV void wg_mma_ss(float (*acc)[4], const u16* rows, const u16* tile, int k0) {
+    int g = lane_id() >> 2, t = lane_id() & 3, r0 = 16 * warp_id();
+    auto B = [&](int k, int n) { return bf(MN ? tile[at_tile<64>(k0 + k, n)] : tile[at_tile<64>(n, k0 + k)]); };
+    for (int j = 0; j < NT; j++)
+        for (int e = 0; e < 4; e++) {
+            int row = g + 8 * (e >> 1), col = 8 * j + 2 * t + (e & 1);
+            for (int k = 0; k < 16; k++) acc[j][e] += bf(rows[at_tile<64>(r0 + row, k0 + k)]) * B(k, col);
+        }
+}
+DEV void wg_arrive() {}
+DEV void wg_commit() {}
+DEV void wg_wait() {}
+template <int NT>
+DEV void wg_hold(float (*)[4]) {}
+#endif
 
 #include "flash2_tiles.cu"
 #include "flash2.cu"

@@ -1,83 +1,18 @@
 // The building blocks of the flash2 kernels (`flash2.cu`, which NVRTC compiles after this file): the
-// warp-level primitives (`mma.sync`, `ldmatrix`, quad shuffles), the kernels' parameters, bf16 rounding,
-// tiles moved from global to shared memory, and the 16-row fragment products of one warp.
-//
-// On the host (`UMGEN_EMULATED`), `flash2_emulator.cpp` defines the primitives instead of the block below.
+// kernels' parameters, bf16 rounding, tiles moved from global to shared memory, and the fragment products of
+// one warp (`mma.sync`) or warpgroup (`wgmma`). `flash2_warp.cu`, before this file, defines the GPU's
+// warp-level primitives; on the host (`UMGEN_EMULATED`), `flash2_emulator.cpp` defines them instead.
 
-#ifndef UMGEN_EMULATED
-typedef unsigned int u32;
-typedef unsigned short u16;
-#define DEV __device__ __forceinline__
-// At most 128 registers a thread, so that two blocks of 8 warps share an SM: the key/value-gradient kernel
-// spills about 500 bytes a thread for it and still runs 10 % faster than with 254 registers and one block
-// (H100, docs/perf-notes.md).
-#define KERNEL extern "C" __global__ void __launch_bounds__(256, 2)
-#define SHARED __shared__
-#define ALIGNED __align__(16)
-
-// The softmax's base-2 exponent and logarithm as single approximate instructions, what `--use_fast_math`
-// makes of exp2f and log2f: the kernels are also compiled by cubecl (`train.kernel_stream = "cubecl"`),
-// which passes NVRTC no such option, and the precise exp2f adds range handling to every score.
-DEV float fast_exp2(float x) {
-    float y;
-    asm("ex2.approx.ftz.f32 %0, %1;" : "=f"(y) : "f"(x));
-    return y;
-}
-DEV float fast_log2(float x) {
-    float y;
-    asm("lg2.approx.ftz.f32 %0, %1;" : "=f"(y) : "f"(x));
-    return y;
-}
-#define exp2f fast_exp2
-#define log2f fast_log2
-
-// c += a · b on the tensor cores: a 16×16 (row-major fragments), b 16×8, c 16×8 f32.
-DEV void mma(float* c, const u32* a, const u32* b) {
-    asm volatile(
-        "mma.sync.aligned.m16n8k16.row.col.f32.bf16.bf16.f32 {%0,%1,%2,%3}, {%4,%5,%6,%7}, {%8,%9}, "
-        "{%0,%1,%2,%3};\n"
-        : "+f"(c[0]), "+f"(c[1]), "+f"(c[2]), "+f"(c[3])
-        : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]));
-}
-
-DEV u32 shared_address(const u16* p) {
-    u32 s;
-    asm("{ .reg .u64 a; cvta.to.shared.u64 a, %1; cvt.u32.u64 %0, a; }" : "=r"(s) : "l"(p));
-    return s;
-}
-
-// Four 8×8 matrices of 16-bit elements; lane l gives the address of row (l & 7) of matrix (l >> 3).
-DEV void ldsm4(u32* r, const u16* p) {
-    asm volatile("ldmatrix.sync.aligned.m8n8.x4.shared.b16 {%0,%1,%2,%3}, [%4];\n"
-                 : "=r"(r[0]), "=r"(r[1]), "=r"(r[2]), "=r"(r[3])
-                 : "r"(shared_address(p)));
-}
-
-// The same, each matrix transposed.
-DEV void ldsm4t(u32* r, const u16* p) {
-    asm volatile("ldmatrix.sync.aligned.m8n8.x4.trans.shared.b16 {%0,%1,%2,%3}, [%4];\n"
-                 : "=r"(r[0]), "=r"(r[1]), "=r"(r[2]), "=r"(r[3])
-                 : "r"(shared_address(p)));
-}
-
-DEV float quad_max(float x) {
-    x = fmaxf(x, __shfl_xor_sync(0xffffffffu, x, 1));
-    return fmaxf(x, __shfl_xor_sync(0xffffffffu, x, 2));
-}
-
-DEV float quad_sum(float x) {
-    x += __shfl_xor_sync(0xffffffffu, x, 1);
-    return x + __shfl_xor_sync(0xffffffffu, x, 2);
-}
-
-DEV int lane_id() { return threadIdx.x & 31; }
-DEV int warp_id() { return threadIdx.x >> 5; }
-DEV int thread_id() { return threadIdx.x; }
-DEV int threads() { return blockDim.x; }
-DEV int block_x() { return blockIdx.x; }
-// The flattened (batch, head) index: the grid's y and z (y holds at most 65,535).
-DEV int block_y() { return blockIdx.y + 65535 * blockIdx.z; }
-DEV void sync_block() { __syncthreads(); }
+// Hopper's warpgroup products (`wgmma.mma_async`) take the head size 64 products where the compiler targets
+// `sm_90a` (cubecl compiles for it on a compute capability 9.0 device; the side stream's build targets 8.0):
+// one instruction multiplies 64 rows (the four warps of a warpgroup, 16 each, with
+// the A fragments of `mma.sync`) by a B operand read from shared memory by the tensor cores, where
+// `mma.sync` needs one `ldmatrix` a warp for every two 16×8 products. Elsewhere, and for head size 32, the
+// kernels run on `mma.sync`. The emulator takes this path with `UMGEN_WGMMA_EMULATED`.
+#if defined(__CUDA_ARCH_FEAT_SM90_ALL) || defined(UMGEN_WGMMA_EMULATED)
+#define WGMMA 1
+#else
+#define WGMMA 0
 #endif
 
 // Rows of the tiles a block walks through; a block's own rows are 16 per warp (`block_rows`), at most
@@ -85,6 +20,18 @@ DEV void sync_block() { __syncthreads(); }
 #define ROWS 64
 #define MAX_ROWS 128
 DEV int block_rows() { return 16 * (threads() >> 5); }
+
+// Where element (row, col) of a tile lies. On `wgmma`, rows of 64 are 128 bytes with their 16-byte chunks
+// swizzled (chunk c of row r at c ^ (r % 8)): the layout it reads with the 128-byte swizzle, also free of
+// bank conflicts for `ldmatrix` and a warp's row of stores. Otherwise rows are padded by 8 elements (as
+// conflict-free, and cheaper to address: the `mma.sync` kernels spill less).
+template <int D>
+DEV int at_tile(int row, int col) {
+    if (WGMMA && D == 64) return row * 64 + ((((col >> 3) ^ row) & 7) << 3) + (col & 7);
+    return row * (D + 8) + col;
+}
+// Elements of a tile of `rows` rows.
+#define TILE(rows, D) ((rows) * (WGMMA && (D) == 64 ? 64 : (D) + 8))
 #define NEG_INF (-__int_as_float(0x7f800000))
 #define LOG2E 1.4426950408889634f
 #define LN2 0.6931471805599453f
@@ -137,14 +84,15 @@ DEV u16 to_bf16(float x) { return bf16_bits(x); }
 DEV u16 to_bf16(u16 x) { return x; }
 
 // Rows [row0, row0 + count) of one head of an operand (`src` at the head's first element, rows `stride`
-// elements apart) into `tile` (rows of D + 8), zeros past `rows`.
+// elements apart) into `tile` (laid out by `at_tile`), zeros past `rows`.
 template <typename T, int D>
 DEV void load_tile(u16* tile, const T* src, long long stride, int row0, int rows, int count = ROWS) {
     for (int i = thread_id(); i < count * D; i += threads()) {
         int r = i / D, c = i % D;
         int row = row0 + r;
-        tile[r * (D + 8) + c] = row < rows ? to_bf16(src[stride * row + c]) : (u16)0;
+        tile[at_tile<D>(r, c)] = row < rows ? to_bf16(src[stride * row + c]) : (u16)0;
     }
+    to_async_proxy();
 }
 
 // The next tile of an operand on its way to shared memory: read from global memory into registers (as bf16
@@ -180,8 +128,9 @@ DEV void stage_store(const Staged<T, D>& s, u16* tile) {
 #pragma unroll
     for (int k = 0; k < ROWS * D / 2 / 256; k++) {
         int i = thread_id() + 256 * k, r = i / (D / 2), c = 2 * (i % (D / 2));
-        *(u32*)(tile + r * (D + 8) + c) = s.r[k];
+        *(u32*)(tile + at_tile<D>(r, c)) = s.r[k];
     }
+    to_async_proxy();
 }
 
 // An operand (strides `s`) of head `bh` staged from its row `row0` on.
@@ -236,7 +185,7 @@ DEV void load_a(u32 (*a)[4], const u16* tile) {
     int l = lane_id(), m = l >> 3;
     int row = 16 * warp_id() + (l & 7) + (m & 1) * 8;
 #pragma unroll
-    for (int kk = 0; kk < D / 16; kk++) ldsm4(a[kk], tile + row * (D + 8) + 16 * kk + (m >> 1) * 8);
+    for (int kk = 0; kk < D / 16; kk++) ldsm4(a[kk], tile + at_tile<D>(row, 16 * kk + (m >> 1) * 8));
 }
 
 // This block's rows of two operands (one head of each, rows `stride_a` and `stride_b` apart) as the A
@@ -254,22 +203,95 @@ DEV void block_fragments(u32 (*a)[4], u32 (*b)[4], u16* ta, u16* tb, const T* sr
 // acc[j] (16 × 8 tiles, j < NT) = a · tileᵀ over the head dimension: `tile` holds 8 · NT rows of D.
 template <int D, int NT = 8>
 DEV void times_transposed(float (*acc)[4], const u32 (*a)[4], const u16* tile) {
-    int l = lane_id(), m = l >> 3;
     zero<NT>(acc);
+#if WGMMA
+    if constexpr (D == 64) {
+        wg_hold<NT>(acc);
+        wg_arrive();
+#pragma unroll
+        for (int kk = 0; kk < D / 16; kk++) wg_mma<NT, false>(acc, a[kk], tile, 16 * kk);
+        wg_commit();
+        wg_wait();
+        wg_hold<NT>(acc);
+        return;
+    }
+#endif
+    int l = lane_id(), m = l >> 3;
 #pragma unroll
     for (int kk = 0; kk < D / 16; kk++)
 #pragma unroll
         for (int j = 0; j < NT; j += 2) {
             u32 b[4];
-            ldsm4(b, tile + (8 * (j + (m >> 1)) + (l & 7)) * (D + 8) + 16 * kk + (m & 1) * 8);
+            ldsm4(b, tile + at_tile<D>(8 * (j + (m >> 1)) + (l & 7), 16 * kk + (m & 1) * 8));
             mma(acc[j], a[kk], b);
             mma(acc[j + 1], a[kk], b + 2);
         }
 }
 
+// acc[j] (16 × 8 tiles, j < NT) = this warp's rows of `rows` (the block's rows, `at_tile` layout) · tileᵀ:
+// `times_transposed` with the A operand read from shared memory by `wgmma` (head size 64 on sm_90a only).
+template <int D, int NT = 8>
+DEV void rows_times_transposed(float (*acc)[4], const u16* rows, const u16* tile) {
+#if WGMMA
+    zero<NT>(acc);
+    wg_hold<NT>(acc);
+    wg_arrive();
+#pragma unroll
+    for (int kk = 0; kk < D / 16; kk++) wg_mma_ss<NT, false>(acc, rows, tile, 16 * kk);
+    wg_commit();
+    wg_wait();
+    wg_hold<NT>(acc);
+#endif
+}
+
+// Two `rows_times_transposed` products in one `wgmma` group (one wait for both, the tensor cores never idle
+// between them); without `wgmma`, one after the other on `mma.sync` from the A fragments `a` and `b`.
+template <int D, int NT>
+DEV void both_times_transposed(float (*acc)[4], const u16* rows, const u32 (*a)[4], const u16* tile,
+                               float (*acc2)[4], const u16* rows2, const u32 (*b)[4], const u16* tile2) {
+#if WGMMA
+    if constexpr (D == 64) {
+        zero<NT>(acc);
+        zero<NT>(acc2);
+        wg_hold<NT>(acc);
+        wg_hold<NT>(acc2);
+        wg_arrive();
+#pragma unroll
+        for (int kk = 0; kk < D / 16; kk++) wg_mma_ss<NT, false>(acc, rows, tile, 16 * kk);
+#pragma unroll
+        for (int kk = 0; kk < D / 16; kk++) wg_mma_ss<NT, false>(acc2, rows2, tile2, 16 * kk);
+        wg_commit();
+        wg_wait();
+        wg_hold<NT>(acc);
+        wg_hold<NT>(acc2);
+        return;
+    }
+#endif
+    times_transposed<D, NT>(acc, a, tile);
+    times_transposed<D, NT>(acc2, b, tile2);
+}
+
 // acc (16 × D) += p · tile, p given as NT accumulator tiles (16 × 8 · NT), `tile` 8 · NT rows of D.
 template <int D, int NT = 8>
 DEV void times(float (*acc)[4], const float (*p)[4], const u16* tile) {
+#if WGMMA
+    if constexpr (D == 64) {
+        u32 a[NT / 2][4];
+#pragma unroll
+        for (int kk = 0; kk < NT / 2; kk++) {
+            a[kk][0] = pack(p[2 * kk][0], p[2 * kk][1]), a[kk][1] = pack(p[2 * kk][2], p[2 * kk][3]);
+            a[kk][2] = pack(p[2 * kk + 1][0], p[2 * kk + 1][1]), a[kk][3] = pack(p[2 * kk + 1][2], p[2 * kk + 1][3]);
+        }
+        wg_hold<D / 8>(acc);
+        wg_arrive();
+#pragma unroll
+        for (int kk = 0; kk < NT / 2; kk++) wg_mma<D / 8, true>(acc, a[kk], tile, 16 * kk);
+        wg_commit();
+        wg_wait();
+        wg_hold<D / 8>(acc);
+        return;
+    }
+#endif
     int l = lane_id(), m = l >> 3;
 #pragma unroll
     for (int kk = 0; kk < NT / 2; kk++) {
@@ -278,11 +300,45 @@ DEV void times(float (*acc)[4], const float (*p)[4], const u16* tile) {
 #pragma unroll
         for (int n = 0; n < D / 8; n += 2) {
             u32 b[4];
-            ldsm4t(b, tile + (16 * kk + (m & 1) * 8 + (l & 7)) * (D + 8) + 8 * (n + (m >> 1)));
+            ldsm4t(b, tile + at_tile<D>(16 * kk + (m & 1) * 8 + (l & 7), 8 * (n + (m >> 1))));
             mma(acc[n], a, b);
             mma(acc[n + 1], a, b + 2);
         }
     }
+}
+
+// Two `times` products (acc += p · tile, acc2 += p2 · tile2) in one `wgmma` group; without it, one after the
+// other.
+template <int D, int NT>
+DEV void both_times(float (*acc)[4], const float (*p)[4], const u16* tile, float (*acc2)[4], const float (*p2)[4],
+                    const u16* tile2) {
+#if WGMMA
+    if constexpr (D == 64) {
+        u32 a[NT / 2][4], b[NT / 2][4];
+#pragma unroll
+        for (int kk = 0; kk < NT / 2; kk++) {
+            a[kk][0] = pack(p[2 * kk][0], p[2 * kk][1]), a[kk][1] = pack(p[2 * kk][2], p[2 * kk][3]);
+            a[kk][2] = pack(p[2 * kk + 1][0], p[2 * kk + 1][1]), a[kk][3] = pack(p[2 * kk + 1][2], p[2 * kk + 1][3]);
+            b[kk][0] = pack(p2[2 * kk][0], p2[2 * kk][1]), b[kk][1] = pack(p2[2 * kk][2], p2[2 * kk][3]);
+            b[kk][2] = pack(p2[2 * kk + 1][0], p2[2 * kk + 1][1]);
+            b[kk][3] = pack(p2[2 * kk + 1][2], p2[2 * kk + 1][3]);
+        }
+        wg_hold<D / 8>(acc);
+        wg_hold<D / 8>(acc2);
+        wg_arrive();
+#pragma unroll
+        for (int kk = 0; kk < NT / 2; kk++) wg_mma<D / 8, true>(acc, a[kk], tile, 16 * kk);
+#pragma unroll
+        for (int kk = 0; kk < NT / 2; kk++) wg_mma<D / 8, true>(acc2, b[kk], tile2, 16 * kk);
+        wg_commit();
+        wg_wait();
+        wg_hold<D / 8>(acc);
+        wg_hold<D / 8>(acc2);
+        return;
+    }
+#endif
+    times<D, NT>(acc, p, tile);
+    times<D, NT>(acc2, p2, tile2);
 }
 
 // Rows (this warp's 16) of an accumulator (16 × D) into a contiguous f32 result, times `scale`.
