@@ -58,6 +58,12 @@ DEV int block_y() { return g_by; }
 DEV void sync_block() { g_block->arrive_and_wait(); }
 DEV void sync_warp() { g_warp[warp_id()]->arrive_and_wait(); }
 
+// Element (row, k) of the 16×16 A fragment a warp's lanes staged (`mma.sync`'s layout, also `wgmma`'s).
+static float a_element(const Stage* w, int row, int k) {
+    int lane = (row % 8) * 4 + (k % 8) / 2, reg = row / 8 + 2 * (k / 8);
+    return half_of(w[lane].a[reg], k % 2);
+}
+
 DEV void mma(float* c, const u32* a, const u32* b) {
     Stage& me = g_stage[warp_id()][lane_id()];
     memcpy(me.a, a, 16);
@@ -65,10 +71,7 @@ DEV void mma(float* c, const u32* a, const u32* b) {
     sync_warp();
     const Stage* w = g_stage[warp_id()];
     int g = lane_id() >> 2, t = lane_id() & 3;
-    auto A = [&](int row, int k) {
-        int lane = (row % 8) * 4 + (k % 8) / 2, reg = row / 8 + 2 * (k / 8);
-        return half_of(w[lane].a[reg], k % 2);
-    };
+    auto A = [&](int row, int k) { return a_element(w, row, k); };
     auto B = [&](int k, int n) { return half_of(w[n * 4 + (k % 8) / 2].b[k / 8], k % 2); };
     float out[4];
     for (int e = 0; e < 4; e++) {
@@ -142,10 +145,7 @@ DEV void wg_mma(float (*acc)[4], const u32* a, const u16* tile, int k0) {
     sync_warp();
     const Stage* w = g_stage[warp_id()];
     int g = lane_id() >> 2, t = lane_id() & 3;
-    auto A = [&](int row, int k) {
-        int lane = (row % 8) * 4 + (k % 8) / 2, reg = row / 8 + 2 * (k / 8);
-        return half_of(w[lane].a[reg], k % 2);
-    };
+    auto A = [&](int row, int k) { return a_element(w, row, k); };
     auto B = [&](int k, int n) { return bf(MN ? tile[at_tile<64>(k0 + k, n)] : tile[at_tile<64>(n, k0 + k)]); };
     float out[NT][4];
     for (int j = 0; j < NT; j++)
