@@ -128,6 +128,15 @@ DEV float quad_sum(float x) {
     return x + shfl_xor(x, 2);
 }
 
+// CUDA's vector types, for the 16-byte chunks the tiles are staged in.
+struct alignas(16) uint4 {
+    u32 x, y, z, w;
+};
+struct alignas(16) float4 {
+    float x, y, z, w;
+};
+static inline uint4 make_uint4(u32 x, u32 y, u32 z, u32 w) { return {x, y, z, w}; }
+
 // Tiles as the GPU aligns them for `wgmma` (the emulator reads them through `at_tile` either way).
 #define TILE_ALIGNED __attribute__((aligned(1024)))
 DEV void to_async_proxy() {}

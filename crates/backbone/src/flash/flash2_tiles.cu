@@ -76,9 +76,6 @@ DEV u32 pack(float lo, float hi) {
 }
 #endif
 
-// Two consecutive operand values as bf16 in one word.
-DEV u32 pair(const float* p) { return pack(p[0], p[1]); }
-DEV u32 pair(const u16* p) { return (u32)p[0] | ((u32)p[1] << 16); }
 
 DEV u16 to_bf16(float x) { return bf16_bits(x); }
 DEV u16 to_bf16(u16 x) { return x; }
@@ -95,40 +92,56 @@ DEV void load_tile(u16* tile, const T* src, long long stride, int row0, int rows
     to_async_proxy();
 }
 
-// The next tile of an operand on its way to shared memory: read from global memory into registers (as bf16
-// pairs) before the current tile's products, stored after them, so that the loads' latency overlaps the
-// products. Blocks of 8 warps only (8 pairs a thread); other block sizes load the tile when it is stored.
+// The next tile of an operand on its way to shared memory: read from global memory into registers (as bf16)
+// before the current tile's products, stored after them, so that the loads' latency overlaps the products.
+// Each thread moves whole 8-element chunks (one 16-byte load and store; two loads for f32), where pairs of
+// elements took four times the loads, stores and address arithmetic (integer work was the busiest pipe of
+// the `wgmma` forward kernel, Nsight Compute, docs/perf-notes.md). Only blocks of 8 warps whose head's rows
+// start on 16 bytes (`chunks`: burn's buffers as the backbone lays them out) stage; others load the tile
+// when it is stored.
 template <typename T, int D>
 struct Staged {
     const T* src;
     long long stride;
     int rows, next;
+    bool chunks;
     u32 r[ROWS * D / 2 / 256];
 };
 
+// Eight consecutive elements at `p` (16-byte aligned) as bf16 pairs.
+DEV void chunk8(u32* r, const u16* p) {
+    uint4 v = *(const uint4*)p;
+    r[0] = v.x, r[1] = v.y, r[2] = v.z, r[3] = v.w;
+}
+DEV void chunk8(u32* r, const float* p) {
+    float4 a = *(const float4*)p, b = *(const float4*)(p + 4);
+    r[0] = pack(a.x, a.y), r[1] = pack(a.z, a.w), r[2] = pack(b.x, b.y), r[3] = pack(b.z, b.w);
+}
 
 template <typename T, int D>
 DEV void stage_fetch(Staged<T, D>& s, int row0) {
     s.next = row0;
-    if (threads() != 256) return;
+    if (!s.chunks) return;
 #pragma unroll
-    for (int k = 0; k < ROWS * D / 2 / 256; k++) {
-        int i = thread_id() + 256 * k, r = i / (D / 2), c = 2 * (i % (D / 2)), row = row0 + r;
-        const T* p = s.src + s.stride * row + c;
-        s.r[k] = row < s.rows ? pair(p) : 0u;
+    for (int k = 0; k < ROWS * D / 2048; k++) {
+        int i = thread_id() + 256 * k, r = i / (D / 8), c = 8 * (i % (D / 8)), row = row0 + r;
+        if (row < s.rows)
+            chunk8(s.r + 4 * k, s.src + s.stride * row + c);
+        else
+            s.r[4 * k] = s.r[4 * k + 1] = s.r[4 * k + 2] = s.r[4 * k + 3] = 0u;
     }
 }
 
 template <typename T, int D>
 DEV void stage_store(const Staged<T, D>& s, u16* tile) {
-    if (threads() != 256) {
+    if (!s.chunks) {
         load_tile<T, D>(tile, s.src, s.stride, s.next, s.rows);
         return;
     }
 #pragma unroll
-    for (int k = 0; k < ROWS * D / 2 / 256; k++) {
-        int i = thread_id() + 256 * k, r = i / (D / 2), c = 2 * (i % (D / 2));
-        *(u32*)(tile + at_tile<D>(r, c)) = s.r[k];
+    for (int k = 0; k < ROWS * D / 2048; k++) {
+        int i = thread_id() + 256 * k, r = i / (D / 8), c = 8 * (i % (D / 8));
+        *(uint4*)(tile + at_tile<D>(r, c)) = make_uint4(s.r[4 * k], s.r[4 * k + 1], s.r[4 * k + 2], s.r[4 * k + 3]);
     }
     to_async_proxy();
 }
@@ -139,6 +152,7 @@ DEV Staged<T, D> staged_from(const void* src, const long long* s, int bh, int he
     Staged<T, D> st;
     st.src = (const T*)src + s[0] * (bh / heads) + s[1] * (bh % heads);
     st.stride = s[2], st.rows = rows, st.next = 0;
+    st.chunks = threads() == 256 && (unsigned long long)st.src % 16 == 0 && (st.stride * (long long)sizeof(T)) % 16 == 0;
     stage_fetch(st, row0);
     return st;
 }
