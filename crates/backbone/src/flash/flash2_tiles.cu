@@ -80,14 +80,42 @@ DEV u32 pack(float lo, float hi) {
 DEV u16 to_bf16(float x) { return bf16_bits(x); }
 DEV u16 to_bf16(u16 x) { return x; }
 
+// Eight consecutive elements at `p` (16-byte aligned) as bf16 pairs.
+DEV void chunk8(u32* r, const u16* p) {
+    uint4 v = *(const uint4*)p;
+    r[0] = v.x, r[1] = v.y, r[2] = v.z, r[3] = v.w;
+}
+DEV void chunk8(u32* r, const float* p) {
+    float4 a = *(const float4*)p, b = *(const float4*)(p + 4);
+    r[0] = pack(a.x, a.y), r[1] = pack(a.z, a.w), r[2] = pack(b.x, b.y), r[3] = pack(b.z, b.w);
+}
+
+// Whether rows `stride` elements apart from `src` on start on 16 bytes, so that they move in 8-element chunks.
+template <typename T>
+DEV bool in_chunks(const T* src, long long stride) {
+    return (unsigned long long)src % 16 == 0 && (stride * (long long)sizeof(T)) % 16 == 0;
+}
+
 // Rows [row0, row0 + count) of one head of an operand (`src` at the head's first element, rows `stride`
-// elements apart) into `tile` (laid out by `at_tile`), zeros past `rows`.
+// elements apart) into `tile` (laid out by `at_tile`), zeros past `rows`: in 8-element chunks where the rows
+// allow, else element by element.
 template <typename T, int D>
 DEV void load_tile(u16* tile, const T* src, long long stride, int row0, int rows, int count = ROWS) {
-    for (int i = thread_id(); i < count * D; i += threads()) {
-        int r = i / D, c = i % D;
-        int row = row0 + r;
-        tile[at_tile<D>(r, c)] = row < rows ? to_bf16(src[stride * row + c]) : (u16)0;
+    if (in_chunks(src, stride)) {
+#pragma unroll 1
+        for (int i = thread_id(); i < count * D / 8; i += threads()) {
+            int r = i / (D / 8), c = 8 * (i % (D / 8)), row = row0 + r;
+            u32 v[4] = {0u, 0u, 0u, 0u};
+            if (row < rows) chunk8(v, src + stride * row + c);
+            *(uint4*)(tile + at_tile<D>(r, c)) = make_uint4(v[0], v[1], v[2], v[3]);
+        }
+    } else {
+#pragma unroll 1
+        for (int i = thread_id(); i < count * D; i += threads()) {
+            int r = i / D, c = i % D;
+            int row = row0 + r;
+            tile[at_tile<D>(r, c)] = row < rows ? to_bf16(src[stride * row + c]) : (u16)0;
+        }
     }
     to_async_proxy();
 }
@@ -107,16 +135,6 @@ struct Staged {
     bool chunks;
     u32 r[ROWS * D / 2 / 256];
 };
-
-// Eight consecutive elements at `p` (16-byte aligned) as bf16 pairs.
-DEV void chunk8(u32* r, const u16* p) {
-    uint4 v = *(const uint4*)p;
-    r[0] = v.x, r[1] = v.y, r[2] = v.z, r[3] = v.w;
-}
-DEV void chunk8(u32* r, const float* p) {
-    float4 a = *(const float4*)p, b = *(const float4*)(p + 4);
-    r[0] = pack(a.x, a.y), r[1] = pack(a.z, a.w), r[2] = pack(b.x, b.y), r[3] = pack(b.z, b.w);
-}
 
 template <typename T, int D>
 DEV void stage_fetch(Staged<T, D>& s, int row0) {
@@ -152,7 +170,7 @@ DEV Staged<T, D> staged_from(const void* src, const long long* s, int bh, int he
     Staged<T, D> st;
     st.src = (const T*)src + s[0] * (bh / heads) + s[1] * (bh % heads);
     st.stride = s[2], st.rows = rows, st.next = 0;
-    st.chunks = threads() == 256 && (unsigned long long)st.src % 16 == 0 && (st.stride * (long long)sizeof(T)) % 16 == 0;
+    st.chunks = threads() == 256 && in_chunks(st.src, st.stride);
     stage_fetch(st, row0);
     return st;
 }
