@@ -9,8 +9,8 @@
 // and the block's own rows read from swizzled tiles in shared memory, P and dS from registers.
 //
 // NVRTC compiles `flash2_warp.cu` (primitives) and `flash2_tiles.cu` (parameters, tiles, fragment products)
-// followed by this file (`flash2.rs` joins them). The same source compiles on the host (`UMGEN_EMULATED`), where
-// `flash2_emulator.cpp` runs every thread of a block and defines the warp-level primitives, so that
+// followed by this file (`flash2.rs` joins them). The same source compiles on the host (`UMGEN_EMULATED`),
+// where `flash2_emulator.cpp` runs every thread of a block and defines the warp-level primitives, so that
 // fragment layouts are checked without a GPU.
 
 // Columns (queries, or keys for the query gradients) of a tile that the backward kernels take at a time:
@@ -141,7 +141,8 @@ DEV float query_value(const float* src, const long long* s, int bh, int heads, i
 // Reads `count` f32 per-query values (log-sum-exp or delta) into `dst`, times `factor`; zeros past `lq`.
 DEV void load_row_values(float* dst, const float* src, const long long* s, int bh, int heads, int q0, int lq,
                          float factor, int count = ROWS) {
-    for (int i = thread_id(); i < count; i += threads()) dst[i] = query_value(src, s, bh, heads, q0 + i, lq, factor);
+    for (int i = thread_id(); i < count; i += threads())
+        dst[i] = query_value(src, s, bh, heads, q0 + i, lq, factor);
 }
 
 // p = exp2(s · sl − lse2) where the key is visible, else 0; then ds = p ∘ (dp − delta). Rows and columns of
@@ -176,7 +177,7 @@ DEV void probabilities(const Params& P, float (*s)[4], float (*dp)[4], const flo
 // holds it (`c_off` is the columns' offset in the tile).
 template <bool keys_are_rows, int NT, bool MASK>
 DEV void lane_probabilities(const Params& P, float (*s)[4], float (*dp)[4], const float* lse2, const float* delta,
-                       int r0, int c0, int c_off, float sl) {
+                            int r0, int c0, int c_off, float sl) {
     int l = lane_id(), g = l >> 2, t = l & 3;
 #pragma unroll
     for (int j = 0; j < NT; j++)
