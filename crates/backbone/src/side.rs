@@ -301,12 +301,12 @@ pub(crate) struct Kernels {
 }
 
 impl Kernels {
-    /// Compiles `source` with `options` for `like`'s device (which must have compute capability
-    /// `min_major` or newer) and loads the kernels `names`.
+    /// Compiles `source` with the options `options` gives for the device's major compute capability
+    /// (`like`'s device, which must have `min_major` or newer) and loads the kernels `names`.
     pub(crate) fn compile(
         like: &Primitive,
         source: String,
-        options: CompileOptions,
+        options: impl FnOnce(i32) -> CompileOptions,
         names: &[String],
         min_major: i32,
     ) -> Result<Self, String> {
@@ -320,7 +320,7 @@ impl Kernels {
                 "compute capability {major}.{minor} (the kernels need {min_major}.0)"
             ));
         }
-        let ptx = compile_ptx_with_opts(source, options).map_err(|e| format!("NVRTC: {e:?}"))?;
+        let ptx = compile_ptx_with_opts(source, options(major)).map_err(|e| format!("NVRTC: {e:?}"))?;
         let module = side
             .context()
             .load_module(ptx)

@@ -4,9 +4,9 @@
 // probabilities and their gradients stay in registers (the accumulator layout of one product is the operand
 // layout of the next). Each block of 4 or 8 warps owns 16 rows per warp (queries, or keys for the key/value
 // gradients) and walks the other side in tiles of 64, the next tile read into registers while the
-// current one's products run (8 warps). Head size `D`: 64 or 32. Where NVRTC targets sm_90a (cubecl's
-// stream on an H100), the head size 64 products run on `wgmma` (`flash2_warp.cu`): 64 rows a warpgroup, B
-// and the block's own rows read from swizzled tiles in shared memory, P and dS from registers.
+// current one's products run (8 warps). Head size `D`: 64 or 32. Where NVRTC targets sm_90a (on an H100),
+// the head size 64 products run on `wgmma` (`flash2_warp.cu`): 64 rows a warpgroup, B and the block's own
+// rows read from swizzled tiles in shared memory, P and dS from registers.
 //
 // NVRTC compiles `flash2_warp.cu` (primitives) and `flash2_tiles.cu` (parameters, tiles, fragment products)
 // followed by this file (`flash2.rs` joins them). The same source compiles on the host (`UMGEN_EMULATED`),

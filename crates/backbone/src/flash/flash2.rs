@@ -1,17 +1,15 @@
 //! Launches the `flash2` kernels (`flash2_warp.cu`, `flash2_tiles.cu` and `flash2.cu`, CUDA C compiled with
-//! NVRTC) on
-//! cubecl's stream (or, with `train.kernel_stream = "side"`, on a side stream ordered with cubecl's), on
-//! burn's buffers as they lie in memory.
+//! NVRTC) on cubecl's stream (or, with `train.kernel_stream = "side"`, on a side stream ordered with
+//! cubecl's), on burn's buffers as they lie in memory.
 //!
 //! They are FlashAttention-2 as its authors wrote it: `mma.sync` products with scores, probabilities and
 //! their gradients in registers, which cubecl's `cmma` abstraction cannot express (its fragments are
 //! opaque, so the softmax of the `fused` kernels goes through shared memory). Head sizes 32 and 64, f32 or
 //! bf16 operands (rounded to bf16 on the way into shared memory), compute capability 8.0 or newer; the
-//! caller runs the `fused` kernels for anything else. On cubecl's stream (the default
-//! `train.kernel_stream`), cubecl compiles for `sm_90a` on an H100, and there the head size 64 products
-//! run on Hopper's `wgmma` (12–17 % faster passes, docs/perf-notes.md); the side stream's build targets
-//! compute capability 8.0 and keeps `mma.sync`. `flash2_emulator.cpp` checks the fragment layouts on
-//! the host.
+//! caller runs the `fused` kernels for anything else. On a compute capability 9.0 device both streams
+//! compile them for `sm_90a` (cubecl always does; `build` asks for `compute_90a`), and there the head size
+//! 64 products run on Hopper's `wgmma` (docs/perf-notes.md). `flash2_emulator.cpp` checks the fragment
+//! layouts on the host.
 #![allow(unsafe_code)]
 
 use crate::kernel_stream::{KernelStream, selected};
@@ -106,11 +104,12 @@ thread_local! {
     static KERNELS: KernelCache = const { RefCell::new(Vec::new()) };
 }
 
-/// Compiles the kernels for `like`'s device (compute capability 8.0: bf16 `mma.sync`) and logs their
-/// resources.
+/// Compiles the kernels for `like`'s device and logs their resources: for compute capability 9.0 as
+/// `compute_90a` (Hopper's `wgmma` for head size 64, as cubecl's stream compiles them), else 8.0 (bf16
+/// `mma.sync`).
 fn build(like: &Primitive) -> Result<Kernels, String> {
-    let options = CompileOptions {
-        arch: Some("compute_80"),
+    let options = |major: i32| CompileOptions {
+        arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
         use_fast_math: Some(true),
         ..Default::default()
     };

@@ -4,11 +4,11 @@
 // warp-level primitives; on the host (`UMGEN_EMULATED`), `flash2_emulator.cpp` defines them instead.
 
 // Hopper's warpgroup products (`wgmma.mma_async`) take the head size 64 products where the compiler targets
-// `sm_90a` (cubecl compiles for it on a compute capability 9.0 device; the side stream's build targets 8.0):
-// one instruction multiplies 64 rows (the four warps of a warpgroup, 16 each, with
-// the A fragments of `mma.sync`) by a B operand read from shared memory by the tensor cores, where
-// `mma.sync` needs one `ldmatrix` a warp for every two 16×8 products. Elsewhere, and for head size 32, the
-// kernels run on `mma.sync`. The emulator takes this path with `UMGEN_WGMMA_EMULATED`.
+// `sm_90a` (both streams' builds do on a compute capability 9.0 device, `flash2.rs`): one instruction
+// multiplies 64 rows (the four warps of a warpgroup, 16 each, with the A fragments of `mma.sync`) by a B
+// operand read from shared memory by the tensor cores, where `mma.sync` needs one `ldmatrix` a warp for
+// every two 16×8 products. Elsewhere, and for head size 32, the kernels run on `mma.sync`. The emulator
+// takes this path with `UMGEN_WGMMA_EMULATED`.
 #if defined(__CUDA_ARCH_FEAT_SM90_ALL) || defined(UMGEN_WGMMA_EMULATED)
 #define WGMMA 1
 #else

@@ -201,7 +201,7 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
             ]
         })
         .collect();
-    Kernels::compile(like, source()?, CompileOptions::default(), &names, 0)
+    Kernels::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
 }
 
 /// The kernels' source as NVRTC compiles it.

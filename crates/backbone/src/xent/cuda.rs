@@ -146,7 +146,7 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
         "umgen_xent_forward".to_string(),
         "umgen_xent_backward".to_string(),
     ];
-    Kernels::compile(like, source()?, CompileOptions::default(), &names, 0)
+    Kernels::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
 }
 
 /// The kernels' source as NVRTC compiles it (two kernels: every entry compiles all of it).
