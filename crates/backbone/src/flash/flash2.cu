@@ -224,13 +224,7 @@ DEV void backward_kv(const Params& P) {
     const T* k_src = at<T>(P.k, head_base(P.ks, bh, P.heads));
     const T* v_src = at<T>(P.v, head_base(P.vs, bh, P.heads));
     u32 ka[WG ? 1 : D / 16][4], va[WG ? 1 : D / 16][4];
-    if constexpr (WG) {
-        load_tile<T, D>(kr, k_src, P.ks[2], k0, P.lk, block_rows());
-        load_tile<T, D>(vr, v_src, P.vs[2], k0, P.lk, block_rows());
-    } else {
-        // K and V enter registers through the query-side tiles.
-        block_fragments<T, D>(ka, va, qt, ot, k_src, P.ks[2], v_src, P.vs[2], k0, P.lk);
-    }
+    own_rows<WG, T, D>(kr, vr, ka, va, qt, ot, k_src, P.ks[2], v_src, P.vs[2], k0, P.lk);
     float dk[D / 8][4], dv[D / 8][4];
     zero<D / 8>(dk);
     zero<D / 8>(dv);
@@ -308,13 +302,7 @@ DEV void backward_q(const Params& P) {
     const T* q_src = at<T>(P.q, head_base(P.qs, bh, P.heads));
     const T* o_src = at<T>(P.dout, head_base(P.os, bh, P.heads));
     u32 qa[WG ? 1 : D / 16][4], oa[WG ? 1 : D / 16][4];
-    if constexpr (WG) {
-        load_tile<T, D>(qr, q_src, P.qs[2], q0, P.lq, block_rows());
-        load_tile<T, D>(orows, o_src, P.os[2], q0, P.lq, block_rows());
-    } else {
-        // Q and dO enter registers through the key-side tiles.
-        block_fragments<T, D>(qa, oa, kt, vt, q_src, P.qs[2], o_src, P.os[2], q0, P.lq);
-    }
+    own_rows<WG, T, D>(qr, orows, qa, oa, kt, vt, q_src, P.qs[2], o_src, P.os[2], q0, P.lq);
     float dq[D / 8][4];
     zero<D / 8>(dq);
     int blocks = key_blocks(P, q0);

@@ -232,6 +232,45 @@ DEV void block_fragments(u32 (*a)[4], u32 (*b)[4], u16* ta, u16* tb, const T* sr
     load_a<D>(b, tb);
 }
 
+// Step kk (16 columns) of p (accumulator tiles, 16 × 8 · NT) as an A fragment of bf16 pairs: the accumulator
+// layout of one product is, pairwise, the operand layout of the next.
+DEV void pack_step(u32* a, const float (*p)[4], int kk) {
+    a[0] = pack(p[2 * kk][0], p[2 * kk][1]), a[1] = pack(p[2 * kk][2], p[2 * kk][3]);
+    a[2] = pack(p[2 * kk + 1][0], p[2 * kk + 1][1]), a[3] = pack(p[2 * kk + 1][2], p[2 * kk + 1][3]);
+}
+
+#if WGMMA
+// The D / 16 steps of acc += rows · tileᵀ (`wg_mma_ss`: A from the block's rows in shared memory), issued
+// into the open group.
+template <int D, int NT>
+DEV void ss_steps(float (*acc)[4], const u16* rows, const u16* tile) {
+#pragma unroll
+    for (int kk = 0; kk < D / 16; kk++) wg_mma_ss<NT, false>(acc, rows, tile, 16 * kk);
+}
+
+// The NT / 2 steps of acc (16 × D) += p · tile (`wg_mma`, N-major B: the tile's rows are k), p packed by
+// `pack_step` into `a`, issued into the open group.
+template <int D, int NT>
+DEV void rs_steps(float (*acc)[4], const u32 (*a)[4], const u16* tile) {
+#pragma unroll
+    for (int kk = 0; kk < NT / 2; kk++) wg_mma<D / 8, true>(acc, a[kk], tile, 16 * kk);
+}
+#endif
+
+// The block's rows of the two operands a backward kernel keeps for its whole loop: on `wgmma` (WG) into
+// their own tiles `ra` and `rb`, which the products read as A; otherwise into the A fragments `a` and `b`,
+// through the streamed tiles `ta` and `tb` (`block_fragments`).
+template <bool WG, typename T, int D>
+DEV void own_rows(u16* ra, u16* rb, u32 (*a)[4], u32 (*b)[4], u16* ta, u16* tb, const T* src_a, long long stride_a,
+                  const T* src_b, long long stride_b, int row0, int rows) {
+    if constexpr (WG) {
+        load_tile<T, D>(ra, src_a, stride_a, row0, rows, block_rows());
+        load_tile<T, D>(rb, src_b, stride_b, row0, rows, block_rows());
+    } else {
+        block_fragments<T, D>(a, b, ta, tb, src_a, stride_a, src_b, stride_b, row0, rows);
+    }
+}
+
 // acc[j] (16 × 8 tiles, j < NT) = a · tileᵀ over the head dimension: `tile` holds 8 · NT rows of D.
 template <int D, int NT = 8>
 DEV void times_transposed(float (*acc)[4], const u32 (*a)[4], const u16* tile) {
@@ -268,8 +307,7 @@ DEV void rows_times_transposed(float (*acc)[4], const u16* rows, const u16* tile
     zero<NT>(acc);
     wg_hold<NT>(acc);
     wg_arrive();
-#pragma unroll
-    for (int kk = 0; kk < D / 16; kk++) wg_mma_ss<NT, false>(acc, rows, tile, 16 * kk);
+    ss_steps<D, NT>(acc, rows, tile);
     wg_commit();
     wg_wait();
     wg_hold<NT>(acc);
@@ -288,10 +326,8 @@ DEV void both_times_transposed(float (*acc)[4], const u16* rows, const u32 (*a)[
         wg_hold<NT>(acc);
         wg_hold<NT>(acc2);
         wg_arrive();
-#pragma unroll
-        for (int kk = 0; kk < D / 16; kk++) wg_mma_ss<NT, false>(acc, rows, tile, 16 * kk);
-#pragma unroll
-        for (int kk = 0; kk < D / 16; kk++) wg_mma_ss<NT, false>(acc2, rows2, tile2, 16 * kk);
+        ss_steps<D, NT>(acc, rows, tile);
+        ss_steps<D, NT>(acc2, rows2, tile2);
         wg_commit();
         wg_wait();
         wg_hold<NT>(acc);
@@ -310,14 +346,10 @@ DEV void times(float (*acc)[4], const float (*p)[4], const u16* tile) {
     if constexpr (D == 64) {
         u32 a[NT / 2][4];
 #pragma unroll
-        for (int kk = 0; kk < NT / 2; kk++) {
-            a[kk][0] = pack(p[2 * kk][0], p[2 * kk][1]), a[kk][1] = pack(p[2 * kk][2], p[2 * kk][3]);
-            a[kk][2] = pack(p[2 * kk + 1][0], p[2 * kk + 1][1]), a[kk][3] = pack(p[2 * kk + 1][2], p[2 * kk + 1][3]);
-        }
+        for (int kk = 0; kk < NT / 2; kk++) pack_step(a[kk], p, kk);
         wg_hold<D / 8>(acc);
         wg_arrive();
-#pragma unroll
-        for (int kk = 0; kk < NT / 2; kk++) wg_mma<D / 8, true>(acc, a[kk], tile, 16 * kk);
+        rs_steps<D, NT>(acc, a, tile);
         wg_commit();
         wg_wait();
         wg_hold<D / 8>(acc);
@@ -327,8 +359,8 @@ DEV void times(float (*acc)[4], const float (*p)[4], const u16* tile) {
     int l = lane_id(), m = l >> 3;
 #pragma unroll
     for (int kk = 0; kk < NT / 2; kk++) {
-        u32 a[4] = {pack(p[2 * kk][0], p[2 * kk][1]), pack(p[2 * kk][2], p[2 * kk][3]),
-                    pack(p[2 * kk + 1][0], p[2 * kk + 1][1]), pack(p[2 * kk + 1][2], p[2 * kk + 1][3])};
+        u32 a[4];
+        pack_step(a, p, kk);
 #pragma unroll
         for (int n = 0; n < D / 8; n += 2) {
             u32 b[4];
@@ -349,19 +381,14 @@ DEV void both_times(float (*acc)[4], const float (*p)[4], const u16* tile, float
         u32 a[NT / 2][4], b[NT / 2][4];
 #pragma unroll
         for (int kk = 0; kk < NT / 2; kk++) {
-            a[kk][0] = pack(p[2 * kk][0], p[2 * kk][1]), a[kk][1] = pack(p[2 * kk][2], p[2 * kk][3]);
-            a[kk][2] = pack(p[2 * kk + 1][0], p[2 * kk + 1][1]), a[kk][3] = pack(p[2 * kk + 1][2], p[2 * kk + 1][3]);
-            b[kk][0] = pack(p2[2 * kk][0], p2[2 * kk][1]), b[kk][1] = pack(p2[2 * kk][2], p2[2 * kk][3]);
-            b[kk][2] = pack(p2[2 * kk + 1][0], p2[2 * kk + 1][1]);
-            b[kk][3] = pack(p2[2 * kk + 1][2], p2[2 * kk + 1][3]);
+            pack_step(a[kk], p, kk);
+            pack_step(b[kk], p2, kk);
         }
         wg_hold<D / 8>(acc);
         wg_hold<D / 8>(acc2);
         wg_arrive();
-#pragma unroll
-        for (int kk = 0; kk < NT / 2; kk++) wg_mma<D / 8, true>(acc, a[kk], tile, 16 * kk);
-#pragma unroll
-        for (int kk = 0; kk < NT / 2; kk++) wg_mma<D / 8, true>(acc2, b[kk], tile2, 16 * kk);
+        rs_steps<D, NT>(acc, a, tile);
+        rs_steps<D, NT>(acc2, b, tile2);
         wg_commit();
         wg_wait();
         wg_hold<D / 8>(acc);
