@@ -132,17 +132,26 @@ DEV void forward(const Params& P) {
     store_rows<D>(P.out + bh_rows * D, o, q0, P.lq, 1.f);
 }
 
-// The f32 per-query value (log-sum-exp or delta, strides `s`) of query `q` of head `bh`, times `factor`; zero
-// past `lq`.
-DEV float query_value(const float* src, const long long* s, int bh, int heads, int q, int lq, float factor) {
-    return q < lq ? src[head_base(s, bh, heads) + s[2] * q] * factor : 0.f;
+// A head's f32 per-query values (log-sum-exp or delta): the head's first, and the queries' stride.
+struct QueryValues {
+    const float* head;
+    long long stride;
+};
+
+// The per-query values `src` (strides `s`) of head `bh`; taken once a kernel, as the head's offset costs
+// two integer divisions.
+DEV QueryValues query_values(const float* src, const long long* s, int bh, int heads) {
+    return {src + head_base(s, bh, heads), s[2]};
 }
 
-// Reads `count` f32 per-query values (log-sum-exp or delta) into `dst`, times `factor`; zeros past `lq`.
-DEV void load_row_values(float* dst, const float* src, const long long* s, int bh, int heads, int q0, int lq,
-                         float factor, int count = ROWS) {
-    for (int i = thread_id(); i < count; i += threads())
-        dst[i] = query_value(src, s, bh, heads, q0 + i, lq, factor);
+// Query `q`'s value times `factor`; zero past `lq`.
+DEV float query_value(QueryValues v, int q, int lq, float factor) {
+    return q < lq ? v.head[v.stride * q] * factor : 0.f;
+}
+
+// Reads `count` per-query values from query `q0` on into `dst`, times `factor`; zeros past `lq`.
+DEV void load_row_values(float* dst, QueryValues v, int q0, int lq, float factor, int count = ROWS) {
+    for (int i = thread_id(); i < count; i += threads()) dst[i] = query_value(v, q0 + i, lq, factor);
 }
 
 // p = exp2(s · sl − lse2) where the key is visible, else 0; then ds = p ∘ (dp − delta). Rows and columns of
@@ -221,6 +230,8 @@ DEV void backward_kv(const Params& P) {
     int bh = block_y(), k0 = block_rows() * block_x();
     if (bh >= P.count) return;
     const float sl = P.scale * LOG2E;
+    const QueryValues lses = query_values(P.lse, P.ls, bh, P.heads);
+    const QueryValues deltas = query_values(P.delta, P.es, bh, P.heads);
     const T* k_src = at<T>(P.k, head_base(P.ks, bh, P.heads));
     const T* v_src = at<T>(P.v, head_base(P.vs, bh, P.heads));
     u32 ka[WG ? 1 : D / 16][4], va[WG ? 1 : D / 16][4];
@@ -242,12 +253,12 @@ DEV void backward_kv(const Params& P) {
 #pragma unroll
             for (int h = 0; h < 2; h++) {
                 int q = q0 + lane_id() + 32 * h;
-                lse2[h] = query_value(P.lse, P.ls, bh, P.heads, q, P.lq, LOG2E);
-                delta[h] = query_value(P.delta, P.es, bh, P.heads, q, P.lq, 1.f);
+                lse2[h] = query_value(lses, q, P.lq, LOG2E);
+                delta[h] = query_value(deltas, q, P.lq, 1.f);
             }
         } else {
-            load_row_values(lse_s, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E);
-            load_row_values(delta_s, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f);
+            load_row_values(lse_s, lses, q0, P.lq, LOG2E);
+            load_row_values(delta_s, deltas, q0, P.lq, 1.f);
         }
         fetch_next(qn, on, q0, qb + 1 < blocks);
 #pragma unroll
@@ -286,18 +297,20 @@ DEV void backward_q(const Params& P) {
     int bh = block_y(), q0 = block_rows() * block_x();
     if (bh >= P.count) return;
     const float sl = P.scale * LOG2E;
+    const QueryValues lses = query_values(P.lse, P.ls, bh, P.heads);
+    const QueryValues deltas = query_values(P.delta, P.es, bh, P.heads);
     // The rows' log-sum-exps and deltas: with `wgmma` this thread's (rows g and g + 8 of its warp).
     float lse2[2], delta[2];
     if constexpr (WG) {
 #pragma unroll
         for (int h = 0; h < 2; h++) {
             int q = q0 + 16 * warp_id() + (lane_id() >> 2) + 8 * h;
-            lse2[h] = query_value(P.lse, P.ls, bh, P.heads, q, P.lq, LOG2E);
-            delta[h] = query_value(P.delta, P.es, bh, P.heads, q, P.lq, 1.f);
+            lse2[h] = query_value(lses, q, P.lq, LOG2E);
+            delta[h] = query_value(deltas, q, P.lq, 1.f);
         }
     } else {
-        load_row_values(lse_s, P.lse, P.ls, bh, P.heads, q0, P.lq, LOG2E, block_rows());
-        load_row_values(delta_s, P.delta, P.es, bh, P.heads, q0, P.lq, 1.f, block_rows());
+        load_row_values(lse_s, lses, q0, P.lq, LOG2E, block_rows());
+        load_row_values(delta_s, deltas, q0, P.lq, 1.f, block_rows());
     }
     const T* q_src = at<T>(P.q, head_base(P.qs, bh, P.heads));
     const T* o_src = at<T>(P.dout, head_base(P.os, bh, P.heads));
