@@ -1,11 +1,13 @@
-//! Where umgen's CUDA C kernels (attention, layer norm, attention over time, cross-entropy) run
-//! (`train.kernel_stream`): on cubecl's own stream, or on side streams of umgen's.
+//! Where umgen's CUDA C kernels (attention, layer norm, attention over time, cross-entropy) and cuBLAS's
+//! products run (`train.kernel_stream`): on cubecl's own stream, or on side streams of umgen's.
 //!
 //! On cubecl's stream each kernel is launched as a cubecl kernel whose source is umgen's CUDA C (cubecl
-//! compiles it with NVRTC, caches it and launches it in order with its own kernels), so nothing has to
-//! order two streams: no flag kernels, no host round trip per launch. On a side stream each launch is
-//! ordered with cubecl's through device flags (`side.rs`), as cuBLAS's products still are (cuBLAS takes a
-//! stream, and burn 0.21 hands out no handle of cubecl's).
+//! compiles it with NVRTC, caches it and launches it in order with its own kernels), and each cuBLAS
+//! product is queued on the stream cubecl resolved for its operands (`last_stream` of the vendored
+//! cubecl-cuda, `vendor/README.md`), so nothing has to order two streams: no flag kernels, no host round
+//! trip per launch. On a side stream each launch is ordered with cubecl's through device flags
+//! (`side.rs`). cuBLAS's products also take the side stream when the custom operations launch from the
+//! caller's thread (`train.launch_thread = "caller"`), where no cubecl stream is resolved.
 //!
 //! Independently, the custom operations' launches (with the device pointers they fetch) run on cubecl's
 //! device thread by default (`train.launch_thread = "device"`), each operation as one call the host waits
@@ -15,7 +17,7 @@
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicBool, Ordering};
 
-/// Where the CUDA C kernels run (`train.kernel_stream`).
+/// Where the CUDA C kernels and cuBLAS's products run (`train.kernel_stream`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum KernelStream {

@@ -2,9 +2,14 @@
 //! burn's memory, f32 or bf16 operands (f32 through TF32 tensor cores, as the cubek kernel does), an f32
 //! result, f32 accumulation.
 //!
-//! The products run on a [`Side`] stream, ordered with cubecl's stream on the device (`side.rs`).
+//! With `train.kernel_stream = "cubecl"` (the default) each product is queued on cubecl's own stream for
+//! the caller (`cubecl_cuda::last_stream`, right after the operands' pointers were fetched on cubecl's
+//! device thread), in order with everything cubecl queues before and after it. With `"side"` the products
+//! run on a [`Side`] stream, ordered with cubecl's stream on the device (`side.rs`): four more launches a
+//! product (a signal, a wait and their answers), which the default saves.
 #![allow(unsafe_code)]
 
+use crate::kernel_stream::{KernelStream, LaunchThread};
 use crate::side::Primitive;
 use crate::side::{Cache, Side, pointer, with_cached};
 use burn::tensor::DType;
@@ -17,7 +22,9 @@ use std::ffi::c_void;
 /// from a thread-local destructor at process exit, while CUDA may be tearing down, is a risk this does not
 /// take; the driver reclaims it with the process.
 struct Blas {
-    side: Side,
+    /// The side stream, made on first use (`train.kernel_stream = "side"`, or launches from the caller's
+    /// thread).
+    side: Option<Side>,
     handle: sys::cublasHandle_t,
 }
 
@@ -29,26 +36,45 @@ thread_local! {
 }
 
 impl Blas {
-    fn new(like: &Primitive) -> Result<Self, String> {
+    fn new() -> Result<Self, String> {
         // SAFETY: only asks whether the library could be loaded.
         if !unsafe { sys::is_culib_present() } {
             return Err("libcublas (CUDA 13: libcublas.so.13) is not on the library path".into());
         }
-        let side = Side::new(like)?;
         let handle = blas::create_handle().map_err(|e| format!("cublasCreate: {e:?}"))?;
-        // SAFETY: a live handle and a live stream of the same context.
-        unsafe { blas::set_stream(handle, side.stream().cu_stream() as sys::cudaStream_t) }
-            .map_err(|e| format!("cublasSetStream: {e:?}"))?;
-        Ok(Self { side, handle })
+        Ok(Self { side: None, handle })
     }
 
-    /// Runs `gemm` on this handle's stream between cubecl's queued work and what cubecl queues next.
+    /// Runs `gemm` between cubecl's queued work and what cubecl queues next: on cubecl's stream for the
+    /// caller where this runs on cubecl's device thread right after the operands' pointers were fetched
+    /// (the stream cubecl resolved for them), else on the side stream ordered with it.
     fn ordered(
         &mut self,
+        like: &Primitive,
         gemm: impl FnOnce(sys::cublasHandle_t) -> Result<(), String>,
     ) -> Result<(), String> {
         let handle = self.handle;
-        self.side.ordered("cuBLAS", |_| gemm(handle))
+        let on_cubecl = crate::kernel_stream::selected() == KernelStream::Cubecl
+            && crate::kernel_stream::selected_thread() == LaunchThread::Device;
+        if on_cubecl {
+            let stream = burn::cubecl::cuda::last_stream();
+            if stream.is_null() {
+                return Err("no cubecl stream resolved on this thread".into());
+            }
+            // SAFETY: a live handle, and the stream cubecl resolved for the caller's last command on this
+            // thread (cubecl never destroys its streams).
+            unsafe { blas::set_stream(handle, stream as sys::cudaStream_t) }
+                .map_err(|e| format!("cublasSetStream: {e:?}"))?;
+            return gemm(handle);
+        }
+        if self.side.is_none() {
+            self.side = Some(Side::new(like)?);
+        }
+        let side = self.side.as_mut().ok_or("no side stream")?;
+        // SAFETY: a live handle and a live stream of the same context.
+        unsafe { blas::set_stream(handle, side.stream().cu_stream() as sys::cudaStream_t) }
+            .map_err(|e| format!("cublasSetStream: {e:?}"))?;
+        side.ordered("cuBLAS", |_| gemm(handle))
     }
 }
 
@@ -175,13 +201,7 @@ pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Resul
         }
         .map_err(|e| format!("cublasGemmEx: {e:?}"))
     };
-    with_cached(
-        &HANDLES,
-        lhs,
-        "cuBLAS",
-        || Blas::new(lhs),
-        |blas| blas.ordered(gemm),
-    )
+    with_cached(&HANDLES, lhs, "cuBLAS", Blas::new, |blas| blas.ordered(lhs, gemm))
 }
 
 #[cfg(test)]
