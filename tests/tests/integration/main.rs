@@ -3,3 +3,4 @@
 
 mod custom_modality;
 mod tokenize;
+mod vendor_ring;

@@ -113,6 +113,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         let mut times = Vec::new();
         let mut by_turn = vec![Vec::new(); turns];
         let mut phases: [Vec<f64>; 4] = Default::default();
+        // The timed steps' host time per phase (no sync: how long the host took to queue it), then its wait
+        // for the device at the step's end.
+        let mut host: [Vec<f64>; 5] = Default::default();
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
@@ -143,6 +146,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                         phases[k].push(s);
                     }
                     mark = Instant::now();
+                } else if i >= a.warmup {
+                    host[k].push(mark.elapsed().as_secs_f64());
+                    mark = Instant::now();
                 }
                 Ok(())
             };
@@ -161,7 +167,11 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             (model, _) = optim.step_clipped(tc.lr, model, grads, tc.grad_clip);
             lap(3)?;
             // Wait for the step's work on the device before reading the clock.
+            let queued = t0.elapsed().as_secs_f64();
             sync()?;
+            if i >= a.warmup && !synced {
+                host[4].push(t0.elapsed().as_secs_f64() - queued);
+            }
             peak = peak.max(crate::device::memory(device).reserved);
             let took = t0.elapsed().as_secs_f64();
             if env.rank == 0 {
@@ -179,11 +189,12 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         group.barrier()?;
         group.finish();
         let phases = phases.map(median);
+        let host = host.map(median);
         (
             median(times),
             (peak, live),
             group.backend(),
-            phases,
+            (phases, host),
             first,
             by_turn,
         )
@@ -298,6 +309,19 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     )?;
     if let Some(alt) = &alternation {
         alt.report(&mut out, &by_turn)?;
+    }
+    let (phases, host) = phases;
+    if let [Some(f), Some(b), Some(r), Some(o), Some(w)] = host {
+        writeln!(
+            out,
+            "host          forward {:.1} ms, backward {:.1} ms, all-reduce {:.1} ms, optimizer {:.1} ms, \
+             then waits {:.1} ms for the device (time to queue each phase; medians)",
+            1e3 * f,
+            1e3 * b,
+            1e3 * r,
+            1e3 * o,
+            1e3 * w
+        )?;
     }
     if let [Some(f), Some(b), Some(r), Some(o)] = phases {
         writeln!(

@@ -10,9 +10,24 @@
 //! followed its last use completed, so the host waits only when it is a whole ring (millions of uploads'
 //! bytes) ahead. Completed fences are retired without waiting whenever a new one is recorded.
 
+use crate::compute::ring::{Ring, RingFence};
 use crate::compute::sync::Fence;
 use cudarc::driver::sys::CUstream;
-use std::collections::VecDeque;
+
+impl RingFence for Fence {
+    fn is_done(&self) -> bool {
+        Fence::is_done(self)
+    }
+
+    fn wait(self) {
+        // An error here is the stream's (a failed kernel); upstream's drop queue ignores it too.
+        let _ = self.wait_sync();
+    }
+
+    fn release(self) {
+        self.destroy();
+    }
+}
 
 /// Bytes of pinned memory in a stream's ring.
 const CAPACITY: usize = 8 << 20;
@@ -20,26 +35,9 @@ const CAPACITY: usize = 8 << 20;
 /// Uploads larger than this take the upstream path (the pinned pool and the drop queue).
 pub(crate) const MAX_UPLOAD: usize = 64 << 10;
 
-/// Uploads between two fences.
-const MARK_EVERY: u32 = 64;
-
-/// Offsets are kept 16-byte aligned, the alignment of any metadata a kernel reads.
-const ALIGN: usize = 16;
-
-/// The ring of one stream.
+/// The ring of one stream, its pinned memory allocated on first use.
 #[derive(Debug)]
-pub(crate) struct UploadRing {
-    /// Pinned host memory (`CAPACITY` bytes), allocated on first use.
-    base: *mut u8,
-    /// Bytes ever reserved, including the ends skipped at each wrap; the write offset is `head % CAPACITY`.
-    head: u64,
-    /// Bytes the device is known to be done with (every reservation below this has been copied).
-    tail: u64,
-    /// Fences recorded after the reservations up to `.0`, oldest first.
-    marks: VecDeque<(u64, Fence)>,
-    /// Uploads since the last fence.
-    since_mark: u32,
-}
+pub(crate) struct UploadRing(Ring<Fence>);
 
 // SAFETY: the ring is owned by its stream, which the server moves between threads as a whole; the pinned
 // memory it points to is never shared outside it.
@@ -47,13 +45,7 @@ unsafe impl Send for UploadRing {}
 
 impl Default for UploadRing {
     fn default() -> Self {
-        Self {
-            base: std::ptr::null_mut(),
-            head: 0,
-            tail: 0,
-            marks: VecDeque::new(),
-            since_mark: 0,
-        }
+        Self(Ring::new(std::ptr::null_mut(), CAPACITY))
     }
 }
 
@@ -63,56 +55,18 @@ impl UploadRing {
     /// could not be allocated (the caller takes the upstream path).
     pub(crate) fn stage(&mut self, data: &[u8], stream: CUstream) -> Option<*const u8> {
         debug_assert!(data.len() <= MAX_UPLOAD);
-        if self.base.is_null() {
+        if !self.0.has_memory() {
             // SAFETY: a plain pinned allocation of the driver; freed never (it lives as long as the stream,
             // which upstream never destroys either).
-            self.base = unsafe { cudarc::driver::result::malloc_host(CAPACITY, 0) }.ok()? as *mut u8;
+            let base = unsafe { cudarc::driver::result::malloc_host(CAPACITY, 0) }.ok()?;
+            self.0.set_memory(base as *mut u8);
         }
-        let need = data.len().div_ceil(ALIGN).max(1) * ALIGN;
-        let mut at = (self.head % CAPACITY as u64) as usize;
-        if at + need > CAPACITY {
-            // Skip the end of the ring: a reservation never wraps.
-            self.head += (CAPACITY - at) as u64;
-            at = 0;
-        }
-        self.reclaim(self.head + need as u64, stream);
-        // SAFETY: `at + need <= CAPACITY`, and no queued copy reads this region any more (`reclaim`).
-        unsafe { std::ptr::copy_nonoverlapping(data.as_ptr(), self.base.add(at), data.len()) };
-        self.head += need as u64;
-        Some(unsafe { self.base.add(at) } as *const u8)
+        Some(self.0.stage_with(data, || Fence::new(stream)))
     }
 
-    /// Called after the copy of the last [`Self::stage`] was queued on `stream`: records a fence every
-    /// [`MARK_EVERY`] uploads, retiring the completed ones first.
+    /// Called after the copy of the last [`Self::stage`] was queued on `stream`: records a fence every 64
+    /// uploads, retiring the passed ones first.
     pub(crate) fn queued(&mut self, stream: CUstream) {
-        self.since_mark += 1;
-        if self.since_mark < MARK_EVERY {
-            return;
-        }
-        self.since_mark = 0;
-        while let Some((end, fence)) = self.marks.front() {
-            if !fence.is_done() {
-                break;
-            }
-            self.tail = *end;
-            if let Some((_, fence)) = self.marks.pop_front() {
-                fence.destroy();
-            }
-        }
-        self.marks.push_back((self.head, Fence::new(stream)));
-    }
-
-    /// Waits until every byte below `end - CAPACITY` is free: the oldest fences first, and, where the ring
-    /// is full past the last fence, a new one.
-    fn reclaim(&mut self, end: u64, stream: CUstream) {
-        while end - self.tail > CAPACITY as u64 {
-            let (mark, fence) = match self.marks.pop_front() {
-                Some(m) => m,
-                None => (self.head, Fence::new(stream)),
-            };
-            // An error here is the stream's (a failed kernel); upstream's drop queue ignores it too.
-            let _ = fence.wait_sync();
-            self.tail = mark;
-        }
+        self.0.queued_with(|| Fence::new(stream));
     }
 }
