@@ -74,5 +74,5 @@ pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
 pub use losses::{LossOptions, Losses};
 pub use model::{Backbone, TarBlock};
 #[cfg(feature = "cuda")]
-pub use side::foreign_streams;
+pub use side::{device_thread_calls, foreign_streams};
 pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec, TrackSpec};

@@ -43,7 +43,7 @@ mod cubecl_stream;
 mod fusion;
 mod waits;
 pub(crate) use fusion::*;
-pub use waits::foreign_streams;
+pub use waits::{device_thread_calls, foreign_streams};
 use waits::{foreign, host_sync};
 
 /// Stores `value` in `flag[0]` (a single unit).
@@ -231,9 +231,13 @@ pub(crate) fn on_device_thread<T: Send + 'static>(
     if selected_thread() == LaunchThread::Caller {
         return work();
     }
-    like.client
+    let start = std::time::Instant::now();
+    let out = like
+        .client
         .exclusive(work)
-        .map_err(|e| format!("cubecl's device thread: {e:?}"))?
+        .map_err(|e| format!("cubecl's device thread: {e:?}"));
+    waits::device_thread_call(start.elapsed());
+    out?
 }
 
 /// Device pointers of burn's buffers for a kernel's parameters; each buffer stays alive while this is held

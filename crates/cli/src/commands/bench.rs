@@ -11,7 +11,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Data(args) => data(&args),
         BenchCommand::Train(args) => super::bench_train::run(&args),
-        BenchCommand::Allreduce(args) => super::bench_train::allreduce(&args),
+        BenchCommand::Allreduce(args) => super::bench_allreduce::allreduce(&args),
         BenchCommand::Generate(args) => super::bench_generate::run(&args),
         BenchCommand::Attention(args) => super::bench_attention::run(&args),
         BenchCommand::Matmul(args) => super::bench_matmul::run(&args),

@@ -1,6 +1,6 @@
 //! `umgen bench train`: the training step on random tokens, for speed and memory.
 
-use crate::cli::{BenchAllreduceArgs, BenchTrainArgs};
+use crate::cli::BenchTrainArgs;
 use crate::device::Device;
 use crate::dist::{DistBackend, rank_device};
 use anyhow::Context;
@@ -116,6 +116,8 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         // The timed steps' host time per phase (no sync: how long the host took to queue it), then its wait
         // for the device at the step's end.
         let mut host: [Vec<f64>; 5] = Default::default();
+        // Calls on cubecl's device thread over the timed steps: (count, seconds) at their start and end.
+        let mut calls = [(0u64, 0.0f64); 2];
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
@@ -130,6 +132,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                 Some(alt) => alt.select(i)?,
                 None => 0,
             };
+            if i == a.warmup {
+                calls[0] = device_thread_calls();
+            }
             let mut mark = Instant::now();
             let t0 = mark;
             let mut lap = |k: usize| -> anyhow::Result<()> {
@@ -181,6 +186,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                     a.warmup + a.steps + phase_steps
                 );
             }
+            if i + 1 == a.warmup + a.steps {
+                calls[1] = device_thread_calls();
+            }
             if i >= a.warmup && !split {
                 times.push(took);
                 by_turn[turn].push(took);
@@ -190,11 +198,16 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         group.finish();
         let phases = phases.map(median);
         let host = host.map(median);
+        let steps = a.steps.max(1) as f64;
+        let calls = (
+            (calls[1].0 - calls[0].0) as f64 / steps,
+            (calls[1].1 - calls[0].1) / steps,
+        );
         (
             median(times),
             (peak, live),
             group.backend(),
-            (phases, host),
+            (phases, host, calls),
             first,
             by_turn,
         )
@@ -310,17 +323,27 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     if let Some(alt) = &alternation {
         alt.report(&mut out, &by_turn)?;
     }
-    let (phases, host) = phases;
+    let (phases, host, calls) = phases;
     if let [Some(f), Some(b), Some(r), Some(o), Some(w)] = host {
+        // On CUDA, how much of that the host spent in calls on cubecl's device thread.
+        let on_device_thread = if calls.0 > 0.0 {
+            format!(
+                "; {:.1} ms a step in {:.0} calls on cubecl's device thread (each waits for it to catch up)",
+                1e3 * calls.1,
+                calls.0
+            )
+        } else {
+            String::new()
+        };
         writeln!(
             out,
             "host          forward {:.1} ms, backward {:.1} ms, all-reduce {:.1} ms, optimizer {:.1} ms, \
-             then waits {:.1} ms for the device (time to queue each phase; medians)",
+             then waits {:.1} ms for the device (time to queue each phase; medians){on_device_thread}",
             1e3 * f,
             1e3 * b,
             1e3 * r,
             1e3 * o,
-            1e3 * w
+            1e3 * w,
         )?;
     }
     if let [Some(f), Some(b), Some(r), Some(o)] = phases {
@@ -371,61 +394,10 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// All-reduce (mean) bandwidth through the process group: median time per size, the algorithm bandwidth
-/// (bytes / time) and the bus bandwidth (× 2(W−1)/W, what each link carries in a ring; comparable with
-/// nccl-tests' `busbw`).
-pub fn allreduce(a: &BenchAllreduceArgs) -> anyhow::Result<()> {
-    let env = DistEnv::from_env()?;
-    let device = Device::parse(&rank_device(&a.device, &env))?;
-    let world = env.world_size as f64;
-    let rows = crate::with_autodiff!(device, |B, dev| {
-        type I = <B as AutodiffBackend>::InnerBackend;
-        let mut group = <I as DistBackend>::join(&env, "bench-allreduce", &a.dist)?;
-        let mut rows = Vec::new();
-        for &mib in &a.mib {
-            let n = ((mib * 1048576.0) / 4.0).max(1.0) as usize;
-            let t = Tensor::<I, 1>::ones([n], &dev);
-            let mut times = Vec::new();
-            for i in 0..a.iters + 2 {
-                group.barrier()?;
-                let t0 = Instant::now();
-                let r = group.all_reduce_mean(t.clone())?;
-                <I as Backend>::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"))?;
-                if i >= 2 {
-                    times.push(t0.elapsed().as_secs_f64());
-                }
-                drop(r);
-            }
-            let median = median(times).context("--iters 0: give one timed all-reduce or more")?;
-            rows.push((mib, median));
-        }
-        group.barrier()?;
-        group.finish();
-        (rows, group.backend())
-    });
-    if env.rank != 0 {
-        return Ok(());
-    }
-    let (rows, backend) = rows;
-    let mut out = std::io::stdout().lock();
-    writeln!(
-        out,
-        "all-reduce (mean) over {} ranks, {backend}, {}",
-        env.world_size, a.device
-    )?;
-    writeln!(
-        out,
-        "{:>10} {:>10} {:>12} {:>12}",
-        "MiB", "ms", "algbw GB/s", "busbw GB/s"
-    )?;
-    for (mib, s) in rows {
-        let alg = mib * 1048576.0 / s / 1e9;
-        writeln!(
-            out,
-            "{mib:>10.1} {:>10.3} {alg:>12.2} {:>12.2}",
-            1e3 * s,
-            alg * 2.0 * (world - 1.0) / world
-        )?;
-    }
-    Ok(())
+/// Custom operations run on cubecl's device thread so far and the host's time in them (CUDA builds only).
+fn device_thread_calls() -> (u64, f64) {
+    #[cfg(feature = "cuda")]
+    return umgen::backbone::device_thread_calls();
+    #[cfg(not(feature = "cuda"))]
+    (0, 0.0)
 }

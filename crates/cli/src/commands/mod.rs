@@ -2,6 +2,7 @@
 
 mod agents;
 mod bench;
+mod bench_allreduce;
 mod bench_alternate;
 mod bench_attention;
 mod bench_decode;
