@@ -127,6 +127,25 @@ pub fn memory(device: Device) -> Memory {
     }
 }
 
+/// Kernels launched so far on the device's cubecl thread and that thread's time in cubecl-cuda's launch
+/// path, in seconds (the vendored cubecl-cuda's count; 0 on the CPU or when the thread cannot be reached).
+/// The call waits for that thread to run what is queued before it.
+pub fn launches(device: Device) -> (u64, f64) {
+    match device {
+        Device::Cpu => (0, 0.0),
+        #[cfg(feature = "cuda")]
+        Device::Cuda(i) => {
+            use burn::cubecl::Runtime;
+            let dev = burn::backend::cuda::CudaDevice::new(i);
+            burn::cubecl::cuda::CudaRuntime::client(&dev)
+                .exclusive(burn::cubecl::cuda::launches)
+                .unwrap_or((0, 0.0))
+        }
+        #[cfg(not(feature = "cuda"))]
+        Device::Cuda(_) => (0, 0.0),
+    }
+}
+
 /// Bytes the device's memory pool holds now (0 on the CPU or when unknown).
 pub fn memory_in_use(device: Device) -> u64 {
     memory(device).reserved

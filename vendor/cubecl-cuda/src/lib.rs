@@ -9,7 +9,7 @@ mod runtime;
 pub use device::*;
 pub use runtime::*;
 /// umgen: see `compute::server::last_stream`.
-pub use compute::last_stream;
+pub use compute::{last_stream, launches};
 
 #[cfg(feature = "ptx-wmma")]
 pub(crate) type WmmaCompiler = cubecl_cpp::cuda::mma::PtxWmmaCompiler;

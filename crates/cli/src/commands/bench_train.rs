@@ -116,8 +116,10 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         // The timed steps' host time per phase (no sync: how long the host took to queue it), then its wait
         // for the device at the step's end.
         let mut host: [Vec<f64>; 5] = Default::default();
-        // Calls on cubecl's device thread over the timed steps: (count, seconds) at their start and end.
+        // Calls on cubecl's device thread, and its kernel launches, over the timed steps: (count, seconds)
+        // at their start and end.
         let mut calls = [(0u64, 0.0f64); 2];
+        let mut launches = [(0u64, 0.0f64); 2];
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
@@ -133,6 +135,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                 None => 0,
             };
             if i == a.warmup {
+                launches[0] = crate::device::launches(device);
                 calls[0] = device_thread_calls();
             }
             let mut mark = Instant::now();
@@ -188,6 +191,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             }
             if i + 1 == a.warmup + a.steps {
                 calls[1] = device_thread_calls();
+                launches[1] = crate::device::launches(device);
             }
             if i >= a.warmup && !split {
                 times.push(took);
@@ -199,10 +203,8 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         let phases = phases.map(median);
         let host = host.map(median);
         let steps = a.steps.max(1) as f64;
-        let calls = (
-            (calls[1].0 - calls[0].0) as f64 / steps,
-            (calls[1].1 - calls[0].1) / steps,
-        );
+        let per_step = |[a, b]: [(u64, f64); 2]| ((b.0 - a.0) as f64 / steps, (b.1 - a.1) / steps);
+        let calls = (per_step(calls), per_step(launches));
         (
             median(times),
             (peak, live),
@@ -326,11 +328,15 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     let (phases, host, calls) = phases;
     if let [Some(f), Some(b), Some(r), Some(o), Some(w)] = host {
         // On CUDA, how much of that the host spent in calls on cubecl's device thread.
+        let (calls, launches) = calls;
         let on_device_thread = if calls.0 > 0.0 {
             format!(
-                "; {:.1} ms a step in {:.0} calls on cubecl's device thread (each waits for it to catch up)",
+                "; {:.1} ms a step in {:.0} calls on cubecl's device thread (each waits for it to catch up), \
+                 which spent {:.1} ms a step launching {:.0} kernels",
                 1e3 * calls.1,
-                calls.0
+                calls.0,
+                1e3 * launches.1,
+                launches.0
             )
         } else {
             String::new()

@@ -154,7 +154,13 @@ impl ComputeServer for CudaServer {
         mode: ExecutionMode,
         stream_id: StreamId,
     ) {
-        if let Err(err) = self.launch_checked(kernel, count, bindings, mode, stream_id) {
+        let start = std::time::Instant::now();
+        let launched = self.launch_checked(kernel, count, bindings, mode, stream_id);
+        LAUNCHES.with(|l| {
+            let (n, ns) = l.get();
+            l.set((n + 1, ns + start.elapsed().as_nanos() as u64));
+        });
+        if let Err(err) = launched {
             let mut stream = match self.streams.resolve(stream_id, [].into_iter(), false) {
                 Ok(stream) => stream,
                 Err(err) => unreachable!("{err:?}"),
@@ -1154,6 +1160,19 @@ std::thread_local! {
     /// umgen: the CUDA stream of the last command this thread resolved ([`last_stream`]).
     static LAST_STREAM: core::cell::Cell<cudarc::driver::sys::CUstream> =
         const { core::cell::Cell::new(core::ptr::null_mut()) };
+}
+
+std::thread_local! {
+    /// umgen: kernels this thread launched through the server and the time it took (ns), [`launches`].
+    static LAUNCHES: core::cell::Cell<(u64, u64)> = const { core::cell::Cell::new((0, 0)) };
+}
+
+/// umgen: how many kernels the calling thread (cubecl's device thread, where launches run) has launched
+/// and its time in the server's launch path (resolving the streams and bindings, uploading metadata,
+/// compiling on first use, the driver's launch), in seconds: the launch path's share of that thread's time.
+pub fn launches() -> (u64, f64) {
+    let (n, ns) = LAUNCHES.with(|l| l.get());
+    (n, ns as f64 * 1e-9)
 }
 
 /// umgen: the CUDA stream of the last command the calling thread resolved (null if none): on the device
