@@ -43,7 +43,7 @@ run)
     [ -f "$here/gpu-env.sh" ] && source "$here/gpu-env.sh" >/dev/null
     [ $# -gt 0 ] || set -- --preset small --steps 6 --warmup 2
     CUDA_INJECTION64_PATH="$dir/libtimeline.so" UMGEN_TIMELINE="$out" \
-        "${UMGEN:-umgen}" bench train --device cuda:0 "$@" | grep -E "^step" || true
+        "${UMGEN:-umgen}" bench train --device cuda:0 "$@" 2>&1 | grep -E "^(step|host|error)" || true
     python3 "$here/timeline/timeline.py" "$out"
     ;;
 *)
