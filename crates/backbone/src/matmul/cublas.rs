@@ -26,6 +26,8 @@ struct Blas {
     /// thread).
     side: Option<Side>,
     handle: sys::cublasHandle_t,
+    /// The stream `handle` was last set to (null before the first product).
+    stream: sys::cudaStream_t,
 }
 
 thread_local! {
@@ -42,7 +44,23 @@ impl Blas {
             return Err("libcublas (CUDA 13: libcublas.so.13) is not on the library path".into());
         }
         let handle = blas::create_handle().map_err(|e| format!("cublasCreate: {e:?}"))?;
-        Ok(Self { side: None, handle })
+        Ok(Self {
+            side: None,
+            handle,
+            stream: std::ptr::null_mut(),
+        })
+    }
+
+    /// Points the handle at `stream` where it points elsewhere (products on one stream set it once).
+    fn use_stream(&mut self, stream: sys::cudaStream_t) -> Result<(), String> {
+        if stream != self.stream {
+            // SAFETY: a live handle and a live stream of its context (cubecl never destroys its streams; the
+            // side stream lives as long as this handle).
+            unsafe { blas::set_stream(self.handle, stream) }
+                .map_err(|e| format!("cublasSetStream: {e:?}"))?;
+            self.stream = stream;
+        }
+        Ok(())
     }
 
     /// Runs `gemm` between cubecl's queued work and what cubecl queues next: on cubecl's stream for the
@@ -57,23 +75,20 @@ impl Blas {
         let on_cubecl = crate::kernel_stream::selected() == KernelStream::Cubecl
             && crate::kernel_stream::selected_thread() == LaunchThread::Device;
         if on_cubecl {
+            // The stream cubecl resolved for the caller's last command on this thread.
             let stream = burn::cubecl::cuda::last_stream();
             if stream.is_null() {
                 return Err("no cubecl stream resolved on this thread".into());
             }
-            // SAFETY: a live handle, and the stream cubecl resolved for the caller's last command on this
-            // thread (cubecl never destroys its streams).
-            unsafe { blas::set_stream(handle, stream as sys::cudaStream_t) }
-                .map_err(|e| format!("cublasSetStream: {e:?}"))?;
+            self.use_stream(stream as sys::cudaStream_t)?;
             return gemm(handle);
         }
         if self.side.is_none() {
             self.side = Some(Side::new(like)?);
         }
+        let stream = self.side.as_ref().ok_or("no side stream")?.stream().cu_stream();
+        self.use_stream(stream as sys::cudaStream_t)?;
         let side = self.side.as_mut().ok_or("no side stream")?;
-        // SAFETY: a live handle and a live stream of the same context.
-        unsafe { blas::set_stream(handle, side.stream().cu_stream() as sys::cudaStream_t) }
-            .map_err(|e| format!("cublasSetStream: {e:?}"))?;
         side.ordered("cuBLAS", |_| gemm(handle))
     }
 }
