@@ -226,7 +226,7 @@ DEV void backward_kv(const Params& P) {
     SHARED TILE_ALIGNED u16 kr[TILE(OWN_ROWS(D), D)];
     SHARED TILE_ALIGNED u16 vr[TILE(OWN_ROWS(D), D)];
     // Without `wgmma`, the tile's log-sum-exps and deltas (with it, registers: no room).
-    SHARED float lse_s[WGMMA && D == 64 ? 1 : ROWS], delta_s[WGMMA && D == 64 ? 1 : ROWS];
+    SHARED float lse_s[WG ? 1 : ROWS], delta_s[WG ? 1 : ROWS];
     int bh = block_y(), k0 = block_rows() * block_x();
     if (bh >= P.count) return;
     const float sl = P.scale * LOG2E;
@@ -293,7 +293,7 @@ DEV void backward_q(const Params& P) {
     SHARED TILE_ALIGNED u16 vt[TILE(STREAM_ROWS(D), D)];
     SHARED TILE_ALIGNED u16 qr[TILE(OWN_ROWS(D), D)];
     SHARED TILE_ALIGNED u16 orows[TILE(OWN_ROWS(D), D)];
-    SHARED float lse_s[WGMMA && D == 64 ? 1 : MAX_ROWS], delta_s[WGMMA && D == 64 ? 1 : MAX_ROWS];
+    SHARED float lse_s[WG ? 1 : MAX_ROWS], delta_s[WG ? 1 : MAX_ROWS];
     int bh = block_y(), q0 = block_rows() * block_x();
     if (bh >= P.count) return;
     const float sl = P.scale * LOG2E;
