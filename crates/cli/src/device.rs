@@ -127,22 +127,25 @@ pub fn memory(device: Device) -> Memory {
     }
 }
 
-/// Kernels launched so far on the device's cubecl thread and that thread's time in cubecl-cuda's launch
-/// path, in seconds (the vendored cubecl-cuda's count; 0 on the CPU or when the thread cannot be reached).
-/// The call waits for that thread to run what is queued before it.
-pub fn launches(device: Device) -> (u64, f64) {
+/// What cubecl's device thread has done for the host so far, each as (count, seconds): the custom
+/// operations run on it and the calling threads' time in them (each waits for the thread's backlog), then
+/// the kernels it launched and its time in cubecl-cuda's launch path (the vendored cubecl-cuda's count).
+/// Zeros on the CPU or when the thread cannot be reached; reading the launches waits for that thread to
+/// run what is queued before.
+pub fn device_thread(device: Device) -> [(u64, f64); 2] {
     match device {
-        Device::Cpu => (0, 0.0),
+        Device::Cpu => [(0, 0.0); 2],
         #[cfg(feature = "cuda")]
         Device::Cuda(i) => {
             use burn::cubecl::Runtime;
             let dev = burn::backend::cuda::CudaDevice::new(i);
-            burn::cubecl::cuda::CudaRuntime::client(&dev)
+            let launches = burn::cubecl::cuda::CudaRuntime::client(&dev)
                 .exclusive(burn::cubecl::cuda::launches)
-                .unwrap_or((0, 0.0))
+                .unwrap_or((0, 0.0));
+            [umgen::backbone::device_thread_calls(), launches]
         }
         #[cfg(not(feature = "cuda"))]
-        Device::Cuda(_) => (0, 0.0),
+        Device::Cuda(_) => [(0, 0.0); 2],
     }
 }
 

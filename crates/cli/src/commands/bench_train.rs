@@ -116,10 +116,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         // The timed steps' host time per phase (no sync: how long the host took to queue it), then its wait
         // for the device at the step's end.
         let mut host: [Vec<f64>; 5] = Default::default();
-        // Calls on cubecl's device thread, and its kernel launches, over the timed steps: (count, seconds)
-        // at their start and end.
-        let mut calls = [(0u64, 0.0f64); 2];
-        let mut launches = [(0u64, 0.0f64); 2];
+        // What cubecl's device thread did for the host (`device::device_thread`) at the timed steps' start
+        // and end.
+        let mut counts = [[(0u64, 0.0f64); 2]; 2];
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
@@ -135,8 +134,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                 None => 0,
             };
             if i == a.warmup {
-                launches[0] = crate::device::launches(device);
-                calls[0] = device_thread_calls();
+                counts[0] = crate::device::device_thread(device);
             }
             let mut mark = Instant::now();
             let t0 = mark;
@@ -190,8 +188,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                 );
             }
             if i + 1 == a.warmup + a.steps {
-                calls[1] = device_thread_calls();
-                launches[1] = crate::device::launches(device);
+                counts[1] = crate::device::device_thread(device);
             }
             if i >= a.warmup && !split {
                 times.push(took);
@@ -203,8 +200,11 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         let phases = phases.map(median);
         let host = host.map(median);
         let steps = a.steps.max(1) as f64;
-        let per_step = |[a, b]: [(u64, f64); 2]| ((b.0 - a.0) as f64 / steps, (b.1 - a.1) / steps);
-        let calls = (per_step(calls), per_step(launches));
+        let per_step = |k: usize| {
+            let ((n0, s0), (n1, s1)) = (counts[0][k], counts[1][k]);
+            ((n1 - n0) as f64 / steps, (s1 - s0) / steps)
+        };
+        let calls = (per_step(0), per_step(1));
         (
             median(times),
             (peak, live),
@@ -398,12 +398,4 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         writeln!(out, "peak memory   not measured on this device")?;
     }
     Ok(())
-}
-
-/// Custom operations run on cubecl's device thread so far and the host's time in them (CUDA builds only).
-fn device_thread_calls() -> (u64, f64) {
-    #[cfg(feature = "cuda")]
-    return umgen::backbone::device_thread_calls();
-    #[cfg(not(feature = "cuda"))]
-    (0, 0.0)
 }
