@@ -12,7 +12,7 @@ import sys
 
 SPINS = {'wait', 'umgen_wait'}
 
-FAMILIES = [('umgen_wait', 'spin (waits for a stream)'), ('wait', 'spin (waits for a stream)'), ('flash2', 'flash2'), ('nvjet', 'cuBLAS'), ('gemm', 'cuBLAS'), ('umgen_norm', 'layer norm'),
+FAMILIES = [('umgen_wait', 'spin (waits for a stream)'), ('wait', 'spin (waits for a stream)'), ('flash2', 'flash2'), ('nvjet', 'cuBLAS'), ('gemm', 'cuBLAS'), ('umgen_norm', 'layer norm'), ('umgen_gelu', 'bias + GELU'),
             ('umgen_temporal', 'attention over time'), ('umgen_xent', 'cross-entropy'), ('adamw', 'AdamW'),
             ('sumsq', 'AdamW'), ('umgen_', 'umgen other'), ('elemwise', 'fused element-wise'),
             ('fused', 'fused element-wise'), ('cast', 'cast'), ('reduce', 'reduction'), ('scatter', 'scatter'),

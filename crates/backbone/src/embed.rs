@@ -1,11 +1,11 @@
 //! Token embedding (paper eq. 2): `e = MLP(Embed_modality(z) + PE(position))`.
 
 use crate::config::Precision;
+use crate::gelu::linear_gelu;
 use crate::precision::linear;
 use crate::spec::BackboneSpec;
 use burn::module::{Module, Param};
 use burn::nn::{Dropout, DropoutConfig, Embedding, EmbeddingConfig, Linear, LinearConfig};
-use burn::tensor::activation::gelu;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Int, Tensor, TensorData};
 
@@ -159,6 +159,6 @@ impl<B: Backend> FrameEmbedding<B> {
     fn mlp<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
         let p = self.precision;
         self.drop
-            .forward(linear(&self.fc2, gelu(linear(&self.fc1, x, p)), p))
+            .forward(linear(&self.fc2, linear_gelu(&self.fc1, x, p), p))
     }
 }

@@ -1,10 +1,11 @@
 //! Transformer layers: pre-norm self- and cross-attention blocks with GELU MLPs.
 
 use crate::config::Precision;
+use crate::gelu::linear_gelu;
 use crate::precision::linear;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
-use burn::tensor::activation::{gelu, softmax};
+use burn::tensor::activation::softmax;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, Tensor};
 
@@ -32,7 +33,7 @@ impl<B: Backend> Mlp<B> {
     pub fn forward<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
         let p = self.precision;
         self.drop
-            .forward(linear(&self.proj, gelu(linear(&self.fc, x, p)), p))
+            .forward(linear(&self.proj, linear_gelu(&self.fc, x, p), p))
     }
 }
 

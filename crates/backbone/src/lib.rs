@@ -43,6 +43,7 @@ mod ego;
 mod embed;
 mod error;
 pub mod flash;
+pub mod gelu;
 mod heads;
 pub mod kernel_stream;
 mod layers;

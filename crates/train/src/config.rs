@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use umgen_backbone::LossOptions;
 use umgen_backbone::adamw::AdamWChoice;
 use umgen_backbone::flash::AttentionKernel;
+use umgen_backbone::gelu::GeluKernel;
 use umgen_backbone::kernel_stream::{KernelStream, LaunchThread};
 use umgen_backbone::matmul::MatmulKernel;
 use umgen_backbone::norm::NormKernel;
@@ -94,6 +95,10 @@ pub struct TrainConfig {
     /// What computes the layer norms when training on CUDA: `fused` (one CUDA C kernel per pass,
     /// `umgen_backbone::norm`) or `burn` (burn's decomposition). The CPU runs the decomposition.
     pub norm: NormKernel,
+    /// What computes the MLPs' bias + GELU when training: `fused` (one operation per pass writing the
+    /// activation in the next product's format, on CUDA one CUDA C kernel, `umgen_backbone::gelu`) or
+    /// `burn` (burn's bias add and GELU in f32).
+    pub gelu: GeluKernel,
     /// What computes the cross-entropy's passes over the logits when training on CUDA: `fused` (one CUDA
     /// C kernel per pass, `umgen_backbone::xent`) or `burn` (burn's operations). The CPU runs burn's.
     pub xent: XentKernel,
@@ -145,6 +150,7 @@ impl Default for TrainConfig {
             attention_step: umgen_backbone::flash::DEFAULT_STEP,
             recompute: false,
             norm: NormKernel::default(),
+            gelu: GeluKernel::default(),
             xent: XentKernel::default(),
             kernel_stream: KernelStream::default(),
             adamw: AdamWChoice::default(),
@@ -155,7 +161,7 @@ impl Default for TrainConfig {
 
 impl TrainConfig {
     /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
-    /// `attention_step`, `recompute`, `norm`, `xent`, `kernel_stream`, `adamw`, `launch_thread`) to this
+    /// `attention_step`, `recompute`, `norm`, `gelu`, `xent`, `kernel_stream`, `adamw`, `launch_thread`) to this
     /// process, before any product runs.
     pub fn select_kernels(&self) -> Result<()> {
         if self.attention_block_mib == 0 {
@@ -170,6 +176,7 @@ impl TrainConfig {
         umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
         umgen_backbone::recompute::set_enabled(self.recompute);
         umgen_backbone::norm::select(self.norm);
+        umgen_backbone::gelu::select(self.gelu);
         umgen_backbone::xent::select(self.xent);
         umgen_backbone::kernel_stream::select(self.kernel_stream);
         umgen_backbone::adamw::select(self.adamw);
@@ -229,9 +236,11 @@ impl TrainConfig {
                 "attention",
                 "attention_step",
                 // Recomputed layers and the layer-norm and cross-entropy kernels give the same gradients to
-                // rounding.
+                // rounding; the bias + GELU kernels the same activations to rounding, and GELU's exact
+                // derivative where burn's uses the tanh approximation's.
                 "recompute",
                 "norm",
+                "gelu",
                 "xent",
                 // The same kernels on another stream.
                 "kernel_stream",
@@ -298,6 +307,12 @@ mod tests {
             (NormKernel::Fused, NormKernel::Burn)
         );
         assert_eq!(named.identity(), burn_norm.identity());
+        let burn_gelu = parse(r#"{"gelu": "burn"}"#).expect("gelu = burn");
+        assert_eq!(
+            (named.gelu, burn_gelu.gelu),
+            (GeluKernel::Fused, GeluKernel::Burn)
+        );
+        assert_eq!(named.identity(), burn_gelu.identity());
         let burn_xent = parse(r#"{"xent": "burn"}"#).expect("xent = burn");
         assert_eq!(
             (named.xent, burn_xent.xent),

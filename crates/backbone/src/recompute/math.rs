@@ -4,22 +4,23 @@
 //! cannot run that recomputation under autodiff: a backward pass started inside another one deadlocks on
 //! the graph client's locks (`GraphMutexClient::backward` locks every graph when it cleans up, the outer
 //! one included). So the layer's gradients are derived here by hand, with the same kernels as the
-//! autodiff path (the named matmul, the fused or tiled attention, `gelu_backward`) and the same casts for
+//! autodiff path (the named matmul, the fused or tiled attention, the MLP's bias + GELU) and the same casts for
 //! [`Precision::Bf16`], so that both paths give the same numbers to rounding.
 
 use crate::attention::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
 use crate::config::Precision;
 use crate::flash::FusedAttention;
+use crate::gelu::{FusedGelu, inner_backward, inner_forward};
 use crate::layers::{merge_heads, split_heads};
 use crate::matmul::{NamedMatmul, product};
 use crate::norm::FusedNorm;
 use crate::precision::operand;
-use burn::tensor::activation::gelu;
 use burn::tensor::{Bool, Tensor, TensorPrimitive};
 
-/// What both passes need from the inner backend: the attention, matmul and layer-norm kernels.
-pub trait LayerBackend: FusedAttention + NamedMatmul + FusedNorm {}
-impl<B: FusedAttention + NamedMatmul + FusedNorm> LayerBackend for B {}
+/// What both passes need from the inner backend: the attention, matmul, layer-norm and bias + GELU
+/// kernels.
+pub trait LayerBackend: FusedAttention + NamedMatmul + FusedNorm + FusedGelu {}
+impl<B: FusedAttention + NamedMatmul + FusedNorm + FusedGelu> LayerBackend for B {}
 
 /// A layer norm's scale and shift.
 #[derive(Debug, Clone)]
@@ -92,7 +93,8 @@ struct Saved<I: LayerBackend> {
     x1: Tensor<I, 3>,
     stats2: Stats<I>,
     n2: Tensor<I, 3>,
-    hidden: Tensor<I, 3>,
+    /// The MLP's first product, without its bias (what the bias + GELU's backward pass reads).
+    hidden: Tensor<I, 2>,
     act: Tensor<I, 3>,
 }
 
@@ -119,12 +121,17 @@ fn norm_grad<I: LayerBackend>(
     (dx.reshape([b, l, d]), dgamma, dbeta)
 }
 
-/// `x · w + b` with the product in `p`'s format (as `precision::linear` on the named kernel).
-fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 3> {
+/// `x · w` `[b · l, n]` with the product in `p`'s format (as `precision::linear` on the named kernel).
+fn unbiased<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 2> {
     let [b, len, k] = x.dims();
+    product(operand(x.reshape([b * len, k]), p), operand(l.w.clone(), p))
+}
+
+/// `x · w + b` with the product in `p`'s format.
+fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 3> {
+    let [b, len, _] = x.dims();
     let n = l.w.dims()[1];
-    let y = product(operand(x.reshape([b * len, k]), p), operand(l.w.clone(), p));
-    y.reshape([b, len, n]) + l.b.clone().unsqueeze::<3>()
+    unbiased(x, l, p).reshape([b, len, n]) + l.b.clone().unsqueeze::<3>()
 }
 
 /// Gradients of a linear layer's input, weight and bias (as `matmul.rs`'s operation computes them).
@@ -134,14 +141,26 @@ fn linear_grad<I: LayerBackend>(
     dy: Tensor<I, 3>,
     p: Precision,
 ) -> (Tensor<I, 3>, Tensor<I, 2>, Tensor<I, 1>) {
-    let [b, len, k] = x.dims();
+    let [b, len, _] = x.dims();
     let n = dy.dims()[2];
     let dy2 = dy.reshape([b * len, n]);
     let db = crate::rows::sum(dy2.clone());
-    let dy2 = operand(dy2, p);
-    let dx = product(dy2.clone(), operand(l.w.clone(), p).transpose()).reshape([b, len, k]);
-    let dw = product(operand(x.reshape([b * len, k]), p).transpose(), dy2);
+    let (dx, dw) = product_grad(x, l, dy2, p);
     (dx, dw, db)
+}
+
+/// Gradients of a product's input and weight from its output's gradient `dy` `[b · l, n]`.
+fn product_grad<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    l: &Lin<I>,
+    dy: Tensor<I, 2>,
+    p: Precision,
+) -> (Tensor<I, 3>, Tensor<I, 2>) {
+    let [b, len, k] = x.dims();
+    let dy = operand(dy, p);
+    let dx = product(dy.clone(), operand(l.w.clone(), p).transpose()).reshape([b, len, k]);
+    let dw = product(operand(x.reshape([b * len, k]), p).transpose(), dy);
+    (dx, dw)
 }
 
 /// Attention of `q` over `k`, `v` (already in the products' format): the output and each query's
@@ -202,8 +221,9 @@ fn run<I: LayerBackend>(
     let merged = merge_heads(att.clone());
     let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
     let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps);
-    let hidden = linear(n2.clone(), &w.fc, p);
-    let act = gelu(hidden.clone());
+    let hidden = unbiased(n2.clone(), &w.fc, p);
+    let [b, len, _] = n2.dims();
+    let act = inner_forward(hidden.clone(), w.fc.b.clone(), p).reshape([b, len, hidden.dims()[1]]);
     let saved = Saved {
         x,
         stats1,
@@ -247,11 +267,9 @@ pub fn backward<I: LayerBackend>(
     let (_, f) = run(w, s, masks, x);
     let d_out = drop(&masks.mlp, dy.clone());
     let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p);
-    let d_hidden = Tensor::<I, 3>::from_primitive(TensorPrimitive::Float(I::gelu_backward(
-        f.hidden.into_primitive().tensor(),
-        d_act.into_primitive().tensor(),
-    )));
-    let (dn2, d_fc_w, d_fc_b) = linear_grad(f.n2, &w.fc, d_hidden, p);
+    let d_act = d_act.reshape(f.hidden.dims());
+    let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone(), p);
+    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, p);
     let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2);
     let dx1 = dy + dx1_norm;
     let d_proj = drop(&masks.attn, dx1.clone());

@@ -90,12 +90,23 @@ pub(crate) fn register_many<P: SidePass>(
     shapes: Vec<Vec<usize>>,
     pass: P,
 ) -> Vec<FloatTensor<Cuda>> {
+    let typed = shapes.into_iter().map(|s| (s, DType::F32)).collect();
+    register_typed(id, inputs, typed, pass)
+}
+
+/// [`register_many`] with each output's type given beside its shape.
+pub(crate) fn register_typed<P: SidePass>(
+    id: &'static str,
+    inputs: Vec<FloatTensor<Cuda>>,
+    outputs: Vec<(Vec<usize>, DType)>,
+    pass: P,
+) -> Vec<FloatTensor<Cuda>> {
     let Some(client) = inputs.first().map(|t| t.client.clone()) else {
         unreachable!("{id} is registered with inputs")
     };
-    let outs: Vec<TensorIr> = shapes
+    let outs: Vec<TensorIr> = outputs
         .into_iter()
-        .map(|s| TensorIr::uninit(client.create_empty_handle(), Shape::from(s), DType::F32))
+        .map(|(s, dtype)| TensorIr::uninit(client.create_empty_handle(), Shape::from(s), dtype))
         .collect();
     let streams = OperationStreams::with_inputs(inputs.iter());
     let irs: Vec<TensorIr> = inputs.into_iter().map(|p| p.into_ir()).collect();
@@ -107,10 +118,15 @@ pub(crate) fn register_many<P: SidePass>(
 /// (burn's `empty_device_dtype` pads each innermost row to an aligned pitch: a `[rows, 1028]` tensor has
 /// rows 1,088 apart, a `[.., 6]` one rows 8 apart, which a kernel indexing `row · width` would misplace.)
 pub(crate) fn empty_f32(like: &Primitive, shape: Vec<usize>) -> Primitive {
+    empty_packed(like, shape, DType::F32)
+}
+
+/// [`empty_f32`] of any type.
+pub(crate) fn empty_packed(like: &Primitive, shape: Vec<usize>, dtype: DType) -> Primitive {
     empty_device_contiguous_dtype(
         like.client.clone(),
         like.device.clone(),
         Shape::from(shape),
-        DType::F32,
+        dtype,
     )
 }

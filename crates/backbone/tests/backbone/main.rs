@@ -7,6 +7,7 @@ mod causality;
 mod decode;
 mod emulator;
 mod flash2;
+mod gelu;
 mod heads;
 mod norm;
 mod ordinal;

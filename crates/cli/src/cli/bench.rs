@@ -309,7 +309,8 @@ pub struct BenchTrainArgs {
     /// `train.attention=flash2,fused`), and each value's median step is printed: a comparison inside one
     /// process, free of the spread between processes. Only settings that leave the run the same alternate
     /// (`train.matmul`, `train.attention`, `train.attention_step`, `train.attention_block_mib`,
-    /// `train.recompute`, `train.norm`, `train.xent`); `--warmup` must cover one step of each value.
+    /// `train.recompute`, `train.norm`, `train.gelu`, `train.xent`, `train.kernel_stream`, `train.adamw`,
+    /// `train.launch_thread`); `--warmup` must cover one step of each value.
     #[arg(long, value_name = "KEY=V1,V2")]
     pub alternate: Option<String>,
     /// Data-parallel settings.

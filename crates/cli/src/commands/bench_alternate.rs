@@ -60,7 +60,7 @@ impl Alternation {
                 bail!(
                     "--alternate {key}={value}: changes the model or the run, not only a kernel choice (those \
                      that alternate: train.matmul, train.attention, train.attention_step, \
-                     train.attention_block_mib, train.recompute, train.norm, train.xent, train.kernel_stream, \
+                     train.attention_block_mib, train.recompute, train.norm, train.gelu, train.xent, train.kernel_stream, \
                      train.adamw, train.launch_thread)"
                 );
             }

@@ -1,6 +1,6 @@
-//! `umgen bench layers`: the layer norm, the attention over time, the cross-entropy and an AdamW step as
-//! training runs them (on CUDA, the kernels of `umgen_backbone::norm`, `umgen_backbone::temporal`,
-//! `umgen_backbone::xent` and `umgen_backbone::adamw`) against burn's own operations on the same device:
+//! `umgen bench layers`: the layer norm, the attention over time, an MLP's bias + GELU, the cross-entropy
+//! and an AdamW step as training runs them (on CUDA, the kernels of `umgen_backbone::norm`,
+//! `umgen_backbone::temporal`, `umgen_backbone::gelu`, `umgen_backbone::xent` and `umgen_backbone::adamw`) against burn's own operations on the same device:
 //! agreement of outputs and gradients, and time.
 
 use super::bench_attention::rel_err;
@@ -146,18 +146,65 @@ fn measure<B: AutodiffBackend>(
         rel_err(dq, rdq),
         rel_err(dkv, rdkv)
     )?;
+    mlp_activation::<B>(a, [b * t * n, d], dev, &mut out)?;
     cross_entropy::<B>(a, t * n, dev, &mut out)?;
     adamw::<B>(a, d, dev, &mut out)?;
     writeln!(
         out,
         "(err dp: the scale's gradient for the norm, the keys' and values' for the attention; err y of the \
-         cross-entropy: its summed loss; for AdamW err y, dx, dp: the new parameters, first and second \
+         cross-entropy: its summed loss; for the MLP's bias + GELU err dp: the bias's gradient, burn's backward \
+         pass taking GELU's tanh approximation's derivative; for AdamW err y, dx, dp: the new parameters, first and second \
          moments, and burn ms its arithmetic in burn's operations; err y of the gradient norm: the norm; fallbacks: {} norm pass(es), {} attention \
-         pass(es), {} cross-entropy pass(es), {} AdamW step(s))",
+         pass(es), {} bias + GELU pass(es), {} cross-entropy pass(es), {} AdamW step(s))",
         umgen::backbone::norm::fallbacks(),
         umgen::backbone::flash::fallbacks(),
+        umgen::backbone::gelu::fallbacks(),
         umgen::backbone::xent::fallbacks(),
         umgen::backbone::adamw::fallbacks()
+    )?;
+    Ok(())
+}
+
+/// An MLP's first layer, `gelu(x · W + b)` from `d` to `4·d` with bf16 products, as training runs it
+/// (`train.gelu = "fused"`: one operation writing the activation in bf16) and with burn's bias add and GELU
+/// (`"burn"`): activation, input gradient and bias gradient.
+fn mlp_activation<B: AutodiffBackend>(
+    a: &BenchLayersArgs,
+    [rows, d]: [usize; 2],
+    dev: &B::Device,
+    out: &mut impl Write,
+) -> anyhow::Result<()> {
+    use burn::nn::LinearConfig;
+    use burn::tensor::FloatDType;
+    use umgen::backbone::gelu::{self, GeluKernel, linear_gelu};
+    let layer = LinearConfig::new(d, 4 * d).init::<B>(dev);
+    let bias = layer.bias.as_ref().context("an MLP layer has a bias")?.val();
+    let x = Tensor::<B::InnerBackend, 2>::random([rows, d], Distribution::Normal(0.0, 1.0), dev);
+    let r = Tensor::<B::InnerBackend, 2>::random([rows, 4 * d], Distribution::Normal(0.0, 1.0), dev);
+    let pass = |kernel: GeluKernel| {
+        gelu::select(kernel);
+        let xa = Tensor::<B, 2>::from_inner(x.clone()).require_grad();
+        let h = linear_gelu(&layer, xa.clone(), Precision::Bf16).cast(FloatDType::F32);
+        let g = (h.clone() * Tensor::from_inner(r.clone())).sum().backward();
+        let dx = xa.grad(&g).context("no input gradient")?;
+        let db = bias.grad(&g).context("no bias gradient")?;
+        let as4 = |t: Tensor<B::InnerBackend, 2>| t.unsqueeze::<4>();
+        Ok([as4(h.inner()), as4(dx), db.reshape([1, 1, 1, 4 * d])])
+    };
+    let chosen = gelu::selected();
+    let ran = timed::<B, _>(a.iters, dev, || pass(GeluKernel::Fused))
+        .and_then(|ours| Ok((ours, timed::<B, _>(a.iters, dev, || pass(GeluKernel::Burn))?)));
+    gelu::select(chosen);
+    let ((ms, [y, dx, db]), (burn_ms, [ry, rdx, rdb])) = ran?;
+    writeln!(
+        out,
+        "{:<26} {:>9.3} {:>9.3} {:>9.1e} {:>9.1e} {:>9.1e}",
+        format!("MLP bias + GELU, {d}→{}", 4 * d),
+        ms * 1e3,
+        burn_ms * 1e3,
+        rel_err(y, ry),
+        rel_err(dx, rdx),
+        rel_err(db, rdb)
     )?;
     Ok(())
 }

@@ -252,6 +252,13 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         )?;
         writeln!(
             out,
+            "bias + GELU   {:?}, {} pass(es) fell back (the CUDA kernels to burn's operations; the first is \
+             logged with its reason)",
+            tc.gelu,
+            umgen::backbone::gelu::fallbacks()
+        )?;
+        writeln!(
+            out,
             "cross-entropy {:?}, {} pass(es) fell back (the CUDA kernels to burn's operations; the first is \
              logged with its reason)",
             tc.xent,

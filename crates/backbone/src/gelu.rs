@@ -1,0 +1,255 @@
+//! An MLP's hidden activation, `gelu(x · W + b)`, with the bias and GELU as one operation ([`linear_gelu`]).
+//!
+//! Through burn's operations an MLP's first layer is the product, a broadcast bias add and GELU, which
+//! burn-fusion runs as one element-wise kernel writing the activation in f32 (and keeping the
+//! pre-activation for the backward pass), then a cast to bf16 for the next product; the backward pass is
+//! GELU's derivative, the bias's row sums and another cast. In the `small` preset's timeline
+//! (docs/perf-notes.md) those passes over the `[70,368, 1,536]` hidden activations were the largest family
+//! of kernel time: twenty kernels of 0.7–0.78 ms and casts of 0.23 ms. On the training backends
+//! [`linear_gelu`] is instead the product (without its bias) followed by a custom autodiff operation whose
+//! passes are [`FusedGelu`]'s: on CUDA one kernel each (`gelu/gelu.cu`), the forward pass reading the
+//! product once and writing the activation in the next product's format, the backward pass recomputing the
+//! pre-activation and writing its gradient (in that format too) with the bias's gradient summed in f32; on
+//! the CPU the same arithmetic as burn operations ([`forward_decomposed`], [`backward_decomposed`]). The
+//! operation keeps the product (f32), as burn's GELU keeps its input.
+//!
+//! Both passes use GELU's exact form (erf) and its exact derivative, `Φ(x) + x·φ(x)`, as PyTorch's
+//! `nn.GELU()` does; burn's own backward pass uses the tanh approximation's derivative, which
+//! `train.gelu = "burn"` keeps.
+
+#[cfg(feature = "cuda")]
+mod cuda;
+
+use crate::attention::float;
+use crate::config::Precision;
+use crate::dispatch::{Choice, same};
+use crate::precision::linear;
+use burn::backend::Autodiff;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::nn::Linear;
+use burn::tensor::activation::gelu;
+use burn::tensor::backend::Backend;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{FloatDType, Tensor, TensorPrimitive};
+use serde::{Deserialize, Serialize};
+
+/// What computes the MLPs' bias + GELU when training (`train.gelu`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GeluKernel {
+    /// One operation per pass ([`FusedGelu`]: on CUDA one CUDA C kernel, `gelu/gelu.cu`). The default.
+    #[default]
+    Fused,
+    /// burn's bias add and GELU, as before the kernels (for comparing them).
+    Burn,
+}
+
+/// The process's choice and its fallbacks.
+static CHOICE: Choice = Choice::new("bias + GELU");
+
+/// Chooses what computes the MLPs' bias + GELU in every training pass this process runs from now on.
+pub fn select(kernel: GeluKernel) {
+    CHOICE.set_burn(kernel == GeluKernel::Burn);
+}
+
+/// What [`select`] chose ([`GeluKernel::Fused`] unless told otherwise).
+pub fn selected() -> GeluKernel {
+    if CHOICE.burn() {
+        GeluKernel::Burn
+    } else {
+        GeluKernel::Fused
+    }
+}
+
+/// How many bias + GELU passes fell back from the CUDA kernels to burn's operations in this process.
+pub fn fallbacks() -> usize {
+    CHOICE.fallbacks()
+}
+
+/// Counts a pass the kernels refused for `why`; logs the first.
+#[cfg_attr(not(feature = "cuda"), allow(dead_code))]
+fn fell_back(why: &str) {
+    CHOICE.fell_back(why);
+}
+
+/// The format an MLP's hidden activation (and its pre-activation's gradient) is written in: the format the
+/// next product reads, so that neither needs a cast.
+pub fn activation_dtype(p: Precision) -> FloatDType {
+    match p {
+        Precision::F32 => FloatDType::F32,
+        Precision::Bf16 | Precision::Bf16Linear => FloatDType::BF16,
+    }
+}
+
+/// A backend that computes an MLP's bias + GELU over the rows of `[rows, n]` products (f32). The passes
+/// default to burn's operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides them.
+pub trait FusedGelu: Backend {
+    /// `gelu(y + b)` row by row, in `out`.
+    fn bias_gelu_forward(y: Tensor<Self, 2>, b: Tensor<Self, 1>, out: FloatDType) -> Tensor<Self, 2> {
+        forward_decomposed(y, b, out)
+    }
+
+    /// The gradient of the pre-activation, `dh · gelu'(y + b)` (in `out`), and the bias's (f32, its column
+    /// sums), from the activation's gradient `dh`.
+    fn bias_gelu_backward(
+        dh: Tensor<Self, 2>,
+        y: Tensor<Self, 2>,
+        b: Tensor<Self, 1>,
+        out: FloatDType,
+    ) -> (Tensor<Self, 2>, Tensor<Self, 1>) {
+        backward_decomposed(dh, y, b, out)
+    }
+}
+
+/// The CPU backend computes the decomposition.
+impl FusedGelu for burn::backend::Flex {}
+
+/// [`FusedGelu::bias_gelu_forward`] as burn operations.
+pub fn forward_decomposed<B: Backend>(y: Tensor<B, 2>, b: Tensor<B, 1>, out: FloatDType) -> Tensor<B, 2> {
+    gelu(y + b.unsqueeze::<2>()).cast(out)
+}
+
+/// [`FusedGelu::bias_gelu_backward`] as burn operations (GELU's exact derivative).
+pub fn backward_decomposed<B: Backend>(
+    dh: Tensor<B, 2>,
+    y: Tensor<B, 2>,
+    b: Tensor<B, 1>,
+    out: FloatDType,
+) -> (Tensor<B, 2>, Tensor<B, 1>) {
+    let x = y + b.unsqueeze::<2>();
+    let cdf = x
+        .clone()
+        .div_scalar(std::f64::consts::SQRT_2)
+        .erf()
+        .add_scalar(1.0)
+        .mul_scalar(0.5);
+    let pdf = x
+        .clone()
+        .powi_scalar(2)
+        .mul_scalar(-0.5)
+        .exp()
+        .mul_scalar(0.398_942_280_401_432_7);
+    let d = dh.cast(FloatDType::F32) * (cdf + x * pdf);
+    let db = crate::rows::sum(d.clone());
+    (d.cast(out), db)
+}
+
+/// `gelu(layer.forward(x))` with the product in `p`'s format, the result in [`activation_dtype`]`(p)` where
+/// the training backends run it as one operation (a layer with a bias, the named matmul, and
+/// [`GeluKernel::Fused`]); elsewhere burn's operations in f32.
+pub fn linear_gelu<B: Backend, const D: usize>(
+    layer: &Linear<B>,
+    x: Tensor<B, D>,
+    p: Precision,
+) -> Tensor<B, D> {
+    let (Some(product), Some(op), Some(bias)) =
+        (crate::matmul::named_for::<B>(), tracked::<B>(), &layer.bias)
+    else {
+        return gelu(linear(layer, x, p));
+    };
+    let mut dims = x.dims();
+    let k = dims[D - 1];
+    dims[D - 1] = layer.weight.dims()[1];
+    let y = product(x.reshape([-1, k as i32]), layer.weight.val(), p);
+    op(y, bias.val(), activation_dtype(p)).reshape(dims)
+}
+
+/// The passes on a backend without autodiff, as [`linear_gelu`] runs them for [`selected`]: the
+/// activation from the product `y` (without its bias). `recompute/math.rs`'s hand-written layer uses them.
+pub(crate) fn inner_forward<I: FusedGelu>(y: Tensor<I, 2>, b: Tensor<I, 1>, p: Precision) -> Tensor<I, 2> {
+    match selected() {
+        GeluKernel::Fused => I::bias_gelu_forward(y, b, activation_dtype(p)),
+        GeluKernel::Burn => gelu(y + b.unsqueeze::<2>()),
+    }
+}
+
+/// [`inner_forward`]'s gradients: the pre-activation's and the bias's, from the activation's `dh`.
+pub(crate) fn inner_backward<I: FusedGelu>(
+    dh: Tensor<I, 2>,
+    y: Tensor<I, 2>,
+    b: Tensor<I, 1>,
+    p: Precision,
+) -> (Tensor<I, 2>, Tensor<I, 1>) {
+    match selected() {
+        GeluKernel::Fused => I::bias_gelu_backward(dh, y, b, activation_dtype(p)),
+        GeluKernel::Burn => {
+            let x = y + b.unsqueeze::<2>();
+            let d = float::<I, 2>(I::gelu_backward(
+                x.into_primitive().tensor(),
+                dh.into_primitive().tensor(),
+            ));
+            (d.clone(), crate::rows::sum(d))
+        }
+    }
+}
+
+/// The operation on `B`: the product `[rows, n]`, the bias and the output format in, `[rows, n]` out.
+type GeluOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>, FloatDType) -> Tensor<B, 2>;
+
+/// The custom operation when `B` is a training backend and [`GeluKernel::Fused`] is chosen.
+fn tracked<B: Backend>() -> Option<GeluOp<B>> {
+    if selected() == GeluKernel::Burn {
+        return None;
+    }
+    let found = on::<B, burn::backend::Flex>();
+    #[cfg(feature = "cuda")]
+    let found = found.or_else(|| on::<B, burn::backend::Cuda>());
+    found
+}
+
+/// The operation on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+fn on<B: Backend, I: FusedGelu>() -> Option<GeluOp<B>> {
+    let plain: GeluOp<Autodiff<I>> = apply::<I, NoCheckpointing>;
+    let balanced: GeluOp<Autodiff<I, BalancedCheckpointing>> = apply::<I, BalancedCheckpointing>;
+    same(plain).or_else(|| same(balanced))
+}
+
+/// The backward pass of the operation.
+#[derive(Debug)]
+struct BiasGelu;
+
+impl<I: FusedGelu> Backward<I, 2> for BiasGelu {
+    /// The product, the bias and the output format.
+    type State = (FloatTensor<I>, FloatTensor<I>, FloatDType);
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let dh = float::<I, 2>(grads.consume::<I>(&ops.node));
+        let (y, b, out) = ops.state;
+        let (dy, db) = I::bias_gelu_backward(dh, float(y), float(b), out);
+        let [y_node, b_node] = ops.parents;
+        if let Some(node) = y_node {
+            grads.register::<I>(node.id, dy.into_primitive().tensor());
+        }
+        if let Some(node) = b_node {
+            grads.register::<I>(node.id, db.into_primitive().tensor());
+        }
+    }
+}
+
+/// `gelu(y + b)` of `[rows, n]` in `out` as one operation on `Autodiff<I, C>`.
+fn apply<I: FusedGelu, C: CheckpointStrategy>(
+    y: Tensor<Autodiff<I, C>, 2>,
+    b: Tensor<Autodiff<I, C>, 1>,
+    out: FloatDType,
+) -> Tensor<Autodiff<I, C>, 2> {
+    let (y, b) = (y.into_primitive().tensor(), b.into_primitive().tensor());
+    let h = I::bias_gelu_forward(float(y.primitive.clone()), float(b.primitive.clone()), out);
+    let h = h.into_primitive().tensor();
+    let result = match BiasGelu
+        .prepare::<C>([y.node.clone(), b.node.clone()])
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => prep.finish((y.primitive.clone(), b.primitive.clone(), out), h),
+        OpsKind::UnTracked(prep) => prep.finish(h),
+    };
+    Tensor::from_primitive(TensorPrimitive::Float(result))
+}
+
+#[cfg(test)]
+mod tests;
