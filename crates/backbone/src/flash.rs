@@ -204,6 +204,30 @@ pub trait FusedAttention: Backend {
         causal: bool,
         precision: Precision,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>);
+
+    /// [`Self::attention_backward`] with the keys' and values' gradients as one `[b, lk, 2·h·d]` (the keys'
+    /// columns, then the values'): the layout of a kv product's gradient (`attention/kv.rs`, the recomputed
+    /// layers). CUDA's flash2 kernels write it so; elsewhere [`merge_kv`] copies the two into it.
+    #[allow(clippy::too_many_arguments)]
+    fn attention_backward_kv(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        out: Tensor<Self, 4>,
+        lse: Tensor<Self, 4>,
+        dout: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 3>) {
+        let (dq, dk, dv) = Self::attention_backward(q, k, v, out, lse, dout, causal, precision);
+        (dq, merge_kv(dk, dv))
+    }
+}
+
+/// `dk` and `dv` `[b, h, lk, d]` as one `[b, lk, 2·h·d]`: the keys' columns, then the values'.
+pub(crate) fn merge_kv<B: Backend>(dk: Tensor<B, 4>, dv: Tensor<B, 4>) -> Tensor<B, 3> {
+    let [b, h, lk, d] = dk.dims();
+    Tensor::stack::<5>(vec![dk.swap_dims(1, 2), dv.swap_dims(1, 2)], 2).reshape([b, lk, 2 * h * d])
 }
 
 /// The tiled forward pass with the process's block size.

@@ -63,7 +63,7 @@ impl<B: FusedAttention> Backward<B, 2> for KvAttention {
         let [nq, nkv] = ops.parents;
         let dout = float::<B, 4>(grads.consume::<B>(&ops.node));
         let ([q, k, v, out, lse], causal, precision) = ops.state;
-        let (dq, dk, dv) = B::attention_backward(
+        let (dq, dkv) = B::attention_backward_kv(
             float(q),
             float(k),
             float(v),
@@ -77,13 +77,6 @@ impl<B: FusedAttention> Backward<B, 2> for KvAttention {
             grads.register::<B>(node.id, dq.into_primitive().tensor());
         }
         if let Some(node) = nkv {
-            // [b, h, lk, dh] twice → [b, lk, 2, h, dh] → [b, lk, 2·h·dh]: keys' columns, then values'.
-            let [b, h, lk, dh] = dk.dims();
-            let dkv = Tensor::stack::<5>(vec![dk.swap_dims(1, 2), dv.swap_dims(1, 2)], 2).reshape([
-                b,
-                lk,
-                2 * h * dh,
-            ]);
             grads.register::<B>(node.id, dkv.into_primitive().tensor());
         }
     }

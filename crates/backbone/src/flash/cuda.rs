@@ -1,12 +1,13 @@
 //! [`FusedAttention`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in
-//! the fusion stream that launches the kernels of `kernels.rs` on the operands as they lie in memory (any
-//! strides) and writes f32 results.
+//! the fusion stream that launches the kernels of `kernels.rs` (or flash2's) on the operands as they lie in
+//! memory (any strides) and writes f32 results; the backward pass writes the keys' and values' gradients as
+//! one `[b, lk, 2·h, d]`, the layout of the kv product's gradient.
 
 use super::flash2;
 use super::kernels;
 use super::{
-    AttentionKernel, BLOCK, FusedAttention, fell_back, selected, shared_bytes, step, tiled_backward_pass,
-    tiled_forward_pass, unfit,
+    AttentionKernel, BLOCK, FusedAttention, fell_back, merge_kv, selected, shared_bytes, step,
+    tiled_backward_pass, tiled_forward_pass, unfit,
 };
 use crate::attention::{float, softmax_delta};
 use crate::config::Precision;
@@ -139,24 +140,60 @@ impl FusedAttention for Cuda {
             // The forward pass counted the fallback.
             return tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
         }
-        let delta = softmax_delta(dout.clone(), out);
-        let dout = crate::precision::operand(dout, precision);
-        let [b, h, lq, d] = q.dims();
-        let lk = k.dims()[2];
-        let flash2 = use_flash2(&q);
-        let [dq, dk, dv] = register(
-            Kind::Backward,
-            causal,
-            flash2,
-            &[&q, &k, &v, &dout, &lse, &delta],
-            [
-                Shape::new([b, h, lq, d]),
-                Shape::new([b, h, lk, d]),
-                Shape::new([b, h, lk, d]),
-            ],
-        );
-        (dq, dk, dv)
+        let h = q.dims()[1];
+        let (dq, dkv) = backward_merged(q, k, v, out, lse, dout, causal, precision);
+        // Views of the merged gradient: `[b, lk, h, d]` twice, heads first.
+        let (dk, dv) = (dkv.clone().narrow(2, 0, h), dkv.narrow(2, h, h));
+        (dq, dk.swap_dims(1, 2), dv.swap_dims(1, 2))
     }
+
+    fn attention_backward_kv(
+        q: Tensor<Self, 4>,
+        k: Tensor<Self, 4>,
+        v: Tensor<Self, 4>,
+        out: Tensor<Self, 4>,
+        lse: Tensor<Self, 4>,
+        dout: Tensor<Self, 4>,
+        causal: bool,
+        precision: Precision,
+    ) -> (Tensor<Self, 4>, Tensor<Self, 3>) {
+        if selected() == AttentionKernel::Tiled || refused(&q, &k, &v).is_some() {
+            let (dq, dk, dv) = tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
+            return (dq, merge_kv(dk, dv));
+        }
+        let (dq, dkv) = backward_merged(q, k, v, out, lse, dout, causal, precision);
+        let [b, lk, h2, d] = dkv.dims();
+        (dq, dkv.reshape([b, lk, h2 * d]))
+    }
+}
+
+/// The backward pass as one custom operation: dq `[b, h, lq, d]` and the keys' and values' gradients as one
+/// `[b, lk, 2·h, d]` (the keys' heads, then the values'), which flash2 writes in place and the fused
+/// kernels' results are copied into.
+#[allow(clippy::too_many_arguments)]
+fn backward_merged(
+    q: Tensor<Cuda, 4>,
+    k: Tensor<Cuda, 4>,
+    v: Tensor<Cuda, 4>,
+    out: Tensor<Cuda, 4>,
+    lse: Tensor<Cuda, 4>,
+    dout: Tensor<Cuda, 4>,
+    causal: bool,
+    precision: Precision,
+) -> (Tensor<Cuda, 4>, Tensor<Cuda, 4>) {
+    let delta = softmax_delta(dout.clone(), out);
+    let dout = crate::precision::operand(dout, precision);
+    let [b, h, lq, d] = q.dims();
+    let lk = k.dims()[2];
+    let flash2 = use_flash2(&q);
+    let [dq, dkv] = register(
+        Kind::Backward,
+        causal,
+        flash2,
+        &[&q, &k, &v, &dout, &lse, &delta],
+        [Shape::new([b, h, lq, d]), Shape::new([b, lk, 2 * h, d])],
+    );
+    (dq, dkv)
 }
 
 /// Which pass.
@@ -164,7 +201,7 @@ impl FusedAttention for Cuda {
 enum Kind {
     /// q, k, v in; output and log-sum-exp out.
     Forward,
-    /// q, k, v, dout, log-sum-exp, delta in; dq, dk, dv out.
+    /// q, k, v, dout, log-sum-exp, delta in; dq and the merged dk, dv (`[b, lk, 2·h, d]`) out.
     Backward,
 }
 
@@ -205,7 +242,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
                 )
             }
             Kind::Backward => {
-                let (inputs, _) = self.desc.as_fixed::<6, 3>();
+                let (inputs, _) = self.desc.as_fixed::<6, 2>();
                 let [q, k, v, dout, lse, delta] =
                     inputs.each_ref().map(|t| handles.get_float_tensor::<Inner>(t));
                 self.flash2_or(
@@ -299,6 +336,10 @@ fn backward(
     let dq = empty_f32(q, vec![b, h, lq, d]);
     let dk = empty_f32(q, vec![b, h, lk, d]);
     let dv = empty_f32(q, vec![b, h, lk, d]);
+    let merged = || {
+        let dkv = merge_kv::<Inner>(float(dk.clone()), float(dv.clone()));
+        crate::side::inner(dkv.reshape([b, lk, 2 * h, d]))
+    };
     let (scale, off) = scale_and_offset(q, k);
     let (format, kstep) = tile_format(q.dtype);
     let step = step();
@@ -344,7 +385,7 @@ fn backward(
         step,
         [q.dtype.into(), format],
     );
-    vec![dq, dk, dv]
+    vec![dq, merged()]
 }
 
 fn dims(t: &Primitive) -> [usize; 4] {

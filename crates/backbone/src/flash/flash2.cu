@@ -129,7 +129,7 @@ DEV void forward(const Params& P) {
         }
         if (t == 0 && row < P.lq) P.lse_out[bh_rows + row] = (m[half] + log2f(total)) * LN2;
     }
-    store_rows<D>(P.out + bh_rows * D, o, q0, P.lq, 1.f);
+    store_rows<D>(P.out + head_base(P.outs, bh, P.heads), P.outs[2], o, q0, P.lq, 1.f);
 }
 
 // A head's f32 per-query values (log-sum-exp or delta): the head's first, and the queries' stride.
@@ -281,9 +281,8 @@ DEV void backward_kv(const Params& P) {
             both_times<D, SUB / 8>(dv, s, oc, dk, dp, qc);
         }
     }
-    long long base = (long long)bh * P.lk * D;
-    store_rows<D>(P.dk + base, dk, k0, P.lk, P.scale);
-    store_rows<D>(P.dv + base, dv, k0, P.lk, 1.f);
+    store_rows<D>(P.dk + head_base(P.dks, bh, P.heads), P.dks[2], dk, k0, P.lk, P.scale);
+    store_rows<D>(P.dv + head_base(P.dvs, bh, P.heads), P.dvs[2], dv, k0, P.lk, 1.f);
 }
 
 template <typename T, int D>
@@ -345,7 +344,7 @@ DEV void backward_q(const Params& P) {
             times<D, SUB / 8>(dq, dp, kc);
         }
     }
-    store_rows<D>(P.dq + (long long)bh * P.lq * D, dq, q0, P.lq, P.scale);
+    store_rows<D>(P.dq + head_base(P.dqs, bh, P.heads), P.dqs[2], dq, q0, P.lq, P.scale);
 }
 
 #define INSTANCES(NAME, T, D)                                                                                   \

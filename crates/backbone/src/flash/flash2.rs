@@ -78,6 +78,10 @@ struct Params {
     os: [i64; 3],
     ls: [i64; 3],
     es: [i64; 3],
+    outs: [i64; 3],
+    dqs: [i64; 3],
+    dks: [i64; 3],
+    dvs: [i64; 3],
     heads: i32,
     lq: i32,
     lk: i32,
@@ -147,6 +151,11 @@ fn resources(functions: &[(String, CudaFunction)]) -> String {
         .join("; ")
 }
 
+/// `[b, rows, h, d]` as the `[b, h, rows, d]` view the attention's callers take (no copy).
+fn heads_first(t: Primitive) -> Primitive {
+    crate::side::inner(crate::attention::float::<crate::side::Inner, 4>(t).swap_dims(1, 2))
+}
+
 /// The strides (batch, head, row) of a `[b, h, rows, d]` operand whose last dimension is contiguous.
 fn strides(t: &Primitive, what: &str) -> Result<[i64; 3], String> {
     let (shape, s) = (t.meta.shape(), t.meta.strides());
@@ -157,10 +166,15 @@ fn strides(t: &Primitive, what: &str) -> Result<[i64; 3], String> {
     Ok([int(s[0])?, int(s[1])?, int(s[2])?])
 }
 
-/// Runs the forward pass on `q`, `k`, `v` (`grads` `None`: the output and the log-sum-exp) or the
-/// backward pass (`grads` = `[dout, lse, delta]`: dq, dk and dv), returning its contiguous f32 results; an
-/// error says why it could not (no result was written that the caller keeps, so the
-/// caller may run another path).
+/// Runs the forward pass on `q`, `k`, `v` (`grads` `None`: the output `[b, h, lq, d]` and the log-sum-exp)
+/// or the backward pass (`grads` = `[dout, lse, delta]`: dq `[b, h, lq, d]` and the keys' and values'
+/// gradients as one `[b, lk, 2·h, d]`, keys' heads first), returning its f32 results; an error says why it
+/// could not (no result was written that the caller keeps, so the caller may run another path).
+///
+/// The output and dq are views of buffers laid out merged, `[b, rows, h·d]`, which is how the next product
+/// reads them: the head merge after the attention (`layers::merge_heads`) then only relabels them, where a
+/// contiguous `[b, h, rows, d]` result took a copy (0.26–0.32 ms each on an H100: 148 ms of `paper`'s
+/// step with the keys' and values' concatenation, docs/perf-notes.md).
 pub(super) fn launch(
     q: &Primitive,
     k: &Primitive,
@@ -210,10 +224,14 @@ pub(super) fn launch(
     (p.q, p.k, p.v) = (ptr(q)?, ptr(k)?, ptr(v)?);
     let dtype = if q.dtype == DType::BF16 { "bf16" } else { "f32" };
     // The results, each kernel's name and the rows its grid covers.
+    // The strides (batch, head, row) of a result merged as `[b, rows, heads·d]`.
+    let merged = |rows: usize, heads: usize| [(rows * heads * d) as i64, d as i64, (heads * d) as i64];
     let (results, launches) = match grads {
         None => {
-            let results = vec![empty_f32(q, vec![b, h, lq, d]), empty_f32(q, vec![b, h, lq, 1])];
-            (p.out, p.lse_out) = (ptr(&results[0])?, ptr(&results[1])?);
+            let out = empty_f32(q, vec![b, lq, h, d]);
+            let results = vec![heads_first(out.clone()), empty_f32(q, vec![b, h, lq, 1])];
+            (p.out, p.lse_out) = (ptr(&out)?, ptr(&results[1])?);
+            p.outs = merged(lq, h);
             (results, vec![(format!("umgen_flash2_forward_{dtype}_{d}"), lq)])
         }
         Some([dout, lse, delta]) => {
@@ -223,12 +241,13 @@ pub(super) fn launch(
                 strides(delta, "delta")?,
             );
             (p.dout, p.lse, p.delta) = (ptr(dout)?, ptr(lse)?, ptr(delta)?);
-            let results = vec![
-                empty_f32(q, vec![b, h, lq, d]),
-                empty_f32(q, vec![b, h, lk, d]),
-                empty_f32(q, vec![b, h, lk, d]),
-            ];
-            (p.dq, p.dk, p.dv) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
+            let dq = empty_f32(q, vec![b, lq, h, d]);
+            let dkv = empty_f32(q, vec![b, lk, 2 * h, d]);
+            (p.dq, p.dk) = (ptr(&dq)?, ptr(&dkv)?);
+            // The values' columns follow the keys' in each row.
+            p.dv = p.dk + (h * d * size_of::<f32>()) as u64;
+            (p.dqs, p.dks, p.dvs) = (merged(lq, h), merged(lk, 2 * h), merged(lk, 2 * h));
+            let results = vec![heads_first(dq), dkv];
             let launches = vec![
                 (format!("umgen_flash2_backward_kv_{dtype}_{d}"), lk),
                 (format!("umgen_flash2_backward_q_{dtype}_{d}"), lq),

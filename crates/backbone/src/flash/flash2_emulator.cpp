@@ -289,16 +289,21 @@ static double run_case(int b, int h, int lq, int lk, int d, bool causal, bool bf
     auto ptr = [&](std::vector<u32>& raw, std::vector<u16>& r16) -> const void* {
         return bf16_in ? (const void*)r16.data() : (const void*)raw.data();
     };
-    std::vector<float> o_k(out.size()), lse_k(lse.size()), lse_f(lse.size()), delta_f(delta.size());
-    std::vector<float> dq_k(dq.size()), dk_k(dk.size()), dv_k(dv.size());
+    // The results merged as training lays them out: out and dq `[b, rows, h, d]`, dk and dv in one
+    // `[b, lk, 2h, d]` (keys' heads, then values'), NaN until written.
+    std::vector<float> o_m(out.size(), NAN), lse_k(lse.size()), lse_f(lse.size()), delta_f(delta.size());
+    std::vector<float> dq_m(dq.size(), NAN), dkv_m(dk.size() + dv.size(), NAN);
     for (size_t i = 0; i < lse.size(); i++) lse_f[i] = lse[i], delta_f[i] = delta[i];
     Params p;
     memset(&p, 0, sizeof p);
     p.q = ptr(qr, q16), p.k = ptr(kr, k16), p.v = ptr(vr, v16), p.dout = ptr(dr, d16);
     p.lse = lse_f.data(), p.delta = delta_f.data();
-    p.out = o_k.data(), p.lse_out = lse_k.data(), p.dq = dq_k.data(), p.dk = dk_k.data(), p.dv = dv_k.data();
+    p.out = o_m.data(), p.lse_out = lse_k.data(), p.dq = dq_m.data(), p.dk = dkv_m.data();
+    p.dv = dkv_m.data() + (long long)h * d;
     auto strides = [&](long long* s, int rows) { s[0] = (long long)rows * row, s[1] = d, s[2] = row; };
     strides(p.qs, lq), strides(p.ks, lk), strides(p.vs, lk), strides(p.os, lq);
+    auto merged = [&](long long* s, int rows, int heads) { s[0] = (long long)rows * heads * d, s[1] = d, s[2] = heads * d; };
+    merged(p.outs, lq, h), merged(p.dqs, lq, h), merged(p.dks, lk, 2 * h), merged(p.dvs, lk, 2 * h);
     // The log-sum-exp and delta contiguous [b, h, lq].
     p.ls[0] = p.es[0] = (long long)h * lq, p.ls[1] = p.es[1] = lq, p.ls[2] = p.es[2] = 1;
     p.heads = h, p.lq = lq, p.lk = lk, p.off = off, p.causal = causal, p.scale = (float)scale, p.count = b * h;
@@ -314,6 +319,18 @@ static double run_case(int b, int h, int lq, int lk, int d, bool causal, bool bf
     launch(fw, p, (lq + rows - 1) / rows, b * h + 1, warps);
     launch(kv, p, (lk + rows - 1) / rows, b * h + 1, warps);
     launch(qk, p, (lq + rows - 1) / rows, b * h + 1, warps);
+    // Back to `[b, h, rows, d]`, as the reference lies.
+    auto unmerge = [&](const float* m, int rows, int heads) {
+        std::vector<float> x((size_t)b * h * rows * d);
+        for (int bi = 0; bi < b; bi++)
+            for (int hi = 0; hi < h; hi++)
+                for (int r = 0; r < rows; r++)
+                    for (int c = 0; c < d; c++)
+                        x[(((size_t)bi * h + hi) * rows + r) * d + c] = m[(((size_t)bi * rows + r) * heads + hi) * d + c];
+        return x;
+    };
+    std::vector<float> o_k = unmerge(o_m.data(), lq, h), dq_k = unmerge(dq_m.data(), lq, h);
+    std::vector<float> dk_k = unmerge(dkv_m.data(), lk, 2 * h), dv_k = unmerge(dkv_m.data() + (size_t)h * d, lk, 2 * h);
     auto err = [](const std::vector<double>& r, const std::vector<float>& x) {
         double worst = 0, scale = 0;
         for (size_t i = 0; i < r.size(); i++) {

@@ -37,7 +37,9 @@ DEV int at_tile(int row, int col) {
 #define LN2 0.6931471805599453f
 
 // Everything a pass reads and writes. Strides are in elements: (batch, head, row); the head dimension is
-// contiguous. Results are contiguous f32: `[b, h, rows, D]`, and `[b, h, lq]` for the log-sum-exp.
+// contiguous. Results are f32: out, dq, dk and dv at their strides (`outs`, `dqs`, `dks`, `dvs`; the
+// caller lays them out merged, `[b, rows, h·D]`, as the next product reads them), the log-sum-exp
+// contiguous `[b, h, lq]`.
 struct Params {
     const void* q;
     const void* k;
@@ -51,6 +53,7 @@ struct Params {
     float* dk;
     float* dv;
     long long qs[3], ks[3], vs[3], os[3], ls[3], es[3];
+    long long outs[3], dqs[3], dks[3], dvs[3];
     int heads, lq, lk, off, causal;
     float scale;
     // Heads in all (batch × heads): the grid may hold more blocks than that.
@@ -400,9 +403,10 @@ DEV void both_times(float (*acc)[4], const float (*p)[4], const u16* tile, float
     times<D, NT>(acc2, p2, tile2);
 }
 
-// Rows (this warp's 16) of an accumulator (16 × D) into a contiguous f32 result, times `scale`.
+// Rows (this warp's 16) of an accumulator (16 × D) into an f32 result whose rows are `stride` apart,
+// times `scale`.
 template <int D>
-DEV void store_rows(float* dst, const float (*acc)[4], int row0, int rows, float scale) {
+DEV void store_rows(float* dst, long long stride, const float (*acc)[4], int row0, int rows, float scale) {
     int l = lane_id(), g = l >> 2, t = l & 3;
 #pragma unroll
     for (int half = 0; half < 2; half++) {
@@ -410,7 +414,7 @@ DEV void store_rows(float* dst, const float (*acc)[4], int row0, int rows, float
         if (row >= rows) continue;
 #pragma unroll
         for (int n = 0; n < D / 8; n++) {
-            float* p = dst + (long long)row * D + 8 * n + 2 * t;
+            float* p = dst + row * stride + 8 * n + 2 * t;
             p[0] = acc[n][2 * half] * scale;
             p[1] = acc[n][2 * half + 1] * scale;
         }

@@ -9,7 +9,7 @@
 
 use crate::attention::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
 use crate::config::Precision;
-use crate::flash::FusedAttention;
+use crate::flash::{FusedAttention, merge_kv};
 use crate::gelu::{FusedGelu, inner_backward, inner_forward};
 use crate::layers::{merge_heads, split_heads};
 use crate::matmul::{NamedMatmul, product};
@@ -181,7 +181,7 @@ fn attend<I: LayerBackend>(
     }
 }
 
-/// [`attend`]'s gradients of `q`, `k` and `v`.
+/// [`attend`]'s gradients of `q` and of `k` and `v` as one `[b, lk, 2·h·d]` (the kv product's layout).
 #[allow(clippy::too_many_arguments)]
 fn attend_grad<I: LayerBackend>(
     q: Tensor<I, 4>,
@@ -191,12 +191,13 @@ fn attend_grad<I: LayerBackend>(
     lse: Tensor<I, 4>,
     dout: Tensor<I, 4>,
     s: Setting,
-) -> (Tensor<I, 4>, Tensor<I, 4>, Tensor<I, 4>) {
+) -> (Tensor<I, 4>, Tensor<I, 3>) {
     let lq = q.dims()[2];
     if k.dims()[2] >= MIN_TILED_KEYS {
-        I::attention_backward(q, k, v, out, lse, dout, s.causal, s.precision.attention())
+        I::attention_backward_kv(q, k, v, out, lse, dout, s.causal, s.precision.attention())
     } else {
-        tiled_backward(q, k, v, out, lse, dout, s.causal, lq, s.precision.attention())
+        let (dq, dk, dv) = tiled_backward(q, k, v, out, lse, dout, s.causal, lq, s.precision.attention());
+        (dq, merge_kv(dk, dv))
     }
 }
 
@@ -275,8 +276,7 @@ pub fn backward<I: LayerBackend>(
     let d_proj = drop(&masks.attn, dx1.clone());
     let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p);
     let d_att = split_heads(d_merged, s.heads);
-    let (dq, dk, dv) = attend_grad(f.q, f.k, f.v, f.att, f.lse, d_att, s);
-    let dkv = Tensor::cat(vec![merge_heads(dk), merge_heads(dv)], 2);
+    let (dq, dkv) = attend_grad(f.q, f.k, f.v, f.att, f.lse, d_att, s);
     let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, merge_heads(dq), p);
     let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p);
     let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv);
