@@ -111,8 +111,9 @@ impl<B: Backend> MultiHead<B> {
     /// training backends' [`crate::temporal`] operation: the products run on the rows as they lie.
     fn over_time(&self, x: Tensor<B, 4>, op: crate::temporal::OverTime<B>) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
-        let rows = x.reshape([b, t * n, d]);
         let p = self.precision;
+        // Cast once for both products (each would cast its own copy).
+        let rows = crate::precision::operand(x.reshape([b, t * n, d]), p);
         let q = linear(&self.q, rows.clone(), p).reshape([b, t, n, d]);
         let kv = linear(&self.kv, rows, p).reshape([b, t, n, 2 * d]);
         let y = op(q, kv, self.heads, true, p);
@@ -204,25 +205,35 @@ impl<B: Backend> SelfBlock<B> {
     /// (`recompute.rs`) a training backend keeps only `x` for the backward pass.
     pub fn forward(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
         match crate::recompute::recomputed_for::<B>() {
-            Some(layer) => layer(self, x, causal),
+            Some(layer) => layer(self, x, causal, None),
             None => self.forward_autodiff(x, causal),
         }
     }
 
     /// The causal layer over time of `x` `[b, t, n, d]`: each of the `n` positions attends over its own
-    /// `t` frames. Training backends without recomputation run [`crate::temporal`]'s operation on the rows
-    /// as they lie; the others group the frames of each position (`[b · n, t, d]`, a transposition each
-    /// way) for [`Self::forward`].
+    /// `t` frames. Training backends run [`crate::temporal`]'s operation on the rows as they lie, recomputed
+    /// (`recompute.rs`) or not; the others group the frames of each position (`[b · n, t, d]`, a
+    /// transposition each way) for [`Self::forward_autodiff`].
     pub fn forward_over_time(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
+        match crate::recompute::recomputed_for::<B>() {
+            Some(layer) => layer(self, x.reshape([b, t * n, d]), true, Some((t, n))).reshape([b, t, n, d]),
+            None => self.over_time_autodiff(x),
+        }
+    }
+
+    /// [`Self::forward_over_time`] through burn's autodiff (and [`crate::temporal`]'s operation where the
+    /// backend has it).
+    pub(crate) fn over_time_autodiff(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+        let [b, t, n, d] = x.dims();
         match crate::temporal::over_time_for::<B>() {
-            Some(op) if crate::recompute::recomputed_for::<B>().is_none() => {
+            Some(op) => {
                 let n1 = crate::norm::layer_norm(&self.ln1, x.clone());
                 let x = x + self.attn.over_time(n1, op);
                 x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
             }
-            _ => self
-                .forward(x.swap_dims(1, 2).reshape([b * n, t, d]), true)
+            None => self
+                .forward_autodiff(x.swap_dims(1, 2).reshape([b * n, t, d]), true)
                 .reshape([b, n, t, d])
                 .swap_dims(1, 2),
         }
@@ -230,7 +241,8 @@ impl<B: Backend> SelfBlock<B> {
 
     /// [`Self::forward`] through burn's operations (and their autodiff, on training backends).
     pub(crate) fn forward_autodiff(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
-        let n = crate::norm::layer_norm(&self.ln1, x.clone());
+        // Cast once for the queries' and the keys' and values' products (each would cast its own copy).
+        let n = crate::precision::operand(crate::norm::layer_norm(&self.ln1, x.clone()), self.attn.precision);
         let x = x + self.attn.forward(n.clone(), n, None, causal);
         x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
     }

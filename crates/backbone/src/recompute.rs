@@ -70,8 +70,9 @@ pub fn scoped<R>(on: bool, f: impl FnOnce() -> R) -> R {
     out
 }
 
-/// A self-attention layer applied to `x` (`causal` or not).
-pub(crate) type LayerFn<B> = fn(&SelfBlock<B>, Tensor<B, 3>, bool) -> Tensor<B, 3>;
+/// A self-attention layer applied to `x` `[b, l, d]` (`causal` or not); with `Some((t, n))` a TAR temporal
+/// layer on `l = t · n` rows, each position attending over its own `t` frames (`math::Setting::over_time`).
+pub(crate) type LayerFn<B> = fn(&SelfBlock<B>, Tensor<B, 3>, bool, Option<(usize, usize)>) -> Tensor<B, 3>;
 
 /// The recomputing layer as a function on `B`, when recomputation is on and `B` is an autodiff backend this
 /// workspace trains on; `None` otherwise.
@@ -193,11 +194,20 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
     blk: &SelfBlock<Autodiff<I, C>>,
     x: Tensor<Autodiff<I, C>, 3>,
     causal: bool,
+    over_time: Option<(usize, usize)>,
 ) -> Tensor<Autodiff<I, C>, 3> {
     let parts = blk.parts();
     let x = x.into_primitive().tensor();
     let Some((weights, tracked)) = weights(&parts) else {
-        return blk.forward_autodiff(float(x), causal);
+        let x = float::<Autodiff<I, C>, 3>(x);
+        return match over_time {
+            Some((t, n)) => {
+                let [b, _, d] = x.dims();
+                blk.over_time_autodiff(x.reshape([b, t, n, d]))
+                    .reshape([b, t * n, d])
+            }
+            None => blk.forward_autodiff(x, causal),
+        };
     };
     let parents = std::array::from_fn(|i| match i {
         0 => x.node.clone(),
@@ -208,6 +218,7 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         causal,
         precision: parts.precision,
         eps: crate::norm::LN_EPS,
+        over_time,
     };
     RUN.fetch_add(1, Ordering::Relaxed);
     let xi = float::<I, 3>(x.primitive);

@@ -15,12 +15,13 @@ use crate::layers::{merge_heads, split_heads};
 use crate::matmul::{NamedMatmul, product};
 use crate::norm::FusedNorm;
 use crate::precision::operand;
+use crate::temporal::TemporalAttention;
 use burn::tensor::{Bool, Tensor, TensorPrimitive};
 
-/// What both passes need from the inner backend: the attention, matmul, layer-norm and bias + GELU
-/// kernels.
-pub trait LayerBackend: FusedAttention + NamedMatmul + FusedNorm + FusedGelu {}
-impl<B: FusedAttention + NamedMatmul + FusedNorm + FusedGelu> LayerBackend for B {}
+/// What both passes need from the inner backend: the attention (over positions and over time), matmul,
+/// layer-norm and bias + GELU kernels.
+pub trait LayerBackend: FusedAttention + TemporalAttention + NamedMatmul + FusedNorm + FusedGelu {}
+impl<B: FusedAttention + TemporalAttention + NamedMatmul + FusedNorm + FusedGelu> LayerBackend for B {}
 
 /// A layer norm's scale and shift.
 #[derive(Debug, Clone)]
@@ -59,6 +60,10 @@ pub struct Setting {
     pub precision: Precision,
     /// Layer norms' ε (burn's default, which `layers.rs` builds with).
     pub eps: f64,
+    /// `Some((t, n))` for a TAR temporal layer on the rows as they lie: the input `[b, t · n, d]` is `t`
+    /// frames of `n` positions, and each position attends over its own frames (`crate::temporal`'s
+    /// kernels, as the layer without recomputation runs them) instead of the rows over each other.
+    pub over_time: Option<(usize, usize)>,
 }
 
 /// A dropout keep-mask (true = kept) and the scale of kept values, `1 / (1 − p)`.
@@ -84,11 +89,7 @@ struct Saved<I: LayerBackend> {
     x: Tensor<I, 3>,
     stats1: Stats<I>,
     n1: Tensor<I, 3>,
-    q: Tensor<I, 4>,
-    k: Tensor<I, 4>,
-    v: Tensor<I, 4>,
-    att: Tensor<I, 4>,
-    lse: Tensor<I, 4>,
+    attn: Attn<I>,
     merged: Tensor<I, 3>,
     x1: Tensor<I, 3>,
     stats2: Stats<I>,
@@ -96,6 +97,16 @@ struct Saved<I: LayerBackend> {
     /// The MLP's first product, without its bias (what the bias + GELU's backward pass reads).
     hidden: Tensor<I, 2>,
     act: Tensor<I, 3>,
+}
+
+/// What the attention's backward pass reads.
+enum Attn<I: LayerBackend> {
+    /// The rows over each other: queries, keys and values split into heads (in the attention's format), the
+    /// output and the log-sum-exp.
+    Rows([Tensor<I, 4>; 5]),
+    /// Each position over its own frames: queries `[b, t, n, d]`, keys and values `[b, t, n, 2d]`, the
+    /// output and the log-sum-exp.
+    OverTime([Tensor<I, 4>; 4]),
 }
 
 /// A layer norm's row means and `1/√(var + ε)`, `[rows]`.
@@ -211,17 +222,34 @@ fn run<I: LayerBackend>(
     x: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Saved<I>) {
     let p = s.precision;
+    // The normalised inputs and the merged attention output feed products only: cast once here, not by
+    // each product (the forward pass's two, the recomputation's two and the weight gradients').
     let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps);
-    let pa = p.attention();
-    let q = operand(split_heads(linear(n1.clone(), &w.q, p), s.heads), pa);
+    let n1 = operand(n1, p);
+    let q = linear(n1.clone(), &w.q, p);
     let kv = linear(n1.clone(), &w.kv, p);
-    let d = kv.dims()[2] / 2;
-    let k = operand(split_heads(kv.clone().narrow(2, 0, d), s.heads), pa);
-    let v = operand(split_heads(kv.narrow(2, d, d), s.heads), pa);
-    let (att, lse) = attend(q.clone(), k.clone(), v.clone(), s);
-    let merged = merge_heads(att.clone());
+    let [b, len, d] = q.dims();
+    let (attn, merged) = match s.over_time {
+        None => {
+            let pa = p.attention();
+            let q = operand(split_heads(q, s.heads), pa);
+            let k = operand(split_heads(kv.clone().narrow(2, 0, d), s.heads), pa);
+            let v = operand(split_heads(kv.narrow(2, d, d), s.heads), pa);
+            let (att, lse) = attend(q.clone(), k.clone(), v.clone(), s);
+            let merged = merge_heads(att.clone());
+            (Attn::Rows([q, k, v, att, lse]), merged)
+        }
+        Some((t, n)) => {
+            let (q, kv) = (q.reshape([b, t, n, d]), kv.reshape([b, t, n, 2 * d]));
+            let (att, lse) = I::temporal_forward(q.clone(), kv.clone(), s.heads, s.causal, p);
+            let merged = att.clone().reshape([b, len, d]);
+            (Attn::OverTime([q, kv, att, lse]), merged)
+        }
+    };
+    let merged = operand(merged, p);
     let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
     let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps);
+    let n2 = operand(n2, p);
     let hidden = unbiased(n2.clone(), &w.fc, p);
     let [b, len, _] = n2.dims();
     let act = inner_forward(hidden.clone(), w.fc.b.clone(), p).reshape([b, len, hidden.dims()[1]]);
@@ -229,11 +257,7 @@ fn run<I: LayerBackend>(
         x,
         stats1,
         n1,
-        q,
-        k,
-        v,
-        att,
-        lse,
+        attn,
         merged,
         x1: x1.clone(),
         stats2,
@@ -275,9 +299,20 @@ pub fn backward<I: LayerBackend>(
     let dx1 = dy + dx1_norm;
     let d_proj = drop(&masks.attn, dx1.clone());
     let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p);
-    let d_att = split_heads(d_merged, s.heads);
-    let (dq, dkv) = attend_grad(f.q, f.k, f.v, f.att, f.lse, d_att, s);
-    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, merge_heads(dq), p);
+    let (dq, dkv) = match f.attn {
+        Attn::Rows([q, k, v, att, lse]) => {
+            let (dq, dkv) = attend_grad(q, k, v, att, lse, split_heads(d_merged, s.heads), s);
+            (merge_heads(dq), dkv)
+        }
+        Attn::OverTime([q, kv, att, lse]) => {
+            let [b, t, n, d] = q.dims();
+            let saved = I::KEEPS_FORWARD.then_some((att, lse));
+            let dout = d_merged.reshape([b, t, n, d]);
+            let (dq, dkv) = I::temporal_backward(q, kv, saved, dout, s.heads, s.causal, p);
+            (dq.reshape([b, t * n, d]), dkv.reshape([b, t * n, 2 * d]))
+        }
+    };
+    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p);
     let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p);
     let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv);
     let dx = dx1 + dx_norm;

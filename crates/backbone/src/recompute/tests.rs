@@ -74,7 +74,7 @@ fn check(len: usize, causal: bool, precision: Precision, tol: f32) {
     let r = Tensor::<Flex, 3>::random([2, len, 32], Distribution::Normal(0.0, 1.0), &dev);
     let (y0, dx0, dp0) = run(&blk, &x, &r, |b, x| b.forward_autodiff(x, causal));
     let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
-        recomputed::<Flex, NoCheckpointing>(b, x, causal)
+        recomputed::<Flex, NoCheckpointing>(b, x, causal, None)
     });
     let case = format!("len {len}, causal {causal}, {precision:?}");
     assert!(rel(y1, y0) < tol, "output, {case}");
@@ -92,6 +92,36 @@ fn recomputed_layer_matches_autodiff_in_f32() {
     check(300, true, Precision::F32, 1e-4);
     check(300, false, Precision::F32, 1e-4);
     check(40, true, Precision::F32, 1e-4);
+}
+
+/// A TAR temporal layer (`t` frames of `n` positions, each position over its own frames) recomputed against
+/// the same layer through burn's autodiff and the attention-over-time operation.
+fn check_over_time(t: usize, n: usize, precision: Precision, tol: f32) {
+    let dev = Default::default();
+    let blk = layer(32, 4, 0.0, precision);
+    let x = Tensor::<Flex, 3>::random([2, t * n, 32], Distribution::Normal(0.0, 1.0), &dev);
+    let r = Tensor::<Flex, 3>::random([2, t * n, 32], Distribution::Normal(0.0, 1.0), &dev);
+    let (y0, dx0, dp0) = run(&blk, &x, &r, |b, x| {
+        b.over_time_autodiff(x.reshape([2, t, n, 32]))
+            .reshape([2, t * n, 32])
+    });
+    let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
+        recomputed::<Flex, NoCheckpointing>(b, x, true, Some((t, n)))
+    });
+    let case = format!("{t} frames of {n}, {precision:?}");
+    assert!(rel(y1, y0) < tol, "output, {case}");
+    assert!(rel(dx1, dx0) < tol, "input gradient, {case}");
+    assert_eq!(dp0.len(), 14);
+    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
+        let e = rel(a, b);
+        assert!(e < tol, "parameter {i}: relative error {e}, {case}");
+    }
+}
+
+#[test]
+fn recomputed_layer_over_time_matches_autodiff() {
+    check_over_time(5, 7, Precision::F32, 1e-4);
+    check_over_time(3, 11, Precision::Bf16, 2e-2);
 }
 
 #[test]
@@ -148,6 +178,7 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
         causal: false,
         precision: Precision::F32,
         eps: crate::norm::LN_EPS,
+        over_time: None,
     };
     let y1 = math::forward(&weights, setting, &masks, x.clone());
     let (dx1, dp1) = math::backward(&weights, setting, &masks, x, r);
