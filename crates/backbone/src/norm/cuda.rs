@@ -1,12 +1,14 @@
 //! [`FusedNorm`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
-//! fusion stream that launches `norm.cu`'s kernels (compiled with NVRTC) on cubecl's stream, or on a side
-//! stream ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]), unless `train.norm =
+//! fusion stream that launches `norm.cu`'s kernels (compiled with NVRTC) on cubecl's stream with their
+//! buffers bound to the launch (so the training thread queues them without waiting), or on a side stream
+//! ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]), unless `train.norm =
 //! "burn"` ([`super::select`]). Rows wider than 1,024, other types than f32, or a failure to compile or
 //! launch run the decomposition instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
 use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
 use crate::attention::float;
+use crate::kernel_stream::{self, KernelStream};
 use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
 use burn::backend::Cuda;
 use burn::tensor::ops::FloatTensor;
@@ -25,6 +27,18 @@ const WARPS: usize = 8;
 /// Blocks of the backward kernel: each warp loops over rows and writes one row of column sums, so this
 /// bounds the sums the caller adds (8,192 rows of `d`) while filling an H100 (132 SMs) in one wave.
 const BACKWARD_BLOCKS: usize = 1024;
+
+/// `NormSizes` of `norm.cu`, field for field.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+struct Sizes {
+    rows: i64,
+    d: i32,
+    eps: f32,
+}
+
+// SAFETY: plain old data, laid out as the C struct the kernels take by value.
+unsafe impl DeviceRepr for Sizes {}
 
 /// `NormParams` of `norm.cu`, field for field.
 #[repr(C)]
@@ -150,19 +164,17 @@ impl side::SidePass for Pass {
         match *self {
             Pass::Forward { eps } => {
                 let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, desc);
-                side::on_device_thread(&x, || launch(&x, &gamma, Some(&beta), None, eps)).unwrap_or_else(
-                    |why| {
-                        fell_back(&why);
-                        let (y, mean, rstd) =
-                            forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
-                        vec![side::inner(y), side::inner(mean), side::inner(rstd)]
-                    },
-                )
+                dispatch(&x, || launch(&x, &gamma, Some(&beta), None, eps)).unwrap_or_else(|why| {
+                    fell_back(&why);
+                    let (y, mean, rstd) =
+                        forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
+                    vec![side::inner(y), side::inner(mean), side::inner(rstd)]
+                })
             }
             Pass::Backward => {
                 let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
-                side::on_device_thread(&x, || launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0))
-                    .unwrap_or_else(|why| {
+                dispatch(&x, || launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0)).unwrap_or_else(
+                    |why| {
                         fell_back(&why);
                         let warps = backward_warps(x.meta.shape()[0]);
                         let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
@@ -179,7 +191,8 @@ impl side::SidePass for Pass {
                             side::inner(Tensor::cat(vec![t.reshape([1, d]), zeros], 0))
                         };
                         vec![side::inner(dx), rows(dgamma), rows(dbeta)]
-                    })
+                    },
+                )
             }
         }
     }
@@ -209,6 +222,20 @@ fn source() -> Result<String, String> {
     Ok(side::kernel_source(include_str!("norm.cu")))
 }
 
+/// Runs `work` (a [`launch`]) on this thread where the kernels are launched with their buffers bound
+/// (cubecl's stream: no device pointers to fetch), else on cubecl's device thread
+/// ([`side::on_device_thread`]).
+fn dispatch(
+    like: &Primitive,
+    work: impl FnOnce() -> Result<Vec<Primitive>, String> + Send,
+) -> Result<Vec<Primitive>, String> {
+    if kernel_stream::selected() == KernelStream::Cubecl {
+        work()
+    } else {
+        side::on_device_thread(like, work)
+    }
+}
+
 /// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y, mean, rstd) or the
 /// backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
 /// error says why it could not (no result was written that the caller keeps, so it may run the
@@ -230,6 +257,14 @@ fn launch(
     let (rows, d) = (shape[0], shape[1]);
     let per = per_lane(d).ok_or_else(|| format!("rows of {d}"))?;
     let int = |v: usize, what: &str| i32::try_from(v).map_err(|_| format!("{what} {v}"));
+    if kernel_stream::selected() == KernelStream::Cubecl {
+        let sizes = Sizes {
+            rows: i64::try_from(rows).map_err(|_| format!("{rows} rows"))?,
+            d: int(d, "width")?,
+            eps,
+        };
+        return launch_bound(x, gamma, beta, grads, per, sizes);
+    }
     let mut p = Params {
         rows: i64::try_from(rows).map_err(|_| format!("{rows} rows"))?,
         d: int(d, "width")?,
@@ -278,5 +313,57 @@ fn launch(
         )
     }?;
     drop(keep);
+    Ok(results)
+}
+
+/// [`launch`] on cubecl's stream with the buffers bound to the launch (`NORM_BOUND_KERNELS`): cubecl resolves
+/// them as it launches, so this thread neither fetches pointers nor waits for cubecl's device thread.
+fn launch_bound(
+    x: &Primitive,
+    gamma: &Primitive,
+    beta: Option<&Primitive>,
+    grads: Option<[&Primitive; 3]>,
+    per: usize,
+    sizes: Sizes,
+) -> Result<Vec<Primitive>, String> {
+    let rows = x.meta.shape()[0];
+    let d = x.meta.shape()[1];
+    let bind = |t: &Primitive| t.handle.clone().binding();
+    let (results, buffers, pass, blocks) = match (beta, grads) {
+        (Some(beta), None) => {
+            let results = vec![
+                empty_f32(x, vec![rows, d]),
+                empty_f32(x, vec![rows]),
+                empty_f32(x, vec![rows]),
+            ];
+            let buffers = [x, gamma, beta].into_iter().chain(&results).map(bind).collect();
+            (results, buffers, "forward", rows.div_ceil(WARPS))
+        }
+        (None, Some([dy, mean, rstd])) => {
+            let warps = backward_warps(rows);
+            let results = vec![
+                empty_f32(x, vec![rows, d]),
+                empty_f32(x, vec![warps, d]),
+                empty_f32(x, vec![warps, d]),
+            ];
+            let inputs = [dy, x, mean, rstd, gamma];
+            let buffers = inputs.into_iter().chain(&results).map(bind).collect();
+            (results, buffers, "backward", warps / WARPS)
+        }
+        _ => return Err("a pass takes β (forward) or the gradients (backward)".into()),
+    };
+    let blocks = u32::try_from(blocks).map_err(|_| format!("{blocks} blocks"))?;
+    // SAFETY: every buffer is bound (cubecl keeps it alive for the launch), contiguous and of the shape the
+    // kernel reads or writes (`rows × d`, `rows`, `d`, or one row per warp of the grid).
+    unsafe {
+        side::launch_bound_on_cubecl(
+            x,
+            &format!("umgen_norm_{pass}_bound_{per}"),
+            (&format!("NORM_BOUND_KERNELS({per})"), &source),
+            ((blocks, 1, 1), 32 * WARPS as u32),
+            buffers,
+            &sizes,
+        )
+    }?;
     Ok(results)
 }

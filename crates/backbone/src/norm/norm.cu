@@ -119,6 +119,28 @@ DEV void norm_backward(const NormParams& p) {
 #define NORM_KERNELS(PER)                                                          \
     KERNEL umgen_norm_forward_##PER(NormParams p) { norm_forward<PER>(p); }        \
     KERNEL umgen_norm_backward_##PER(NormParams p) { norm_backward<PER>(p); }
+
+// The sizes the bound entry points take after their buffers (`Sizes` in `norm/cuda.rs`, field for field).
+struct NormSizes {
+    long long rows;
+    int d;
+    float eps;
+};
+
+// The same passes with their buffers as parameters, which cubecl binds as it launches (`norm/cuda.rs`): the
+// host then needs no device pointers, so it makes no call to cubecl's device thread and does not wait.
+#define NORM_BOUND_KERNELS(PER)                                                                             \
+    KERNEL umgen_norm_forward_bound_##PER(const float* x, const float* gamma, const float* beta, float* y,  \
+                                          float* mean, float* rstd, NormSizes s) {                          \
+        norm_forward<PER>(NormParams{x, gamma, beta, nullptr, nullptr, nullptr, y, mean, rstd, nullptr,     \
+                                     nullptr, nullptr, s.rows, s.d, s.eps});                                \
+    }                                                                                                       \
+    KERNEL umgen_norm_backward_bound_##PER(const float* dy, const float* x, const float* mean,              \
+                                           const float* rstd, const float* gamma, float* dx, float* dgamma, \
+                                           float* dbeta, NormSizes s) {                                     \
+        norm_backward<PER>(NormParams{x, gamma, nullptr, dy, mean, rstd, nullptr, nullptr, nullptr, dx,     \
+                                      dgamma, dbeta, s.rows, s.d, s.eps});                                  \
+    }
 // One family only where `UMGEN_INSTANCE` says which (kernels launched on cubecl's stream, `side/cubecl_stream.rs`).
 #ifdef UMGEN_INSTANCE
 UMGEN_INSTANCE
