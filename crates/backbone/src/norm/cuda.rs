@@ -278,22 +278,14 @@ fn launch(
     let (results, name, blocks) = match (beta, grads) {
         (Some(beta), None) => {
             p.beta = ptr(beta)?;
-            let results = vec![
-                empty_f32(x, vec![rows, d]),
-                empty_f32(x, vec![rows]),
-                empty_f32(x, vec![rows]),
-            ];
+            let results = results(x, false);
             (p.y, p.mean_out, p.rstd_out) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
             (results, format!("umgen_norm_forward_{per}"), rows.div_ceil(WARPS))
         }
         (None, Some([dy, mean, rstd])) => {
             (p.dy, p.mean, p.rstd) = (ptr(dy)?, ptr(mean)?, ptr(rstd)?);
             let warps = backward_warps(rows);
-            let results = vec![
-                empty_f32(x, vec![rows, d]),
-                empty_f32(x, vec![warps, d]),
-                empty_f32(x, vec![warps, d]),
-            ];
+            let results = results(x, true);
             (p.dx, p.dgamma, p.dbeta) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
             (results, format!("umgen_norm_backward_{per}"), warps / WARPS)
         }
@@ -327,25 +319,16 @@ fn launch_bound(
     sizes: Sizes,
 ) -> Result<Vec<Primitive>, String> {
     let rows = x.meta.shape()[0];
-    let d = x.meta.shape()[1];
     let bind = |t: &Primitive| t.handle.clone().binding();
     let (results, buffers, pass, blocks) = match (beta, grads) {
         (Some(beta), None) => {
-            let results = vec![
-                empty_f32(x, vec![rows, d]),
-                empty_f32(x, vec![rows]),
-                empty_f32(x, vec![rows]),
-            ];
+            let results = results(x, false);
             let buffers = [x, gamma, beta].into_iter().chain(&results).map(bind).collect();
             (results, buffers, "forward", rows.div_ceil(WARPS))
         }
         (None, Some([dy, mean, rstd])) => {
             let warps = backward_warps(rows);
-            let results = vec![
-                empty_f32(x, vec![rows, d]),
-                empty_f32(x, vec![warps, d]),
-                empty_f32(x, vec![warps, d]),
-            ];
+            let results = results(x, true);
             let inputs = [dy, x, mean, rstd, gamma];
             let buffers = inputs.into_iter().chain(&results).map(bind).collect();
             (results, buffers, "backward", warps / WARPS)
@@ -366,4 +349,20 @@ fn launch_bound(
         )
     }?;
     Ok(results)
+}
+
+/// The results of a pass over `x` `[rows, d]`, packed: y, the rows' means and `1/σ` (forward), or dx and
+/// one row of column sums per warp of the grid for the scale and the shift (`backward`).
+fn results(x: &Primitive, backward: bool) -> Vec<Primitive> {
+    let (rows, d) = (x.meta.shape()[0], x.meta.shape()[1]);
+    let stats = if backward {
+        vec![backward_warps(rows), d]
+    } else {
+        vec![rows]
+    };
+    vec![
+        empty_f32(x, vec![rows, d]),
+        empty_f32(x, stats.clone()),
+        empty_f32(x, stats),
+    ]
 }

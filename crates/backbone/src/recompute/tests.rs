@@ -60,11 +60,25 @@ fn run(
     x: &Tensor<Flex, 3>,
     r: &Tensor<Flex, 3>,
     f: impl Fn(&SelfBlock<A>, Tensor<A, 3>) -> Tensor<A, 3>,
-) -> (Tensor<Flex, 3>, Tensor<Flex, 3>, Vec<Tensor<Flex, 1>>) {
+) -> Ran {
     let x = Tensor::<A, 3>::from_inner(x.clone()).require_grad();
     let y = f(blk, x.clone());
     let grads = (y.clone() * Tensor::from_inner(r.clone())).sum().backward();
     (y.inner(), x.grad(&grads).unwrap(), param_grads(blk, &grads))
+}
+
+/// What [`run`] returns.
+type Ran = (Tensor<Flex, 3>, Tensor<Flex, 3>, Vec<Tensor<Flex, 1>>);
+
+/// The output, the input gradient and the 14 parameter gradients of `ours` within `tol` of `theirs`.
+fn agree((y1, dx1, dp1): Ran, (y0, dx0, dp0): Ran, tol: f32, case: &str) {
+    assert!(rel(y1, y0) < tol, "output, {case}");
+    assert!(rel(dx1, dx0) < tol, "input gradient, {case}");
+    assert_eq!(dp0.len(), 14);
+    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
+        let e = rel(a, b);
+        assert!(e < tol, "parameter {i}: relative error {e}, {case}");
+    }
 }
 
 fn check(len: usize, causal: bool, precision: Precision, tol: f32) {
@@ -76,14 +90,12 @@ fn check(len: usize, causal: bool, precision: Precision, tol: f32) {
     let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
         recomputed::<Flex, NoCheckpointing>(b, x, causal, None)
     });
-    let case = format!("len {len}, causal {causal}, {precision:?}");
-    assert!(rel(y1, y0) < tol, "output, {case}");
-    assert!(rel(dx1, dx0) < tol, "input gradient, {case}");
-    assert_eq!(dp0.len(), 14);
-    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
-        let e = rel(a, b);
-        assert!(e < tol, "parameter {i}: relative error {e}, {case}");
-    }
+    agree(
+        (y1, dx1, dp1),
+        (y0, dx0, dp0),
+        tol,
+        &format!("len {len}, causal {causal}, {precision:?}"),
+    );
 }
 
 #[test]
@@ -108,14 +120,12 @@ fn check_over_time(t: usize, n: usize, precision: Precision, tol: f32) {
     let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
         recomputed::<Flex, NoCheckpointing>(b, x, true, Some((t, n)))
     });
-    let case = format!("{t} frames of {n}, {precision:?}");
-    assert!(rel(y1, y0) < tol, "output, {case}");
-    assert!(rel(dx1, dx0) < tol, "input gradient, {case}");
-    assert_eq!(dp0.len(), 14);
-    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
-        let e = rel(a, b);
-        assert!(e < tol, "parameter {i}: relative error {e}, {case}");
-    }
+    agree(
+        (y1, dx1, dp1),
+        (y0, dx0, dp0),
+        tol,
+        &format!("{t} frames of {n}, {precision:?}"),
+    );
 }
 
 #[test]
