@@ -223,9 +223,9 @@ pub(super) fn launch(
     let mut ptr = |t: &Primitive| keep.of(t);
     (p.q, p.k, p.v) = (ptr(q)?, ptr(k)?, ptr(v)?);
     let dtype = if q.dtype == DType::BF16 { "bf16" } else { "f32" };
-    // The results, each kernel's name and the rows its grid covers.
     // The strides (batch, head, row) of a result merged as `[b, rows, heads·d]`.
     let merged = |rows: usize, heads: usize| [(rows * heads * d) as i64, d as i64, (heads * d) as i64];
+    // The results, each kernel's name and the rows its grid covers.
     let (results, launches) = match grads {
         None => {
             let out = empty_f32(q, vec![b, lq, h, d]);
