@@ -152,10 +152,7 @@ pub fn linear_gelu<B: Backend, const D: usize>(
     else {
         return gelu(linear(layer, x, p));
     };
-    let mut dims = x.dims();
-    let k = dims[D - 1];
-    dims[D - 1] = layer.weight.dims()[1];
-    let y = product(x.reshape([-1, k as i32]), layer.weight.val(), p);
+    let (y, dims) = crate::precision::product_rows(product, x, layer.weight.val(), p);
     op(y, bias.val(), activation_dtype(p)).reshape(dims)
 }
 

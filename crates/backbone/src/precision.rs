@@ -35,16 +35,29 @@ pub fn matmul<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, D>, p: P
     widen(operand(a, p).matmul(operand(b, p)), p)
 }
 
+/// `x · w` over the last axis of `x` as one `[m, k] × [k, n]` product by `product` (the named kernel, over
+/// all leading dimensions at once): the `[m, n]` rows, and the dimensions they take back (`x`'s, the last
+/// one `n`).
+pub(crate) fn product_rows<B: Backend, const D: usize>(
+    product: crate::matmul::ProductFn<B>,
+    x: Tensor<B, D>,
+    w: Tensor<B, 2>,
+    p: Precision,
+) -> (Tensor<B, 2>, [usize; D]) {
+    let mut dims = x.dims();
+    let k = dims[D - 1];
+    dims[D - 1] = w.dims()[1];
+    (product(x.reshape([-1, k as i32]), w, p), dims)
+}
+
 /// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32 ([`crate::rows::add`]). Training on CUDA runs the
 /// product on the named kernel (`matmul.rs`), as one `[m, k] × [k, n]` product over all leading dimensions.
 pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
     let w = layer.weight.val();
     let y = match (crate::matmul::named_for::<B>(), p) {
         (Some(product), _) => {
-            let mut dims = x.dims();
-            let k = dims[D - 1];
-            dims[D - 1] = w.dims()[1];
-            product(x.reshape([-1, k as i32]), w, p).reshape(dims)
+            let (y, dims) = product_rows(product, x, w, p);
+            y.reshape(dims)
         }
         // burn's layer adds the bias inside its product.
         (None, Precision::F32) => return layer.forward(x),

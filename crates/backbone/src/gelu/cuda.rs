@@ -132,11 +132,8 @@ impl side::SidePass for Pass {
                     fell_back(&why);
                     let rows = y.meta.shape()[0];
                     let (dy, db) = backward_decomposed::<Inner>(float(dh), float(y), float(b), out);
-                    // The registered shape holds one row per group: the sums in the first, zeros after.
-                    let n = db.dims()[0];
-                    let zeros = Tensor::<Inner, 2>::zeros([groups(rows) - 1, n], &db.device());
-                    let sums = Tensor::cat(vec![db.reshape([1, n]), zeros], 0);
-                    vec![side::inner(dy), side::inner(sums)]
+                    // The registered shape holds one row per group.
+                    vec![side::inner(dy), side::as_partial_sums(db, groups(rows))]
                 })
             }
         }
@@ -168,9 +165,10 @@ fn launch(
     let shape = y.meta.shape();
     let (rows, n) = (shape[0], shape[1]);
     let width = if n % 4 == 0 { 4 } else { 1 };
-    let kind = match out {
-        FloatDType::F32 => "f32",
-        FloatDType::BF16 => "bf16",
+    // The entry points' name for the output type, and its C type.
+    let (kind, element) = match out {
+        FloatDType::F32 => ("f32", "float"),
+        FloatDType::BF16 => ("bf16", "u16"),
         other => return Err(format!("{other:?} output (the kernels write f32 or bf16)")),
     };
     let family = format!("{kind}_{width}");
@@ -208,13 +206,7 @@ fn launch(
         side::launch_bound_on_cubecl(
             y,
             &name,
-            (
-                &format!(
-                    "GELU_KERNELS({family}, {width}, {})",
-                    if kind == "f32" { "float" } else { "u16" }
-                ),
-                &source,
-            ),
+            (&format!("GELU_KERNELS({family}, {width}, {element})"), &source),
             ((blocks, 1, 1), THREADS),
             buffers,
             &sizes,

@@ -164,7 +164,7 @@ impl side::SidePass for Pass {
         match *self {
             Pass::Forward { eps } => {
                 let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, desc);
-                dispatch(&x, || launch(&x, &gamma, Some(&beta), None, eps)).unwrap_or_else(|why| {
+                launch(&x, &gamma, Some(&beta), None, eps).unwrap_or_else(|why| {
                     fell_back(&why);
                     let (y, mean, rstd) =
                         forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
@@ -173,26 +173,20 @@ impl side::SidePass for Pass {
             }
             Pass::Backward => {
                 let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
-                dispatch(&x, || launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0)).unwrap_or_else(
-                    |why| {
-                        fell_back(&why);
-                        let warps = backward_warps(x.meta.shape()[0]);
-                        let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
-                            float(dy),
-                            float(x),
-                            float(mean),
-                            float(rstd),
-                            float(gamma),
-                        );
-                        // The registered shapes hold one row per warp: the sums in the first, zeros after.
-                        let rows = |t: Tensor<Inner, 1>| {
-                            let d = t.dims()[0];
-                            let zeros = Tensor::<Inner, 2>::zeros([warps - 1, d], &t.device());
-                            side::inner(Tensor::cat(vec![t.reshape([1, d]), zeros], 0))
-                        };
-                        vec![side::inner(dx), rows(dgamma), rows(dbeta)]
-                    },
-                )
+                launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0).unwrap_or_else(|why| {
+                    fell_back(&why);
+                    let warps = backward_warps(x.meta.shape()[0]);
+                    let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
+                        float(dy),
+                        float(x),
+                        float(mean),
+                        float(rstd),
+                        float(gamma),
+                    );
+                    // The registered shapes hold one row per warp.
+                    let rows = |t| side::as_partial_sums(t, warps);
+                    vec![side::inner(dx), rows(dgamma), rows(dbeta)]
+                })
             }
         }
     }
@@ -222,24 +216,12 @@ fn source() -> Result<String, String> {
     Ok(side::kernel_source(include_str!("norm.cu")))
 }
 
-/// Runs `work` (a [`launch`]) on this thread where the kernels are launched with their buffers bound
-/// (cubecl's stream: no device pointers to fetch), else on cubecl's device thread
-/// ([`side::on_device_thread`]).
-fn dispatch(
-    like: &Primitive,
-    work: impl FnOnce() -> Result<Vec<Primitive>, String> + Send,
-) -> Result<Vec<Primitive>, String> {
-    if kernel_stream::selected() == KernelStream::Cubecl {
-        work()
-    } else {
-        side::on_device_thread(like, work)
-    }
-}
-
 /// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y, mean, rstd) or the
 /// backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
 /// error says why it could not (no result was written that the caller keeps, so it may run the
-/// decomposition).
+/// decomposition). On cubecl's stream the kernels are launched from this thread with their buffers bound
+/// ([`launch_bound`]); with `train.kernel_stream = "side"` their pointers are fetched and they are launched
+/// on cubecl's device thread ([`launch_with_pointers`]).
 fn launch(
     x: &Primitive,
     gamma: &Primitive,
@@ -256,19 +238,31 @@ fn launch(
     let shape = x.meta.shape();
     let (rows, d) = (shape[0], shape[1]);
     let per = per_lane(d).ok_or_else(|| format!("rows of {d}"))?;
-    let int = |v: usize, what: &str| i32::try_from(v).map_err(|_| format!("{what} {v}"));
+    let sizes = Sizes {
+        rows: i64::try_from(rows).map_err(|_| format!("{rows} rows"))?,
+        d: i32::try_from(d).map_err(|_| format!("width {d}"))?,
+        eps,
+    };
     if kernel_stream::selected() == KernelStream::Cubecl {
-        let sizes = Sizes {
-            rows: i64::try_from(rows).map_err(|_| format!("{rows} rows"))?,
-            d: int(d, "width")?,
-            eps,
-        };
         return launch_bound(x, gamma, beta, grads, per, sizes);
     }
+    side::on_device_thread(x, || launch_with_pointers(x, gamma, beta, grads, per, sizes))
+}
+
+/// [`launch`] on the side stream: the kernel takes [`Params`], the buffers' device pointers.
+fn launch_with_pointers(
+    x: &Primitive,
+    gamma: &Primitive,
+    beta: Option<&Primitive>,
+    grads: Option<[&Primitive; 3]>,
+    per: usize,
+    sizes: Sizes,
+) -> Result<Vec<Primitive>, String> {
+    let rows = x.meta.shape()[0];
     let mut p = Params {
-        rows: i64::try_from(rows).map_err(|_| format!("{rows} rows"))?,
-        d: int(d, "width")?,
-        eps,
+        rows: sizes.rows,
+        d: sizes.d,
+        eps: sizes.eps,
         ..Params::default()
     };
     // The pointers, and what keeps the buffers alive until the launch is queued.

@@ -114,6 +114,15 @@ pub(crate) fn register_typed<P: SidePass>(
     client.register(streams, OperationIr::Custom(desc.clone()), SideOp { desc, pass })
 }
 
+/// A total `[d]` laid out as `rows` rows of partial sums `[rows, d]`, the total in the first and zeros
+/// after: the shape a kernel's per-group column sums are registered with (the layer norm's, the bias +
+/// GELU's), for a fallback that computes the total at once.
+pub(crate) fn as_partial_sums(total: burn::tensor::Tensor<Inner, 1>, rows: usize) -> Primitive {
+    let d = total.dims()[0];
+    let zeros = burn::tensor::Tensor::<Inner, 2>::zeros([rows - 1, d], &total.device());
+    inner(burn::tensor::Tensor::cat(vec![total.reshape([1, d]), zeros], 0))
+}
+
 /// An uninitialised f32 tensor of `shape` on `like`'s device, packed row-major as the kernels write it.
 /// (burn's `empty_device_dtype` pads each innermost row to an aligned pitch: a `[rows, 1028]` tensor has
 /// rows 1,088 apart, a `[.., 6]` one rows 8 apart, which a kernel indexing `row · width` would misplace.)
