@@ -122,6 +122,8 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
+        // The host's stacks over the timed steps (`UMGEN_HOST_PROFILE`).
+        let mut profile = None;
         let (mut peak, mut live) = (0u64, 0u64);
         let sync = || B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         // Timed steps first, then (with --phases) as many steps with a sync after every phase.
@@ -135,6 +137,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             };
             if i == a.warmup {
                 counts[0] = crate::device::device_thread(device);
+                profile = Some(super::host_profile::HostProfile::start()?);
             }
             let mut mark = Instant::now();
             let t0 = mark;
@@ -189,6 +192,9 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             }
             if i + 1 == a.warmup + a.steps {
                 counts[1] = crate::device::device_thread(device);
+                if let Some(p) = profile.take() {
+                    p.finish()?;
+                }
             }
             if i >= a.warmup && !split {
                 times.push(took);

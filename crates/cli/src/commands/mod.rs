@@ -22,6 +22,7 @@ mod eval_report;
 mod eval_truth;
 mod export;
 mod generate;
+mod host_profile;
 mod launch;
 mod layout;
 mod recorded;
