@@ -3,4 +3,5 @@
 
 mod custom_modality;
 mod tokenize;
+mod vendor_channel;
 mod vendor_ring;
