@@ -201,11 +201,18 @@ impl SidePass for Pass {
 }
 
 impl Pass {
-    /// Launches the kernel over `slots`, 32 at a time; the new parameters and moments, three a slot.
+    /// Launches the kernel once over `slots` (at most [`SLOTS`]: [`step`] registers one operation per launch);
+    /// the new parameters and moments, three a slot.
     fn launch(&self, slots: &[AdamWSlot<Inner>], step: &AdamWStep<Inner>) -> Result<Vec<Primitive>, String> {
         let Some(like) = slots.first().map(|s| &s.param) else {
             return Ok(Vec::new());
         };
+        if slots.len() > SLOTS {
+            return Err(format!(
+                "{} parameter tensors in one launch (at most {SLOTS})",
+                slots.len()
+            ));
+        }
         // The moments are updated where they lie when nothing else holds them (burn's own AdamW writes new
         // tensors, so the optimizer's records are the only holders); the parameters, which the module and
         // the autodiff graph may still hold, always go to new memory.
@@ -227,52 +234,49 @@ impl Pass {
             .collect();
         let (c, s) = (&step.settings, step);
         let dummy = slots[0].grad.handle.clone().binding();
-        for (chunk, (ins, outs)) in slots.chunks(SLOTS).zip(outputs.chunks(SLOTS)).enumerate() {
-            let mut p = Params {
-                count: ins.len() as u32,
-                has_scale: s.grad_scale.is_some() as u32,
-                decays: s.decay().is_some() as u32,
-                lr: s.lr as f32,
-                decay: s.decay().unwrap_or(1.0),
-                beta1: c.beta_1,
-                beta2: c.beta_2,
-                one_minus_beta1: 1.0 - c.beta_1,
-                one_minus_beta2: 1.0 - c.beta_2,
-                eps: c.epsilon,
-                first: [0; SLOTS + 1],
-                len: [0; SLOTS],
-                fresh: [0; SLOTS],
-                c1: [1.0; SLOTS],
-                c2: [1.0; SLOTS],
+        let mut p = Params {
+            count: slots.len() as u32,
+            has_scale: s.grad_scale.is_some() as u32,
+            decays: s.decay().is_some() as u32,
+            lr: s.lr as f32,
+            decay: s.decay().unwrap_or(1.0),
+            beta1: c.beta_1,
+            beta2: c.beta_2,
+            one_minus_beta1: 1.0 - c.beta_1,
+            one_minus_beta2: 1.0 - c.beta_2,
+            eps: c.epsilon,
+            first: [0; SLOTS + 1],
+            len: [0; SLOTS],
+            fresh: [0; SLOTS],
+            c1: [1.0; SLOTS],
+            c2: [1.0; SLOTS],
+        };
+        let scale = s
+            .grad_scale
+            .as_ref()
+            .map_or(dummy.clone(), |t| t.handle.clone().binding());
+        let mut buffers = vec![scale];
+        for (i, (slot, out)) in slots.iter().zip(&outputs).enumerate() {
+            let len = self.slots[i].len;
+            p.len[i] = len as u32;
+            p.first[i + 1] = p.first[i] + len.div_ceil(SPAN) as u32;
+            p.fresh[i] = slot.moments.is_none() as u32;
+            (p.c1[i], p.c2[i]) = step.corrections(slot.time);
+            let (m, v) = match &slot.moments {
+                Some((m, v)) => (m.handle.clone().binding(), v.handle.clone().binding()),
+                None => (dummy.clone(), dummy.clone()),
             };
-            let scale = s
-                .grad_scale
-                .as_ref()
-                .map_or(dummy.clone(), |t| t.handle.clone().binding());
-            let mut buffers = vec![scale];
-            for (i, (slot, out)) in ins.iter().zip(outs).enumerate() {
-                let len = self.slots[chunk * SLOTS + i].len;
-                p.len[i] = len as u32;
-                p.first[i + 1] = p.first[i] + len.div_ceil(SPAN) as u32;
-                p.fresh[i] = slot.moments.is_none() as u32;
-                (p.c1[i], p.c2[i]) = step.corrections(slot.time);
-                let (m, v) = match &slot.moments {
-                    Some((m, v)) => (m.handle.clone().binding(), v.handle.clone().binding()),
-                    None => (dummy.clone(), dummy.clone()),
-                };
-                buffers.extend([
-                    slot.param.handle.clone().binding(),
-                    slot.grad.handle.clone().binding(),
-                    m,
-                    v,
-                ]);
-                buffers.extend(out.iter().map(|t| t.handle.clone().binding()));
-            }
-            fill_slots(&mut buffers, 1, 7, SLOTS);
-            let blocks = p.first[ins.len()];
-            if blocks == 0 {
-                continue;
-            }
+            buffers.extend([
+                slot.param.handle.clone().binding(),
+                slot.grad.handle.clone().binding(),
+                m,
+                v,
+            ]);
+            buffers.extend(out.iter().map(|t| t.handle.clone().binding()));
+        }
+        fill_slots(&mut buffers, 1, 7, SLOTS);
+        let blocks = p.first[slots.len()];
+        if blocks > 0 {
             // SAFETY: every buffer is bound (cubecl keeps it alive for the launch), of `len` f32 for its slot
             // (checked by `refused`, and made contiguous when read), and the kernel reads and writes a slot's
             // buffers only below its `len`.

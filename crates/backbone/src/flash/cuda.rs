@@ -136,8 +136,7 @@ impl FusedAttention for Cuda {
         causal: bool,
         precision: Precision,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>) {
-        if selected() == AttentionKernel::Tiled || refused(&q, &k, &v).is_some() {
-            // The forward pass counted the fallback.
+        if backward_tiled(&q, &k, &v) {
             return tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
         }
         let h = q.dims()[1];
@@ -157,7 +156,7 @@ impl FusedAttention for Cuda {
         causal: bool,
         precision: Precision,
     ) -> (Tensor<Self, 4>, Tensor<Self, 3>) {
-        if selected() == AttentionKernel::Tiled || refused(&q, &k, &v).is_some() {
+        if backward_tiled(&q, &k, &v) {
             let (dq, dk, dv) = tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
             return (dq, merge_kv(dk, dv));
         }
@@ -165,6 +164,12 @@ impl FusedAttention for Cuda {
         let [b, lk, h2, d] = dkv.dims();
         (dq, dkv.reshape([b, lk, h2 * d]))
     }
+}
+
+/// Whether a backward pass runs the tiled passes: where they are selected, or where the kernels refuse the
+/// operands (the forward pass counted that fallback).
+fn backward_tiled(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> bool {
+    selected() == AttentionKernel::Tiled || refused(q, k, v).is_some()
 }
 
 /// The backward pass as one custom operation: dq `[b, h, lq, d]` and the keys' and values' gradients as one

@@ -799,6 +799,8 @@ mod custom_channel {
         /// Main execution loop for the device thread.
         fn start(&mut self) {
             let mut idle_count: u32 = 0;
+            // umgen: read once, outside the spin loop.
+            let partial = partial_after();
             loop {
                 if self.ready_to_execute {
                     self.execute_tasks();
@@ -818,7 +820,6 @@ mod custom_channel {
                 // than the work it queues (the fusion thread's small operations, the training thread's
                 // autodiff), the GPU waited for a whole buffer of launches. Close the buffer as a client's
                 // flush would (the remaining slots as no-ops), so the next turn fetches it.
-                let partial = partial_after();
                 if queue_size > 0 && partial > 0 && idle_count >= partial {
                     self.close_partial();
                     idle_count = 0;
