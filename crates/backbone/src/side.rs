@@ -357,9 +357,10 @@ impl Kernels {
 }
 
 /// A kernel source (`norm/norm.cu`, …) as NVRTC compiles it: after the warp primitives of
-/// `warp_device.cuh`, which it cannot include itself (NVRTC resolves no include files).
+/// `warp_device.cuh` and the bf16 stores of `bf16.cuh`, which it cannot include itself (NVRTC resolves no
+/// include files).
 pub(crate) fn kernel_source(source: &str) -> String {
-    [include_str!("warp_device.cuh"), source].join("\n")
+    [include_str!("warp_device.cuh"), include_str!("bf16.cuh"), source].join("\n")
 }
 
 /// A thread's state of one kind (a source's [`Kernels`], a cuBLAS handle) by device and cubecl stream;

@@ -17,9 +17,6 @@
 // after `warp_device.cuh`'s primitives, and on the host `gelu_emulator.cpp` includes it after
 // `warp_emulator.h`'s and runs it thread by thread against a double-precision reference.
 
-typedef unsigned short u16;
-typedef unsigned int u32;
-
 // The sizes every entry point takes by value (`Sizes` in `gelu/cuda.rs`, field for field).
 struct GeluSizes {
     long long rows;
@@ -37,32 +34,6 @@ struct GeluArgs {
     float* db;        // [groups, n] (backward): each row group's column sums of the gradient
     GeluSizes s;
 };
-
-#ifdef UMGEN_EMULATED
-DEV float bits_float(u32 u) {
-    float f;
-    memcpy(&f, &u, 4);
-    return f;
-}
-DEV u32 float_bits(float f) {
-    u32 u;
-    memcpy(&u, &f, 4);
-    return u;
-}
-#else
-DEV float bits_float(u32 u) { return __uint_as_float(u); }
-DEV u32 float_bits(float f) { return __float_as_uint(f); }
-#endif
-
-// f32 to bf16 bits, to nearest with ties to even (NaN stays NaN), as the cast kernels round.
-DEV u16 to_bf16(float x) {
-    const u32 u = float_bits(x);
-    if ((u & 0x7fffffffu) > 0x7f800000u) return (u16)((u >> 16) | 0x40u);
-    return (u16)((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
-}
-
-DEV void store(float* p, float x) { *p = x; }
-DEV void store(u16* p, float x) { *p = to_bf16(x); }
 
 // `V` consecutive floats from `p` (16-byte aligned when V is 4).
 template <int V>
