@@ -7,7 +7,11 @@
 // head sizes 32, 64 and 128). A query streams over its keys with an online softmax; the backward pass
 // recomputes the probabilities from the log-sum-exp, once for the key and value gradients (keys outer) and
 // once for the query gradients (queries outer), with each query's log-sum-exp and `dout · out`
-// recomputed first and held by lane t (so the backward pass reads q, k, v and dout only). Rows this short leave nothing for tensor cores to do; the work is the reads and writes.
+// recomputed first and held by lane t (so the backward pass reads q, k, v and dout only). Rows this short
+// leave nothing for tensor cores to do; the work is the reads and the warp's sums. So a warp takes `B` rows
+// of the outer side at a time: each row of the inner side it reads then serves B pairs (the kernels were
+// bound by these reads from L2, `paper`'s backward pass at about 4.6 TB/s), and the pairs' dot products are
+// summed over the warp together (`multi_sum`: 17 shuffles for 8 sums where one at a time took 40).
 //
 // NVRTC compiles it after `warp_device.cuh`'s primitives; on the host `temporal_emulator.cpp` includes
 // it after `warp_emulator.h`'s and runs it thread by thread against a double-precision reference.
@@ -36,18 +40,58 @@ struct TemporalParams {
 
 DEV long long at(const Axes& a, long long bi, long long ti, long long ni) { return bi * a.b + ti * a.t + ni * a.n; }
 
+// Rows of the outer side a warp takes at a time: 4, or 2 for head size 128 (B · DPL values a lane for each
+// operand it keeps; 8 rows of head size 32 put the backward kernel's values on the stack).
 template <int DPL>
-DEV void load(float* r, const float* row, int lane) {
+struct Block {
+    static constexpr int B = DPL == 4 ? 2 : 4;
+};
+
+// Row `t` of an operand (axes `a`, the head's first element at `col`) into this lane's `r`: zeros where
+// `t` is past the sequence.
+template <int DPL>
+DEV void load(float* r, const float* base, const Axes& a, long long bi, int t, long long ni, int col, int frames,
+              int lane) {
+    const float* row = base + at(a, bi, t, ni) + col;
 #pragma unroll
-    for (int j = 0; j < DPL; j++) r[j] = row[lane + 32 * j];
+    for (int j = 0; j < DPL; j++) r[j] = t < frames ? row[lane + 32 * j] : 0.f;
 }
 
+// This lane's share of a · b.
 template <int DPL>
-DEV float dot(const float* a, const float* b) {
+DEV float part(const float* a, const float* b) {
     float s = 0.f;
 #pragma unroll
     for (int j = 0; j < DPL; j++) s += a[j] * b[j];
-    return warp_sum(s);
+    return s;
+}
+
+// Sums each of N values (a power of two, at most 32) over the warp, every lane getting all N sums. A
+// transposed butterfly: at each exchange a lane keeps half of its values (those whose index bit matches
+// its lane bit) and adds its partner's share of them, so the values halve while the lanes summed double;
+// after log2 N exchanges a lane holds one sum, of value `(lane >> (5 − log2 N))`, over the lanes that match
+// it, then the remaining exchanges finish it and N reads from one lane each hand it out. 2N − 1 + (5 −
+// log2 N) shuffles where N sums one by one take 5N.
+template <int N>
+DEV void multi_sum(float* x) {
+    constexpr int L = N >= 32 ? 5 : N >= 16 ? 4 : N >= 8 ? 3 : N >= 4 ? 2 : N >= 2 ? 1 : 0;
+    static_assert(N == 1 << L, "multi_sum takes a power of two up to 32");
+    const int lane = lane_id();
+#pragma unroll
+    for (int k = 0; k < L; k++) {
+        const int h = N >> (k + 1), mask = 16 >> k;
+        const bool upper = lane & mask;
+#pragma unroll
+        for (int j = 0; j < h; j++) {
+            const float send = upper ? x[j] : x[j + h], keep = upper ? x[j + h] : x[j];
+            x[j] = keep + from_xor(send, mask);
+        }
+    }
+#pragma unroll
+    for (int mask = 16 >> L; mask > 0; mask >>= 1) x[0] += from_xor(x[0], mask);
+    const float mine = x[0];
+#pragma unroll
+    for (int j = 0; j < N; j++) x[j] = from_lane(mine, j << (5 - L));
 }
 
 // The warp's (sequence, position, head), or false past the last.
@@ -60,117 +104,182 @@ DEV bool task(const TemporalParams& p, long long& bi, long long& ni, int& hi) {
     return true;
 }
 
+// The online softmax's step for one pair: score `x` of a key the query sees (`seen`) joins the running
+// maximum `m` and sum `l`; returns the factor the accumulators are rescaled by, and sets `e` to the key's
+// weight (0 for a hidden key).
+DEV float online(float x, bool seen, float& m, float& l, float& e) {
+    const float mn = seen ? fmaxf(m, x) : m, corr = expf(m - mn);
+    e = seen ? expf(x - mn) : 0.f;
+    l = l * corr + e;
+    m = mn;
+    return corr;
+}
+
 template <int DPL>
 DEV void temporal_forward(const TemporalParams& p) {
+    constexpr int B = Block<DPL>::B;
     long long bi, ni;
     int hi;
     if (!task(p, bi, ni, hi)) return;
-    const int lane = lane_id(), dh = 32 * DPL, d = p.heads * dh;
+    const int lane = lane_id(), dh = 32 * DPL, d = p.heads * dh, col = hi * dh;
     const Axes oa = {(long long)p.t * p.n * d, (long long)p.n * d, d};
-    for (int t = 0; t < p.t; t++) {
-        float q[DPL], acc[DPL], kv[DPL];
-        load<DPL>(q, p.q + at(p.qa, bi, t, ni) + hi * dh, lane);
+    for (int t0 = 0; t0 < p.t; t0 += B) {
+        float q[B][DPL], acc[B][DPL], m[B], l[B];
 #pragma unroll
-        for (int j = 0; j < DPL; j++) acc[j] = 0.f;
-        float m = -3.0e38f, l = 0.f;  // below any score, and exp(m − s) is then 0
-        const int keys = p.causal ? t + 1 : p.t;
-        for (int u = 0; u < keys; u++) {
-            load<DPL>(kv, p.k + at(p.ka, bi, u, ni) + hi * dh, lane);
-            const float s = dot<DPL>(q, kv) * p.scale;
-            const float mn = fmaxf(m, s), corr = expf(m - mn), e = expf(s - mn);
-            load<DPL>(kv, p.v + at(p.va, bi, u, ni) + hi * dh, lane);
+        for (int i = 0; i < B; i++) {
+            load<DPL>(q[i], p.q, p.qa, bi, t0 + i, ni, col, p.t, lane);
 #pragma unroll
-            for (int j = 0; j < DPL; j++) acc[j] = acc[j] * corr + e * kv[j];
-            l = l * corr + e;
-            m = mn;
+            for (int j = 0; j < DPL; j++) acc[i][j] = 0.f;
+            m[i] = -3.0e38f, l[i] = 0.f;  // below any score, and exp(m − s) is then 0
         }
-        float* o = p.out_w + at(oa, bi, t, ni) + hi * dh;
+        const int keys = p.causal ? (t0 + B < p.t ? t0 + B : p.t) : p.t;
+        for (int u = 0; u < keys; u++) {
+            float k[DPL], v[DPL], s[B];
+            load<DPL>(k, p.k, p.ka, bi, u, ni, col, p.t, lane);
+            load<DPL>(v, p.v, p.va, bi, u, ni, col, p.t, lane);
 #pragma unroll
-        for (int j = 0; j < DPL; j++) o[lane + 32 * j] = acc[j] / l;
-        if (lane == 0) p.lse_w[((bi * p.t + t) * p.n + ni) * p.heads + hi] = m + logf(l);
+            for (int i = 0; i < B; i++) s[i] = part<DPL>(q[i], k);
+            multi_sum<B>(s);
+#pragma unroll
+            for (int i = 0; i < B; i++) {
+                float e;
+                const float corr = online(s[i] * p.scale, !p.causal || u <= t0 + i, m[i], l[i], e);
+#pragma unroll
+                for (int j = 0; j < DPL; j++) acc[i][j] = acc[i][j] * corr + e * v[j];
+            }
+        }
+#pragma unroll
+        for (int i = 0; i < B; i++) {
+            const int t = t0 + i;
+            if (t >= p.t) break;
+            float* o = p.out_w + at(oa, bi, t, ni) + col;
+#pragma unroll
+            for (int j = 0; j < DPL; j++) o[lane + 32 * j] = acc[i][j] / l[i];
+            if (lane == 0) p.lse_w[((bi * p.t + t) * p.n + ni) * p.heads + hi] = m[i] + logf(l[i]);
+        }
     }
 }
 
 template <int DPL>
 DEV void temporal_backward(const TemporalParams& p) {
+    constexpr int B = Block<DPL>::B;
     long long bi, ni;
     int hi;
     if (!task(p, bi, ni, hi)) return;
-    const int lane = lane_id(), dh = 32 * DPL, d = p.heads * dh;
+    const int lane = lane_id(), dh = 32 * DPL, d = p.heads * dh, col = hi * dh;
     const Axes oa = {(long long)p.t * p.n * d, (long long)p.n * d, d};
     // Lane t keeps query t's log-sum-exp and δ_t = dout_t · out_t = Σ_u p_tu (dout_t · v_u), both
     // recomputed here from q, k, v and dout alone (an online softmax, as the forward pass).
     float lse_mine = 0.f, delta_mine = 0.f;
-    for (int t = 0; t < p.t; t++) {
-        float q[DPL], g[DPL], kv[DPL];
-        load<DPL>(q, p.q + at(p.qa, bi, t, ni) + hi * dh, lane);
-        load<DPL>(g, p.dout + at(p.ga, bi, t, ni) + hi * dh, lane);
-        float m = -3.0e38f, l = 0.f, dpe = 0.f;
-        const int keys = p.causal ? t + 1 : p.t;
+    for (int t0 = 0; t0 < p.t; t0 += B) {
+        float q[B][DPL], g[B][DPL], m[B], l[B], dpe[B];
+#pragma unroll
+        for (int i = 0; i < B; i++) {
+            load<DPL>(q[i], p.q, p.qa, bi, t0 + i, ni, col, p.t, lane);
+            load<DPL>(g[i], p.dout, p.ga, bi, t0 + i, ni, col, p.t, lane);
+            m[i] = -3.0e38f, l[i] = 0.f, dpe[i] = 0.f;
+        }
+        const int keys = p.causal ? (t0 + B < p.t ? t0 + B : p.t) : p.t;
         for (int u = 0; u < keys; u++) {
-            load<DPL>(kv, p.k + at(p.ka, bi, u, ni) + hi * dh, lane);
-            const float s = dot<DPL>(q, kv) * p.scale;
-            load<DPL>(kv, p.v + at(p.va, bi, u, ni) + hi * dh, lane);
-            const float dp = dot<DPL>(g, kv);
-            const float mn = fmaxf(m, s), corr = expf(m - mn), e = expf(s - mn);
-            l = l * corr + e;
-            dpe = dpe * corr + e * dp;
-            m = mn;
-        }
-        if (lane == t) {
-            lse_mine = m + logf(l);
-            delta_mine = dpe / l;
-        }
-    }
-    // Key and value gradients: key u gathers every query that sees it.
-    for (int u = 0; u < p.t; u++) {
-        float k[DPL], v[DPL], dk[DPL], dv[DPL];
-        load<DPL>(k, p.k + at(p.ka, bi, u, ni) + hi * dh, lane);
-        load<DPL>(v, p.v + at(p.va, bi, u, ni) + hi * dh, lane);
+            float k[DPL], v[DPL], x[2 * B];
+            load<DPL>(k, p.k, p.ka, bi, u, ni, col, p.t, lane);
+            load<DPL>(v, p.v, p.va, bi, u, ni, col, p.t, lane);
 #pragma unroll
-        for (int j = 0; j < DPL; j++) dk[j] = dv[j] = 0.f;
-        for (int t = p.causal ? u : 0; t < p.t; t++) {
-            float q[DPL], g[DPL];
-            load<DPL>(q, p.q + at(p.qa, bi, t, ni) + hi * dh, lane);
-            load<DPL>(g, p.dout + at(p.ga, bi, t, ni) + hi * dh, lane);
-            const float lse = from_lane(lse_mine, t), delta = from_lane(delta_mine, t);
-            const float pr = expf(dot<DPL>(q, k) * p.scale - lse);
-            const float ds = pr * (dot<DPL>(g, v) - delta) * p.scale;
+            for (int i = 0; i < B; i++) x[i] = part<DPL>(q[i], k), x[B + i] = part<DPL>(g[i], v);
+            multi_sum<2 * B>(x);
 #pragma unroll
-            for (int j = 0; j < DPL; j++) {
-                dv[j] += pr * g[j];
-                dk[j] += ds * q[j];
+            for (int i = 0; i < B; i++) {
+                float e;
+                const float corr = online(x[i] * p.scale, !p.causal || u <= t0 + i, m[i], l[i], e);
+                dpe[i] = dpe[i] * corr + e * x[B + i];
             }
         }
-        float* dkr = p.dk + at(p.dka, bi, u, ni) + hi * dh;
-        float* dvr = p.dv + at(p.dva, bi, u, ni) + hi * dh;
 #pragma unroll
-        for (int j = 0; j < DPL; j++) {
-            dkr[lane + 32 * j] = dk[j];
-            dvr[lane + 32 * j] = dv[j];
+        for (int i = 0; i < B; i++)
+            if (lane == t0 + i) {
+                lse_mine = m[i] + logf(l[i]);
+                delta_mine = dpe[i] / l[i];
+            }
+    }
+    // Key and value gradients: keys u0 … u0 + B − 1 gather every query that sees them.
+    for (int u0 = 0; u0 < p.t; u0 += B) {
+        float k[B][DPL], v[B][DPL], dk[B][DPL], dv[B][DPL];
+#pragma unroll
+        for (int i = 0; i < B; i++) {
+            load<DPL>(k[i], p.k, p.ka, bi, u0 + i, ni, col, p.t, lane);
+            load<DPL>(v[i], p.v, p.va, bi, u0 + i, ni, col, p.t, lane);
+#pragma unroll
+            for (int j = 0; j < DPL; j++) dk[i][j] = dv[i][j] = 0.f;
+        }
+        for (int t = p.causal ? u0 : 0; t < p.t; t++) {
+            float q[DPL], g[DPL], x[2 * B];
+            load<DPL>(q, p.q, p.qa, bi, t, ni, col, p.t, lane);
+            load<DPL>(g, p.dout, p.ga, bi, t, ni, col, p.t, lane);
+            const float lse = from_lane(lse_mine, t), delta = from_lane(delta_mine, t);
+#pragma unroll
+            for (int i = 0; i < B; i++) x[i] = part<DPL>(q, k[i]), x[B + i] = part<DPL>(g, v[i]);
+            multi_sum<2 * B>(x);
+#pragma unroll
+            for (int i = 0; i < B; i++) {
+                const bool seen = u0 + i < p.t && (!p.causal || t >= u0 + i);
+                const float pr = seen ? expf(x[i] * p.scale - lse) : 0.f;
+                const float ds = pr * (x[B + i] - delta) * p.scale;
+#pragma unroll
+                for (int j = 0; j < DPL; j++) {
+                    dv[i][j] += pr * g[j];
+                    dk[i][j] += ds * q[j];
+                }
+            }
+        }
+#pragma unroll
+        for (int i = 0; i < B; i++) {
+            const int u = u0 + i;
+            if (u >= p.t) break;
+            float* dkr = p.dk + at(p.dka, bi, u, ni) + col;
+            float* dvr = p.dv + at(p.dva, bi, u, ni) + col;
+#pragma unroll
+            for (int j = 0; j < DPL; j++) {
+                dkr[lane + 32 * j] = dk[i][j];
+                dvr[lane + 32 * j] = dv[i][j];
+            }
         }
     }
-    // Query gradients.
-    for (int t = 0; t < p.t; t++) {
-        float q[DPL], g[DPL], dq[DPL];
-        load<DPL>(q, p.q + at(p.qa, bi, t, ni) + hi * dh, lane);
-        load<DPL>(g, p.dout + at(p.ga, bi, t, ni) + hi * dh, lane);
-        const float lse = from_lane(lse_mine, t), delta = from_lane(delta_mine, t);
+    // Query gradients: queries t0 … t0 + B − 1 over the keys they see.
+    for (int t0 = 0; t0 < p.t; t0 += B) {
+        float q[B][DPL], g[B][DPL], dq[B][DPL], lse[B], delta[B];
 #pragma unroll
-        for (int j = 0; j < DPL; j++) dq[j] = 0.f;
-        const int keys = p.causal ? t + 1 : p.t;
-        for (int u = 0; u < keys; u++) {
-            float k[DPL], v[DPL];
-            load<DPL>(k, p.k + at(p.ka, bi, u, ni) + hi * dh, lane);
-            load<DPL>(v, p.v + at(p.va, bi, u, ni) + hi * dh, lane);
-            const float pr = expf(dot<DPL>(q, k) * p.scale - lse);
-            const float ds = pr * (dot<DPL>(g, v) - delta) * p.scale;
+        for (int i = 0; i < B; i++) {
+            load<DPL>(q[i], p.q, p.qa, bi, t0 + i, ni, col, p.t, lane);
+            load<DPL>(g[i], p.dout, p.ga, bi, t0 + i, ni, col, p.t, lane);
+            lse[i] = from_lane(lse_mine, (t0 + i) & 31), delta[i] = from_lane(delta_mine, (t0 + i) & 31);
 #pragma unroll
-            for (int j = 0; j < DPL; j++) dq[j] += ds * k[j];
+            for (int j = 0; j < DPL; j++) dq[i][j] = 0.f;
         }
-        float* dqr = p.dq + at(oa, bi, t, ni) + hi * dh;
+        const int keys = p.causal ? (t0 + B < p.t ? t0 + B : p.t) : p.t;
+        for (int u = 0; u < keys; u++) {
+            float k[DPL], v[DPL], x[2 * B];
+            load<DPL>(k, p.k, p.ka, bi, u, ni, col, p.t, lane);
+            load<DPL>(v, p.v, p.va, bi, u, ni, col, p.t, lane);
 #pragma unroll
-        for (int j = 0; j < DPL; j++) dqr[lane + 32 * j] = dq[j];
+            for (int i = 0; i < B; i++) x[i] = part<DPL>(q[i], k), x[B + i] = part<DPL>(g[i], v);
+            multi_sum<2 * B>(x);
+#pragma unroll
+            for (int i = 0; i < B; i++) {
+                const bool seen = t0 + i < p.t && (!p.causal || u <= t0 + i);
+                const float pr = seen ? expf(x[i] * p.scale - lse[i]) : 0.f;
+                const float ds = pr * (x[B + i] - delta[i]) * p.scale;
+#pragma unroll
+                for (int j = 0; j < DPL; j++) dq[i][j] += ds * k[j];
+            }
+        }
+#pragma unroll
+        for (int i = 0; i < B; i++) {
+            const int t = t0 + i;
+            if (t >= p.t) break;
+            float* dqr = p.dq + at(oa, bi, t, ni) + col;
+#pragma unroll
+            for (int j = 0; j < DPL; j++) dqr[lane + 32 * j] = dq[i][j];
+        }
     }
 }
 

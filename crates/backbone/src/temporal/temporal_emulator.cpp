@@ -111,6 +111,9 @@ int main() {
         {3, 1, 4, 2, 4, true, 4},    // one frame, head size 128
         {1, 32, 2, 1, 2, false, 2},  // the longest sequence the kernels take, bidirectional
         {1, 5, 7, 6, 1, true, 8},    // more heads than warps a block
+        {2, 7, 3, 2, 2, false, 4},   // bidirectional, the last block of queries (or keys) partly past T
+        {1, 3, 5, 1, 4, false, 8},   // head size 128, one partial block
+        {1, 19, 2, 2, 1, true, 8},   // head size 32, three rows in the last block of four
     };
     return run_cases(cases, run, 11);
 }
