@@ -47,7 +47,7 @@ pub mod gelu;
 mod heads;
 pub mod kernel_stream;
 mod layers;
-mod lookup;
+pub mod lookup;
 mod losses;
 pub mod matmul;
 mod model;

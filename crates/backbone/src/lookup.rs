@@ -1,15 +1,20 @@
-//! Embedding lookups whose table gradient is summed in many columns at once.
+//! Embedding lookups whose table gradient is summed by many units at once.
 //!
 //! burn's embedding gradient is `select_assign` into a zero table, and cubecl's `select_assign` kernel
 //! gives each of the table's `d` columns one unit that walks every looked-up row in turn: 36,864 map
 //! tokens of a `small` step walked by 32 … 384 units took 6–13 ms per table (profile, docs/perf-notes.md).
-//! [`embed`] is a custom autodiff operation on the training backends whose forward pass is burn's lookup
-//! and whose backward pass splits the rows into `k` chunks, scatters each chunk into its own copy of the
-//! table (`scatter` along the vocabulary axis of a `[k, vocab, d]` zero tensor, `k · d` units of `rows / k`
-//! rows each) and sums the copies. Elsewhere it is burn's lookup.
+//! [`embed`] is a custom autodiff operation on the training backends whose forward pass is burn's lookup.
+//! On CUDA its backward pass is a counting sort of the ids and a walk over the sorted rows (`lookup/cuda.rs`,
+//! `lookup/lookup.cu`: a unit per row or per column of a tile at each step, the rows of each id summed in
+//! their order). On the other training backends it splits the rows into `k` chunks, scatters each chunk
+//! into its own copy of the table (`scatter` along the vocabulary axis of a `[k, vocab, d]` zero tensor, `k ·
+//! d` units of `rows / k` rows each) and sums the copies. Elsewhere it is burn's lookup.
+
+#[cfg(feature = "cuda")]
+mod cuda;
 
 use crate::attention::float;
-use crate::dispatch::same;
+use crate::dispatch::{Choice, same};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -22,6 +27,14 @@ use burn::tensor::backend::Backend;
 use burn::tensor::module::embedding;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{IndexingUpdateOp, Int, Tensor, TensorMetadata};
+
+static CHOICE: Choice = Choice::new("embedding gradient");
+
+/// How many table gradients the CUDA kernels refused or failed to launch in this process (the scatter
+/// summed them instead).
+pub fn fallbacks() -> usize {
+    CHOICE.fallbacks()
+}
 
 /// Most bytes the `k` table copies may take together.
 const COPIES_BYTES: usize = 128 << 20;
@@ -62,8 +75,22 @@ fn chunks(rows: usize, vocab: usize, d: usize) -> usize {
         .unwrap_or(1)
 }
 
-/// The table's gradient `[vocab, d]` from the output's gradient `g` `[rows, d]` and the ids `[rows]`.
+/// A table's gradient on `B`.
+#[cfg(feature = "cuda")]
+type GradFn<B> = fn(Tensor<B, 2>, Tensor<B, 1, Int>, usize) -> Tensor<B, 2>;
+
+/// The table's gradient `[vocab, d]` from the output's gradient `g` `[rows, d]` and the ids `[rows]`: the
+/// CUDA kernels where `I` is `Cuda`, else [`scatter_grad`].
 fn table_grad<I: Backend>(g: Tensor<I, 2>, ids: Tensor<I, 1, Int>, vocab: usize) -> Tensor<I, 2> {
+    #[cfg(feature = "cuda")]
+    if let Some(f) = same::<GradFn<burn::backend::Cuda>, GradFn<I>>(cuda::table_grad) {
+        return f(g, ids, vocab);
+    }
+    scatter_grad(g, ids, vocab)
+}
+
+/// [`table_grad`] by scatters into `k` copies of the table ([`chunks`]), summed.
+fn scatter_grad<I: Backend>(g: Tensor<I, 2>, ids: Tensor<I, 1, Int>, vocab: usize) -> Tensor<I, 2> {
     let [rows, d] = g.dims();
     let k = chunks(rows, vocab, d);
     let r = rows / k;

@@ -9,6 +9,7 @@ mod emulator;
 mod flash2;
 mod gelu;
 mod heads;
+mod lookup;
 mod norm;
 mod ordinal;
 mod precision;

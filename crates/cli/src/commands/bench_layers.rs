@@ -1,6 +1,7 @@
-//! `umgen bench layers`: the layer norm, the attention over time, an MLP's bias + GELU, the cross-entropy
-//! and an AdamW step as training runs them (on CUDA, the kernels of `umgen_backbone::norm`,
-//! `umgen_backbone::temporal`, `umgen_backbone::gelu`, `umgen_backbone::xent` and `umgen_backbone::adamw`) against burn's own operations on the same device:
+//! `umgen bench layers`: the layer norm, the attention over time, an MLP's bias + GELU, the cross-entropy,
+//! an embedding table's gradient and an AdamW step as training runs them (on CUDA, the kernels of
+//! `umgen_backbone::norm`, `umgen_backbone::temporal`, `umgen_backbone::gelu`, `umgen_backbone::xent`,
+//! `umgen_backbone::lookup` and `umgen_backbone::adamw`) against burn's own operations on the same device:
 //! agreement of outputs and gradients, and time.
 
 use super::bench_attention::rel_err;
@@ -148,18 +149,21 @@ fn measure<B: AutodiffBackend>(
     )?;
     mlp_activation::<B>(a, [b * t * n, d], dev, &mut out)?;
     cross_entropy::<B>(a, t * n, dev, &mut out)?;
+    table_gradient::<B>(a, [b * t * n, d], dev, &mut out)?;
     adamw::<B>(a, d, dev, &mut out)?;
     writeln!(
         out,
         "(err dp: the scale's gradient for the norm, the keys' and values' for the attention; err y of the \
          cross-entropy: its summed loss; for the MLP's bias + GELU err dp: the bias's gradient, burn's backward \
          pass taking GELU's tanh approximation's derivative; for AdamW err y, dx, dp: the new parameters, first and second \
-         moments, and burn ms its arithmetic in burn's operations; err y of the gradient norm: the norm; fallbacks: {} norm pass(es), {} attention \
-         pass(es), {} bias + GELU pass(es), {} cross-entropy pass(es), {} AdamW step(s))",
+         moments, and burn ms its arithmetic in burn's operations; err y of the gradient norm: the norm; err dp of the \
+         table: its gradient; fallbacks: {} norm pass(es), {} attention pass(es), {} bias + GELU pass(es), {} \
+         cross-entropy pass(es), {} table gradient(s), {} AdamW step(s))",
         umgen::backbone::norm::fallbacks(),
         umgen::backbone::flash::fallbacks(),
         umgen::backbone::gelu::fallbacks(),
         umgen::backbone::xent::fallbacks(),
+        umgen::backbone::lookup::fallbacks(),
         umgen::backbone::adamw::fallbacks()
     )?;
     Ok(())
@@ -244,6 +248,50 @@ fn cross_entropy<B: AutodiffBackend>(
         rel_err(y, ry),
         rel_err(dx, rdx),
         "-"
+    )?;
+    Ok(())
+}
+
+/// The gradient of a `[--vocab, d]` embedding table looked up by `rows` ids, every other one the same id (as
+/// a map's empty code): `lookup::embed` (on CUDA a counting sort and sums over the sorted rows) against
+/// burn's lookup (`select_assign` into a zero table).
+fn table_gradient<B: AutodiffBackend>(
+    a: &BenchLayersArgs,
+    [rows, d]: [usize; 2],
+    dev: &B::Device,
+    out: &mut impl Write,
+) -> anyhow::Result<()> {
+    use burn::nn::EmbeddingConfig;
+    use burn::tensor::TensorData;
+    use burn::tensor::module::embedding;
+    let v = a.vocab;
+    let table = EmbeddingConfig::new(v, d).init::<B>(dev);
+    let ids: Vec<i64> = (0..rows)
+        .map(|i| if i % 2 == 0 { 0 } else { (i * 7_919 % v) as i64 })
+        .collect();
+    let ids = Tensor::<B, 2, Int>::from_data(TensorData::new(ids, [1, rows]), dev);
+    let w = Tensor::<B::InnerBackend, 3>::random([1, rows, d], Distribution::Normal(0.0, 1.0), dev);
+    let pass = |ours: bool| {
+        let y = if ours {
+            umgen::backbone::lookup::embed(&table, ids.clone())
+        } else {
+            embedding(table.weight.val(), ids.clone())
+        };
+        let g = (y * Tensor::from_inner(w.clone())).sum().backward();
+        let dt = table.weight.val().grad(&g).context("no table gradient")?;
+        Ok(dt.reshape([1, 1, v, d]))
+    };
+    let (ms, dt) = timed::<B, _>(a.iters, dev, || pass(true))?;
+    let (burn_ms, rdt) = timed::<B, _>(a.iters, dev, || pass(false))?;
+    writeln!(
+        out,
+        "{:<26} {:>9.3} {:>9.3} {:>9} {:>9} {:>9.1e}",
+        format!("table gradient, {rows} ids"),
+        ms * 1e3,
+        burn_ms * 1e3,
+        "-",
+        "-",
+        rel_err(dt, rdt)
     )?;
     Ok(())
 }

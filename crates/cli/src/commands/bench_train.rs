@@ -272,6 +272,12 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         )?;
         writeln!(
             out,
+            "embedding     {} table gradient(s) fell back (the CUDA kernels to the scatter; the first is logged \
+             with its reason)",
+            umgen::backbone::lookup::fallbacks()
+        )?;
+        writeln!(
+            out,
             "adamw         {:?}, {} step(s) fell back (the CUDA kernel to burn's AdamW or its arithmetic; the \
              first is logged with its reason), gradients clipped at {}",
             tc.adamw,
