@@ -82,6 +82,15 @@ impl Precision {
             p => p,
         }
     }
+
+    /// The format the linear layers' operands are cast to (`precision::operand`): bf16 for
+    /// [`Precision::Bf16`] and [`Precision::Bf16Linear`], f32 for [`Precision::F32`].
+    pub fn operand_dtype(self) -> burn::tensor::FloatDType {
+        match self {
+            Precision::F32 => burn::tensor::FloatDType::F32,
+            Precision::Bf16 | Precision::Bf16Linear => burn::tensor::FloatDType::BF16,
+        }
+    }
 }
 
 impl Default for BackboneConfig {

@@ -117,7 +117,11 @@ impl<B: Backend> EgoModule<B> {
         for blk in &self.env {
             x = blk.forward(x, env.clone(), None);
         }
-        let logits = linear(&self.head, crate::norm::layer_norm(&self.ln, x), self.precision);
+        let logits = linear(
+            &self.head,
+            crate::norm::layer_norm_operand(&self.ln, x, self.precision),
+            self.precision,
+        );
         let v = logits.dims()[2];
         logits.reshape([b, tq, q, v])
     }

@@ -2,6 +2,7 @@
 
 use crate::config::Precision;
 use crate::gelu::linear_gelu;
+use crate::norm::layer_norm_operand;
 use crate::precision::linear;
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
@@ -228,9 +229,12 @@ impl<B: Backend> SelfBlock<B> {
         let [b, t, n, d] = x.dims();
         match crate::temporal::over_time_for::<B>() {
             Some(op) => {
-                let n1 = crate::norm::layer_norm(&self.ln1, x.clone());
+                let n1 = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision);
                 let x = x + self.attn.over_time(n1, op);
-                x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
+                x.clone()
+                    + self
+                        .mlp
+                        .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision))
             }
             None => self
                 .forward_autodiff(x.swap_dims(1, 2).reshape([b * n, t, d]), true)
@@ -241,10 +245,14 @@ impl<B: Backend> SelfBlock<B> {
 
     /// [`Self::forward`] through burn's operations (and their autodiff, on training backends).
     pub(crate) fn forward_autodiff(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
-        // Cast once for the queries' and the keys' and values' products (each would cast its own copy).
-        let n = crate::precision::operand(crate::norm::layer_norm(&self.ln1, x.clone()), self.attn.precision);
+        // In the products' format once for the queries' and the keys' and values' products (each would
+        // cast its own copy).
+        let n = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision);
         let x = x + self.attn.forward(n.clone(), n, None, causal);
-        x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
+        x.clone()
+            + self
+                .mlp
+                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision))
     }
 
     /// The causal layer on one new position `[m, 1, d]`, with the keys and values of the earlier ones in
@@ -326,11 +334,14 @@ impl<B: Backend> CrossBlock<B> {
     ) -> Tensor<B, 3> {
         let x = x.clone()
             + self.attn.forward(
-                crate::norm::layer_norm(&self.ln_q, x),
-                crate::norm::layer_norm(&self.ln_ctx, ctx),
+                layer_norm_operand(&self.ln_q, x, self.attn.precision),
+                layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision),
                 mask,
                 false,
             );
-        x.clone() + self.mlp.forward(crate::norm::layer_norm(&self.ln2, x))
+        x.clone()
+            + self
+                .mlp
+                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision))
     }
 }

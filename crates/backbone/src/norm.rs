@@ -8,7 +8,9 @@
 //! are [`FusedNorm`]'s: on CUDA, one kernel each (`norm/norm.cu`, one warp a row); on the CPU, the same
 //! decomposition as before ([`forward_decomposed`], [`backward_decomposed`]), which CUDA also runs for
 //! rows over 1,024 wide (counted by [`fallbacks`]). The operation keeps only its
-//! input (which the residual stream keeps anyway), the rows' means and `1/σ`.
+//! input (which the residual stream keeps anyway), the rows' means and `1/σ`. Where the output feeds
+//! products only, [`layer_norm_operand`] writes it in the products' format (bf16 under mixed precision),
+//! so that no f32 copy is written and cast.
 
 #[cfg(feature = "cuda")]
 mod cuda;
@@ -23,9 +25,9 @@ use burn::backend::autodiff::checkpoint::strategy::{
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::nn::LayerNorm;
-use burn::tensor::Tensor;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
+use burn::tensor::{FloatDType, Tensor};
 use serde::{Deserialize, Serialize};
 
 /// What computes the training layer norms on CUDA (`train.norm`); the CPU always runs the decomposition.
@@ -75,15 +77,17 @@ pub const LN_EPS: f64 = 1e-5;
 /// passes default to burn's operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides
 /// them.
 pub trait FusedNorm: Backend {
-    /// `(x − mean) / √(var + ε) · γ + β` row by row (centred variance), with each row's mean and
-    /// `1/√(var + ε)` (`[rows]`) for the backward pass.
+    /// `(x − mean) / √(var + ε) · γ + β` row by row (centred variance) in `out`'s format, with each
+    /// row's mean and `1/√(var + ε)` (`[rows]`, f32) for the backward pass.
     fn norm_forward(
         x: Tensor<Self, 2>,
         gamma: Tensor<Self, 1>,
         beta: Tensor<Self, 1>,
         eps: f64,
+        out: FloatDType,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
-        forward_decomposed(x, gamma, beta, eps)
+        let (y, mean, rstd) = forward_decomposed(x, gamma, beta, eps);
+        (y.cast(out), mean, rstd)
     }
 
     /// The gradients of the input, the scale and the shift from the output's gradient `dy`, given the
@@ -143,6 +147,25 @@ impl FusedNorm for burn::backend::Flex {}
 /// `ln.forward(x)` over the last axis: on the training backends one operation with [`FusedNorm`]'s
 /// passes, elsewhere (inference backends) the decomposition.
 pub fn layer_norm<B: Backend, const D: usize>(ln: &LayerNorm<B>, x: Tensor<B, D>) -> Tensor<B, D> {
+    layer_norm_as(ln, x, FloatDType::F32)
+}
+
+/// [`layer_norm`] for an output that only products read: in their operand format under `p`
+/// (`precision::operand` of the f32 norm, written so by the kernel on CUDA).
+pub fn layer_norm_operand<B: Backend, const D: usize>(
+    ln: &LayerNorm<B>,
+    x: Tensor<B, D>,
+    p: crate::Precision,
+) -> Tensor<B, D> {
+    layer_norm_as(ln, x, p.operand_dtype())
+}
+
+/// [`layer_norm`] with its output in `out`'s format.
+fn layer_norm_as<B: Backend, const D: usize>(
+    ln: &LayerNorm<B>,
+    x: Tensor<B, D>,
+    out: FloatDType,
+) -> Tensor<B, D> {
     let dims = x.dims();
     let d = dims[D - 1];
     let flat = x.reshape([-1, d as i32]);
@@ -152,14 +175,14 @@ pub fn layer_norm<B: Backend, const D: usize>(ln: &LayerNorm<B>, x: Tensor<B, D>
         None => Tensor::zeros([d], &gamma.device()),
     };
     let y = match tracked::<B>() {
-        Some(op) => op(flat, gamma, beta),
-        None => forward_decomposed(flat, gamma, beta, LN_EPS).0,
+        Some(op) => op(flat, gamma, beta, out),
+        None => forward_decomposed(flat, gamma, beta, LN_EPS).0.cast(out),
     };
     y.reshape(dims)
 }
 
-/// The operation on `B`: `[rows, d]`, γ, β in, `[rows, d]` out.
-type NormOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>) -> Tensor<B, 2>;
+/// The operation on `B`: `[rows, d]`, γ, β in, `[rows, d]` out in the format given.
+type NormOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>, FloatDType) -> Tensor<B, 2>;
 
 /// The custom operation when `B` is a training backend.
 fn tracked<B: Backend>() -> Option<NormOp<B>> {
@@ -187,7 +210,8 @@ impl<I: FusedNorm> Backward<I, 3> for Norm {
     type State = Kept<I>;
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let dy = float::<I, 2>(grads.consume::<I>(&ops.node));
+        // A product that read a bf16 output may hand back a bf16 gradient (burn's matmul does).
+        let dy = float::<I, 2>(grads.consume::<I>(&ops.node)).cast(FloatDType::F32);
         let [x, mean, rstd, gamma] = ops.state;
         let (dx, dgamma, dbeta) = I::norm_backward(dy, float(x), float(mean), float(rstd), float(gamma));
         let [x_node, gamma_node, beta_node] = ops.parents;
@@ -209,6 +233,7 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
     x: Tensor<Autodiff<I, C>, 2>,
     gamma: Tensor<Autodiff<I, C>, 1>,
     beta: Tensor<Autodiff<I, C>, 1>,
+    out: FloatDType,
 ) -> Tensor<Autodiff<I, C>, 2> {
     let (x, gamma, beta) = (
         x.into_primitive().tensor(),
@@ -220,6 +245,7 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
         float(gamma.primitive.clone()),
         float(beta.primitive.clone()),
         LN_EPS,
+        out,
     );
     let y = y.into_primitive().tensor();
     let out = match Norm

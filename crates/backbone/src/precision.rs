@@ -15,10 +15,7 @@ use burn::tensor::{FloatDType, Tensor};
 /// `x` in the format products are computed in: bf16 for [`Precision::Bf16`] and
 /// [`Precision::Bf16Linear`] (whose attention calls get [`Precision::attention`]'s f32), unchanged for f32.
 pub fn operand<B: Backend, const D: usize>(x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
-    match p {
-        Precision::F32 => x,
-        Precision::Bf16 | Precision::Bf16Linear => x.cast(FloatDType::BF16),
-    }
+    x.cast(p.operand_dtype())
 }
 
 /// A product's result back in f32 (a no-op for f32 operands).

@@ -9,10 +9,10 @@
 use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
 use crate::attention::float;
 use crate::kernel_stream::{self, KernelStream};
-use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
+use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32, empty_packed};
 use burn::backend::Cuda;
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{DType, Tensor};
+use burn::tensor::{DType, FloatDType, Tensor};
 use burn_ir::CustomOpIr;
 use cudarc::driver::DeviceRepr;
 use cudarc::nvrtc::CompileOptions;
@@ -87,18 +87,31 @@ impl FusedNorm for Cuda {
         gamma: Tensor<Self, 1>,
         beta: Tensor<Self, 1>,
         eps: f64,
+        out: FloatDType,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        let decomposed = |x, gamma, beta| {
+            let (y, mean, rstd) = forward_decomposed(x, gamma, beta, eps);
+            (y.cast(out), mean, rstd)
+        };
         if selected() == NormKernel::Burn {
-            return forward_decomposed(x, gamma, beta, eps);
+            return decomposed(x, gamma, beta);
         }
         if let Some(why) = refused(&x) {
             fell_back(&why);
-            return forward_decomposed(x, gamma, beta, eps);
+            return decomposed(x, gamma, beta);
         }
         let [rows, d] = x.dims();
-        let pass = Pass::Forward { eps: eps as f32 };
-        let inputs = [side::fused(x), side::fused(gamma), side::fused(beta)];
-        let [y, mean, rstd] = register(pass, inputs, [vec![rows, d], vec![rows], vec![rows]]);
+        let pass = Pass::Forward { eps: eps as f32, out };
+        let inputs = vec![side::fused(x), side::fused(gamma), side::fused(beta)];
+        let outputs = vec![
+            (vec![rows, d], DType::from(out)),
+            (vec![rows], DType::F32),
+            (vec![rows], DType::F32),
+        ];
+        let [y, mean, rstd]: [FloatTensor<Cuda>; 3] =
+            side::register_typed("umgen_norm_forward", inputs, outputs, pass)
+                .try_into()
+                .unwrap_or_else(|_| unreachable!("umgen_norm_forward was described with three outputs"));
         (float(y), float(mean), float(rstd))
     }
 
@@ -137,24 +150,20 @@ fn backward_warps(rows: usize) -> usize {
     rows.div_ceil(WARPS).min(BACKWARD_BLOCKS) * WARPS
 }
 
-/// Registers `pass` on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
+/// Registers the backward pass on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
 fn register<const I: usize, const O: usize>(
     pass: Pass,
     inputs: [FloatTensor<Cuda>; I],
     shapes: [Vec<usize>; O],
 ) -> [FloatTensor<Cuda>; O] {
-    let id = match pass {
-        Pass::Forward { .. } => "umgen_norm_forward",
-        Pass::Backward => "umgen_norm_backward",
-    };
-    side::register(id, inputs, shapes, pass)
+    side::register("umgen_norm_backward", inputs, shapes, pass)
 }
 
 /// Which pass.
 #[derive(Debug, Clone, Copy)]
 enum Pass {
-    /// x, γ, β in; y, mean, rstd out.
-    Forward { eps: f32 },
+    /// x, γ, β in; y (in `out`'s format), mean, rstd out.
+    Forward { eps: f32, out: FloatDType },
     /// dy, x, mean, rstd, γ in; dx and the warps' column sums of dy · x̂ and dy out.
     Backward,
 }
@@ -162,31 +171,33 @@ enum Pass {
 impl side::SidePass for Pass {
     fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
         match *self {
-            Pass::Forward { eps } => {
+            Pass::Forward { eps, out } => {
                 let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, desc);
-                launch(&x, &gamma, Some(&beta), None, eps).unwrap_or_else(|why| {
+                launch(&x, &gamma, Some(&beta), None, eps, out).unwrap_or_else(|why| {
                     fell_back(&why);
                     let (y, mean, rstd) =
                         forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
-                    vec![side::inner(y), side::inner(mean), side::inner(rstd)]
+                    vec![side::inner(y.cast(out)), side::inner(mean), side::inner(rstd)]
                 })
             }
             Pass::Backward => {
                 let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
-                launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0).unwrap_or_else(|why| {
-                    fell_back(&why);
-                    let warps = backward_warps(x.meta.shape()[0]);
-                    let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
-                        float(dy),
-                        float(x),
-                        float(mean),
-                        float(rstd),
-                        float(gamma),
-                    );
-                    // The registered shapes hold one row per warp.
-                    let rows = |t| side::as_partial_sums(t, warps);
-                    vec![side::inner(dx), rows(dgamma), rows(dbeta)]
-                })
+                launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0, FloatDType::F32).unwrap_or_else(
+                    |why| {
+                        fell_back(&why);
+                        let warps = backward_warps(x.meta.shape()[0]);
+                        let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
+                            float(dy),
+                            float(x),
+                            float(mean),
+                            float(rstd),
+                            float(gamma),
+                        );
+                        // The registered shapes hold one row per warp.
+                        let rows = |t| side::as_partial_sums(t, warps);
+                        vec![side::inner(dx), rows(dgamma), rows(dbeta)]
+                    },
+                )
             }
         }
     }
@@ -216,8 +227,8 @@ fn source() -> Result<String, String> {
     Ok(side::kernel_source(include_str!("norm.cu")))
 }
 
-/// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y, mean, rstd) or the
-/// backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
+/// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y in `out`'s format, mean,
+/// rstd) or the backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
 /// error says why it could not (no result was written that the caller keeps, so it may run the
 /// decomposition). On cubecl's stream the kernels are launched from this thread with their buffers bound
 /// ([`launch_bound`]); with `train.kernel_stream = "side"` their pointers are fetched and they are launched
@@ -228,6 +239,7 @@ fn launch(
     beta: Option<&Primitive>,
     grads: Option<[&Primitive; 3]>,
     eps: f32,
+    out: FloatDType,
 ) -> Result<Vec<Primitive>, String> {
     let mut operands = vec![x, gamma];
     operands.extend(beta);
@@ -244,9 +256,14 @@ fn launch(
         eps,
     };
     if kernel_stream::selected() == KernelStream::Cubecl {
-        return launch_bound(x, gamma, beta, grads, per, sizes);
+        return launch_bound(x, gamma, beta, grads, per, sizes, out);
     }
-    side::on_device_thread(x, || launch_with_pointers(x, gamma, beta, grads, per, sizes))
+    let mut results = side::on_device_thread(x, || launch_with_pointers(x, gamma, beta, grads, per, sizes))?;
+    // The side stream's kernels write f32 only.
+    if out != FloatDType::F32 {
+        results[0] = side::inner(float::<Inner, 2>(results[0].clone()).cast(out));
+    }
+    Ok(results)
 }
 
 /// [`launch`] on the side stream: the kernel takes [`Params`], the buffers' device pointers.
@@ -272,14 +289,14 @@ fn launch_with_pointers(
     let (results, name, blocks) = match (beta, grads) {
         (Some(beta), None) => {
             p.beta = ptr(beta)?;
-            let results = results(x, false);
+            let results = results(x, false, FloatDType::F32);
             (p.y, p.mean_out, p.rstd_out) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
             (results, format!("umgen_norm_forward_{per}"), rows.div_ceil(WARPS))
         }
         (None, Some([dy, mean, rstd])) => {
             (p.dy, p.mean, p.rstd) = (ptr(dy)?, ptr(mean)?, ptr(rstd)?);
             let warps = backward_warps(rows);
-            let results = results(x, true);
+            let results = results(x, true, FloatDType::F32);
             (p.dx, p.dgamma, p.dbeta) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
             (results, format!("umgen_norm_backward_{per}"), warps / WARPS)
         }
@@ -311,21 +328,37 @@ fn launch_bound(
     grads: Option<[&Primitive; 3]>,
     per: usize,
     sizes: Sizes,
+    out: FloatDType,
 ) -> Result<Vec<Primitive>, String> {
     let rows = x.meta.shape()[0];
     let bind = |t: &Primitive| t.handle.clone().binding();
-    let (results, buffers, pass, blocks) = match (beta, grads) {
+    let (results, buffers, entry, blocks) = match (beta, grads) {
         (Some(beta), None) => {
-            let results = results(x, false);
+            let format = match out {
+                FloatDType::F32 => "",
+                FloatDType::BF16 => "bf16_",
+                other => {
+                    return Err(format!(
+                        "a {other:?} output (the layer-norm kernels write f32 or bf16)"
+                    ));
+                }
+            };
+            let results = results(x, false, out);
             let buffers = [x, gamma, beta].into_iter().chain(&results).map(bind).collect();
-            (results, buffers, "forward", rows.div_ceil(WARPS))
+            let entry = format!("umgen_norm_forward_bound_{format}{per}");
+            (results, buffers, entry, rows.div_ceil(WARPS))
         }
         (None, Some([dy, mean, rstd])) => {
             let warps = backward_warps(rows);
-            let results = results(x, true);
+            let results = results(x, true, FloatDType::F32);
             let inputs = [dy, x, mean, rstd, gamma];
             let buffers = inputs.into_iter().chain(&results).map(bind).collect();
-            (results, buffers, "backward", warps / WARPS)
+            (
+                results,
+                buffers,
+                format!("umgen_norm_backward_bound_{per}"),
+                warps / WARPS,
+            )
         }
         _ => return Err("a pass takes β (forward) or the gradients (backward)".into()),
     };
@@ -335,7 +368,7 @@ fn launch_bound(
     unsafe {
         side::launch_bound_on_cubecl(
             x,
-            &format!("umgen_norm_{pass}_bound_{per}"),
+            &entry,
             (&format!("NORM_BOUND_KERNELS({per})"), &source),
             ((blocks, 1, 1), 32 * WARPS as u32),
             buffers,
@@ -345,9 +378,10 @@ fn launch_bound(
     Ok(results)
 }
 
-/// The results of a pass over `x` `[rows, d]`, packed: y, the rows' means and `1/σ` (forward), or dx and
-/// one row of column sums per warp of the grid for the scale and the shift (`backward`).
-fn results(x: &Primitive, backward: bool) -> Vec<Primitive> {
+/// The results of a pass over `x` `[rows, d]`, packed: y (in `out`'s format), the rows' means and `1/σ`
+/// (forward), or dx (f32) and one row of column sums per warp of the grid for the scale and the shift
+/// (`backward`).
+fn results(x: &Primitive, backward: bool, out: FloatDType) -> Vec<Primitive> {
     let (rows, d) = (x.meta.shape()[0], x.meta.shape()[1]);
     let stats = if backward {
         vec![backward_warps(rows), d]
@@ -355,7 +389,7 @@ fn results(x: &Primitive, backward: bool) -> Vec<Primitive> {
         vec![rows]
     };
     vec![
-        empty_f32(x, vec![rows, d]),
+        empty_packed(x, vec![rows, d], DType::from(out)),
         empty_f32(x, stats.clone()),
         empty_f32(x, stats),
     ]

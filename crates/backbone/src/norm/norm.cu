@@ -33,9 +33,10 @@ struct NormParams {
 };
 
 // The forward pass: y = (x − mean) · rstd · γ + β, rstd = 1/√(var + ε) with the centred variance (as
-// burn's `LayerNorm`), for d ≤ 32 · PER.
-template <int PER>
-DEV void norm_forward(const NormParams& p) {
+// burn's `LayerNorm`), for d ≤ 32 · PER, written to `out` (`p.y`'s place) as f32 or, where only products
+// read it, as their bf16 operand (`T`), so that no f32 copy is written and cast.
+template <int PER, typename T>
+DEV void norm_forward(const NormParams& p, T* out) {
     const int lane = lane_id(), d = p.d;
     const long long stride = blocks() * warps_per_block();
     for (long long row = block_x() * warps_per_block() + warp_id(); row < p.rows; row += stride) {
@@ -56,11 +57,11 @@ DEV void norm_forward(const NormParams& p) {
             q += t * t;
         }
         const float rstd = rsqrtf(warp_sum(q) / d + p.eps);
-        float* y = p.y + row * d;
+        T* y = out + row * d;
 #pragma unroll
         for (int j = 0; j < PER; j++) {
             const int c = lane + 32 * j;
-            if (c < d) y[c] = (v[j] - mean) * rstd * p.gamma[c] + p.beta[c];
+            if (c < d) store(y + c, (v[j] - mean) * rstd * p.gamma[c] + p.beta[c]);
         }
         if (lane == 0) {
             p.mean_out[row] = mean;
@@ -117,7 +118,7 @@ DEV void norm_backward(const NormParams& p) {
 
 // One kernel per pass and row capacity: d ≤ 128, 256, 384, 512, 768, 1024.
 #define NORM_KERNELS(PER)                                                          \
-    KERNEL umgen_norm_forward_##PER(NormParams p) { norm_forward<PER>(p); }        \
+    KERNEL umgen_norm_forward_##PER(NormParams p) { norm_forward<PER>(p, p.y); }   \
     KERNEL umgen_norm_backward_##PER(NormParams p) { norm_backward<PER>(p); }
 
 // The sizes the bound entry points take after their buffers (`Sizes` in `norm/cuda.rs`, field for field).
@@ -133,7 +134,14 @@ struct NormSizes {
     KERNEL umgen_norm_forward_bound_##PER(const float* x, const float* gamma, const float* beta, float* y,  \
                                           float* mean, float* rstd, NormSizes s) {                          \
         norm_forward<PER>(NormParams{x, gamma, beta, nullptr, nullptr, nullptr, y, mean, rstd, nullptr,     \
-                                     nullptr, nullptr, s.rows, s.d, s.eps});                                \
+                                     nullptr, nullptr, s.rows, s.d, s.eps},                                 \
+                          y);                                                                               \
+    }                                                                                                       \
+    KERNEL umgen_norm_forward_bound_bf16_##PER(const float* x, const float* gamma, const float* beta,       \
+                                               u16* y, float* mean, float* rstd, NormSizes s) {             \
+        norm_forward<PER>(NormParams{x, gamma, beta, nullptr, nullptr, nullptr, nullptr, mean, rstd,        \
+                                     nullptr, nullptr, nullptr, s.rows, s.d, s.eps},                        \
+                          y);                                                                               \
     }                                                                                                       \
     KERNEL umgen_norm_backward_bound_##PER(const float* dy, const float* x, const float* mean,              \
                                            const float* rstd, const float* gamma, float* dx, float* dgamma, \

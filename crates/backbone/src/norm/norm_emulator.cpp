@@ -8,6 +8,9 @@
 // agrees within f32 tolerance.
 #include "../warp_emulator.h"
 #include "norm.cu"
+// The bound entry points (which cubecl's stream launches) of the `small` and `paper` widths.
+NORM_BOUND_KERNELS(12)
+NORM_BOUND_KERNELS(24)
 
 struct Case {
     long long rows;
@@ -64,13 +67,26 @@ static bool run(const Case& c, std::mt19937& rng) {
             rdx[r * c.d + i] = s * (g[i] * gamma[i] - mg - xh * mgx);
         }
     }
+    // The bf16 output of the bound forward pass (where products read the norm): the f32 output rounded, to
+    // the bit, as the cast it replaces rounded it.
+    double bf16_mismatch = 0;
+    if (c.per == 12 || c.per == 24) {
+        std::vector<u16> yb(n, 0xffff);
+        std::vector<float> m2(c.rows), r2(c.rows);
+        const NormSizes sizes{c.rows, c.d, eps};
+        auto bf16 = c.per == 12 ? umgen_norm_forward_bound_bf16_12 : umgen_norm_forward_bound_bf16_24;
+        run_grid([&] { bf16(x.data(), gamma.data(), beta.data(), yb.data(), m2.data(), r2.data(), sizes); },
+                 c.grid, c.warps);
+        for (long long i = 0; i < n; i++) bf16_mismatch += yb[i] != to_bf16(y[i]);
+    }
     // The warps' partial column sums, added as the caller adds them.
     std::vector<float> sdg(c.d, 0), sdb(c.d, 0);
     for (long long w = 0; w < warps; w++)
         for (int i = 0; i < c.d; i++) sdg[i] += dg[w * c.d + i], sdb[i] += db[w * c.d + i];
     const double errs[] = {relative_error(y, ry), relative_error(mean, rmean), relative_error(rstd, rrstd),
-                           relative_error(dx, rdx), relative_error(sdg, rdg), relative_error(sdb, rdb)};
-    const char* const names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta"};
+                           relative_error(dx, rdx), relative_error(sdg, rdg), relative_error(sdb, rdb),
+                           bf16_mismatch};
+    const char* const names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta", "bf16 y unlike y rounded"};
     printf("rows %lld d %d per %d grid %d × %d warps:", c.rows, c.d, c.per, c.grid, c.warps);
     // f32 sums of up to a few hundred terms.
     return report(errs, names, 2e-5);

@@ -112,10 +112,12 @@ enum Attn<I: LayerBackend> {
 /// A layer norm's row means and `1/√(var + ε)`, `[rows]`.
 type Stats<I> = (Tensor<I, 1>, Tensor<I, 1>);
 
-/// `(x − mean) / √(var + ε) · γ + β` over the last axis ([`FusedNorm`]'s kernels), with the rows' statistics.
-fn norm<I: LayerBackend>(x: Tensor<I, 3>, n: &Norm<I>, eps: f64) -> (Tensor<I, 3>, Stats<I>) {
+/// `(x − mean) / √(var + ε) · γ + β` over the last axis ([`FusedNorm`]'s kernels) in the products' format
+/// under `p` (it feeds products only), with the rows' statistics.
+fn norm<I: LayerBackend>(x: Tensor<I, 3>, n: &Norm<I>, eps: f64, p: Precision) -> (Tensor<I, 3>, Stats<I>) {
     let [b, l, d] = x.dims();
-    let (y, mean, rstd) = I::norm_forward(x.reshape([b * l, d]), n.gamma.clone(), n.beta.clone(), eps);
+    let out = p.operand_dtype();
+    let (y, mean, rstd) = I::norm_forward(x.reshape([b * l, d]), n.gamma.clone(), n.beta.clone(), eps, out);
     (y.reshape([b, l, d]), (mean, rstd))
 }
 
@@ -222,10 +224,10 @@ fn run<I: LayerBackend>(
     x: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Saved<I>) {
     let p = s.precision;
-    // The normalised inputs and the merged attention output feed products only: cast once here, not by
-    // each product (the forward pass's two, the recomputation's two and the weight gradients').
-    let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps);
-    let n1 = operand(n1, p);
+    // The normalised inputs and the merged attention output feed products only: in their format once here
+    // (the norms write it), not cast by each product (the forward pass's two, the recomputation's two and
+    // the weight gradients').
+    let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps, p);
     let q = linear(n1.clone(), &w.q, p);
     let kv = linear(n1.clone(), &w.kv, p);
     let [b, len, d] = q.dims();
@@ -248,8 +250,7 @@ fn run<I: LayerBackend>(
     };
     let merged = operand(merged, p);
     let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
-    let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps);
-    let n2 = operand(n2, p);
+    let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps, p);
     let hidden = unbiased(n2.clone(), &w.fc, p);
     let [b, len, _] = n2.dims();
     let act = inner_forward(hidden.clone(), w.fc.b.clone(), p).reshape([b, len, hidden.dims()[1]]);
