@@ -31,6 +31,7 @@ use burn::tensor::{Bool, Tensor, TensorPrimitive};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 mod kv;
+mod masked;
 pub(crate) use kv::split_kv;
 
 /// Shorter key sequences take the decomposed path: their score matrices are no larger than a few copies of
@@ -78,7 +79,10 @@ pub fn attend<B: Backend>(
         Some(tiled) if mask.is_none() && lk >= MIN_TILED_KEYS && (!causal || lk >= lq) => {
             tiled(q, k, v, causal, precision)
         }
-        _ => {
+        // The training backends differentiate burn's decomposition; the shift by each row's maximum
+        // needs no gradient (`masked.rs`).
+        Some(_) => masked::attention_shift_detached(q, k, v, mask, causal),
+        None => {
             let opts = AttentionModuleOptions {
                 is_causal: causal,
                 ..Default::default()
