@@ -94,6 +94,24 @@ DEV void multi_sum(float* x) {
     for (int j = 0; j < N; j++) x[j] = from_lane(mine, j << (5 - L));
 }
 
+// One past the last key that queries t0 … t0 + B − 1 see.
+template <int B>
+DEV int keys_of(const TemporalParams& p, int t0) {
+    return p.causal ? (t0 + B < p.t ? t0 + B : p.t) : p.t;
+}
+
+// Key u's rows (into `k`, `v`) against the warp's B query rows: x[i] = q_i · k_u and x[B + i] = dout_i ·
+// v_u, summed over the warp (the head's columns from `col` on).
+template <int DPL, int B>
+DEV void pair_sums(float* x, float* k, float* v, const float (*q)[DPL], const float (*g)[DPL],
+                   const TemporalParams& p, long long bi, int u, long long ni, int col, int lane) {
+    load<DPL>(k, p.k, p.ka, bi, u, ni, col, p.t, lane);
+    load<DPL>(v, p.v, p.va, bi, u, ni, col, p.t, lane);
+#pragma unroll
+    for (int i = 0; i < B; i++) x[i] = part<DPL>(q[i], k), x[B + i] = part<DPL>(g[i], v);
+    multi_sum<2 * B>(x);
+}
+
 // The warp's (sequence, position, head), or false past the last.
 DEV bool task(const TemporalParams& p, long long& bi, long long& ni, int& hi) {
     const long long w = warp_index();
@@ -132,7 +150,7 @@ DEV void temporal_forward(const TemporalParams& p) {
             for (int j = 0; j < DPL; j++) acc[i][j] = 0.f;
             m[i] = -3.0e38f, l[i] = 0.f;  // below any score, and exp(m − s) is then 0
         }
-        const int keys = p.causal ? (t0 + B < p.t ? t0 + B : p.t) : p.t;
+        const int keys = keys_of<B>(p, t0);
         for (int u = 0; u < keys; u++) {
             float k[DPL], v[DPL], s[B];
             load<DPL>(k, p.k, p.ka, bi, u, ni, col, p.t, lane);
@@ -179,14 +197,10 @@ DEV void temporal_backward(const TemporalParams& p) {
             load<DPL>(g[i], p.dout, p.ga, bi, t0 + i, ni, col, p.t, lane);
             m[i] = -3.0e38f, l[i] = 0.f, dpe[i] = 0.f;
         }
-        const int keys = p.causal ? (t0 + B < p.t ? t0 + B : p.t) : p.t;
+        const int keys = keys_of<B>(p, t0);
         for (int u = 0; u < keys; u++) {
             float k[DPL], v[DPL], x[2 * B];
-            load<DPL>(k, p.k, p.ka, bi, u, ni, col, p.t, lane);
-            load<DPL>(v, p.v, p.va, bi, u, ni, col, p.t, lane);
-#pragma unroll
-            for (int i = 0; i < B; i++) x[i] = part<DPL>(q[i], k), x[B + i] = part<DPL>(g[i], v);
-            multi_sum<2 * B>(x);
+            pair_sums<DPL, B>(x, k, v, q, g, p, bi, u, ni, col, lane);
 #pragma unroll
             for (int i = 0; i < B; i++) {
                 float e;
@@ -255,14 +269,10 @@ DEV void temporal_backward(const TemporalParams& p) {
 #pragma unroll
             for (int j = 0; j < DPL; j++) dq[i][j] = 0.f;
         }
-        const int keys = p.causal ? (t0 + B < p.t ? t0 + B : p.t) : p.t;
+        const int keys = keys_of<B>(p, t0);
         for (int u = 0; u < keys; u++) {
             float k[DPL], v[DPL], x[2 * B];
-            load<DPL>(k, p.k, p.ka, bi, u, ni, col, p.t, lane);
-            load<DPL>(v, p.v, p.va, bi, u, ni, col, p.t, lane);
-#pragma unroll
-            for (int i = 0; i < B; i++) x[i] = part<DPL>(q[i], k), x[B + i] = part<DPL>(g[i], v);
-            multi_sum<2 * B>(x);
+            pair_sums<DPL, B>(x, k, v, q, g, p, bi, u, ni, col, lane);
 #pragma unroll
             for (int i = 0; i < B; i++) {
                 const bool seen = t0 + i < p.t && (!p.causal || u <= t0 + i);
