@@ -43,14 +43,29 @@ const MAX_CHUNKS: usize = 256;
 
 /// Rows `[m, l, d]` of `table` for ids `[m, l]`.
 pub fn embed<B: Backend>(table: &Embedding<B>, ids: Tensor<B, 2, Int>) -> Tensor<B, 3> {
-    let weight = table.weight.val();
+    rows(table.weight.val(), ids)
+}
+
+/// Rows `[m, l, d]` of the matrix `table` `[vocab, d]` for ids `[m, l]` (in `0..vocab`), with [`embed`]'s
+/// backward pass on the training backends.
+pub fn rows<B: Backend>(table: Tensor<B, 2>, ids: Tensor<B, 2, Int>) -> Tensor<B, 3> {
+    match tracked::<B>() {
+        Some(op) => op(table, ids),
+        None => embedding(table, ids),
+    }
+}
+
+/// Whether `B` is a training backend on which [`rows`] is the custom operation.
+pub(crate) fn has_tracked<B: Backend>() -> bool {
+    tracked::<B>().is_some()
+}
+
+/// The custom operation, when `B` is a training backend.
+fn tracked<B: Backend>() -> Option<LookupFn<B>> {
     let found = on::<B, burn::backend::Flex>();
     #[cfg(feature = "cuda")]
     let found = found.or_else(on::<B, burn::backend::Cuda>);
-    match found {
-        Some(op) => op(weight, ids),
-        None => embedding(weight, ids),
-    }
+    found
 }
 
 /// A lookup on `B`.
