@@ -135,11 +135,7 @@ impl FusedNorm for Cuda {
             side::fused(rstd),
             side::fused(gamma),
         ];
-        let [dx, dgamma, dbeta] = register(
-            Pass::Backward,
-            inputs,
-            [vec![rows, d], vec![warps, d], vec![warps, d]],
-        );
+        let [dx, dgamma, dbeta] = register_backward(inputs, [vec![rows, d], vec![warps, d], vec![warps, d]]);
         let sum = |t| crate::rows::sum(float::<Cuda, 2>(t));
         (float(dx), sum(dgamma), sum(dbeta))
     }
@@ -151,12 +147,11 @@ fn backward_warps(rows: usize) -> usize {
 }
 
 /// Registers the backward pass on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
-fn register<const I: usize, const O: usize>(
-    pass: Pass,
+fn register_backward<const I: usize, const O: usize>(
     inputs: [FloatTensor<Cuda>; I],
     shapes: [Vec<usize>; O],
 ) -> [FloatTensor<Cuda>; O] {
-    side::register("umgen_norm_backward", inputs, shapes, pass)
+    side::register("umgen_norm_backward", inputs, shapes, Pass::Backward)
 }
 
 /// Which pass.
@@ -227,12 +222,12 @@ fn source() -> Result<String, String> {
     Ok(side::kernel_source(include_str!("norm.cu")))
 }
 
-/// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y in `out`'s format, mean,
-/// rstd) or the backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an
-/// error says why it could not (no result was written that the caller keeps, so it may run the
-/// decomposition). On cubecl's stream the kernels are launched from this thread with their buffers bound
-/// ([`launch_bound`]); with `train.kernel_stream = "side"` their pointers are fetched and they are launched
-/// on cubecl's device thread ([`launch_with_pointers`]).
+/// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y in `out`'s format,
+/// mean, rstd) or the backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums),
+/// returning the results; an error says why it could not (no result was written that the caller keeps, so
+/// it may run the decomposition). On cubecl's stream the kernels are launched from this thread with their
+/// buffers bound ([`launch_bound`]); with `train.kernel_stream = "side"` their pointers are fetched and they
+/// are launched on cubecl's device thread ([`launch_with_pointers`]).
 fn launch(
     x: &Primitive,
     gamma: &Primitive,
