@@ -55,7 +55,7 @@ pub mod norm;
 pub mod ordinal;
 mod precision;
 pub mod recompute;
-mod rows;
+pub mod rows;
 #[cfg(feature = "cuda")]
 mod side;
 pub mod smoothing;

@@ -6,12 +6,17 @@
 //! `small` step spent 41 ms in 37 such sums of 1.1 ms each (docs/perf-notes.md), where the data they read
 //! takes 0.04 ms. [`add`] is a custom autodiff operation on the training backends whose forward pass is
 //! burn's broadcast (so element-wise fusion around it is unchanged) and whose backward pass sums the rows
-//! with [`sum`]: rows in groups, then the groups. The layer norms' scales and shifts (`norm.rs`) and the
-//! recomputed layers (`recompute/math.rs`) use [`sum`] in their hand-written backward passes. Elsewhere
-//! (inference backends, backends this workspace does not train on) [`add`] is burn's broadcast.
+//! with [`sum`]: rows in groups, then the groups (on CUDA one kernel each, `rows/rows.cu`, whose blocks
+//! read whole row segments; burn's reductions of the groups gave each column one unit, 15–20 µs for a
+//! `[256, 384]` matrix). The layer norms' scales and shifts (`norm.rs`) and the recomputed layers
+//! (`recompute/math.rs`) use [`sum`] in their hand-written backward passes. Elsewhere (inference backends,
+//! backends this workspace does not train on) [`add`] is burn's broadcast.
+
+#[cfg(feature = "cuda")]
+mod cuda;
 
 use crate::attention::float;
-use crate::dispatch::same;
+use crate::dispatch::{Choice, same};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -25,11 +30,34 @@ use burn::tensor::{Shape, Tensor, TensorMetadata};
 /// Row groups of [`sum`]'s first stage.
 const GROUPS: usize = 256;
 
-/// Sum over every row of `[.., d]`: `[d]`. In two stages (rows in [`GROUPS`] groups, then the groups):
-/// burn's reduction of a `[70,368, 384]` matrix along its rows in one go gives each column one unit.
+static CHOICE: Choice = Choice::new("row-sum");
+
+/// How many row sums the CUDA kernel refused or failed to launch in this process (burn's staged reduction
+/// summed them instead).
+pub fn fallbacks() -> usize {
+    CHOICE.fallbacks()
+}
+
+/// Column sums of `[rows, d]` on `B`.
+#[cfg(feature = "cuda")]
+type SumFn<B> = fn(Tensor<B, 2>) -> Tensor<B, 1>;
+
+/// Sum over every row of `[.., d]`: `[d]`. In two stages (rows in groups, then the groups): burn's reduction
+/// of a `[70,368, 384]` matrix along its rows in one go gives each column one unit. On CUDA the stages are
+/// `rows/rows.cu`'s kernel; elsewhere [`staged`].
 pub(crate) fn sum<I: Backend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
     let d = x.dims()[D - 1];
     let x = x.reshape([-1, d as i32]);
+    #[cfg(feature = "cuda")]
+    if let Some(f) = same::<SumFn<burn::backend::Cuda>, SumFn<I>>(cuda::sum) {
+        return f(x);
+    }
+    staged(x)
+}
+
+/// [`sum`] by burn's reductions: the rows in [`GROUPS`] groups, then the groups.
+fn staged<I: Backend>(x: Tensor<I, 2>) -> Tensor<I, 1> {
+    let d = x.dims()[1];
     let m = x.dims()[0];
     let per = m / GROUPS;
     if per < 2 {

@@ -14,6 +14,7 @@ mod norm;
 mod ordinal;
 mod precision;
 mod recompute;
+mod rows;
 mod temporal;
 mod xent;
 

@@ -278,6 +278,12 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         )?;
         writeln!(
             out,
+            "row sums      {} sum(s) fell back (the CUDA kernel to burn's reductions; the first is logged with \
+             its reason)",
+            umgen::backbone::rows::fallbacks()
+        )?;
+        writeln!(
+            out,
             "adamw         {:?}, {} step(s) fell back (the CUDA kernel to burn's AdamW or its arithmetic; the \
              first is logged with its reason), gradients clipped at {}",
             tc.adamw,
