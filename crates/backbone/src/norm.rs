@@ -86,8 +86,7 @@ pub trait FusedNorm: Backend {
         eps: f64,
         out: FloatDType,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
-        let (y, mean, rstd) = forward_decomposed(x, gamma, beta, eps);
-        (y.cast(out), mean, rstd)
+        forward_decomposed(x, gamma, beta, eps, out)
     }
 
     /// The gradients of the input, the scale and the shift from the output's gradient `dy`, given the
@@ -103,12 +102,13 @@ pub trait FusedNorm: Backend {
     }
 }
 
-/// [`FusedNorm::norm_forward`] as burn operations.
+/// [`FusedNorm::norm_forward`] as burn operations: the output computed in f32, then cast to `out`'s format.
 pub fn forward_decomposed<B: Backend>(
     x: Tensor<B, 2>,
     gamma: Tensor<B, 1>,
     beta: Tensor<B, 1>,
     eps: f64,
+    out: FloatDType,
 ) -> (Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>) {
     let rows = x.dims()[0];
     let mean = x.clone().mean_dim(1);
@@ -121,7 +121,7 @@ pub fn forward_decomposed<B: Backend>(
         .sqrt()
         .recip();
     let y = centered * rstd.clone() * gamma.unsqueeze::<2>() + beta.unsqueeze::<2>();
-    (y, mean.reshape([rows]), rstd.reshape([rows]))
+    (y.cast(out), mean.reshape([rows]), rstd.reshape([rows]))
 }
 
 /// [`FusedNorm::norm_backward`] as burn operations.
@@ -176,7 +176,7 @@ fn layer_norm_as<B: Backend, const D: usize>(
     };
     let y = match tracked::<B>() {
         Some(op) => op(flat, gamma, beta, out),
-        None => forward_decomposed(flat, gamma, beta, LN_EPS).0.cast(out),
+        None => forward_decomposed(flat, gamma, beta, LN_EPS, out).0,
     };
     y.reshape(dims)
 }

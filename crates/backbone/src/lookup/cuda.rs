@@ -31,7 +31,6 @@ struct Sizes {
     vocab: i32,
     d: i32,
     chunks: i32,
-    tiles: i32,
 }
 
 // SAFETY: plain old data, laid out as the C struct the kernels take by value.
@@ -53,7 +52,6 @@ impl Sizes {
             vocab: int(vocab)?,
             d: int(d)?,
             chunks: int(rows.div_ceil(CHUNK))?,
-            tiles: int(rows.div_ceil(TILE))?,
         })
     }
 }

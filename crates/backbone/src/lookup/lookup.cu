@@ -29,7 +29,6 @@ struct LookupSizes {
     int vocab;       // table rows
     int d;           // table width
     int chunks;      // ⌈rows / CHUNK⌉
-    int tiles;       // ⌈rows / TILE⌉
 };
 
 // The bucket of an id: itself, or `vocab` for one outside the table.

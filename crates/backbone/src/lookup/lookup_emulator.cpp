@@ -24,9 +24,10 @@ struct Case {
 // The gradient from the six kernels, their blocks `warps` warps (the scan's too).
 static std::vector<float> grad(const Case& c, const std::vector<int>& ids, const std::vector<float>& g, int warps) {
     const int buckets = c.vocab + 1;
-    LookupSizes s{c.rows, c.vocab, c.d, (int)((c.rows + CHUNK - 1) / CHUNK), (int)((c.rows + TILE - 1) / TILE)};
+    LookupSizes s{c.rows, c.vocab, c.d, (int)((c.rows + CHUNK - 1) / CHUNK)};
+    const long long tiles = (c.rows + TILE - 1) / TILE;
     std::vector<int> hist((size_t)s.chunks * buckets, -1), start(buckets, -1), order(c.rows, -1), sorted(c.rows, -1);
-    std::vector<float> out((size_t)c.vocab * c.d, NAN), partial((size_t)2 * s.tiles * c.d, NAN);
+    std::vector<float> out((size_t)c.vocab * c.d, NAN), partial((size_t)2 * tiles * c.d, NAN);
     const int threads = 32 * warps;
     run_grid([&] { umgen_lookup_count(ids.data(), hist.data(), s); }, s.chunks, warps);
     run_grid([&] { umgen_lookup_prefix(hist.data(), start.data(), s); }, (buckets + threads - 1) / threads, warps);
@@ -34,7 +35,7 @@ static std::vector<float> grad(const Case& c, const std::vector<int>& ids, const
     run_grid([&] { umgen_lookup_place(ids.data(), hist.data(), start.data(), order.data(), sorted.data(), s); },
              s.chunks, warps);
     run_grid([&] { umgen_lookup_sum(g.data(), order.data(), sorted.data(), out.data(), partial.data(), s); },
-             s.tiles, warps);
+             tiles, warps);
     run_grid([&] { umgen_lookup_finish(start.data(), partial.data(), out.data(), s); }, c.vocab, warps);
     return out;
 }

@@ -89,16 +89,12 @@ impl FusedNorm for Cuda {
         eps: f64,
         out: FloatDType,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
-        let decomposed = |x, gamma, beta| {
-            let (y, mean, rstd) = forward_decomposed(x, gamma, beta, eps);
-            (y.cast(out), mean, rstd)
-        };
         if selected() == NormKernel::Burn {
-            return decomposed(x, gamma, beta);
+            return forward_decomposed(x, gamma, beta, eps, out);
         }
         if let Some(why) = refused(&x) {
             fell_back(&why);
-            return decomposed(x, gamma, beta);
+            return forward_decomposed(x, gamma, beta, eps, out);
         }
         let [rows, d] = x.dims();
         let pass = Pass::Forward { eps: eps as f32, out };
@@ -171,8 +167,8 @@ impl side::SidePass for Pass {
                 launch(&x, &gamma, Some(&beta), None, eps, out).unwrap_or_else(|why| {
                     fell_back(&why);
                     let (y, mean, rstd) =
-                        forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps));
-                    vec![side::inner(y.cast(out)), side::inner(mean), side::inner(rstd)]
+                        forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps), out);
+                    vec![side::inner(y), side::inner(mean), side::inner(rstd)]
                 })
             }
             Pass::Backward => {
