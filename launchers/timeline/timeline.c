@@ -8,6 +8,7 @@
 // took) and synchronizations (where the host waited for the GPU). Records are written when CUPTI hands back
 // a full buffer and at exit. One line a record; times are ns on CUPTI's clock, one clock for host and GPU:
 //   K,start,end,stream,correlation,name      kernel
+//   G,start,blocks,threads,correlation,name  the same kernel's launch size (grid blocks, threads a block)
 //   M,start,end,stream,correlation,bytes     copy (kind in the name column: htod, dtoh, dtod, ...)
 //   Z,start,end,stream,correlation,bytes     memset
 //   A,start,end,thread,correlation,name      driver API call
@@ -47,6 +48,9 @@ static void CUPTIAPI completed(CUcontext ctx, uint32_t stream, uint8_t *buffer, 
                 const CUpti_ActivityKernel10 *k = (const CUpti_ActivityKernel10 *)r;
                 fprintf(out, "K,%llu,%llu,%u,%u,%.120s\n", (unsigned long long)k->start,
                         (unsigned long long)k->end, k->streamId, k->correlationId, k->name ? k->name : "?");
+                fprintf(out, "G,%llu,%llu,%u,%u,%.120s\n", (unsigned long long)k->start,
+                        (unsigned long long)k->gridX * k->gridY * k->gridZ, k->blockX * k->blockY * k->blockZ,
+                        k->correlationId, k->name ? k->name : "?");
                 break;
             }
             case CUPTI_ACTIVITY_KIND_MEMCPY: {

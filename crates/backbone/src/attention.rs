@@ -27,7 +27,7 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::backend::Backend;
 use burn::tensor::module::attention;
 use burn::tensor::ops::{AttentionModuleOptions, FloatTensor};
-use burn::tensor::{Bool, Tensor, TensorPrimitive};
+use burn::tensor::{Bool, FloatDType, Tensor, TensorPrimitive};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 mod kv;
@@ -105,14 +105,24 @@ pub fn attend_kv<B: Backend>(
     let [_, heads, lq, _] = q.dims();
     let lk = kv.dims()[1];
     match kv::kv_for::<B>() {
-        Some(f) if mask.is_none() && lk >= MIN_TILED_KEYS && (!causal || lk >= lq) => {
-            f(q, kv, causal, precision.attention())
-        }
+        Some(f) if one_operation(mask.is_none(), lq, lk, causal) => f(q, kv, causal, precision.attention()),
         _ => {
             let (k, v) = split_kv(kv, heads);
             attend(q, k, v, mask, causal, precision)
         }
     }
+}
+
+/// Whether [`attend_kv`] runs `lq` queries over `lk` keys as one operation on the training backend `B`
+/// (whose operands it casts to the attention's format itself, so that they may come in that format).
+pub(crate) fn attends_kv_in_one<B: Backend>(unmasked: bool, lq: usize, lk: usize, causal: bool) -> bool {
+    kv::kv_for::<B>().is_some() && one_operation(unmasked, lq, lk, causal)
+}
+
+/// The shapes [`attend_kv`]'s one operation takes: no mask, long key sequences, and under a causal mask
+/// at least as many keys as queries.
+fn one_operation(unmasked: bool, lq: usize, lk: usize, causal: bool) -> bool {
+    unmasked && lk >= MIN_TILED_KEYS && (!causal || lk >= lq)
 }
 
 /// The signature of an attention function on backend `B`.
@@ -247,9 +257,9 @@ pub fn tiled_forward<B: Backend>(
 }
 
 /// Rowsum(dO ∘ O) = Σ_j P_ij dP_ij, the softmax Jacobian's correction term of each query (`[b, h, lq, 1]`,
-/// in `dout`'s format), from the output's gradient and the output.
+/// f32 whatever the formats of the output's gradient and the output, both of which may be bf16).
 pub(crate) fn softmax_delta<B: Backend>(dout: Tensor<B, 4>, out: Tensor<B, 4>) -> Tensor<B, 4> {
-    (dout * out).sum_dim(3)
+    (dout.cast(FloatDType::F32) * out.cast(FloatDType::F32)).sum_dim(3)
 }
 
 /// Backward pass in blocks of `rows` queries: gradients of `q`, `k` and `v` from the output's gradient `dout`, recomputing each block's

@@ -1,7 +1,7 @@
 //! Token embedding (paper eq. 2): `e = MLP(Embed_modality(z) + PE(position))`.
 
 use crate::config::Precision;
-use crate::gelu::linear_gelu;
+use crate::gelu::gelu_mlp;
 use crate::precision::linear;
 use crate::spec::BackboneSpec;
 use burn::module::{Module, Param};
@@ -158,7 +158,6 @@ impl<B: Backend> FrameEmbedding<B> {
     /// The embedding MLP (paper eq. 2) with dropout.
     fn mlp<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
         let p = self.precision;
-        self.drop
-            .forward(linear(&self.fc2, linear_gelu(&self.fc1, x, p), p))
+        self.drop.forward(gelu_mlp(&self.fc1, &self.fc2, x, p))
     }
 }

@@ -180,7 +180,8 @@ pub(crate) fn fell_back(from: &str, why: &str, to: &str) {
 
 /// A backend that computes the training attention's two passes. `q: [b, h, lq, d]`, `k`, `v:
 /// [b, h, lk, d]`, already in `precision`'s format; `causal` hides keys after each query, bottom-right
-/// aligned. Every result is f32.
+/// aligned. The log-sum-exp is f32; the output and the gradients are f32, or in the operands' format where
+/// CUDA's flash2 kernels compute them (bf16 for the products that read them next).
 pub trait FusedAttention: Backend {
     /// The output `[b, h, lq, d]` and each query's log-sum-exp of its scaled scores `[b, h, lq, 1]`.
     fn attention_forward(

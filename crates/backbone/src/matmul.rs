@@ -13,7 +13,11 @@
 //!
 //! With [`Precision::Bf16`] the operation casts its operands itself: it saves them in bf16 (half the
 //! memory of burn's path, which saves f32 inputs before its cast), and every product, gradients included,
-//! reads bf16 and writes f32, where burn's differentiable cast would compute the gradients in bf16.
+//! reads bf16 and writes f32, where burn's differentiable cast would compute the gradients in bf16. A
+//! caller whose result (or input gradient) only feeds another bf16 operation asks for it in bf16
+//! ([`Written`]): the MLP's first product writes its pre-activation in bf16 for the bias + GELU kernel,
+//! and the second product writes the hidden activation's gradient in bf16 for that kernel's backward pass,
+//! as PyTorch's bf16 autocast does; the product still accumulates in f32.
 //!
 //! On the CPU (`Autodiff<Flex>`) the operation runs burn's one product, so CPU training checks its gradients;
 //! any other backend, and [`MatmulKernel::Burn`], keep burn's `matmul`.
@@ -79,26 +83,46 @@ pub fn selected() -> MatmulKernel {
 }
 
 /// A backend that can multiply two `[m, k] × [k, n]` matrices of one float format (either may be a
-/// transposed view) into an f32 result on a kernel of its choosing.
+/// transposed view) into a result of a given format, accumulating in f32, on a kernel of its choosing.
 pub trait NamedMatmul: Backend {
-    /// `lhs · rhs`, f32.
-    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// `lhs · rhs` in `out`.
+    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>, out: FloatDType) -> FloatTensor<Self>;
 }
 
-/// The CPU backend has one kernel: burn's product, widened. It lets the CPU tests check the operation's
-/// gradients and casts.
+/// The CPU backend has one kernel: burn's product, cast to the result's format. It lets the CPU tests
+/// check the operation's gradients and casts.
 impl NamedMatmul for burn::backend::Flex {
-    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>) -> FloatTensor<Self> {
+    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>, out: FloatDType) -> FloatTensor<Self> {
         float::<Self, 2>(lhs)
             .matmul(float(rhs))
             .cast(FloatDType::F32)
+            .cast(out)
             .into_primitive()
             .tensor()
     }
 }
 
-/// `x · w` for `x: [m, k]` and `w: [k, n]`, the product in `p`'s format, the result f32.
-pub type ProductFn<B> = fn(Tensor<B, 2>, Tensor<B, 2>, Precision) -> Tensor<B, 2>;
+/// The formats a named product writes: its result, and its input's gradient in the backward pass (the
+/// weight's gradient is always f32, for the optimizer).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Written {
+    /// The result's format.
+    pub out: FloatDType,
+    /// The format of the input's gradient.
+    pub dx: FloatDType,
+}
+
+impl Written {
+    /// f32 results and gradients: what every product writes unless its caller knows better.
+    pub const F32: Self = Self {
+        out: FloatDType::F32,
+        dx: FloatDType::F32,
+    };
+}
+
+/// `x · w` for `x: [m, k]` and `w: [k, n]`, the product in `p`'s format, the result and `x`'s gradient in
+/// the [`Written`] formats.
+pub type ProductFn<B> = fn(Tensor<B, 2>, Tensor<B, 2>, Precision, Written) -> Tensor<B, 2>;
 
 /// [`named_autodiff`] as a function on `B` when `B` is one of the autodiff backends this workspace trains on
 /// (CUDA, or the CPU's `Flex`, where it runs burn's product) and [`selected`] is not [`MatmulKernel::Burn`];
@@ -120,11 +144,17 @@ fn on<B: Backend, I: NamedMatmul>() -> Option<ProductFn<B>> {
     same(plain).or_else(|| same(balanced))
 }
 
-/// `a · b` on `B`'s named kernel.
+/// `a · b` on `B`'s named kernel, f32.
 pub(crate) fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>) -> Tensor<B, 2> {
+    product_in(a, b, FloatDType::F32)
+}
+
+/// `a · b` on `B`'s named kernel, in `out`.
+pub(crate) fn product_in<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>, out: FloatDType) -> Tensor<B, 2> {
     float(B::named_matmul(
         a.into_primitive().tensor(),
         b.into_primitive().tensor(),
+        out,
     ))
 }
 
@@ -132,15 +162,15 @@ pub(crate) fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>) -> Tenso
 struct Product;
 
 impl<B: NamedMatmul> Backward<B, 2> for Product {
-    /// `x` and `w` in the products' format, and that format.
-    type State = (FloatTensor<B>, FloatTensor<B>, Precision);
+    /// `x` and `w` in the products' format, that format, and the input gradient's.
+    type State = (FloatTensor<B>, FloatTensor<B>, Precision, FloatDType);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [nx, nw] = ops.parents;
-        let (x, w, p) = ops.state;
+        let (x, w, p, dx_format) = ops.state;
         let dy = operand(float::<B, 2>(grads.consume::<B>(&ops.node)), p);
         if let Some(node) = nx {
-            let dx = product(dy.clone(), float::<B, 2>(w).transpose());
+            let dx = product_in(dy.clone(), float::<B, 2>(w).transpose(), dx_format);
             grads.register::<B>(node.id, dx.into_primitive().tensor());
         }
         if let Some(node) = nw {
@@ -151,11 +181,13 @@ impl<B: NamedMatmul> Backward<B, 2> for Product {
 }
 
 /// `x · w` on `Autodiff<I, C>` with every product (forward, input gradient, weight gradient) on `I`'s
-/// named kernel, operands in `p`'s format and results f32. `x: [m, k]`, `w: [k, n]`.
+/// named kernel, operands in `p`'s format, the result and the input's gradient in the `written` formats
+/// and the weight's gradient f32. `x: [m, k]`, `w: [k, n]`.
 pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
     x: Tensor<Autodiff<I, C>, 2>,
     w: Tensor<Autodiff<I, C>, 2>,
     p: Precision,
+    written: Written,
 ) -> Tensor<Autodiff<I, C>, 2> {
     let (x, w) = (x.into_primitive().tensor(), w.into_primitive().tensor());
     let prep = Product
@@ -166,11 +198,19 @@ pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
         operand(float::<I, 2>(x.primitive), p),
         operand(float::<I, 2>(w.primitive), p),
     );
-    let y = product(xi.clone(), wi.clone()).into_primitive().tensor();
+    let y = product_in(xi.clone(), wi.clone(), written.out)
+        .into_primitive()
+        .tensor();
     let y = match prep {
-        OpsKind::Tracked(prep) => {
-            prep.finish((xi.into_primitive().tensor(), wi.into_primitive().tensor(), p), y)
-        }
+        OpsKind::Tracked(prep) => prep.finish(
+            (
+                xi.into_primitive().tensor(),
+                wi.into_primitive().tensor(),
+                p,
+                written.dx,
+            ),
+            y,
+        ),
         OpsKind::UnTracked(prep) => prep.finish(y),
     };
     float(y)
@@ -199,7 +239,9 @@ mod tests {
         let xa = Tensor::<A, 2>::from_inner(x.clone()).require_grad();
         let wa = Tensor::<A, 2>::from_inner(w.clone()).require_grad();
         let y = f(xa.clone(), wa.clone());
-        let g = (y.clone() * Tensor::from_inner(up.clone())).sum().backward();
+        // The upstream gradient in the result's format (a bf16 result multiplies bf16 values).
+        let up = Tensor::<A, 2>::from_inner(up.clone()).cast(crate::precision::float_format(y.dtype()));
+        let g = (y.clone() * up).sum().backward();
         let (dx, dw) = (xa.grad(&g).expect("dx"), wa.grad(&g).expect("dw"));
         [y.inner(), dx, dw]
     }
@@ -213,7 +255,12 @@ mod tests {
             let w = Tensor::<Flex, 2>::random([k, nn], n, &dev);
             let up = Tensor::<Flex, 2>::random([m, nn], n, &dev);
             let reference = run(|x, w| x.matmul(w), &x, &w, &up);
-            let full = run(|x, w| named_autodiff(x, w, Precision::F32), &x, &w, &up);
+            let full = run(
+                |x, w| named_autodiff(x, w, Precision::F32, Written::F32),
+                &x,
+                &w,
+                &up,
+            );
             for (name, (a, b)) in ["y", "dx", "dw"]
                 .iter()
                 .zip(full.into_iter().zip(reference.clone()))
@@ -223,7 +270,12 @@ mod tests {
                 assert!(err < 1e-6, "{name} at {m}×{k}×{nn}: relative error {err}");
             }
             // bf16 operands: every result f32, within bf16's resolution of f32 but not equal to it.
-            let half = run(|x, w| named_autodiff(x, w, Precision::Bf16), &x, &w, &up);
+            let half = run(
+                |x, w| named_autodiff(x, w, Precision::Bf16, Written::F32),
+                &x,
+                &w,
+                &up,
+            );
             for (name, (a, b)) in ["y", "dx", "dw"].iter().zip(half.into_iter().zip(reference)) {
                 assert_eq!(a.dtype(), DType::F32, "{name}");
                 let err = rel(a, b);
@@ -235,12 +287,47 @@ mod tests {
         }
     }
 
+    /// A product written in bf16 is the f32 result rounded, its input's gradient (asked for in bf16) is the
+    /// f32 gradient rounded, and the weight's gradient stays f32 and unchanged.
+    #[test]
+    fn bf16_written_results_are_the_f32_ones_rounded() {
+        let dev = Default::default();
+        let n = Distribution::Normal(0.0, 1.0);
+        let x = Tensor::<Flex, 2>::random([9, 24], n, &dev);
+        let w = Tensor::<Flex, 2>::random([24, 7], n, &dev);
+        let up = Tensor::<Flex, 2>::random([9, 7], n, &dev).cast(FloatDType::BF16);
+        let f32s = run(
+            |x, w| named_autodiff(x, w, Precision::Bf16, Written::F32),
+            &x,
+            &w,
+            &up,
+        );
+        let bf16 = Written {
+            out: FloatDType::BF16,
+            dx: FloatDType::BF16,
+        };
+        let [y, dx, dw] = run(|x, w| named_autodiff(x, w, Precision::Bf16, bf16), &x, &w, &up);
+        assert_eq!(
+            [y.dtype(), dx.dtype(), dw.dtype()],
+            [DType::BF16, DType::BF16, DType::F32]
+        );
+        let [y32, dx32, dw32] = f32s;
+        // bf16 to f32 is exact: equal f32 values are equal bf16 values.
+        let rounded = |t: Tensor<Flex, 2>| {
+            let data = t.cast(FloatDType::BF16).cast(FloatDType::F32).into_data();
+            data.to_vec::<f32>().expect("f32 values")
+        };
+        assert_eq!(rounded(y32), rounded(y));
+        assert_eq!(rounded(dx32), rounded(dx));
+        assert_eq!(rel(dw, dw32), 0.0);
+    }
+
     #[test]
     fn untracked_inputs_get_no_gradient_and_only_training_backends_dispatch() {
         let dev = Default::default();
         let x = Tensor::<A, 2>::ones([2, 3], &dev);
         let w = Tensor::<A, 2>::ones([3, 4], &dev).require_grad();
-        let g = named_autodiff(x.clone(), w.clone(), Precision::F32)
+        let g = named_autodiff(x.clone(), w.clone(), Precision::F32, Written::F32)
             .sum()
             .backward();
         assert!(x.grad(&g).is_none());

@@ -25,7 +25,7 @@ use burn::backend::autodiff::checkpoint::strategy::{
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::backend::Backend;
-use burn::tensor::{Shape, Tensor, TensorMetadata};
+use burn::tensor::{DType, FloatDType, Shape, Tensor, TensorMetadata};
 
 /// Row groups of [`sum`]'s first stage.
 const GROUPS: usize = 256;
@@ -42,7 +42,7 @@ pub fn fallbacks() -> usize {
 #[cfg(feature = "cuda")]
 type SumFn<B> = fn(Tensor<B, 2>) -> Tensor<B, 1>;
 
-/// Sum over every row of `[.., d]`: `[d]`. In two stages (rows in groups, then the groups): burn's reduction
+/// Sum over every row of `[.., d]` (f32 or bf16): `[d]` in f32. In two stages (rows in groups, then the groups): burn's reduction
 /// of a `[70,368, 384]` matrix along its rows in one go gives each column one unit. On CUDA the stages are
 /// `rows/rows.cu`'s kernel; elsewhere [`staged`].
 pub(crate) fn sum<I: Backend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
@@ -55,8 +55,23 @@ pub(crate) fn sum<I: Backend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
     staged(x)
 }
 
-/// [`sum`] by burn's reductions: the rows in [`GROUPS`] groups, then the groups.
+/// `x` `[rows, d]` in `format`, and its column sums `[d]` in f32 (of `x` as given): on CUDA one pass for
+/// f32 rows going to bf16 (`rows.cu` writes the copy as it sums; a cast of its own, then the sum, read the
+/// rows twice, and burn's cast here left a layout the sum and the next product each copied).
+pub(crate) fn sum_cast<I: Backend>(x: Tensor<I, 2>, format: FloatDType) -> (Tensor<I, 2>, Tensor<I, 1>) {
+    #[cfg(feature = "cuda")]
+    if x.dtype() == DType::F32 && format == FloatDType::BF16 {
+        type SumCast<B> = fn(Tensor<B, 2>) -> (Tensor<B, 2>, Tensor<B, 1>);
+        if let Some(f) = same::<SumCast<burn::backend::Cuda>, SumCast<I>>(cuda::sum_cast) {
+            return f(x);
+        }
+    }
+    (x.clone().cast(format), sum(x))
+}
+
+/// [`sum`] by burn's reductions: the rows in [`GROUPS`] groups, then the groups (in f32).
 fn staged<I: Backend>(x: Tensor<I, 2>) -> Tensor<I, 1> {
+    let x = x.cast(FloatDType::F32);
     let d = x.dims()[1];
     let m = x.dims()[0];
     let per = m / GROUPS;
@@ -74,13 +89,24 @@ fn staged<I: Backend>(x: Tensor<I, 2>) -> Tensor<I, 1> {
     total.reshape([d])
 }
 
-/// [`add`] on `B`.
-type RowOp<B, const D: usize> = fn(Tensor<B, D>, Tensor<B, 1>) -> Tensor<B, D>;
+/// [`add_for`] on `B`.
+type RowOp<B, const D: usize> = fn(Tensor<B, D>, Tensor<B, 1>, Option<FloatDType>) -> Tensor<B, D>;
 
-/// `x + p` over the last axis (a linear layer's bias).
+/// `x + p` over the last axis (a linear layer's bias), in `x`'s format.
 pub fn add<B: Backend, const D: usize>(x: Tensor<B, D>, p: Tensor<B, 1>) -> Tensor<B, D> {
+    add_for(x, p, None)
+}
+
+/// [`add`] whose backward pass passes the incoming gradient on to `x` in `grad` (where given): where `x`
+/// is a product whose backward pass reads its gradient in bf16, the bias's gradient (f32) is summed and the
+/// bf16 copy written in one pass ([`sum_cast`]), where the sum and then the product's cast read it twice.
+pub fn add_for<B: Backend, const D: usize>(
+    x: Tensor<B, D>,
+    p: Tensor<B, 1>,
+    grad: Option<FloatDType>,
+) -> Tensor<B, D> {
     match tracked::<B, D>() {
-        Some(op) => op(x, p),
+        Some(op) => op(x, p, grad),
         None => x + p.unsqueeze::<D>(),
     }
 }
@@ -105,41 +131,48 @@ fn on<B: Backend, I: Backend, const D: usize>() -> Option<RowOp<B, D>> {
 struct Rows;
 
 impl<I: Backend> Backward<I, 2> for Rows {
-    type State = ();
+    /// The format the gradient is cast to first, if any.
+    type State = Option<FloatDType>;
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let g = grads.consume::<I>(&ops.node);
         let shape = g.shape();
         let d = shape[shape.num_dims() - 1];
+        let flat = float::<I, 2>(I::float_reshape(g, Shape::new([shape.num_elements() / d, d])));
+        let (flat, db) = match ops.state {
+            Some(format) if flat.dtype() != DType::from(format) => sum_cast(flat, format),
+            _ => (flat.clone(), sum(flat)),
+        };
         let [x_node, p_node] = ops.parents;
         // Each gradient only for a parent that asks for it (a frozen parameter, an untracked input).
         if let Some(node) = p_node {
-            let flat = float::<I, 2>(I::float_reshape(
-                g.clone(),
-                Shape::new([shape.num_elements() / d, d]),
-            ));
-            grads.register::<I>(node.id, sum(flat).into_primitive().tensor());
+            grads.register::<I>(node.id, db.into_primitive().tensor());
         }
         if let Some(node) = x_node {
-            grads.register::<I>(node.id, g);
+            let flat = flat.into_primitive().tensor();
+            grads.register::<I>(node.id, I::float_reshape(flat, shape));
         }
     }
 }
 
-/// [`add`] as one operation on `Autodiff<I, C>`.
+/// [`add_for`] as one operation on `Autodiff<I, C>`.
 fn apply<I: Backend, C: CheckpointStrategy, const D: usize>(
     x: Tensor<Autodiff<I, C>, D>,
     p: Tensor<Autodiff<I, C>, 1>,
+    grad: Option<FloatDType>,
 ) -> Tensor<Autodiff<I, C>, D> {
     let (x, p) = (x.into_primitive().tensor(), p.into_primitive().tensor());
-    let y = float::<I, D>(x.primitive.clone()) + float::<I, 1>(p.primitive.clone()).unsqueeze::<D>();
+    // A bf16 `x` (a product written for a bf16 consumer) gets the bias rounded to bf16, added in its format.
+    let format = crate::precision::float_format(x.primitive.dtype());
+    let bias = float::<I, 1>(p.primitive.clone()).cast(format);
+    let y = float::<I, D>(x.primitive.clone()) + bias.unsqueeze::<D>();
     let y = y.into_primitive().tensor();
     let out = match Rows
         .prepare::<C>([x.node.clone(), p.node.clone()])
         .compute_bound()
         .stateful()
     {
-        OpsKind::Tracked(prep) => prep.finish((), y),
+        OpsKind::Tracked(prep) => prep.finish(grad, y),
         OpsKind::UnTracked(prep) => prep.finish(y),
     };
     float(out)
@@ -191,6 +224,26 @@ mod tests {
             bias.grad(&g_theirs).expect("bias"),
             1e-4,
         );
+    }
+
+    /// With a gradient format, `x`'s gradient is the incoming one rounded to it, and the bias's (f32) is the
+    /// sum of the incoming values as they came.
+    #[test]
+    fn bias_add_passes_the_gradient_on_in_its_format() {
+        let dev = Default::default();
+        let bias = Tensor::<A, 1>::random([16], Distribution::Normal(0.0, 1.0), &dev).require_grad();
+        let x = Tensor::<A, 2>::random([300, 16], Distribution::Normal(0.0, 1.0), &dev).require_grad();
+        let w = Tensor::<Flex, 2>::random([300, 16], Distribution::Normal(0.0, 1.0), &dev);
+        let y = add_for(x.clone(), bias.clone(), Some(FloatDType::BF16));
+        let g = (y * Tensor::from_inner(w.clone())).sum().backward();
+        let dx = x.grad(&g).expect("x");
+        assert_eq!(dx.dtype(), DType::BF16);
+        let rounded = w.clone().cast(FloatDType::BF16).cast(FloatDType::F32);
+        let values = |t: Tensor<Flex, 2>| t.cast(FloatDType::F32).into_data().to_vec::<f32>().expect("f32");
+        assert_eq!(values(dx), values(rounded));
+        let db = bias.grad(&g).expect("bias");
+        assert_eq!(db.dtype(), DType::F32);
+        close(db, w.sum_dim(0).reshape([16]), 1e-6);
     }
 
     fn close(a: Tensor<Flex, 1>, b: Tensor<Flex, 1>, tol: f32) {

@@ -1,7 +1,10 @@
 //! [`FusedAttention`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in
 //! the fusion stream that launches the kernels of `kernels.rs` (or flash2's) on the operands as they lie in
-//! memory (any strides) and writes f32 results; the backward pass writes the keys' and values' gradients as
-//! one `[b, lk, 2·h, d]`, the layout of the kv product's gradient.
+//! memory (any strides) and writes its results in the operands' format where flash2 runs it (bf16 with the
+//! bf16 presets: the output and the gradients feed bf16 products), f32 otherwise (the fused kernels'
+//! results, cast where flash2 was chosen but failed to launch); the log-sum-exp is always f32. The backward
+//! pass writes the keys' and values' gradients as one `[b, lk, 2·h, d]`, the layout of the kv product's
+//! gradient.
 
 use super::flash2;
 use super::kernels;
@@ -11,10 +14,12 @@ use super::{
 };
 use crate::attention::{float, softmax_delta};
 use crate::config::Precision;
+use crate::precision::float_format;
 use crate::side::{Handles, Inner, Primitive, empty_f32};
 use burn::backend::Cuda;
 use burn::cubecl::Runtime;
 use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::FloatTensorOps;
 use burn::tensor::{DType, Shape, Tensor};
 use burn_cubecl::fusion::FusionCubeRuntime;
 use burn_fusion::stream::{Operation, OperationStreams};
@@ -63,13 +68,13 @@ fn tile_format(dtype: DType) -> (StorageType, usize) {
     }
 }
 
-/// Registers pass `kind` on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
+/// Registers pass `kind` on the fusion stream: `inputs` in, outputs of `shapes` and types out.
 fn register<const N: usize>(
     kind: Kind,
     causal: bool,
     flash2: bool,
     inputs: &[&Tensor<Cuda, 4>],
-    shapes: [Shape; N],
+    shapes: [(Shape, DType); N],
 ) -> [Tensor<Cuda, 4>; N] {
     let prims: Vec<_> = inputs
         .iter()
@@ -78,7 +83,7 @@ fn register<const N: usize>(
     let client = prims[0].client.clone();
     let outs: Vec<TensorIr> = shapes
         .into_iter()
-        .map(|s| TensorIr::uninit(client.create_empty_handle(), s, DType::F32))
+        .map(|(s, dtype)| TensorIr::uninit(client.create_empty_handle(), s, dtype))
         .collect();
     let streams = OperationStreams::with_inputs(prims.iter());
     let irs: Vec<TensorIr> = prims.into_iter().map(|p| p.into_ir()).collect();
@@ -116,12 +121,16 @@ impl FusedAttention for Cuda {
             return tiled_forward_pass(q, k, v, causal, precision);
         }
         let [b, h, lq, d] = q.dims();
+        let flash2 = use_flash2(&q);
         let [out, lse] = register(
             Kind::Forward,
             causal,
-            use_flash2(&q),
+            flash2,
             &[&q, &k, &v],
-            [Shape::new([b, h, lq, d]), Shape::new([b, h, lq, 1])],
+            [
+                (Shape::new([b, h, lq, d]), results(flash2, &q)),
+                (Shape::new([b, h, lq, 1]), DType::F32),
+            ],
         );
         (out, lse)
     }
@@ -191,14 +200,24 @@ fn backward_merged(
     let [b, h, lq, d] = q.dims();
     let lk = k.dims()[2];
     let flash2 = use_flash2(&q);
+    let dtype = results(flash2, &q);
     let [dq, dkv] = register(
         Kind::Backward,
         causal,
         flash2,
         &[&q, &k, &v, &dout, &lse, &delta],
-        [Shape::new([b, h, lq, d]), Shape::new([b, lk, 2 * h, d])],
+        [
+            (Shape::new([b, h, lq, d]), dtype),
+            (Shape::new([b, lk, 2 * h, d]), dtype),
+        ],
     );
     (dq, dkv)
+}
+
+/// The format of a pass's results other than the log-sum-exp: flash2 writes the operands' own, the fused
+/// kernels f32.
+fn results(flash2: bool, q: &Tensor<Cuda, 4>) -> DType {
+    if flash2 { q.dtype() } else { DType::F32 }
 }
 
 /// Which pass.
@@ -266,7 +285,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
 
 impl Pass {
     /// The `flash2` kernels' results where this pass runs them and they launch; otherwise (a failure
-    /// counted as a fallback) the fused kernels'.
+    /// counted as a fallback) the fused kernels', cast to the formats the pass registered.
     fn flash2_or(
         &self,
         flash2: impl FnOnce() -> Result<Vec<Primitive>, String>,
@@ -279,6 +298,16 @@ impl Pass {
             }
         }
         fused()
+            .into_iter()
+            .zip(&self.desc.outputs)
+            .map(|(t, registered)| {
+                if t.dtype == registered.dtype {
+                    t
+                } else {
+                    Inner::float_cast(t, float_format(registered.dtype))
+                }
+            })
+            .collect()
     }
 }
 

@@ -2,8 +2,9 @@
 // query gradients, one kernel each. Operands f32 or bf16 (`T`), converted to bf16 as they enter shared
 // memory; products on the tensor cores (`mma.sync` m16n8k16, bf16 in, f32 accumulation); scores,
 // probabilities and their gradients stay in registers (the accumulator layout of one product is the operand
-// layout of the next). Each block of 4 or 8 warps owns 16 rows per warp (queries, or keys for the key/value
-// gradients) and walks the other side in tiles of 64, the next tile read into registers while the
+// layout of the next). Results (output, gradients) are written in `T`, the log-sum-exp in f32. Each block
+// of 4 or 8 warps owns 16 rows per warp (queries, or keys for the key/value gradients) and walks the
+// other side in tiles of 64, the next tile read into registers while the
 // current one's products run (8 warps). Head size `D`: 64 or 32. Where NVRTC targets sm_90a (on an H100),
 // the head size 64 products run on `wgmma` (`flash2_warp.cu`): 64 rows a warpgroup, B and the block's own
 // rows read from swizzled tiles in shared memory, P and dS from registers.
@@ -129,7 +130,7 @@ DEV void forward(const Params& P) {
         }
         if (t == 0 && row < P.lq) P.lse_out[bh_rows + row] = (m[half] + log2f(total)) * LN2;
     }
-    store_rows<D>(P.out + head_base(P.outs, bh, P.heads), P.outs[2], o, q0, P.lq, 1.f);
+    store_rows<T, D>(P.out, head_base(P.outs, bh, P.heads), P.outs[2], o, q0, P.lq, 1.f);
 }
 
 // A head's f32 per-query values (log-sum-exp or delta): the head's first, and the queries' stride.
@@ -281,8 +282,8 @@ DEV void backward_kv(const Params& P) {
             both_times<D, SUB / 8>(dv, s, oc, dk, dp, qc);
         }
     }
-    store_rows<D>(P.dk + head_base(P.dks, bh, P.heads), P.dks[2], dk, k0, P.lk, P.scale);
-    store_rows<D>(P.dv + head_base(P.dvs, bh, P.heads), P.dvs[2], dv, k0, P.lk, 1.f);
+    store_rows<T, D>(P.dk, head_base(P.dks, bh, P.heads), P.dks[2], dk, k0, P.lk, P.scale);
+    store_rows<T, D>(P.dv, head_base(P.dvs, bh, P.heads), P.dvs[2], dv, k0, P.lk, 1.f);
 }
 
 template <typename T, int D>
@@ -344,7 +345,7 @@ DEV void backward_q(const Params& P) {
             times<D, SUB / 8>(dq, dp, kc);
         }
     }
-    store_rows<D>(P.dq + head_base(P.dqs, bh, P.heads), P.dqs[2], dq, q0, P.lq, P.scale);
+    store_rows<T, D>(P.dq, head_base(P.dqs, bh, P.heads), P.dqs[2], dq, q0, P.lq, P.scale);
 }
 
 #define INSTANCES(NAME, T, D)                                                                                   \

@@ -14,8 +14,8 @@
 
 use crate::kernel_stream::{KernelStream, selected};
 use crate::side::Primitive;
-use crate::side::empty_f32;
 use crate::side::{KernelCache, Kernels, Pointers, launch_on_cubecl, with_cached};
+use crate::side::{empty_f32, empty_packed};
 use burn::tensor::DType;
 use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::CompileOptions;
@@ -168,8 +168,8 @@ fn strides(t: &Primitive, what: &str) -> Result<[i64; 3], String> {
 
 /// Runs the forward pass on `q`, `k`, `v` (`grads` `None`: the output `[b, h, lq, d]` and the log-sum-exp)
 /// or the backward pass (`grads` = `[dout, lse, delta]`: dq `[b, h, lq, d]` and the keys' and values'
-/// gradients as one `[b, lk, 2·h, d]`, keys' heads first), returning its f32 results; an error says why it
-/// could not (no result was written that the caller keeps, so the caller may run another path).
+/// gradients as one `[b, lk, 2·h, d]`, keys' heads first), returning its results in the operands' format
+/// (the log-sum-exp f32); an error says why it could not (no result was written that the caller keeps, so the caller may run another path).
 ///
 /// The output and dq are views of buffers laid out merged, `[b, rows, h·d]`, which is how the next product
 /// reads them: the head merge after the attention (`layers::merge_heads`) then only relabels them, where a
@@ -228,7 +228,7 @@ pub(super) fn launch(
     // The results, each kernel's name and the rows its grid covers.
     let (results, launches) = match grads {
         None => {
-            let out = empty_f32(q, vec![b, lq, h, d]);
+            let out = empty_packed(q, vec![b, lq, h, d], q.dtype);
             let results = vec![heads_first(out.clone()), empty_f32(q, vec![b, h, lq, 1])];
             (p.out, p.lse_out) = (ptr(&out)?, ptr(&results[1])?);
             p.outs = merged(lq, h);
@@ -241,11 +241,11 @@ pub(super) fn launch(
                 strides(delta, "delta")?,
             );
             (p.dout, p.lse, p.delta) = (ptr(dout)?, ptr(lse)?, ptr(delta)?);
-            let dq = empty_f32(q, vec![b, lq, h, d]);
-            let dkv = empty_f32(q, vec![b, lk, 2 * h, d]);
+            let dq = empty_packed(q, vec![b, lq, h, d], q.dtype);
+            let dkv = empty_packed(q, vec![b, lk, 2 * h, d], q.dtype);
             (p.dq, p.dk) = (ptr(&dq)?, ptr(&dkv)?);
             // The values' columns follow the keys' in each row.
-            p.dv = p.dk + (h * d * size_of::<f32>()) as u64;
+            p.dv = p.dk + (h * d * q.dtype.size()) as u64;
             (p.dqs, p.dks, p.dvs) = (merged(lq, h), merged(lk, 2 * h), merged(lk, 2 * h));
             let results = vec![heads_first(dq), dkv];
             let launches = vec![

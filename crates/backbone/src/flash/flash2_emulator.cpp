@@ -213,6 +213,23 @@ static void launch(void (*kernel)(Params), Params p, int gx, int gy, int warps) 
 
 static float round_bf16(float x) { return bf(bf16_bits(x)); }
 
+// A result buffer in the operands' type (f32, or bf16 bits), NaN until written, read back as floats.
+struct Result {
+    std::vector<float> f;
+    std::vector<u16> h;
+    Result(size_t n, bool bf16) {
+        if (bf16) h.assign(n, 0x7fc0);
+        else f.assign(n, NAN);
+    }
+    void* at(size_t i) { return h.empty() ? (void*)(f.data() + i) : (void*)(h.data() + i); }
+    std::vector<float> floats() const {
+        if (h.empty()) return f;
+        std::vector<float> x(h.size());
+        for (size_t i = 0; i < h.size(); i++) x[i] = bf(h[i]);
+        return x;
+    }
+};
+
 // One case: b × h heads, lq queries, lk keys, head size d; operands laid out [b, l, h, d] (strided views of
 // [b, h, l, d], as the backbone passes them) with `pad` spare elements after each row of heads (1: rows that do
 // not start on 16 bytes, so tiles move element by element instead of in 16-byte chunks); `low` puts every
@@ -289,17 +306,17 @@ static double run_case(int b, int h, int lq, int lk, int d, bool causal, bool bf
     auto ptr = [&](std::vector<u32>& raw, std::vector<u16>& r16) -> const void* {
         return bf16_in ? (const void*)r16.data() : (const void*)raw.data();
     };
-    // The results merged as training lays them out: out and dq `[b, rows, h, d]`, dk and dv in one
-    // `[b, lk, 2h, d]` (keys' heads, then values'), NaN until written.
-    std::vector<float> o_m(out.size(), NAN), lse_k(lse.size()), lse_f(lse.size()), delta_f(delta.size());
-    std::vector<float> dq_m(dq.size(), NAN), dkv_m(dk.size() + dv.size(), NAN);
+    // The results merged as training lays them out, in the operands' type: out and dq `[b, rows, h, d]`,
+    // dk and dv in one `[b, lk, 2h, d]` (keys' heads, then values'), NaN until written.
+    std::vector<float> lse_k(lse.size()), lse_f(lse.size()), delta_f(delta.size());
+    Result o_r(out.size(), bf16_in), dq_r(dq.size(), bf16_in), dkv_r(dk.size() + dv.size(), bf16_in);
     for (size_t i = 0; i < lse.size(); i++) lse_f[i] = lse[i], delta_f[i] = delta[i];
     Params p;
     memset(&p, 0, sizeof p);
     p.q = ptr(qr, q16), p.k = ptr(kr, k16), p.v = ptr(vr, v16), p.dout = ptr(dr, d16);
     p.lse = lse_f.data(), p.delta = delta_f.data();
-    p.out = o_m.data(), p.lse_out = lse_k.data(), p.dq = dq_m.data(), p.dk = dkv_m.data();
-    p.dv = dkv_m.data() + (long long)h * d;
+    p.out = o_r.at(0), p.lse_out = lse_k.data(), p.dq = dq_r.at(0), p.dk = dkv_r.at(0);
+    p.dv = dkv_r.at((size_t)h * d);
     auto strides = [&](long long* s, int rows) { s[0] = (long long)rows * row, s[1] = d, s[2] = row; };
     strides(p.qs, lq), strides(p.ks, lk), strides(p.vs, lk), strides(p.os, lq);
     auto merged = [&](long long* s, int rows, int heads) { s[0] = (long long)rows * heads * d, s[1] = d, s[2] = heads * d; };
@@ -329,6 +346,7 @@ static double run_case(int b, int h, int lq, int lk, int d, bool causal, bool bf
                         x[(((size_t)bi * h + hi) * rows + r) * d + c] = m[(((size_t)bi * rows + r) * heads + hi) * d + c];
         return x;
     };
+    const std::vector<float> o_m = o_r.floats(), dq_m = dq_r.floats(), dkv_m = dkv_r.floats();
     std::vector<float> o_k = unmerge(o_m.data(), lq, h), dq_k = unmerge(dq_m.data(), lq, h);
     std::vector<float> dk_k = unmerge(dkv_m.data(), lk, 2 * h), dv_k = unmerge(dkv_m.data() + (size_t)h * d, lk, 2 * h);
     auto err = [](const std::vector<double>& r, const std::vector<float>& x) {

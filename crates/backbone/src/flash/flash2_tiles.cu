@@ -37,9 +37,10 @@ DEV int at_tile(int row, int col) {
 #define LN2 0.6931471805599453f
 
 // Everything a pass reads and writes. Strides are in elements: (batch, head, row); the head dimension is
-// contiguous. Results are f32: out, dq, dk and dv at their strides (`outs`, `dqs`, `dks`, `dvs`; the
-// caller lays them out merged, `[b, rows, h·D]`, as the next product reads them), the log-sum-exp
-// contiguous `[b, h, lq]`.
+// contiguous. out, dq, dk and dv are in the operands' type, at their strides (`outs`, `dqs`, `dks`, `dvs`;
+// the caller lays them out merged, `[b, rows, h·D]`, as the next product reads them): bf16 operands give
+// the bf16 results the products around the attention read, as PyTorch's autocast does. The log-sum-exp is
+// f32, contiguous `[b, h, lq]`.
 struct Params {
     const void* q;
     const void* k;
@@ -47,11 +48,11 @@ struct Params {
     const void* dout;
     const float* lse;
     const float* delta;
-    float* out;
+    void* out;
     float* lse_out;
-    float* dq;
-    float* dk;
-    float* dv;
+    void* dq;
+    void* dk;
+    void* dv;
     long long qs[3], ks[3], vs[3], os[3], ls[3], es[3];
     long long outs[3], dqs[3], dks[3], dvs[3];
     int heads, lq, lk, off, causal;
@@ -403,20 +404,23 @@ DEV void both_times(float (*acc)[4], const float (*p)[4], const u16* tile, float
     times<D, NT>(acc2, p2, tile2);
 }
 
-// Rows (this warp's 16) of an accumulator (16 × D) into an f32 result whose rows are `stride` apart,
-// times `scale`.
-template <int D>
-DEV void store_rows(float* dst, long long stride, const float (*acc)[4], int row0, int rows, float scale) {
+// A pair of adjacent results: two floats, or two bf16 values in one word.
+DEV void store_pair(float* p, float lo, float hi) { p[0] = lo, p[1] = hi; }
+DEV void store_pair(u16* p, float lo, float hi) { *(u32*)p = pack(lo, hi); }
+
+// Rows (this warp's 16) of an accumulator (16 × D) into a result of type `T` (the operands') at `dst` +
+// `base`, whose rows are `stride` apart, times `scale`.
+template <typename T, int D>
+DEV void store_rows(void* dst, long long base, long long stride, const float (*acc)[4], int row0, int rows,
+                    float scale) {
+    T* head = (T*)dst + base;
     int l = lane_id(), g = l >> 2, t = l & 3;
 #pragma unroll
     for (int half = 0; half < 2; half++) {
         int row = row0 + 16 * warp_id() + g + 8 * half;
         if (row >= rows) continue;
 #pragma unroll
-        for (int n = 0; n < D / 8; n++) {
-            float* p = dst + row * stride + 8 * n + 2 * t;
-            p[0] = acc[n][2 * half] * scale;
-            p[1] = acc[n][2 * half + 1] * scale;
-        }
+        for (int n = 0; n < D / 8; n++)
+            store_pair(head + row * stride + 8 * n + 2 * t, acc[n][2 * half] * scale, acc[n][2 * half + 1] * scale);
     }
 }

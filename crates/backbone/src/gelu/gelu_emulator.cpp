@@ -17,10 +17,12 @@ struct Case {
     bool bf16;
 };
 
+// The widths `gelu/cuda.rs` launches: 16 bytes of `T` a lane, or one value.
 template <class T>
 static void forward(GeluArgs<T> a, int v, long long grid, int warps) {
-    if (v == 4) {
-        launch(+[](GeluArgs<T> a) { gelu_forward<4, T>(a); }, a, grid, warps);
+    constexpr int wide = 16 / sizeof(T);
+    if (v == wide) {
+        launch(+[](GeluArgs<T> a) { gelu_forward<wide, T>(a); }, a, grid, warps);
     } else {
         launch(+[](GeluArgs<T> a) { gelu_forward<1, T>(a); }, a, grid, warps);
     }
@@ -28,22 +30,29 @@ static void forward(GeluArgs<T> a, int v, long long grid, int warps) {
 
 template <class T>
 static void backward(GeluArgs<T> a, int v, long long grid, int warps) {
-    if (v == 4) {
-        launch(+[](GeluArgs<T> a) { gelu_backward<4, T>(a); }, a, grid, warps);
+    constexpr int wide = 16 / sizeof(T);
+    if (v == wide) {
+        launch(+[](GeluArgs<T> a) { gelu_backward<wide, T>(a); }, a, grid, warps);
     } else {
         launch(+[](GeluArgs<T> a) { gelu_backward<1, T>(a); }, a, grid, warps);
     }
 }
 
-static float from_bf16(u16 h) { return bits_float((u32)h << 16); }
-
-// Both passes in `T`, the outputs read back as floats.
+// Both passes in `T` (the inputs converted to it, exactly: bf16 cases draw bf16 values), the outputs
+// read back as floats.
 template <class T>
 static void passes(const Case& c, const std::vector<float>& y, const std::vector<float>& b,
                    const std::vector<float>& dh, std::vector<float>& h, std::vector<float>& dx,
                    std::vector<float>& db) {
     const long long n = c.rows * c.n;
-    std::vector<T> out(n), grad(n);
+    std::vector<T> out(n), grad(n), ty(n), tdh(n);
+    for (long long i = 0; i < n; i++) {
+        if constexpr (sizeof(T) == 4) {
+            ty[i] = y[i], tdh[i] = dh[i];
+        } else {
+            ty[i] = to_bf16(y[i]), tdh[i] = to_bf16(dh[i]);
+        }
+    }
     // Unwritten values stay NaN, which fails the comparison.
     T nan;
     if constexpr (sizeof(T) == 4) {
@@ -54,8 +63,8 @@ static void passes(const Case& c, const std::vector<float>& y, const std::vector
     std::fill(out.begin(), out.end(), nan);
     std::fill(grad.begin(), grad.end(), nan);
     const GeluSizes s{c.rows, c.n, c.groups};
-    forward(GeluArgs<T>{nullptr, y.data(), b.data(), out.data(), nullptr, s}, c.v, c.grid, c.warps);
-    backward(GeluArgs<T>{dh.data(), y.data(), b.data(), grad.data(), db.data(), s}, c.v, c.grid, c.warps);
+    forward(GeluArgs<T>{nullptr, ty.data(), b.data(), out.data(), nullptr, s}, c.v, c.grid, c.warps);
+    backward(GeluArgs<T>{tdh.data(), ty.data(), b.data(), grad.data(), db.data(), s}, c.v, c.grid, c.warps);
     for (long long i = 0; i < n; i++) {
         if constexpr (sizeof(T) == 4) {
             h[i] = out[i], dx[i] = grad[i];
@@ -71,6 +80,9 @@ static bool run(const Case& c, std::mt19937& rng) {
     std::vector<float> y(n), dh(n), b(c.n);
     // Pre-activations from −6 to 6: both tails of GELU and its derivative.
     for (long long i = 0; i < n; i++) y[i] = 2.f * normal(rng), dh[i] = normal(rng);
+    // A bf16 pass reads bf16 operands: draw values bf16 holds, so that the reference reads the same.
+    if (c.bf16)
+        for (long long i = 0; i < n; i++) y[i] = from_bf16(to_bf16(y[i])), dh[i] = from_bf16(to_bf16(dh[i]));
     for (int i = 0; i < c.n; i++) b[i] = normal(rng);
     std::vector<float> h(n), dx(n), db((long long)c.groups * c.n, NAN);
     if (c.bf16) {
@@ -105,10 +117,11 @@ static bool run(const Case& c, std::mt19937& rng) {
 
 int main() {
     const Case cases[] = {
-        {37, 48, 4, 8, 2, 4, false},    // rows looped by the grid, more groups than the rows' share
-        {37, 48, 4, 8, 2, 4, true},     // the same in bf16
+        {37, 48, 4, 8, 2, 4, false},    // rows looped by the grid, groups of 4 or 5 rows (a partial batch)
+        {37, 48, 8, 8, 2, 4, true},     // the same in bf16
         {5, 132, 4, 16, 1, 8, false},   // a partial chunk, more row groups than rows
-        {64, 384, 4, 32, 3, 8, true},   // several chunks a row, warps looping over the work
+        {64, 384, 8, 32, 3, 8, true},   // several chunks a row, warps looping over the work
+        {70, 264, 8, 3, 2, 4, true},    // long row groups: several batches of rows in flight, a partial one
         {21, 7, 1, 4, 1, 2, false},     // a width that is not a multiple of 4
         {30, 45, 1, 6, 2, 3, true},     // the same in bf16, chunks of 32
     };

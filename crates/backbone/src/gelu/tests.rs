@@ -118,16 +118,63 @@ fn linear_gelu_matches_an_f64_reference() {
     }
 }
 
-/// The bf16 activation is f32's rounded to bf16: nothing but the final rounding differs between the two.
+/// From a bf16 product the activation and the pre-activation's gradient come out in bf16, and they are
+/// the f32 computation on the same values rounded: the bias add and GELU run in f32, nothing but the final
+/// rounding differs. The bias's gradient stays f32.
 #[test]
-fn the_bf16_activation_is_the_f32_one_rounded() {
+fn bf16_passes_are_the_f32_ones_rounded() {
     let dev = Default::default();
-    let y = Tensor::<Flex, 2>::random([9, 16], Distribution::Normal(0.0, 3.0), &dev);
+    let y = Tensor::<Flex, 2>::random([9, 16], Distribution::Normal(0.0, 3.0), &dev).cast(FloatDType::BF16);
+    let dh = Tensor::<Flex, 2>::random([9, 16], Distribution::Normal(0.0, 1.0), &dev).cast(FloatDType::BF16);
     let b = Tensor::<Flex, 1>::random([16], Distribution::Normal(0.0, 1.0), &dev);
-    let f32s = forward_decomposed(y.clone(), b.clone(), FloatDType::F32);
-    let bf16s = forward_decomposed(y, b, FloatDType::BF16);
+    let wide = |t: &Tensor<Flex, 2>| t.clone().cast(FloatDType::F32);
+    let f32s = forward_decomposed(wide(&y), b.clone());
+    let bf16s = forward_decomposed(y.clone(), b.clone());
     assert_eq!(bf16s.dtype(), FloatDType::BF16.into());
     assert_eq!(values(f32s.cast(FloatDType::BF16)), values(bf16s));
+    let (d32, db32) = backward_decomposed(wide(&dh), wide(&y), b.clone());
+    let (d16, db16) = backward_decomposed(dh, y, b);
+    assert_eq!(d16.dtype(), FloatDType::BF16.into());
+    assert_eq!(db16.dtype(), FloatDType::F32.into());
+    assert_eq!(values(d32.cast(FloatDType::BF16)), values(d16));
+    assert_eq!(values(db32), values(db16));
+}
+
+/// The MLP with bf16 products: its output and every gradient are f32 and within bf16's rounding of the f32
+/// MLP's, though its hidden activation, pre-activation and their gradients are bf16.
+#[test]
+fn a_bf16_mlp_keeps_f32_results_close_to_the_f32_one() {
+    let dev = Default::default();
+    let fc = LinearConfig::new(8, 32).init::<A>(&dev);
+    let out = LinearConfig::new(32, 8).init::<A>(&dev);
+    let x = Tensor::<A, 3>::random([2, 5, 8], Distribution::Normal(0.0, 1.0), &dev).require_grad();
+    let r = Tensor::<A, 3>::random([2, 5, 8], Distribution::Normal(0.0, 1.0), &dev);
+    let run = |p| {
+        let y = gelu_mlp(&fc, &out, x.clone(), p);
+        assert_eq!(y.dtype(), FloatDType::F32.into(), "{p:?}");
+        let g = (y.clone() * r.clone()).sum().backward();
+        let grads = [
+            x.grad(&g).expect("dx"),
+            fc.weight.val().grad(&g).expect("fc dw").unsqueeze(),
+            out.weight.val().grad(&g).expect("out dw").unsqueeze(),
+        ];
+        for t in &grads {
+            assert_eq!(t.dtype(), FloatDType::F32.into(), "{p:?}");
+        }
+        let fc_db = fc.bias.as_ref().expect("bias").val().grad(&g).expect("fc db");
+        (y.inner(), grads, fc_db)
+    };
+    let (y32, g32, db32) = run(Precision::F32);
+    let (y16, g16, db16) = run(Precision::Bf16);
+    let close = |a: Tensor<Flex, 3>, b: Tensor<Flex, 3>, what: &str| {
+        let e = rel(&values(a), &values(b));
+        assert!(e > 1e-6 && e < 0.03, "{what}: {e}");
+    };
+    close(y16, y32, "y");
+    for ((a, b), what) in g16.into_iter().zip(g32).zip(["dx", "fc dw", "out dw"]) {
+        close(a, b, what);
+    }
+    close(db16.unsqueeze(), db32.unsqueeze(), "fc db");
 }
 
 /// The operation's forward pass is burn's `gelu(linear)` (same erf), and the bias gradient of the
@@ -143,6 +190,6 @@ fn forward_matches_burns_and_the_bias_gradient_sums_the_columns() {
     let y = Tensor::<Flex, 2>::random([600, 10], Distribution::Normal(0.0, 1.5), &dev);
     let dh = Tensor::<Flex, 2>::random([600, 10], Distribution::Normal(0.0, 1.0), &dev);
     let bias = Tensor::<Flex, 1>::random([10], Distribution::Normal(0.0, 1.0), &dev);
-    let (d, db) = backward_decomposed(dh, y, bias, FloatDType::F32);
+    let (d, db) = backward_decomposed(dh, y, bias);
     assert!(rel(&values(db), &values(d.sum_dim(0).reshape([10]))) < 1e-5);
 }

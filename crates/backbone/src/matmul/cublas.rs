@@ -1,6 +1,6 @@
 //! cuBLAS for the named products (`train.matmul = "cublas"`): `cublasGemmEx` on the operands as they lie in
 //! burn's memory, f32 or bf16 operands (f32 through TF32 tensor cores, as the cubek kernel does), an f32
-//! result, f32 accumulation.
+//! result (or one in the operands' own 16-bit format), f32 accumulation.
 //!
 //! With `train.kernel_stream = "cubecl"` (the default) each product is queued on cubecl's own stream for
 //! the caller (`cubecl_cuda::last_stream`, right after the operands' pointers were fetched on cubecl's
@@ -136,7 +136,7 @@ fn int(what: &str, v: usize) -> Result<i32, String> {
 }
 
 /// `out = lhs · rhs` on cuBLAS: `lhs [m, k]`, `rhs [k, n]` of one float format, row- or column-major, and
-/// `out [m, n]` row-major f32, ordered with cubecl's stream on the device (module docs). An operand cuBLAS
+/// `out [m, n]` row-major, f32 or the operands' own format, ordered with cubecl's stream on the device (module docs). An operand cuBLAS
 /// cannot take, or a device without cuBLAS, says why (the caller falls back, after cubecl's stream has
 /// passed the failed product).
 pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), String> {
@@ -155,7 +155,12 @@ pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Resul
     };
     let ((ls, lst), (rs, rst), (os, ost)) = (dims(lhs)?, dims(rhs)?, dims(out)?);
     let (m, k, n) = (ls[0], ls[1], rs[1]);
-    if rs[0] != k || os != [m, n] || out.dtype != DType::F32 {
+    let written = match out.dtype {
+        DType::F32 => sys::cudaDataType::CUDA_R_32F,
+        d if d == lhs.dtype => data,
+        _ => return Err(format!("{:?} result of {:?} operands", out.dtype, lhs.dtype)),
+    };
+    if rs[0] != k || os != [m, n] {
         return Err(format!("shapes {ls:?} × {rs:?} into {os:?} {:?}", out.dtype));
     }
     // burn pads the rows of some outputs (a head of 1,028 ids gets a longer row stride): any row-major
@@ -208,7 +213,7 @@ pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Resul
                 b.ld,
                 (&zero as *const f32).cast::<c_void>(),
                 c as *mut c_void,
-                sys::cudaDataType::CUDA_R_32F,
+                written,
                 ldc,
                 compute,
                 sys::cublasGemmAlgo_t::CUBLAS_GEMM_DEFAULT,

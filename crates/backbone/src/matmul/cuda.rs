@@ -1,12 +1,14 @@
 //! [`NamedMatmul`] for `Cuda` (burn-fusion over the cubecl backend): a custom operation in the fusion
 //! stream that launches cubek's `specialized_tma_mma` (or cuBLAS, `cublas.rs`, with `train.matmul =
-//! "cublas"`) on the two operands as they lie in memory, row- or column-major, and writes an f32 result.
+//! "cublas"`) on the two operands as they lie in memory, row- or column-major, and writes the result in the
+//! format asked for (f32, or bf16 from bf16 operands), accumulating in f32.
 //!
 //! The fusion stream cannot fuse a custom operation, so element-wise work around a product (a bias, a
 //! cast) runs as its own kernels instead of inside burn's fused matmul; the kernel's speed pays for that
 //! many times over on the training step's shapes (`umgen bench matmul`, `docs/perf-notes.md`).
 
 use super::NamedMatmul;
+use crate::precision::float_format;
 use crate::side::{Handles, Inner, Primitive};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
@@ -32,10 +34,10 @@ pub fn fallbacks() -> usize {
 }
 
 impl NamedMatmul for Cuda {
-    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>) -> FloatTensor<Self> {
+    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>, out: FloatDType) -> FloatTensor<Self> {
         let client = lhs.client.clone();
         let shape = Shape::new([lhs.shape[0], rhs.shape[1]]);
-        let out = TensorIr::uninit(client.create_empty_handle(), shape, DType::F32);
+        let out = TensorIr::uninit(client.create_empty_handle(), shape, DType::from(out));
         let streams = OperationStreams::with_inputs([&lhs, &rhs]);
         let desc = CustomOpIr::new("umgen_named_matmul", &[lhs.into_ir(), rhs.into_ir()], &[out]);
         client
@@ -55,7 +57,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Product {
         let ([l, r], [o]) = self.desc.as_fixed();
         let lhs = handles.get_float_tensor::<Inner>(l);
         let rhs = handles.get_float_tensor::<Inner>(r);
-        handles.register_float_tensor::<Inner>(&o.id, run(lhs, rhs));
+        handles.register_float_tensor::<Inner>(&o.id, run(lhs, rhs, o.dtype));
     }
 }
 
@@ -131,10 +133,10 @@ fn fell_back(kernel: &str, instead: &str, lhs: &Primitive, rhs: &Primitive, why:
     }
 }
 
-/// `lhs · rhs` in f32 on cuBLAS when selected, else (or when it refuses) on the named kernel, else on
+/// `lhs · rhs` in `dtype` on cuBLAS when selected, else (or when it refuses) on the named kernel, else on
 /// burn's default kernel.
-fn run(lhs: Primitive, rhs: Primitive) -> Primitive {
-    let out = init_matmul_output(&lhs, &rhs, DType::F32);
+fn run(lhs: Primitive, rhs: Primitive, dtype: DType) -> Primitive {
+    let out = init_matmul_output(&lhs, &rhs, dtype);
     if super::selected() == super::MatmulKernel::Cublas {
         match crate::side::on_device_thread(&lhs, || super::cublas::launch(&lhs, &rhs, &out)) {
             Ok(()) => return out,
@@ -151,15 +153,9 @@ fn run(lhs: Primitive, rhs: Primitive) -> Primitive {
             &why,
         ),
     }
-    match matmul(
-        lhs.clone(),
-        rhs.clone(),
-        None,
-        MatmulStrategy::default(),
-        DType::F32,
-    ) {
+    match matmul(lhs.clone(), rhs.clone(), None, MatmulStrategy::default(), dtype) {
         Ok(out) => out,
-        // burn's default kernel writes the operands' own format; widen after it.
-        Err(_) => Inner::float_cast(Inner::float_matmul(lhs, rhs), FloatDType::F32),
+        // burn's default kernel writes the operands' own format; cast after it.
+        Err(_) => Inner::float_cast(Inner::float_matmul(lhs, rhs), float_format(dtype)),
     }
 }

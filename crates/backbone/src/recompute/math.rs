@@ -10,13 +10,13 @@
 use crate::attention::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
 use crate::config::Precision;
 use crate::flash::{FusedAttention, merge_kv};
-use crate::gelu::{FusedGelu, inner_backward, inner_forward};
+use crate::gelu::{FusedGelu, inner_backward, inner_forward, inner_product_dtype};
 use crate::layers::{merge_heads, split_heads};
-use crate::matmul::{NamedMatmul, product};
+use crate::matmul::{NamedMatmul, product, product_in};
 use crate::norm::FusedNorm;
-use crate::precision::operand;
+use crate::precision::{float_format, operand};
 use crate::temporal::TemporalAttention;
-use burn::tensor::{Bool, Tensor, TensorPrimitive};
+use burn::tensor::{Bool, FloatDType, Tensor, TensorPrimitive};
 
 /// What both passes need from the inner backend: the attention (over positions and over time), matmul,
 /// layer-norm and bias + GELU kernels.
@@ -134,44 +134,54 @@ fn norm_grad<I: LayerBackend>(
     (dx.reshape([b, l, d]), dgamma, dbeta)
 }
 
-/// `x · w` `[b · l, n]` with the product in `p`'s format (as `precision::linear` on the named kernel).
-fn unbiased<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 2> {
+/// `x · w` `[b · l, n]` with the product in `p`'s format (as `precision::linear` on the named kernel),
+/// written in `out`.
+fn unbiased<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, out: FloatDType) -> Tensor<I, 2> {
     let [b, len, k] = x.dims();
-    product(operand(x.reshape([b * len, k]), p), operand(l.w.clone(), p))
+    product_in(operand(x.reshape([b * len, k]), p), operand(l.w.clone(), p), out)
 }
 
 /// `x · w + b` with the product in `p`'s format.
 fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 3> {
-    let [b, len, _] = x.dims();
-    let n = l.w.dims()[1];
-    unbiased(x, l, p).reshape([b, len, n]) + l.b.clone().unsqueeze::<3>()
+    linear_in(x, l, p, FloatDType::F32)
 }
 
-/// Gradients of a linear layer's input, weight and bias (as `matmul.rs`'s operation computes them).
+/// [`linear`] written in `format` (as `precision::linear_in`): the product, then the bias added in it.
+fn linear_in<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, format: FloatDType) -> Tensor<I, 3> {
+    let [b, len, _] = x.dims();
+    let n = l.w.dims()[1];
+    unbiased(x, l, p, format).reshape([b, len, n]) + l.b.clone().cast(format).unsqueeze::<3>()
+}
+
+/// Gradients of a linear layer's input (in `dx`), weight and bias (as `matmul.rs`'s operation computes
+/// them).
 fn linear_grad<I: LayerBackend>(
     x: Tensor<I, 3>,
     l: &Lin<I>,
     dy: Tensor<I, 3>,
     p: Precision,
+    dx: FloatDType,
 ) -> (Tensor<I, 3>, Tensor<I, 2>, Tensor<I, 1>) {
     let [b, len, _] = x.dims();
     let n = dy.dims()[2];
-    let dy2 = dy.reshape([b * len, n]);
-    let db = crate::rows::sum(dy2.clone());
-    let (dx, dw) = product_grad(x, l, dy2, p);
+    // The bias's sum and the products' bf16 operand in one pass (as `rows::add_for`), where a cast and
+    // then the sum read `dy` twice.
+    let (dy2, db) = crate::rows::sum_cast(dy.reshape([b * len, n]), p.operand_dtype());
+    let (dx, dw) = product_grad(x, l, dy2, p, dx);
     (dx, dw, db)
 }
 
-/// Gradients of a product's input and weight from its output's gradient `dy` `[b · l, n]`.
+/// Gradients of a product's input (in `dx`) and weight from its output's gradient `dy` `[b · l, n]`.
 fn product_grad<I: LayerBackend>(
     x: Tensor<I, 3>,
     l: &Lin<I>,
     dy: Tensor<I, 2>,
     p: Precision,
+    dx: FloatDType,
 ) -> (Tensor<I, 3>, Tensor<I, 2>) {
     let [b, len, k] = x.dims();
     let dy = operand(dy, p);
-    let dx = product(dy.clone(), operand(l.w.clone(), p).transpose()).reshape([b, len, k]);
+    let dx = product_in(dy.clone(), operand(l.w.clone(), p).transpose(), dx).reshape([b, len, k]);
     let dw = product(operand(x.reshape([b * len, k]), p).transpose(), dy);
     (dx, dw)
 }
@@ -228,15 +238,21 @@ fn run<I: LayerBackend>(
     // (the norms write it), not cast by each product (the forward pass's two, the recomputation's two and
     // the weight gradients').
     let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps, p);
-    let q = linear(n1.clone(), &w.q, p);
-    let kv = linear(n1.clone(), &w.kv, p);
+    // Over positions the queries, keys and values are the attention's operands: written in its format
+    // (the attention over time reads f32).
+    let qkv_format = match s.over_time {
+        None => p.attention().operand_dtype(),
+        Some(_) => FloatDType::F32,
+    };
+    let q = linear_in(n1.clone(), &w.q, p, qkv_format);
+    let kv = linear_in(n1.clone(), &w.kv, p, qkv_format);
     let [b, len, d] = q.dims();
     let (attn, merged) = match s.over_time {
         None => {
-            let pa = p.attention();
-            let q = operand(split_heads(q, s.heads), pa);
-            let k = operand(split_heads(kv.clone().narrow(2, 0, d), s.heads), pa);
-            let v = operand(split_heads(kv.narrow(2, d, d), s.heads), pa);
+            // Already in the attention's format; flash2 reads the heads' strided views.
+            let q = split_heads(q, s.heads);
+            let k = split_heads(kv.clone().narrow(2, 0, d), s.heads);
+            let v = split_heads(kv.narrow(2, d, d), s.heads);
             let (att, lse) = attend(q.clone(), k.clone(), v.clone(), s);
             let merged = merge_heads(att.clone());
             (Attn::Rows([q, k, v, att, lse]), merged)
@@ -251,9 +267,9 @@ fn run<I: LayerBackend>(
     let merged = operand(merged, p);
     let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
     let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps, p);
-    let hidden = unbiased(n2.clone(), &w.fc, p);
+    let hidden = unbiased(n2.clone(), &w.fc, p, inner_product_dtype(p));
     let [b, len, _] = n2.dims();
-    let act = inner_forward(hidden.clone(), w.fc.b.clone(), p).reshape([b, len, hidden.dims()[1]]);
+    let act = inner_forward(hidden.clone(), w.fc.b.clone()).reshape([b, len, hidden.dims()[1]]);
     let saved = Saved {
         x,
         stats1,
@@ -292,14 +308,22 @@ pub fn backward<I: LayerBackend>(
     let p = s.precision;
     let (_, f) = run(w, s, masks, x);
     let d_out = drop(&masks.mlp, dy.clone());
-    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p);
+    // The activation's gradient in its own format (bf16 with the bf16 presets), as `gelu::gelu_mlp` has it.
+    let act_format = float_format(f.act.dtype());
+    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p, act_format);
     let d_act = d_act.reshape(f.hidden.dims());
-    let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone(), p);
-    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, p);
+    let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone());
+    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, p, FloatDType::F32);
     let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2);
     let dx1 = dy + dx1_norm;
     let d_proj = drop(&masks.attn, dx1.clone());
-    let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p);
+    // The attention's output gradient in the output's own format: bf16 where flash2 wrote it so, which
+    // its backward pass then reads without a cast.
+    let d_merged_format = match &f.attn {
+        Attn::Rows([.., att, _]) => float_format(att.dtype()),
+        Attn::OverTime(_) => FloatDType::F32,
+    };
+    let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p, d_merged_format);
     let (dq, dkv) = match f.attn {
         Attn::Rows([q, k, v, att, lse]) => {
             let (dq, dkv) = attend_grad(q, k, v, att, lse, split_heads(d_merged, s.heads), s);
@@ -313,8 +337,8 @@ pub fn backward<I: LayerBackend>(
             (dq.reshape([b, t * n, d]), dkv.reshape([b, t * n, 2 * d]))
         }
     };
-    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p);
-    let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p);
+    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p, FloatDType::F32);
+    let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p, FloatDType::F32);
     let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv);
     let dx = dx1 + dx_norm;
     let one = |t: Tensor<I, 1>| t.into_primitive();

@@ -1,12 +1,13 @@
-// Column sums of a row-major f32 matrix `[rows, d]` (`rows.rs`'s `sum` on CUDA), in two launches: the rows in
+// Column sums of a row-major f32 or bf16 matrix `[rows, d]` (`rows.rs`'s `sum` on CUDA), summed in f32 (bf16
+// where a product's bf16 gradient gives a bias its gradient, as PyTorch's autocast does), in two launches: the rows in
 // `groups` groups (one row of partial sums each), then those rows. Block (c, g) sums columns [32c, 32c + 32)
 // of group g: phase p takes the group's rows p, p + PHASES, … (a warp's 32 lanes read one 128-byte row
 // segment at a time), then the phases are added in order, so the sums are the same whatever the block's
 // size. burn's reduction gave each column one unit walking its rows: 15–20 µs for a `[256, 384]` matrix
 // that one wave of these blocks reads in a few.
 //
-// NVRTC compiles it after `warp_device.cuh`; on the host `rows_emulator.cpp` includes it after
-// `warp_emulator.h` and compares it with a double-precision sum.
+// NVRTC compiles it after `warp_device.cuh` and `bf16.cuh`; on the host `rows_emulator.cpp` includes it after
+// `warp_emulator.h` and compares it with a double-precision sum. The second launch always reads f32.
 
 #define PHASES 8
 
@@ -17,7 +18,10 @@ struct RowsSizes {
     int groups;      // row groups, one output row each
 };
 
-KERNEL umgen_rows_sum(const float* x, float* out, RowsSizes s) {
+// `cast` (where not null): the first launch also writes `x` rounded to bf16, packed, as it reads it: a
+// gradient whose bias sum and bf16 copy for a product come from one pass (`rows::sum_cast`).
+template <class T>
+DEV void rows_sum(const T* x, float* out, u16* cast, RowsSizes s) {
     SHARED float part[PHASES][32];
     const int tiles = (s.d + 31) / 32;
     const long long g = block_x() / tiles;
@@ -29,7 +33,11 @@ KERNEL umgen_rows_sum(const float* x, float* out, RowsSizes s) {
         float acc = 0.f;
         if (c < s.d) {
 #pragma unroll 4
-            for (long long r = r0 + ph; r < r1; r += PHASES) acc += x[r * s.d + c];
+            for (long long r = r0 + ph; r < r1; r += PHASES) {
+                const float v = value(x + r * s.d + c);
+                if (cast) cast[r * s.d + c] = to_bf16(v);
+                acc += v;
+            }
         }
         part[ph][lane_id()] = acc;
     }
@@ -41,3 +49,7 @@ KERNEL umgen_rows_sum(const float* x, float* out, RowsSizes s) {
         out[g * s.d + c] = total;
     }
 }
+
+KERNEL umgen_rows_sum(const float* x, float* out, RowsSizes s) { rows_sum(x, out, (u16*)0, s); }
+KERNEL umgen_rows_sum_bf16(const u16* x, float* out, RowsSizes s) { rows_sum(x, out, (u16*)0, s); }
+KERNEL umgen_rows_sum_cast(const float* x, float* out, u16* cast, RowsSizes s) { rows_sum(x, out, cast, s); }

@@ -7,7 +7,7 @@ use anyhow::Context;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::module::attention_fallback;
 use burn::tensor::ops::AttentionModuleOptions;
-use burn::tensor::{Distribution, ElementConversion, Tensor};
+use burn::tensor::{Distribution, ElementConversion, FloatDType, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
@@ -93,8 +93,10 @@ fn measure<B: AutodiffBackend>(
             };
             attention_fallback(qa.clone(), ka.clone(), va.clone(), None, None, opts)
         };
+        // flash2 writes bf16 results from bf16 operands (and gradients): compared in f32.
+        let y = y.cast(FloatDType::F32);
         let g = (y.clone() * Tensor::from_inner(w.clone())).sum().backward();
-        let grads = [qa.grad(&g), ka.grad(&g), va.grad(&g)];
+        let grads = [qa.grad(&g), ka.grad(&g), va.grad(&g)].map(|t| t.map(|t| t.cast(FloatDType::F32)));
         let [Some(dq), Some(dk), Some(dv)] = grads else {
             anyhow::bail!("attention gave no gradient to q, k or v");
         };

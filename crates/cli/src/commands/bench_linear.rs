@@ -13,7 +13,7 @@ use burn::tensor::{Distribution, FloatDType, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
-use umgen::backbone::matmul::{MatmulKernel, named_for, select};
+use umgen::backbone::matmul::{MatmulKernel, Written, named_for, select};
 
 /// A product under test: `x · w` on the autodiff backend `B`.
 type Path<'a, B> = &'a dyn Fn(Tensor<B, 2>, Tensor<B, 2>) -> Tensor<B, 2>;
@@ -66,17 +66,27 @@ fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::D
                     .matmul(w.cast(FloatDType::BF16))
                     .cast(FloatDType::F32),
             };
-            let on = |kernel: MatmulKernel| {
+            let on = |kernel: MatmulKernel, written: Written| {
                 move |x: Tensor<B, 2>, w: Tensor<B, 2>| {
                     select(kernel);
-                    named(x, w, p)
+                    named(x, w, p, written).cast(FloatDType::F32)
                 }
             };
-            let (named_path, cublas_path) = (on(MatmulKernel::Named), on(MatmulKernel::Cublas));
+            // The result and the input's gradient written in bf16, as the MLP's products write them.
+            let half = Written {
+                out: FloatDType::BF16,
+                dx: FloatDType::BF16,
+            };
+            let named_path = on(MatmulKernel::Named, Written::F32);
+            let cublas_path = on(MatmulKernel::Cublas, Written::F32);
+            let cublas_half = on(MatmulKernel::Cublas, half);
             let mut paths: Vec<(&str, Path<B>)> = vec![("burn", &burn_path), ("named", &named_path)];
             // On the CPU every named product is burn's; cuBLAS is a CUDA kernel.
             if a.device.starts_with("cuda") {
                 paths.push(("cublas", &cublas_path));
+                if dtype == PrecisionArg::Bf16 {
+                    paths.push(("cub16", &cublas_half));
+                }
             }
             for (name, path) in paths {
                 let (results, secs) = pass::<B>(path, &x, &w, &up, a.iters)?;
@@ -126,7 +136,7 @@ fn pass<B: AutodiffBackend>(
         if i > 0 {
             times.push(t0.elapsed().as_secs_f64());
         }
-        last = Some([y.inner(), dx, dw]);
+        last = Some([y.inner(), dx, dw].map(|t| t.cast(FloatDType::F32)));
     }
     times.sort_by(f64::total_cmp);
     let results = last.context("no pass ran")?;
