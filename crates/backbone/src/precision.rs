@@ -90,8 +90,9 @@ pub fn linear_in<B: Backend, const D: usize>(
     }
 }
 
-/// [`linear`] whose input's gradient is written in `dx` where the named kernel computes it (the MLP's
-/// second layer: its input's gradient only feeds the bias + GELU kernel's backward pass, which reads bf16).
+/// [`linear`] whose input's gradient is written in `dx` where the named kernel computes it: the MLP's
+/// second layer (its input's gradient only feeds the bias + GELU kernel's backward pass, which reads bf16)
+/// and the attention's output projection (flash2's backward pass reads the output's gradient in bf16).
 pub fn linear_with<B: Backend, const D: usize>(
     layer: &Linear<B>,
     x: Tensor<B, D>,
@@ -115,8 +116,8 @@ pub fn linear_with<B: Backend, const D: usize>(
             p,
         ),
     };
-    // The product's backward pass reads its gradient in the operands' format: cast once, before the bias's
-    // gradient is summed from it.
+    // The product's backward pass reads its gradient in the operands' format: the bias's sum writes that
+    // copy in the same pass (`rows::add_for`).
     match &layer.bias {
         Some(bias) => crate::rows::add_for(y, bias.val(), Some(p.operand_dtype())),
         None => y,
