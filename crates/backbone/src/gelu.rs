@@ -79,15 +79,6 @@ fn fell_back(why: &str) {
     CHOICE.fell_back(why);
 }
 
-/// The format an MLP's hidden activation (and its pre-activation's gradient) is written in: the format the
-/// next product reads, so that neither needs a cast.
-pub fn activation_dtype(p: Precision) -> FloatDType {
-    match p {
-        Precision::F32 => FloatDType::F32,
-        Precision::Bf16 | Precision::Bf16Linear => FloatDType::BF16,
-    }
-}
-
 /// A backend that computes an MLP's bias + GELU over the rows of `[rows, n]` products (f32 or bf16; the
 /// results are written in the product's format, the arithmetic is f32). The passes default to burn's
 /// operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides them.
@@ -142,9 +133,10 @@ pub fn backward_decomposed<B: Backend>(
     (d.cast(out), db)
 }
 
-/// `gelu(layer.forward(x))` with the product in `p`'s format, the product and the result in
-/// [`activation_dtype`]`(p)` where the training backends run it as one operation (a layer with a bias, the
-/// named matmul, and [`GeluKernel::Fused`]); elsewhere burn's operations in f32.
+/// `gelu(layer.forward(x))` with the product in `p`'s format, the product and the result in the products'
+/// operand format ([`Precision::operand_dtype`], so that the next product needs no cast) where the training
+/// backends run it as one operation (a layer with a bias, the named matmul, and [`GeluKernel::Fused`]);
+/// elsewhere burn's operations in f32.
 pub fn linear_gelu<B: Backend, const D: usize>(
     layer: &Linear<B>,
     x: Tensor<B, D>,
@@ -155,7 +147,7 @@ pub fn linear_gelu<B: Backend, const D: usize>(
     else {
         return gelu(linear(layer, x, p));
     };
-    let format = activation_dtype(p);
+    let format = p.operand_dtype();
     let written = Written {
         out: format,
         dx: FloatDType::F32,
@@ -179,10 +171,11 @@ pub fn gelu_mlp<B: Backend, const D: usize>(
 }
 
 /// The format of the MLP's first product where [`inner_forward`] reads it: the activation's
-/// ([`activation_dtype`]) for [`GeluKernel::Fused`], f32 for burn's operations.
+/// (the products' operand format, [`Precision::operand_dtype`]) for [`GeluKernel::Fused`], f32 for burn's
+/// operations.
 pub(crate) fn inner_product_dtype(p: Precision) -> FloatDType {
     match selected() {
-        GeluKernel::Fused => activation_dtype(p),
+        GeluKernel::Fused => p.operand_dtype(),
         GeluKernel::Burn => FloatDType::F32,
     }
 }

@@ -25,7 +25,7 @@ use burn::backend::autodiff::checkpoint::strategy::{
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::backend::Backend;
-use burn::tensor::{DType, FloatDType, Shape, Tensor, TensorMetadata};
+use burn::tensor::{FloatDType, Shape, Tensor, TensorMetadata};
 
 /// Row groups of [`sum`]'s first stage.
 const GROUPS: usize = 256;
@@ -60,7 +60,7 @@ pub(crate) fn sum<I: Backend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
 /// rows twice, and burn's cast here left a layout the sum and the next product each copied).
 pub(crate) fn sum_cast<I: Backend>(x: Tensor<I, 2>, format: FloatDType) -> (Tensor<I, 2>, Tensor<I, 1>) {
     #[cfg(feature = "cuda")]
-    if x.dtype() == DType::F32 && format == FloatDType::BF16 {
+    if x.dtype() == burn::tensor::DType::F32 && format == FloatDType::BF16 {
         type SumCast<B> = fn(Tensor<B, 2>) -> (Tensor<B, 2>, Tensor<B, 1>);
         if let Some(f) = same::<SumCast<burn::backend::Cuda>, SumCast<I>>(cuda::sum_cast) {
             return f(x);
@@ -140,8 +140,8 @@ impl<I: Backend> Backward<I, 2> for Rows {
         let d = shape[shape.num_dims() - 1];
         let flat = float::<I, 2>(I::float_reshape(g, Shape::new([shape.num_elements() / d, d])));
         let (flat, db) = match ops.state {
-            Some(format) if flat.dtype() != DType::from(format) => sum_cast(flat, format),
-            _ => (flat.clone(), sum(flat)),
+            Some(format) => sum_cast(flat, format),
+            None => (flat.clone(), sum(flat)),
         };
         let [x_node, p_node] = ops.parents;
         // Each gradient only for a parent that asks for it (a frozen parameter, an untracked input).
@@ -182,7 +182,7 @@ fn apply<I: Backend, C: CheckpointStrategy, const D: usize>(
 mod tests {
     use super::*;
     use burn::backend::{Autodiff, Flex};
-    use burn::tensor::Distribution;
+    use burn::tensor::{DType, Distribution};
 
     type A = Autodiff<Flex>;
 

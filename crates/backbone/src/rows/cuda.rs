@@ -50,9 +50,8 @@ pub(super) fn sum(x: Tensor<Cuda, 2>) -> Tensor<Cuda, 1> {
 
 /// `x` `[rows, d]` (f32) rounded to bf16, and its column sums `[d]` (of the f32 values), in one pass.
 pub(super) fn sum_cast(x: Tensor<Cuda, 2>) -> (Tensor<Cuda, 2>, Tensor<Cuda, 1>) {
-    if let Some(why) =
-        refused(&x).or_else(|| (x.dtype() != DType::F32).then(|| format!("{:?} rows to cast", x.dtype())))
-    {
+    // `rows::sum_cast` sends f32 rows only (`launch` refuses others too).
+    if let Some(why) = refused(&x) {
         CHOICE.fell_back(&why);
         return (x.clone().cast(FloatDType::BF16), staged(x));
     }
