@@ -71,6 +71,31 @@ impl<B: Backend> EgoModule<B> {
         }
     }
 
+    /// The queries, the CA_hist and CA_env layers, the final norm, the head, the action block and the
+    /// content position of each frame's own action (`ego_last`).
+    #[allow(clippy::type_complexity)]
+    pub(crate) fn parts(
+        &self,
+    ) -> (
+        &Param<Tensor<B, 2>>,
+        &[CrossBlock<B>],
+        &[CrossBlock<B>],
+        &LayerNorm<B>,
+        &Linear<B>,
+        [usize; 2],
+        Option<usize>,
+    ) {
+        (
+            &self.queries,
+            &self.hist,
+            &self.env,
+            &self.ln,
+            &self.head,
+            self.block,
+            self.last,
+        )
+    }
+
     /// Logits `[b, t, q, vocab]` of the action tokens of frame `i + 1` from frames `0..=i` of `e`
     /// `[b, t, N, d]`; with `last_only`, only for the last frame (`[b, 1, q, vocab]`).
     pub fn forward(&self, e: Tensor<B, 4>, last_only: bool) -> Tensor<B, 4> {

@@ -108,6 +108,20 @@ impl<B: Backend> FrameEmbedding<B> {
         Some(self.rows(s, p, ids))
     }
 
+    /// Each segment's table and projection, the position embeddings and the MLP's two layers.
+    #[allow(clippy::type_complexity)]
+    pub(crate) fn parts(
+        &self,
+    ) -> (
+        Vec<(&Embedding<B>, Option<&Linear<B>>)>,
+        &Param<Tensor<B, 2>>,
+        &Linear<B>,
+        &Linear<B>,
+    ) {
+        let tables = self.tables.iter().map(|t| (&t.table, t.proj.as_ref())).collect();
+        (tables, &self.pos, &self.fc1, &self.fc2)
+    }
+
     /// The number format of its products (the backbone's).
     pub(crate) fn precision(&self) -> Precision {
         self.precision

@@ -42,6 +42,11 @@ impl<B: Backend> Heads<B> {
         }
     }
 
+    /// Each segment's head.
+    pub(crate) fn linears(&self) -> &[Linear<B>] {
+        &self.heads
+    }
+
     /// Logits `[m, tokens, vocab]` of segment `s` from features `[m, N, d]`.
     pub fn logits(&self, s: usize, x: Tensor<B, 3>) -> Tensor<B, 3> {
         let [offset, tokens] = self.content[s];

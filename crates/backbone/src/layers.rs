@@ -137,6 +137,11 @@ impl<B: Backend> MultiHead<B> {
         self.heads
     }
 
+    /// The query, key-and-value and output projections.
+    pub(crate) fn linears(&self) -> (&Linear<B>, &Linear<B>, &Linear<B>) {
+        (&self.q, &self.kv, &self.proj)
+    }
+
     /// Self-attention of the newest position `x` `[m, 1, d]`, written at position `pos` of `cache` (keys and
     /// values `[m, heads, capacity, dh]`, allocated at full size on the first step), over itself and the
     /// positions before it; `hidden` `[1, 1, 1, capacity]` is 0 where a key may be seen and a large negative
@@ -334,6 +339,26 @@ impl<B: Backend> CrossBlock<B> {
             ln2: LayerNormConfig::new(sizes.d).init(dev),
             mlp: sizes.mlp(dev),
         }
+    }
+
+    /// The queries' and the context's norms, the attention, the MLP's norm and its two layers.
+    #[allow(clippy::type_complexity)]
+    pub(crate) fn parts(
+        &self,
+    ) -> (
+        &LayerNorm<B>,
+        &LayerNorm<B>,
+        &MultiHead<B>,
+        &LayerNorm<B>,
+        (&Linear<B>, &Linear<B>),
+    ) {
+        (
+            &self.ln_q,
+            &self.ln_ctx,
+            &self.attn,
+            &self.ln2,
+            (&self.mlp.fc, &self.mlp.proj),
+        )
     }
 
     /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]` with an optional mask (true = hidden).

@@ -53,6 +53,7 @@ pub mod matmul;
 mod model;
 pub mod norm;
 pub mod ordinal;
+mod plain;
 mod precision;
 pub mod recompute;
 pub mod rows;
@@ -74,6 +75,10 @@ pub use heads::Heads;
 pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
 pub use losses::{LossOptions, Losses};
 pub use model::{Backbone, TarBlock};
+pub use plain::{
+    PlainAttention, PlainBackbone, PlainCross, PlainEgo, PlainEmbed, PlainLinear, PlainMlp, PlainNorm,
+    PlainSelf, PlainTable,
+};
 #[cfg(feature = "cuda")]
 pub use side::{device_thread_calls, foreign_streams};
 pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec, TrackSpec};

@@ -209,6 +209,31 @@ impl<B: Backend> Backbone<B> {
         Tensor::cat(vec![bos, e.narrow(1, 0, n - 1)], 1) + h
     }
 
+    /// The frame embedding, the TAR blocks (temporal, spatial), the TAR's norm, the OAR's start vector, the
+    /// OAR layers, the OAR's norm and the tracked slots' projections.
+    #[allow(clippy::type_complexity)]
+    pub(crate) fn parts(
+        &self,
+    ) -> (
+        &Param<Tensor<B, 2>>,
+        Vec<(&SelfBlock<B>, &SelfBlock<B>)>,
+        &LayerNorm<B>,
+        &Param<Tensor<B, 1>>,
+        &[SelfBlock<B>],
+        &LayerNorm<B>,
+        Option<(&burn::nn::Linear<B>, &burn::nn::Linear<B>)>,
+    ) {
+        (
+            &self.time,
+            self.tar.iter().map(|b| (&b.temporal, &b.spatial)).collect(),
+            &self.ln_tar,
+            &self.oar_bos,
+            &self.oar,
+            &self.ln_oar,
+            self.track.as_ref().map(|t| t.linears()),
+        )
+    }
+
     /// Longest window of frames the TAR takes (rows of the frame embedding).
     pub fn max_frames(&self) -> usize {
         self.time.val().dims()[0]

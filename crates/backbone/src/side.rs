@@ -360,7 +360,7 @@ impl Kernels {
 /// `warp_device.cuh` and the bf16 stores of `bf16.cuh`, which it cannot include itself (NVRTC resolves no
 /// include files).
 pub(crate) fn kernel_source(source: &str) -> String {
-    [include_str!("warp_device.cuh"), include_str!("bf16.cuh"), source].join("\n")
+    [umgen_cuda::source::PRIMITIVES, source].join("\n")
 }
 
 /// A thread's state of one kind (a source's [`Kernels`], a cuBLAS handle) by device and cubecl stream;

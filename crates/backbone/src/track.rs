@@ -40,6 +40,11 @@ impl<B: Backend> TrackProjection<B> {
         }
     }
 
+    /// The input and output projections.
+    pub(crate) fn linears(&self) -> (&Linear<B>, &Linear<B>) {
+        (&self.input, &self.output)
+    }
+
     /// What the TAR's input gets.
     pub fn input(&self, moved: Tensor<B, 3>, p: Precision) -> Tensor<B, 3> {
         linear(&self.input, moved, p)

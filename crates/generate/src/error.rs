@@ -12,6 +12,9 @@ pub enum GenerateError {
     /// The model refused a decoding step.
     #[error(transparent)]
     Model(#[from] umgen_backbone::BackboneError),
+    /// The engine's executor refused an operation or the device failed.
+    #[error("generation engine: {0}")]
+    Engine(#[from] umgen_cuda::ExecError),
 }
 
 /// Result with [`GenerateError`].

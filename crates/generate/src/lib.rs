@@ -9,6 +9,7 @@
 mod boxes;
 mod control;
 mod device_draw;
+pub mod engine;
 mod error;
 mod rollout;
 mod rules;

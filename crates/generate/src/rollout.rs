@@ -5,7 +5,7 @@
 
 use crate::device_draw::DeviceTopK;
 use crate::error::{GenerateError, Result};
-use crate::rules::{Allowed, Rules, allowed};
+use crate::rules::{Allowed, FrameRules, Rules, allowed, check_frame};
 pub use crate::rules::{FrameControl, TokenGroups};
 use crate::sampling::Sampling;
 use burn::module::Module;
@@ -89,94 +89,12 @@ impl<'a, B: Backend> Generator<'a, B> {
     /// The next frame `[m][N]` of each of `m` scenes, from their histories `[m][t][N]` (all of one length
     /// `t`; `t = 0` makes an initial scene without TAR, as in the paper).
     pub fn next_frame(&mut self, history: &[Vec<Vec<u32>>], control: &FrameControl) -> Result<Vec<Vec<u32>>> {
-        let m = history.len();
         let spec = self.model.spec();
-        let n = spec.n;
-        let t = history.first().map_or(0, Vec::len);
-        if m == 0
-            || history
-                .iter()
-                .any(|h| h.len() != t || h.iter().any(|f| f.len() != n))
-        {
-            return Err(GenerateError::History(format!(
-                "{m} scenes: each needs the same number of frames of {n} tokens"
-            )));
-        }
+        let m = check_frame(spec, history, control)?;
         let dev = self.model.devices().into_iter().next().unwrap_or_default();
-        let q = spec
-            .action
-            .as_ref()
-            .map_or(0, |a| spec.segments[a.segment].tokens);
-        if let Some(a) = &control.action
-            && (a.len() != m || a.iter().any(|x| x.len() != q))
-        {
-            return Err(GenerateError::Settings(format!(
-                "a forced action needs {q} tokens for each of the {m} scenes"
-            )));
-        }
-        let mut forced = vec![None; n];
-        for &(p, id) in &control.tokens {
-            match self.slots.get(p) {
-                Some(Slot::Content(s, _)) if (id as usize) < spec.segments[*s].vocab => forced[p] = Some(id),
-                _ => {
-                    return Err(GenerateError::Settings(format!(
-                        "forced token {id} at position {p}: not a content position of this layout, or outside its vocabulary"
-                    )));
-                }
-            }
-        }
-        let mut limits = vec![None; n];
-        for &(p, lim) in &control.below {
-            if p >= n || lim == 0 {
-                return Err(GenerateError::Settings(format!(
-                    "id limit {lim} at position {p}: outside the frame or empty"
-                )));
-            }
-            limits[p] = Some(lim as usize);
-        }
-        let mut keep = vec![None; n];
-        for (p, pad, scenes) in &control.keep {
-            if *p >= n || scenes.len() != m {
-                return Err(GenerateError::Settings(format!(
-                    "keep at position {p}: outside the frame, or not one flag per scene"
-                )));
-            }
-            keep[*p] = Some((*pad, scenes.clone()));
-        }
-        let mut group = vec![None; n];
-        for (gi, g) in control.groups.iter().enumerate() {
-            if g.size < 2 || g.first + g.size * g.count > n {
-                return Err(GenerateError::Settings(format!(
-                    "token groups from {} ({} × {}): outside the frame or smaller than 2",
-                    g.first, g.count, g.size
-                )));
-            }
-            for k in 0..g.count * g.size {
-                group[g.first + k] = Some((g.first + (k / g.size) * g.size, k % g.size, gi));
-            }
-        }
-        // Groups empty in each scene's newest frame (all of them for an initial scene).
-        let newborn: Vec<Vec<bool>> = history
-            .iter()
-            .map(|h| {
-                (0..n)
-                    .map(|p| match (&group[p], h.last()) {
-                        (Some((start, _, gi)), Some(f)) => f.get(*start) == Some(&control.groups[*gi].pad),
-                        (Some(_), None) => true,
-                        _ => false,
-                    })
-                    .collect()
-            })
-            .collect();
+        let frame = FrameRules::new(spec, &self.slots, history, control)?;
         let (action, h) = self.window_pass(history, control.action.as_ref(), &dev);
-        let rules = Rules {
-            newborn: &newborn,
-            placed: &forced,
-            limits: &limits,
-            keep: &keep,
-            group: &group,
-            groups: &control.groups,
-        };
+        let rules = frame.view(&control.groups);
         self.decode(h, action.as_ref(), &rules, m, &dev)
     }
 

@@ -1,5 +1,9 @@
 //! What the caller imposes on a frame ([`FrameControl`]) and the rules of its decoding that follow: what
-//! may be drawn at each position (limits, token groups, keep redraws).
+//! may be drawn at each position (limits, token groups, keep redraws). Both decoders (the burn one in
+//! `rollout.rs` and the engine's, which runs them on the device) read them from [`FrameRules`].
+
+use crate::error::{GenerateError, Result};
+use umgen_backbone::{BackboneSpec, Slot};
 
 /// What the caller imposes on one new frame.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -94,6 +98,139 @@ pub(crate) fn allowed(rules: &Rules<'_>, p: usize, row: &[u32], limited: bool) -
             } else {
                 Allowed::Ids(Box::new(move |id| id < values && id < limit))
             }
+        }
+    }
+}
+
+/// Checks a batch of histories `[m][t][N]` (all of one length) and the control's forced action against the
+/// spec; the number of scenes.
+pub(crate) fn check_frame(
+    spec: &BackboneSpec,
+    history: &[Vec<Vec<u32>>],
+    control: &FrameControl,
+) -> Result<usize> {
+    let m = history.len();
+    let n = spec.n;
+    let t = history.first().map_or(0, Vec::len);
+    if m == 0
+        || history
+            .iter()
+            .any(|h| h.len() != t || h.iter().any(|f| f.len() != n))
+    {
+        return Err(GenerateError::History(format!(
+            "{m} scenes: each needs the same number of frames of {n} tokens"
+        )));
+    }
+    let q = spec
+        .action
+        .as_ref()
+        .map_or(0, |a| spec.segments[a.segment].tokens);
+    if let Some(a) = &control.action
+        && (a.len() != m || a.iter().any(|x| x.len() != q))
+    {
+        return Err(GenerateError::Settings(format!(
+            "a forced action needs {q} tokens for each of the {m} scenes"
+        )));
+    }
+    Ok(m)
+}
+
+/// One frame's rules, per position (and per scene where they differ), from a [`FrameControl`].
+pub(crate) struct FrameRules {
+    /// Per position: the id placed by the caller.
+    pub(crate) placed: Vec<Option<u32>>,
+    /// Per position: drawn ids must be below this.
+    pub(crate) limits: Vec<Option<usize>>,
+    /// Per position: the pad id a kept agent redraws, and which scenes keep.
+    pub(crate) keep: Vec<Option<(u32, Vec<bool>)>>,
+    /// Per position: the group's first position, the index in the group, the run.
+    pub(crate) group: Vec<Option<(usize, usize, usize)>>,
+    /// Per scene and position: the position's group was empty in the newest frame.
+    pub(crate) newborn: Vec<Vec<bool>>,
+}
+
+impl FrameRules {
+    /// The rules `control` sets for the next frame of `history` (checked by [`check_frame`]); refuses
+    /// placed tokens, limits, keep entries and groups that do not fit the frame.
+    pub(crate) fn new(
+        spec: &BackboneSpec,
+        slots: &[Slot],
+        history: &[Vec<Vec<u32>>],
+        control: &FrameControl,
+    ) -> Result<Self> {
+        let (m, n) = (history.len(), spec.n);
+        let mut placed = vec![None; n];
+        for &(p, id) in &control.tokens {
+            match slots.get(p) {
+                Some(Slot::Content(s, _)) if (id as usize) < spec.segments[*s].vocab => placed[p] = Some(id),
+                _ => {
+                    return Err(GenerateError::Settings(format!(
+                        "forced token {id} at position {p}: not a content position of this layout, or outside its vocabulary"
+                    )));
+                }
+            }
+        }
+        let mut limits = vec![None; n];
+        for &(p, lim) in &control.below {
+            if p >= n || lim == 0 {
+                return Err(GenerateError::Settings(format!(
+                    "id limit {lim} at position {p}: outside the frame or empty"
+                )));
+            }
+            limits[p] = Some(lim as usize);
+        }
+        let mut keep = vec![None; n];
+        for (p, pad, scenes) in &control.keep {
+            if *p >= n || scenes.len() != m {
+                return Err(GenerateError::Settings(format!(
+                    "keep at position {p}: outside the frame, or not one flag per scene"
+                )));
+            }
+            keep[*p] = Some((*pad, scenes.clone()));
+        }
+        let mut group = vec![None; n];
+        for (gi, g) in control.groups.iter().enumerate() {
+            if g.size < 2 || g.first + g.size * g.count > n {
+                return Err(GenerateError::Settings(format!(
+                    "token groups from {} ({} × {}): outside the frame or smaller than 2",
+                    g.first, g.count, g.size
+                )));
+            }
+            for k in 0..g.count * g.size {
+                group[g.first + k] = Some((g.first + (k / g.size) * g.size, k % g.size, gi));
+            }
+        }
+        // Groups empty in each scene's newest frame (all of them for an initial scene).
+        let newborn = history
+            .iter()
+            .map(|h| {
+                (0..n)
+                    .map(|p| match (&group[p], h.last()) {
+                        (Some((start, _, gi)), Some(f)) => f.get(*start) == Some(&control.groups[*gi].pad),
+                        (Some(_), None) => true,
+                        _ => false,
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(Self {
+            placed,
+            limits,
+            keep,
+            group,
+            newborn,
+        })
+    }
+
+    /// The rules as the decoders read them.
+    pub(crate) fn view<'a>(&'a self, groups: &'a [TokenGroups]) -> Rules<'a> {
+        Rules {
+            newborn: &self.newborn,
+            placed: &self.placed,
+            limits: &self.limits,
+            keep: &self.keep,
+            group: &self.group,
+            groups,
         }
     }
 }

@@ -8,7 +8,7 @@
 // agrees: f32 outputs within f32 tolerance, bf16 outputs within half a bf16 step (2⁻⁸) of the largest
 // reference value.
 #include <cstring>
-#include "../warp_emulator.h"
+#include "../../../cuda/src/kernels/warp_emulator.h"
 #include "gelu.cu"
 
 struct Case {

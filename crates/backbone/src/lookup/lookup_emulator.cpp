@@ -8,7 +8,7 @@
 //
 // (`crates/backbone/tests/backbone/lookup.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees.
-#include "../warp_emulator.h"
+#include "../../../cuda/src/kernels/warp_emulator.h"
 #include "lookup.cu"
 
 #include <cstring>

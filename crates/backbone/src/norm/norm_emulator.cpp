@@ -6,7 +6,7 @@
 //
 // (`crates/backbone/tests/backbone/norm.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees within f32 tolerance.
-#include "../warp_emulator.h"
+#include "../../../cuda/src/kernels/warp_emulator.h"
 #include "norm.cu"
 // The bound entry points (which cubecl's stream launches) of the `small` and `paper` widths.
 NORM_BOUND_KERNELS(12)

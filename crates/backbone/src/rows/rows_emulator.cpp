@@ -6,7 +6,7 @@
 //       crates/backbone/src/rows/rows_emulator.cpp && /tmp/rows-emu
 //
 // (`crates/backbone/tests/backbone/rows.rs` runs it in the test suite.) Exit status 0 when every case agrees.
-#include "../warp_emulator.h"
+#include "../../../cuda/src/kernels/warp_emulator.h"
 #include "rows.cu"
 
 #include <cstring>

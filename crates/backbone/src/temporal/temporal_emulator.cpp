@@ -9,7 +9,7 @@
 // d]` buffer, keys and values from the two halves of a `[b, t, n, 2d]` one (as the layers' products give
 // them), and the key and value gradients go to the two halves of one buffer. Exit status 0 when every case
 // agrees within f32 tolerance.
-#include "../warp_emulator.h"
+#include "../../../cuda/src/kernels/warp_emulator.h"
 #include "temporal.cu"
 
 struct Case {

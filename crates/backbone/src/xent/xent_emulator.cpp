@@ -6,7 +6,7 @@
 //
 // (`crates/backbone/tests/backbone/xent.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees within f32 tolerance.
-#include "../warp_emulator.h"
+#include "../../../cuda/src/kernels/warp_emulator.h"
 #include "xent.cu"
 
 struct Case {

@@ -1,0 +1,326 @@
+//! [`CudaExec`]: the engine's operations on one GPU, on one stream of the device's primary context.
+//!
+//! Buffers are plain `cuMemAlloc` allocations, freed when the executor is dropped. The kernels are compiled
+//! by NVRTC once, for the device's architecture and the weights' element type. Event tracking (cudarc's
+//! ordering of its own buffers across streams) is off: everything runs on one stream, and a sequence
+//! captured as a graph must contain only kernel launches and cuBLAS calls.
+#![allow(unsafe_code)]
+
+mod launch;
+mod params;
+
+use crate::ops::{Buf, Data, Elem, Exec, ExecError, Op, check};
+use cudarc::cublas::{result as blas, sys as blas_sys};
+use cudarc::driver::{CudaContext, CudaFunction, CudaGraph, CudaStream, result, sys};
+use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
+use std::collections::HashMap;
+use std::sync::Arc;
+
+/// One allocation.
+struct Alloc {
+    ptr: u64,
+    elem: Elem,
+    len: usize,
+}
+
+/// The engine's operations on a GPU.
+pub struct CudaExec {
+    ctx: Arc<CudaContext>,
+    stream: Arc<CudaStream>,
+    functions: HashMap<&'static str, CudaFunction>,
+    blas: blas_sys::cublasHandle_t,
+    allocs: Vec<Alloc>,
+    graphs: HashMap<u64, CudaGraph>,
+    bf16: bool,
+    bytes: usize,
+}
+
+fn device(what: &str) -> impl Fn(String) -> ExecError + '_ {
+    move |e| ExecError::Device(format!("{what}: {e}"))
+}
+
+/// NVRTC's architecture for compute capability `major.minor`, where NVRTC 13 knows it.
+fn arch(major: i32, minor: i32) -> Option<&'static str> {
+    Some(match (major, minor) {
+        (7, 5) => "compute_75",
+        (8, 0) => "compute_80",
+        (8, 6) => "compute_86",
+        (8, 7) => "compute_87",
+        (8, 9) => "compute_89",
+        (9, 0) => "compute_90",
+        (10, 0) => "compute_100",
+        (12, 0) => "compute_120",
+        _ => return None,
+    })
+}
+
+impl CudaExec {
+    /// An executor on GPU `ordinal` whose `W` buffers hold bf16 (`bf16`) or f32; compiles the kernels.
+    pub fn new(ordinal: usize, bf16: bool) -> Result<Self, ExecError> {
+        let ctx = CudaContext::new(ordinal).map_err(|e| device("CUDA context")(format!("{e:?}")))?;
+        // SAFETY: this executor orders its work on its one stream itself and never hands out cudarc slices.
+        unsafe { ctx.disable_event_tracking() };
+        let stream = ctx.new_stream().map_err(|e| device("stream")(format!("{e:?}")))?;
+        let (major, minor) = ctx
+            .compute_capability()
+            .map_err(|e| device("compute capability")(format!("{e:?}")))?;
+        let options = CompileOptions {
+            arch: arch(major, minor),
+            ..Default::default()
+        };
+        let started = std::time::Instant::now();
+        let ptx = compile_ptx_with_opts(crate::source::engine(bf16), options)
+            .map_err(|e| device("NVRTC")(format!("{e:?}")))?;
+        let module = ctx
+            .load_module(ptx)
+            .map_err(|e| device("loading the kernels")(format!("{e:?}")))?;
+        let mut functions = HashMap::new();
+        for name in crate::source::ENGINE_KERNELS {
+            let f = module
+                .load_function(name)
+                .map_err(|e| device(name)(format!("{e:?}")))?;
+            functions.insert(name, f);
+        }
+        tracing::debug!(
+            "engine kernels compiled for sm_{major}{minor} ({}) in {:.1} s",
+            if bf16 { "bf16" } else { "f32" },
+            started.elapsed().as_secs_f64()
+        );
+        // SAFETY: only asks whether the library could be loaded.
+        if !unsafe { blas_sys::is_culib_present() } {
+            return Err(ExecError::Device(
+                "libcublas (CUDA 13: libcublas.so.13) is not on the library path".into(),
+            ));
+        }
+        let handle = blas::create_handle().map_err(|e| device("cublasCreate")(format!("{e:?}")))?;
+        // SAFETY: a live handle and this executor's stream, which outlives it (both are dropped together).
+        unsafe { blas::set_stream(handle, stream.cu_stream() as blas_sys::cudaStream_t) }
+            .map_err(|e| device("cublasSetStream")(format!("{e:?}")))?;
+        Ok(Self {
+            ctx,
+            stream,
+            functions,
+            blas: handle,
+            allocs: Vec::new(),
+            graphs: HashMap::new(),
+            bf16,
+            bytes: 0,
+        })
+    }
+
+    /// The device's name.
+    pub fn name(&self) -> String {
+        self.ctx.name().unwrap_or_else(|_| "CUDA device".into())
+    }
+
+    /// Bytes of an element of `elem`.
+    fn size(&self, elem: Elem) -> usize {
+        match elem {
+            Elem::W if self.bf16 => 2,
+            Elem::U8 => 1,
+            Elem::F64 => 8,
+            Elem::Rule => size_of::<crate::ops::Rule>(),
+            Elem::Run => size_of::<crate::ops::GroupRun>(),
+            _ => 4,
+        }
+    }
+
+    /// The allocation of `b`, checked to hold `len` elements of one of `kinds` from `b.at` on.
+    fn alloc_of(&self, b: Buf, len: usize, kinds: &[Elem], what: &str) -> Result<&Alloc, ExecError> {
+        let a = self.allocs.get(b.id as usize).ok_or_else(|| ExecError::Missing {
+            what: what.into(),
+            id: b.id,
+        })?;
+        if !kinds.contains(&a.elem) {
+            return Err(ExecError::Kind {
+                what: what.into(),
+                id: b.id,
+                found: a.elem,
+                want: kinds.to_vec(),
+            });
+        }
+        if b.at + len > a.len {
+            return Err(ExecError::Bounds {
+                what: what.into(),
+                id: b.id,
+                end: b.at + len,
+                len: a.len,
+            });
+        }
+        Ok(a)
+    }
+
+    /// The device address of element `b.at` of `b`'s allocation (checked by the caller).
+    fn ptr(&self, b: Buf) -> u64 {
+        self.allocs
+            .get(b.id as usize)
+            .map_or(0, |a| a.ptr + (b.at * self.size(a.elem)) as u64)
+    }
+
+    /// Copies `bytes` host bytes to `b` (checked by the caller).
+    fn upload(&self, b: Buf, bytes: &[u8]) -> Result<(), ExecError> {
+        // SAFETY: the caller checked that the allocation holds `bytes.len()` bytes from `b`; pageable host
+        // memory is staged before the call returns, so `bytes` may go.
+        unsafe { result::memcpy_htod_async(self.ptr(b), bytes, self.stream.cu_stream()) }
+            .map_err(|e| device("copy to the device")(format!("{e:?}")))
+    }
+
+    /// `out.len()` bytes from `b` (checked by the caller), after everything queued.
+    fn download(&self, b: Buf, out: &mut [u8]) -> Result<(), ExecError> {
+        // SAFETY: the caller checked the extent; the stream is synchronised before `out` is read.
+        unsafe { result::memcpy_dtoh_async(out, self.ptr(b), self.stream.cu_stream()) }
+            .map_err(|e| device("copy to the host")(format!("{e:?}")))?;
+        self.stream
+            .synchronize()
+            .map_err(|e| device("synchronize")(format!("{e:?}")))
+    }
+
+    /// Runs `op` without checking it (callers check first).
+    fn launch(&self, op: &Op) -> Result<(), ExecError> {
+        launch::launch(self, op)
+    }
+}
+
+impl Exec for CudaExec {
+    fn alloc(&mut self, elem: Elem, len: usize) -> Result<Buf, ExecError> {
+        // Whole 256-byte blocks, so that every allocation starts aligned and can take 16-byte loads.
+        let bytes = (len.max(1) * self.size(elem)).div_ceil(256) * 256;
+        self.ctx
+            .bind_to_thread()
+            .map_err(|e| device("binding the context")(format!("{e:?}")))?;
+        // SAFETY: a plain allocation of the bound context, zeroed on this executor's stream before use.
+        let ptr = unsafe { result::malloc_sync(bytes) }.map_err(|e| {
+            device("cuMemAlloc")(format!("{e:?} ({:.2} GiB)", bytes as f64 / (1u64 << 30) as f64))
+        })?;
+        // SAFETY: `ptr` holds `bytes` bytes.
+        unsafe { result::memset_d8_async(ptr, 0, bytes, self.stream.cu_stream()) }
+            .map_err(|e| device("zeroing")(format!("{e:?}")))?;
+        let id =
+            u32::try_from(self.allocs.len()).map_err(|_| ExecError::Invalid("too many buffers".into()))?;
+        self.allocs.push(Alloc { ptr, elem, len });
+        self.bytes += bytes;
+        Ok(Buf { id, at: 0 })
+    }
+
+    fn write(&mut self, dst: Buf, data: Data<'_>) -> Result<(), ExecError> {
+        let a = self.alloc_of(dst, data.len(), data.kinds(), "write")?;
+        let bytes: Vec<u8> = match data {
+            Data::F32(d) if a.elem == Elem::W && self.bf16 => {
+                d.iter().flat_map(|x| bf16_bits(*x).to_le_bytes()).collect()
+            }
+            Data::F32(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            Data::I32(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            Data::U32(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            Data::U8(d) => d.to_vec(),
+            Data::F64(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            Data::Rules(d) => d.iter().flat_map(params::rule_bytes).collect(),
+            Data::Runs(d) => d.iter().flat_map(params::run_bytes).collect(),
+        };
+        self.upload(dst, &bytes)
+    }
+
+    fn read_f32(&mut self, src: Buf, len: usize) -> Result<Vec<f32>, ExecError> {
+        let a = self.alloc_of(src, len, &[Elem::F32, Elem::W], "read")?;
+        let wide = !(a.elem == Elem::W && self.bf16);
+        let mut bytes = vec![0u8; len * if wide { 4 } else { 2 }];
+        self.download(src, &mut bytes)?;
+        Ok(if wide {
+            bytes
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        } else {
+            bytes
+                .chunks_exact(2)
+                .map(|c| f32::from_bits(u32::from(u16::from_le_bytes([c[0], c[1]])) << 16))
+                .collect()
+        })
+    }
+
+    fn read_i32(&mut self, src: Buf, len: usize) -> Result<Vec<i32>, ExecError> {
+        self.alloc_of(src, len, &[Elem::I32], "read")?;
+        let mut bytes = vec![0u8; len * 4];
+        self.download(src, &mut bytes)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+
+    fn read_u32(&mut self, src: Buf, len: usize) -> Result<Vec<u32>, ExecError> {
+        self.alloc_of(src, len, &[Elem::U32], "read")?;
+        let mut bytes = vec![0u8; len * 4];
+        self.download(src, &mut bytes)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+
+    fn run(&mut self, op: &Op) -> Result<(), ExecError> {
+        check(op, |id| self.allocs.get(id as usize).map(|a| (a.elem, a.len)))?;
+        self.launch(op)
+    }
+
+    fn replay(&mut self, key: u64, ops: &[Op]) -> Result<(), ExecError> {
+        if !self.graphs.contains_key(&key) {
+            for op in ops {
+                check(op, |id| self.allocs.get(id as usize).map(|a| (a.elem, a.len)))?;
+            }
+            self.stream
+                .begin_capture(sys::CUstreamCaptureMode::CU_STREAM_CAPTURE_MODE_THREAD_LOCAL)
+                .map_err(|e| device("begin capture")(format!("{e:?}")))?;
+            let launched = ops.iter().try_for_each(|op| self.launch(op));
+            let graph = self
+                .stream
+                .end_capture(sys::CUgraphInstantiate_flags(0))
+                .map_err(|e| device("end capture")(format!("{e:?}")));
+            launched?;
+            let graph = graph?.ok_or_else(|| ExecError::Device("an empty capture".into()))?;
+            graph
+                .upload()
+                .map_err(|e| device("graph upload")(format!("{e:?}")))?;
+            self.graphs.insert(key, graph);
+        }
+        match self.graphs.get(&key) {
+            Some(g) => g.launch().map_err(|e| device("graph launch")(format!("{e:?}"))),
+            None => Err(ExecError::Device("the captured graph went missing".into())),
+        }
+    }
+
+    fn forget_replays(&mut self) {
+        self.graphs.clear();
+    }
+
+    fn bytes(&self) -> usize {
+        self.bytes
+    }
+
+    fn bf16(&self) -> bool {
+        self.bf16
+    }
+}
+
+impl Drop for CudaExec {
+    fn drop(&mut self) {
+        self.graphs.clear();
+        let _ = self.stream.synchronize();
+        // SAFETY: the handle was made by `new` and is not used after this; the allocations are this
+        // executor's own, and the stream (synchronised above) no longer uses them.
+        unsafe {
+            let _ = blas::destroy_handle(self.blas);
+            for a in self.allocs.drain(..) {
+                let _ = result::free_sync(a.ptr);
+            }
+        }
+    }
+}
+
+/// `x` as bf16 bits, to nearest with ties to even (NaN stays NaN), as `bf16.cuh`'s `to_bf16`.
+pub fn bf16_bits(x: f32) -> u16 {
+    let u = x.to_bits();
+    if u & 0x7fff_ffff > 0x7f80_0000 {
+        return ((u >> 16) | 0x40) as u16;
+    }
+    (u.wrapping_add(0x7fff + ((u >> 16) & 1)) >> 16) as u16
+}

@@ -1,0 +1,194 @@
+// Attention for generation: `softmax(q kᵀ · scale) v` per head, head size at most ATT_DH, f32 arithmetic on
+// operands in `WT` (keys and values) or f32 (few-query queries).
+//
+// `umgen_attend_rows`: few queries over many keys (the OAR's decoding step over its cache, the ego module's
+// queries over their context). One block per (batch, query row, head); its warps take 32 keys at a time
+// (a lane per key for the scores, a lane per head dimension for the values) with an online softmax, and
+// the warps' partial results are merged at the end. The key count is `lk`, or the device position + 1.
+//
+// `umgen_attend_tiles`: many queries (the TAR's attention within a frame and over time). One block of 128
+// threads per (instance, head, 32 queries): four threads per query, each holding every fourth head
+// dimension, walk tiles of 32 keys and values staged in shared memory; `causal` hides key j from query i
+// when j > i + off. An instance index splits into (i / inner, i % inner), each with its own stride, so that
+// "every position of every frame" and "every frame of every scene" are both one launch.
+
+#define ATT_DH 128
+
+struct AttendRows {
+    const float* q;       // q(b, r, h) = q + b·q_sb + r·q_sr + h·dh
+    const WT* k;          // k(b, h, j) = k + b·k_sb + h·k_sh + j·k_sj; v alike
+    const WT* v;
+    float* y;             // y(b, r, h) = y + b·y_sb + r·y_sr + h·dh
+    const int* pos;       // keys: *pos + 1 when set, else lk
+    long long q_sb, q_sr, k_sb, k_sh, k_sj, y_sb, y_sr;
+    int rows, heads, dh, lk;
+    float scale;
+};
+
+KERNEL umgen_attend_rows(const AttendRows P) {
+    SHARED float qs[ATT_DH];
+    SHARED float part_m[8], part_s[8];
+    SHARED float part_o[8][ATT_DH];
+    const long long blk = block_x();
+    const int h = (int)(blk % P.heads);
+    const long long br = blk / P.heads;
+    const long long r = br % P.rows, b = br / P.rows;
+    const float* q = P.q + b * P.q_sb + r * P.q_sr + (long long)h * P.dh;
+    for (int d = thread_id(); d < P.dh; d += threads()) qs[d] = q[d] * P.scale;
+    sync_block();
+    const int lk = P.pos ? *P.pos + 1 : P.lk;
+    const WT* kb = P.k + b * P.k_sb + (long long)h * P.k_sh;
+    const WT* vb = P.v + b * P.k_sb + (long long)h * P.k_sh;
+    float mrun = NEG_INF, srun = 0.f, acc[ATT_DH / 32];
+    for (int i = 0; i < ATT_DH / 32; i++) acc[i] = 0.f;
+    const int wpb = warps_per_block();
+    for (int c0 = warp_id() * 32; c0 < lk; c0 += wpb * 32) {
+        const int j = c0 + lane_id();
+        float sc = NEG_INF;
+        if (j < lk) {
+            const WT* kr = kb + (long long)j * P.k_sj;
+            sc = 0.f;
+            if ((P.dh & 7) == 0) {
+                for (int d = 0; d < P.dh; d += 8) {
+                    float kv[8];
+                    load8(kr + d, kv);
+                    for (int e = 0; e < 8; e++) sc = fmaf(qs[d + e], kv[e], sc);
+                }
+            } else {
+                for (int d = 0; d < P.dh; d++) sc = fmaf(qs[d], value(kr + d), sc);
+            }
+        }
+        // Lane 0's key is always there, so the chunk's maximum is a number.
+        const float mnew = fmaxf(mrun, warp_max(sc));
+        const float alpha = expf(mrun - mnew);
+        const float p = j < lk ? expf(sc - mnew) : 0.f;
+        srun = srun * alpha + warp_sum(p);
+        for (int i = 0; i < ATT_DH / 32; i++) acc[i] *= alpha;
+        const int count = lk - c0 < 32 ? lk - c0 : 32;
+        for (int t = 0; t < count; t++) {
+            const float pt = from_lane(p, t);
+            const WT* vr = vb + (long long)(c0 + t) * P.k_sj;
+            for (int i = 0; i < ATT_DH / 32; i++) {
+                const int d = lane_id() + 32 * i;
+                if (d < P.dh) acc[i] = fmaf(pt, value(vr + d), acc[i]);
+            }
+        }
+        mrun = mnew;
+    }
+    if (lane_id() == 0) {
+        part_m[warp_id()] = mrun;
+        part_s[warp_id()] = srun;
+    }
+    for (int i = 0; i < ATT_DH / 32; i++) {
+        const int d = lane_id() + 32 * i;
+        if (d < P.dh) part_o[warp_id()][d] = acc[i];
+    }
+    sync_block();
+    if (warp_id() == 0) {
+        float mx = NEG_INF;
+        for (int w = 0; w < wpb; w++) mx = fmaxf(mx, part_m[w]);
+        float sum = 0.f, scale[8];
+        for (int w = 0; w < wpb; w++) {
+            scale[w] = part_m[w] == NEG_INF ? 0.f : expf(part_m[w] - mx);
+            sum += part_s[w] * scale[w];
+        }
+        float* y = P.y + b * P.y_sb + r * P.y_sr + (long long)h * P.dh;
+        for (int d = lane_id(); d < P.dh; d += 32) {
+            float o = 0.f;
+            for (int w = 0; w < wpb; w++) o += part_o[w][d] * scale[w];
+            y[d] = o / sum;
+        }
+    }
+}
+
+struct AttendTiles {
+    const WT* q;          // q(i, h, r) = q + (i / inner)·q_s1 + (i % inner)·q_s2 + r·q_sr + h·dh
+    const WT* k;          // k and v alike with k's strides
+    const WT* v;
+    WT* y;                // y alike with y's strides
+    long long q_s1, q_s2, q_sr, k_s1, k_s2, k_sr, y_s1, y_s2, y_sr;
+    int inner, heads, lq, lk, dh, causal, off;
+    float scale;
+};
+
+KERNEL umgen_attend_tiles(const AttendTiles P) {
+    SHARED float ks[32][ATT_DH];
+    SHARED float vs[32][ATT_DH];
+    const long long blk = block_x();
+    const int qblocks = (P.lq + 31) / 32;
+    const int qb = (int)(blk % qblocks);
+    const long long ih = blk / qblocks;
+    const int h = (int)(ih % P.heads);
+    const long long inst = ih / P.heads;
+    const long long i1 = inst / P.inner, i2 = inst % P.inner;
+    const int t = thread_id(), part = t & 3, row = qb * 32 + (t >> 2);
+    const int per = P.dh / 4;
+    const WT* kb = P.k + i1 * P.k_s1 + i2 * P.k_s2 + (long long)h * P.dh;
+    const WT* vb = P.v + i1 * P.k_s1 + i2 * P.k_s2 + (long long)h * P.dh;
+    // Dimensions part, part + 4, ... of this thread's query, scaled.
+    float qv[ATT_DH / 4], acc[ATT_DH / 4];
+    const WT* qr = P.q + i1 * P.q_s1 + i2 * P.q_s2 + (long long)(row < P.lq ? row : 0) * P.q_sr + (long long)h * P.dh;
+#pragma unroll
+    for (int i = 0; i < ATT_DH / 4; i++) {
+        qv[i] = i < per ? value(qr + part + 4 * i) * P.scale : 0.f;
+        acc[i] = 0.f;
+    }
+    float mrun = NEG_INF, srun = 0.f;
+    int kend = P.lk;
+    if (P.causal) {
+        const int last = qb * 32 + 31 + P.off + 1;
+        if (last < kend) kend = last;
+    }
+    for (int k0 = 0; k0 < kend; k0 += 32) {
+        for (int idx = t; idx < 32 * P.dh; idx += threads()) {
+            const int kk = idx / P.dh, d = idx % P.dh, j = k0 + kk;
+            const bool in = j < P.lk;
+            ks[kk][d] = in ? value(kb + (long long)j * P.k_sr + d) : 0.f;
+            vs[kk][d] = in ? value(vb + (long long)j * P.k_sr + d) : 0.f;
+        }
+        sync_block();
+        float sc[32];
+#pragma unroll
+        for (int kk = 0; kk < 32; kk++) {
+            float s = 0.f;
+#pragma unroll
+            for (int i = 0; i < ATT_DH / 4; i++)
+                if (i < per) s = fmaf(qv[i], ks[kk][part + 4 * i], s);
+            sc[kk] = s;
+        }
+        float mx = NEG_INF;
+#pragma unroll
+        for (int kk = 0; kk < 32; kk++) {
+            float s = sc[kk];
+            s += from_xor(s, 1);
+            s += from_xor(s, 2);
+            const int j = k0 + kk;
+            if (j >= P.lk || (P.causal && j > row + P.off)) s = NEG_INF;
+            sc[kk] = s;
+            mx = fmaxf(mx, s);
+        }
+        const float mnew = fmaxf(mrun, mx);
+        if (mnew != NEG_INF) {
+            const float alpha = expf(mrun - mnew);
+            srun *= alpha;
+#pragma unroll
+            for (int i = 0; i < ATT_DH / 4; i++) acc[i] *= alpha;
+#pragma unroll
+            for (int kk = 0; kk < 32; kk++) {
+                const float p = expf(sc[kk] - mnew);
+                srun += p;
+#pragma unroll
+                for (int i = 0; i < ATT_DH / 4; i++)
+                    if (i < per) acc[i] = fmaf(p, vs[kk][part + 4 * i], acc[i]);
+            }
+            mrun = mnew;
+        }
+        sync_block();
+    }
+    if (row < P.lq) {
+        WT* y = P.y + i1 * P.y_s1 + i2 * P.y_s2 + (long long)row * P.y_sr + (long long)h * P.dh;
+#pragma unroll
+        for (int i = 0; i < ATT_DH / 4; i++)
+            if (i < per) store(y + part + 4 * i, acc[i] / srun);
+    }
+}

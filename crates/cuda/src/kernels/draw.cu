@@ -1,0 +1,291 @@
+// The decoding step's draw: one block per scene picks the token of the device position `p` from the OAR
+// logits, under the frame's rules (umgen_generate's `rules.rs` on the host; the same decisions here):
+//
+// - a known position (boundary, placed or forced token, prefilled in `tok`) draws nothing;
+// - token groups (agent slots): a group's first token is a value or pad; after a pad the rest is pad; the
+//   middle tokens are values, the last one from `last_lo..last_hi`; positions may carry an id limit;
+// - the draw: the top-k ids (most likely first, ties by id) with temperature and top-p, one uniform number
+//   from Philox (`uniform`), the distribution walked as `Sampling::draw` walks it; without top-k, Gumbel-max
+//   over every allowed id (top-p is then 1, which the engine checks);
+// - a kept agent (its group was there in the previous frame) that draws pad redraws from the TAR head's
+//   logits, pad allowed again (the TAR, which sees the history, may let it leave);
+// - at a group's last position, the new-agent rule: a group that was empty in the previous frame and
+//   overlaps a box decoded before it (the ego's first), or exceeds the box budget, becomes pad.
+//
+// The last block to finish advances the device position, so that the next step needs nothing from the host.
+
+#define DRAW_KMAX 64
+// The id of "nothing found" (exact as a float, which the warp shuffles carry).
+#define NO_ID (1 << 30)
+
+struct Rule {
+    int known;        // the token is prefilled: nothing to draw
+    int limit;        // drawn ids must be below it (OAR draws only)
+    int gstart;       // the group's first position, or −1
+    int gj;           // the position's index in its group
+    int grun;         // the group's run (GroupRun)
+    int gindex;       // the group's index among all groups (newborn flags)
+    int finish;       // the group's last position and a run with boxes: apply the new-agent rule
+    int keep;         // index of the keep entry, or −1
+    int keep_pad;     // the id a kept position redraws
+    int keep_off;     // offset of its TAR logits in a scene's keep row
+};
+
+struct GroupRun {
+    int size, pad, values, last_lo, last_hi, boxes, max_boxes;
+    int field[5];     // x, y, heading, length, width: index in the group
+    int bins[5];
+    double lo[5], hi[5];
+};
+
+struct Draw {
+    const float* logits;        // [m][vocab]
+    const float* keep_logits;   // [m][state[1]]
+    const Rule* rules;          // [n]
+    const GroupRun* runs;
+    const unsigned char* keep_on;  // [m][keeps]
+    const unsigned char* newborn;  // [m][groups]
+    int* tok;                   // [m][n]
+    int* pos;
+    unsigned* done;             // blocks finished at this position
+    unsigned* counts;           // new agents tested, dropped
+    double* boxes;              // [m][box_cap][5]
+    int* nboxes;                // [m]
+    const unsigned* state;      // the frame's counter, the scene stride of `keep_logits`, the first scene
+    double temperature, top_p;
+    int m, n, vocab, top_k, keeps, groups, box_cap;
+    u32 key0, key1;
+};
+
+// Whether `a` ranks before `b`: larger logit, ties to the smaller id.
+DEV bool ranks_before(float va, int ia, float vb, int ib) { return va > vb || (va == vb && ia < ib); }
+
+// Whether id `i` may be drawn at a position with rule `R` (group run `G`) in a scene whose group starts with
+// `first`; `limited`: the position's id limit applies (OAR draws; a keep redraw ignores it).
+DEV bool allowed(const Rule& R, const GroupRun& G, int first, int i, bool limited) {
+    const bool below = !limited || i < R.limit;
+    if (R.gstart < 0) return below;
+    if (R.gj == 0) return below && (i < G.values || i == G.pad);
+    if (first == G.pad) return i == G.pad;
+    if (R.gj + 1 == G.size) return i >= G.last_lo && i < G.last_hi;
+    return i < G.values && below;
+}
+
+// The block's best (value, id) of the threads' `v`, `i` (ties to the smaller id); every thread gets it.
+DEV void block_best(float* v, int* i, float* sv, int* si) {
+    for (int off = 16; off > 0; off >>= 1) {
+        const float ov = from_xor(*v, off);
+        const int oi = (int)from_xor((float)*i, off);
+        if (ranks_before(ov, oi, *v, *i)) {
+            *v = ov;
+            *i = oi;
+        }
+    }
+    if (lane_id() == 0) {
+        sv[warp_id()] = *v;
+        si[warp_id()] = *i;
+    }
+    sync_block();
+    if (thread_id() == 0) {
+        for (int w = 1; w < warps_per_block(); w++)
+            if (ranks_before(sv[w], si[w], sv[0], si[0])) {
+                sv[0] = sv[w];
+                si[0] = si[w];
+            }
+    }
+    sync_block();
+    *v = sv[0];
+    *i = si[0];
+    sync_block();
+}
+
+// This thread's best allowed, finite id ranking after (bv, bi) (after nothing when bi < 0).
+DEV void scan_best(const Draw& P, const float* row, const Rule& R, const GroupRun& G, int first, bool limited,
+                   float bv, int bi, float* v, int* i) {
+    *v = NEG_INF;
+    *i = NO_ID;
+    for (int id = thread_id(); id < P.vocab; id += threads()) {
+        const float x = row[id];
+        if (!finite(x) || !allowed(R, G, first, id, limited)) continue;
+        if (bi >= 0 && !ranks_before(bv, bi, x, id)) continue;
+        if (ranks_before(x, id, *v, *i)) {
+            *v = x;
+            *i = id;
+        }
+    }
+}
+
+// A draw from `row` under the rule; every thread returns it. `purpose` keeps the draws' numbers apart.
+DEV int draw_from(const Draw& P, const float* row, const Rule& R, const GroupRun& G, int first, bool limited,
+                  int scene, int p, u32 purpose) {
+    SHARED float sv[8];
+    SHARED int si[8];
+    SHARED float cv[DRAW_KMAX];
+    SHARED int ci[DRAW_KMAX];
+    SHARED int picked;
+    const u32 sc = P.state[2] + scene, frame = P.state[0];
+    if (P.top_k < 1 || P.top_k > DRAW_KMAX) {
+        // Gumbel-max: the argmax of logit / T + Gumbel noise is a draw from the tempered softmax.
+        float v = NEG_INF;
+        int i = NO_ID;
+        for (int id = thread_id(); id < P.vocab; id += threads()) {
+            const float x = row[id];
+            if (!finite(x) || !allowed(R, G, first, id, limited)) continue;
+            const double u = uniform(P.key0, P.key1, sc, p, frame, purpose | (u32)id) + 0x1p-54;
+            const float key = (float)((double)x / P.temperature - log(-log(u)));
+            if (ranks_before(key, id, v, i)) {
+                v = key;
+                i = id;
+            }
+        }
+        block_best(&v, &i, sv, si);
+        return v == NEG_INF ? 0 : i;
+    }
+    int count = 0;
+    float v, bv = 0.f;
+    int i, bi = -1;
+    scan_best(P, row, R, G, first, limited, bv, bi, &v, &i);
+    for (; count < P.top_k; count++) {
+        float wv = v;
+        int wi = i;
+        block_best(&wv, &wi, sv, si);
+        if (wv == NEG_INF) break;
+        if (thread_id() == 0) {
+            cv[count] = wv;
+            ci[count] = wi;
+        }
+        bv = wv;
+        bi = wi;
+        // Only the thread that held the winner looks for its next best.
+        if (i == wi) scan_best(P, row, R, G, first, limited, bv, bi, &v, &i);
+    }
+    if (thread_id() == 0) {
+        int id = 0;
+        if (count > 0) {
+            double pr[DRAW_KMAX], total = 0.0;
+            const double top = (double)cv[0];
+            for (int j = 0; j < count; j++) {
+                pr[j] = exp(((double)cv[j] - top) / P.temperature);
+                total += pr[j];
+            }
+            for (int j = 0; j < count; j++) pr[j] /= total;
+            int keep = count;
+            if (P.top_p < 1.0) {
+                double mass = 0.0;
+                for (int j = 0; j < count; j++) {
+                    mass += pr[j];
+                    if (mass >= P.top_p) {
+                        keep = j + 1;
+                        break;
+                    }
+                }
+                double kept = 0.0;
+                for (int j = 0; j < keep; j++) kept += pr[j];
+                for (int j = 0; j < keep; j++) pr[j] /= kept;
+            }
+            double u = uniform(P.key0, P.key1, sc, p, frame, purpose | 0xffffffu);
+            id = ci[keep - 1];
+            for (int j = 0; j < keep; j++) {
+                if (u < pr[j]) {
+                    id = ci[j];
+                    break;
+                }
+                u -= pr[j];
+            }
+        }
+        picked = id;
+    }
+    sync_block();
+    const int id = picked;
+    sync_block();
+    return id;
+}
+
+// The four corners of a box (x, y, heading, length, width), as `umgen_eval::collision::corners`.
+DEV void box_corners(const double* b, double (*c)[2]) {
+    const double co = cos(b[2]), si = sin(b[2]), hl = b[3] / 2.0, hw = b[4] / 2.0;
+    const double u[4] = {hl, -hl, -hl, hl}, v[4] = {hw, hw, -hw, -hw};
+    for (int q = 0; q < 4; q++) {
+        c[q][0] = b[0] + u[q] * co - v[q] * si;
+        c[q][1] = b[1] + u[q] * si + v[q] * co;
+    }
+}
+
+// Whether two boxes overlap (separating axes; touching edges do not), as `umgen_eval::collision::overlap`.
+DEV bool boxes_overlap(const double* a, const double* b) {
+    double pa[4][2], pb[4][2];
+    box_corners(a, pa);
+    box_corners(b, pb);
+    for (int poly = 0; poly < 2; poly++) {
+        double (*pp)[2] = poly == 0 ? pa : pb;
+        for (int e = 0; e < 2; e++) {
+            const double ax = -(pp[e + 1][1] - pp[e][1]), ay = pp[e + 1][0] - pp[e][0];
+            double a0 = 1e308, a1 = -1e308, b0 = 1e308, b1 = -1e308;
+            for (int q = 0; q < 4; q++) {
+                const double x = pa[q][0] * ax + pa[q][1] * ay, y = pb[q][0] * ax + pb[q][1] * ay;
+                a0 = fmin(a0, x);
+                a1 = fmax(a1, x);
+                b0 = fmin(b0, y);
+                b1 = fmax(b1, y);
+            }
+            if (a1 <= b0 || b1 <= a0) return false;
+        }
+    }
+    return true;
+}
+
+// The new-agent rule at the last position `p` of a finished group of scene `b` (one thread).
+DEV void new_agent(const Draw& P, const Rule& R, const GroupRun& G, int b, int p) {
+    int* row = P.tok + (long long)b * P.n;
+    if (row[R.gstart] == G.pad) return;
+    const bool newborn = P.newborn[(long long)b * P.groups + R.gindex] != 0;
+    if (newborn) atomic_add_u(P.counts, 1u);
+    double box[5];
+    for (int f = 0; f < 5; f++) {
+        const int id = row[R.gstart + G.field[f]];
+        if (id < 0 || id >= G.bins[f]) return;
+        box[f] = G.lo[f] + ((double)id + 0.5) * (G.hi[f] - G.lo[f]) / (double)G.bins[f];
+    }
+    double* mine = P.boxes + (long long)b * P.box_cap * 5;
+    const int nb = P.nboxes[b];
+    bool drop = false;
+    if (newborn) {
+        drop = nb >= G.max_boxes;
+        for (int q = 0; q < nb && !drop; q++) drop = boxes_overlap(mine + 5 * q, box);
+    }
+    if (drop) {
+        for (int q = R.gstart; q <= p; q++) row[q] = G.pad;
+        atomic_add_u(P.counts + 1, 1u);
+    } else if (nb < P.box_cap) {
+        for (int f = 0; f < 5; f++) mine[5 * nb + f] = box[f];
+        P.nboxes[b] = nb + 1;
+    }
+}
+
+KERNEL umgen_draw(const Draw P) {
+    const int b = (int)block_x();
+    const int p = *P.pos;
+    const Rule R = P.rules[p];
+    GroupRun G = {};
+    if (R.gstart >= 0) G = P.runs[R.grun];
+    int* row = P.tok + (long long)b * P.n;
+    if (!R.known) {
+        const int first = R.gstart >= 0 && R.gj > 0 ? row[R.gstart] : -1;
+        int id = draw_from(P, P.logits + (long long)b * P.vocab, R, G, first, true, b, p, 0u);
+        if (R.keep >= 0 && P.keep_on[(long long)b * P.keeps + R.keep] && id == R.keep_pad &&
+            !(R.gstart >= 0 && R.gj > 0 && first == G.pad)) {
+            const float* tar = P.keep_logits + (long long)b * P.state[1] + R.keep_off;
+            id = draw_from(P, tar, R, G, first, false, b, p, 1u << 24);
+        }
+        if (thread_id() == 0) row[p] = id;
+    }
+    sync_block();
+    if (thread_id() == 0) {
+        if (R.finish) new_agent(P, R, G, b, p);
+        fence();
+        if (atomic_add_u(P.done, 1u) + 1 == (unsigned)P.m) {
+            *P.done = 0;
+            *P.pos = p + 1;
+        }
+    }
+}

@@ -1,0 +1,28 @@
+//! umgen's CUDA kernels and what launches them.
+//!
+//! The generation engine (`umgen_generate::engine`) runs the backbone's generation forward pass as a fixed
+//! program of operations over buffers allocated once: [`ops`] names those operations (a matrix-vector
+//! product with its prologue and epilogue, the attention variants, row gathers and norms, AMA, the tracked
+//! slots' move, the draw with its token rules, cuBLAS products) and the [`ops::Exec`] interface that runs
+//! them. It is always built, so that a host executor can run the same programs on the CPU (the tests, and
+//! the reference a GPU run is checked against).
+//!
+//! With the `cuda` feature, [`gpu::CudaExec`] runs them on a GPU: the kernels in `src/kernels/*.cu` are CUDA
+//! C compiled once by NVRTC at start-up for the element type of the weights (bf16 or f32), products of many
+//! rows go to cuBLAS, and a sequence of operations that repeats (the decoding step) is captured once as a
+//! CUDA graph and replayed, so that a step costs one launch from the host. Every `unsafe` of the GPU path
+//! is in [`gpu`]; each launch first checks that every buffer it names holds the elements the kernel reads
+//! or writes through it.
+//!
+//! The kernels also run on the host under `kernels/warp_emulator.h` (every CUDA thread a std::thread, warp
+//! shuffles emulated): `kernels/engine_emulator.cpp` compares each with a double-precision reference, and
+//! the backbone's training kernels share the same primitives ([`source::PRIMITIVES`]).
+
+pub mod emulator;
+pub mod ops;
+pub mod source;
+
+#[cfg(feature = "cuda")]
+pub mod gpu;
+
+pub use ops::{Buf, Elem, Exec, ExecError, Op};

@@ -1,0 +1,67 @@
+//! The CUDA C sources, as NVRTC compiles them (it resolves no include files, so each source is the
+//! concatenation of what it needs).
+
+/// The warp- and block-level primitives and the bf16 loads and stores that every CUDA C kernel of umgen is
+/// written against (`kernels/warp_device.cuh`, `kernels/bf16.cuh`); `kernels/warp_emulator.h` defines the
+/// same names on the host.
+pub const PRIMITIVES: &str = concat!(
+    include_str!("kernels/warp_device.cuh"),
+    "\n",
+    include_str!("kernels/bf16.cuh"),
+    "\n"
+);
+
+/// The generation engine's kernels (`gemv.cu`, `attend.cu`, `rows.cu`, `draw.cu`) with their weights and
+/// operands in bf16 (`bf16`) or f32.
+pub fn engine(bf16: bool) -> String {
+    [
+        PRIMITIVES,
+        if bf16 {
+            "#define WT u16\n"
+        } else {
+            "#define WT float\n"
+        },
+        include_str!("kernels/engine_common.cuh"),
+        include_str!("kernels/gemv.cu"),
+        include_str!("kernels/attend.cu"),
+        include_str!("kernels/rows.cu"),
+        include_str!("kernels/draw.cu"),
+    ]
+    .join("\n")
+}
+
+/// The kernels [`engine`] defines.
+pub const ENGINE_KERNELS: [&str; 11] = [
+    "umgen_gemv",
+    "umgen_attend_rows",
+    "umgen_attend_tiles",
+    "umgen_rows_f",
+    "umgen_rows_t",
+    "umgen_bias_t",
+    "umgen_embed",
+    "umgen_shift_block",
+    "umgen_align",
+    "umgen_track",
+    "umgen_draw",
+];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_named_kernel_is_in_the_source_once_for_either_element_type() {
+        for bf16 in [false, true] {
+            let src = engine(bf16);
+            for k in ENGINE_KERNELS {
+                let defined = format!("KERNEL {k}(");
+                assert_eq!(src.matches(&defined).count(), 1, "{k}");
+            }
+            assert!(src.contains(if bf16 {
+                "#define WT u16"
+            } else {
+                "#define WT float"
+            }));
+        }
+    }
+}

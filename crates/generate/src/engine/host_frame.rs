@@ -1,0 +1,156 @@
+//! The host's loops for the TAR input's parts (`rows.cu`'s `umgen_shift_block`, `umgen_align`,
+//! `umgen_track`), with burn's arithmetic in its order (f32 operations one at a time; AMA's bilinear
+//! weights in f64, as burn's CPU `grid_sample_2d`).
+
+use super::host::HostExec;
+use umgen_cuda::ops::{Align, ExecError, Op, Shift, Track};
+
+pub(super) fn run(x: &mut HostExec, op: &Op) -> Result<(), ExecError> {
+    match op {
+        Op::Shift(s) => shift(x, s),
+        Op::Align(a) => align(x, a),
+        Op::Track(t) => track(x, t),
+        _ => Err(ExecError::Invalid(format!(
+            "{} is not a frame operation",
+            op.name()
+        ))),
+    }
+}
+
+fn shift(x: &mut HostExec, s: &Shift) -> Result<(), ExecError> {
+    let fresh = x.f32s(s.fresh)[..s.m * s.len * s.d].to_vec();
+    let v = x.f32s_mut(s.x);
+    let frame = s.n * s.d;
+    for scene in 0..s.m {
+        for i in 0..s.len {
+            let base = (scene * s.w * s.n + s.start + i) * s.d;
+            for t in 0..s.w {
+                for c in 0..s.d {
+                    v[base + t * frame + c] = if t + 1 < s.w {
+                        v[base + (t + 1) * frame + c]
+                    } else {
+                        fresh[(scene * s.len + i) * s.d + c]
+                    };
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+fn align(x: &mut HostExec, a: &Align) -> Result<(), ExecError> {
+    let cells = a.rows * a.cols;
+    let src = x.f32s(a.src)[..a.frames * cells * a.d].to_vec();
+    let act = x.f32s(a.act)[..a.frames * 3].to_vec();
+    let base = x.f32s(a.base)[..cells * 2].to_vec();
+    let out = x.f32s_mut(a.x);
+    for f in 0..a.frames {
+        let (dx, dy, th) = (act[3 * f], act[3 * f + 1], act[3 * f + 2]);
+        let (co, si) = (th.cos(), th.sin());
+        let (tx, ty) = (dy * a.tx_scale, dx * a.ty_scale);
+        for cell in 0..cells {
+            let (gx, gy) = (base[2 * cell], base[2 * cell + 1]);
+            let sx = co * gx + si * gy + tx;
+            let sy = -si * gx + co * gy + ty;
+            let px = (f64::from(sx) + 1.0) * a.cols as f64 / 2.0 - 0.5;
+            let py = (f64::from(sy) + 1.0) * a.rows as f64 / 2.0 - 0.5;
+            let (fx, fy) = (px.floor(), py.floor());
+            let (x0, y0) = (fx as i64, fy as i64);
+            let (ax, ay) = (px - fx, py - fy);
+            let corners = [
+                (x0, y0, (1.0 - ax) * (1.0 - ay)),
+                (x0, y0 + 1, (1.0 - ax) * ay),
+                (x0 + 1, y0, ax * (1.0 - ay)),
+                (x0 + 1, y0 + 1, ax * ay),
+            ];
+            let o = (f * a.n + a.offset + cell) * a.d;
+            for c in 0..a.d {
+                let mut v = 0.0f64;
+                for (cx, cy, wt) in corners {
+                    let inside = cx >= 0 && cx < a.cols as i64 && cy >= 0 && cy < a.rows as i64;
+                    let s = if inside {
+                        f64::from(src[((f * cells) + cy as usize * a.cols + cx as usize) * a.d + c])
+                    } else {
+                        0.0
+                    };
+                    v += s * wt;
+                }
+                out[o + c] += v as f32;
+            }
+        }
+    }
+    Ok(())
+}
+
+fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
+    let tok = x.i32s(t.tok)[..t.frames * t.n].to_vec();
+    let act = x.f32s(t.act)[..t.frames * 3].to_vec();
+    let fl = &t.fields;
+    let centre = |q: usize, id: i32| (id as f32 + 0.5) * fl[q].width + fl[q].lo;
+    let mut out = vec![0i32; t.frames * t.slots * t.k];
+    for f in 0..t.frames {
+        let tf = f % t.w;
+        for slot in 0..t.slots {
+            let at = f * t.n + t.offset + slot * t.k;
+            let ids = &tok[at..at + t.k];
+            let o = &mut out[(f * t.slots + slot) * t.k..(f * t.slots + slot + 1) * t.k];
+            o.copy_from_slice(ids);
+            let v: Vec<f32> = (0..5).map(|q| centre(q, ids[fl[q].index])).collect();
+            let (dx, dy, dth) = (act[3 * f], act[3 * f + 1], act[3 * f + 2]);
+            let (co, si) = (dth.cos(), dth.sin());
+            let (mut dvx, mut dvy) = (0.0f32, 0.0f32);
+            if t.accel && t.w > 1 {
+                let before = if tf > 0 {
+                    &tok[at - t.n..at - t.n + t.k]
+                } else {
+                    ids
+                };
+                let turn = if tf > 0 { act[3 * (f - 1) + 2] } else { 0.0 };
+                let (pvx, pvy) = (centre(2, before[fl[2].index]), centre(3, before[fl[3].index]));
+                let (tc, ts) = (turn.cos(), turn.sin());
+                let ux = tc * pvx + ts * pvy;
+                let uy = tc * pvy - ts * pvx;
+                dvx = v[2] - ux;
+                dvy = v[3] - uy;
+                let was_there = before[fl[0].index] < t.values as i32;
+                let ahead = (v[2] + dvx) * v[2] + (v[3] + dvy) * v[3];
+                if !(was_there && ahead >= 0.0) {
+                    (dvx, dvy) = (0.0, 0.0);
+                }
+            }
+            if ids[fl[0].index] >= t.values as i32 {
+                continue;
+            }
+            let px = v[0] + (v[2] + dvx * 0.5) * t.step - dx;
+            let py = v[1] + (v[3] + dvy * 0.5) * t.step - dy;
+            let (wx, wy) = (v[2] + dvx, v[3] + dvy);
+            let hd = v[4] - dth;
+            let pi = std::f32::consts::PI;
+            let tau = (2.0 * std::f64::consts::PI) as f32;
+            let nv = [
+                co * px + si * py,
+                co * py - si * px,
+                co * wx + si * wy,
+                co * wy - si * wx,
+                hd - ((hd + pi) / tau).floor() * tau,
+            ];
+            let stays = nv[0] >= fl[0].lo && nv[0] < fl[0].hi && nv[1] >= fl[1].lo && nv[1] < fl[1].hi;
+            if let (Some(pad), false) = (t.pad, stays) {
+                o.fill(pad as i32);
+                continue;
+            }
+            for q in 0..5 {
+                let b = ((nv[q] - fl[q].lo) / fl[q].width).floor();
+                o[fl[q].index] = b.clamp(0.0, (fl[q].bins - 1) as f32) as i32;
+            }
+        }
+    }
+    let dst = t.out;
+    match x.bufs.get_mut(dst.id as usize) {
+        Some((_, super::host::Store::I32(v))) => {
+            v[dst.at..dst.at + out.len()].copy_from_slice(&out);
+            Ok(())
+        }
+        _ => Err(ExecError::Invalid("track: the output is not i32".into())),
+    }
+}
