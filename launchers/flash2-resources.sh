@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Registers and spills of the flash2 attention kernels on a machine without a GPU: compiles
-# crates/backbone/src/flash/flash2_warp.cu + flash2_tiles.cu + flash2.cu with NVRTC as umgen does (compute_80, fast math),
+# crates/cuda/src/kernels/flash2/flash2_warp.cu + flash2_tiles.cu + flash2.cu with NVRTC as umgen does (compute_80, fast math),
 # then assembles the PTX for sm_90 with ptxas and prints each kernel's registers and spill bytes. With
 # ARCH=90a, NVRTC targets compute_90a as on an H100 (the head size 64 kernels on `wgmma`) and ptxas sm_90a.
 #
@@ -11,7 +11,7 @@
 # once into $TOOLS (default ~/.cache/umgen/cuda-tools). Run from the repository root.
 set -euo pipefail
 tools=${TOOLS:-$HOME/.cache/umgen/cuda-tools}
-here=crates/backbone/src/flash
+here=crates/cuda/src/kernels/flash2
 for pkg in nvidia-cuda-nvrtc-cu12 nvidia-cuda-nvcc-cu12; do
     if [ ! -d "$tools/$pkg" ]; then
         mkdir -p "$tools/$pkg"

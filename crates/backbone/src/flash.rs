@@ -5,7 +5,7 @@
 //! [`crate::attention`]'s custom autodiff operation computes its forward and backward passes through
 //! [`FusedAttention`], a trait of the inner backend. On the CPU (`Flex`) both passes are the tiled ones.
 //! On CUDA, with [`AttentionKernel::Flash2`] (the default), each pass is a custom operation in
-//! burn-fusion's stream that launches the CUDA C kernels of `flash/flash2.cu` (compiled with NVRTC, run on
+//! burn-fusion's stream that launches the CUDA C kernels of umgen-cuda's `kernels/flash2/flash2.cu` (compiled with NVRTC, run on
 //! cubecl's stream or a side stream: `flash/flash2.rs`), whose products keep scores and probabilities in
 //! registers; head sizes other than 32 and 64 run the fused kernels. With [`AttentionKernel::Fused`] each
 //! pass launches this module's cubecl kernels (`flash/kernels.rs`): the `lq × lk` scores and
@@ -78,7 +78,7 @@ pub enum AttentionKernel {
     Fused,
     /// The tiled passes in burn tensor operations (blocks of [`crate::attention::BLOCK_BYTES`]).
     Tiled,
-    /// FlashAttention-2 in CUDA C (`flash/flash2.cu`, NVRTC): products and softmax in registers; head
+    /// FlashAttention-2 in CUDA C (umgen-cuda's `kernels/flash2/flash2.cu`, NVRTC): products and softmax in registers; head
     /// sizes 32 and 64 (others run [`AttentionKernel::Fused`]). The default: about 2× the fused kernels'
     /// speed.
     #[default]

@@ -151,6 +151,9 @@ pub trait Exec {
     /// A new buffer of `len` elements of `elem`, zeroed.
     fn alloc(&mut self, elem: Elem, len: usize) -> Result<Buf, ExecError>;
 
+    /// Frees buffer `id` (any later use of it is an error).
+    fn free(&mut self, id: u32);
+
     /// Writes `data` from element `dst.at` on.
     fn write(&mut self, dst: Buf, data: Data<'_>) -> Result<(), ExecError>;
 
@@ -176,11 +179,23 @@ pub trait Exec {
     /// Forgets every captured sequence (after the buffers they name changed).
     fn forget_replays(&mut self) {}
 
+    /// Waits until everything queued has run (for timing; reads wait by themselves).
+    fn sync(&mut self) -> Result<(), ExecError> {
+        Ok(())
+    }
+
     /// Bytes of device memory its buffers hold.
     fn bytes(&self) -> usize;
 
     /// Whether `W` buffers hold bf16.
     fn bf16(&self) -> bool;
+
+    /// Whether it runs [`Op::Flash`] for head size `dh` (the flash2 kernels: bf16 operands, head sizes 32
+    /// and 64, a GPU of compute capability 8.0 or newer).
+    fn flash(&self, dh: usize) -> bool {
+        let _ = dh;
+        false
+    }
 }
 
 /// One operation.
@@ -194,6 +209,8 @@ pub enum Op {
     AttendRows(AttendRows),
     /// Many queries, tiles of keys.
     AttendTiles(AttendTiles),
+    /// FlashAttention-2's forward pass.
+    Flash(Flash),
     /// Gathered, normalised, biased rows into f32 or `W` rows.
     Rows(Rows),
     /// Bias and GELU in place on `W` rows.
@@ -218,6 +235,7 @@ impl Op {
             Self::Gemm(_) => "cublasGemmEx",
             Self::AttendRows(_) => "umgen_attend_rows",
             Self::AttendTiles(_) => "umgen_attend_tiles",
+            Self::Flash(_) => "umgen_flash2_forward",
             Self::Rows(_) => "umgen_rows",
             Self::BiasT(_) => "umgen_bias_t",
             Self::Embed(_) => "umgen_embed",

@@ -11,6 +11,14 @@ pub const PRIMITIVES: &str = concat!(
     "\n"
 );
 
+/// FlashAttention-2's forward and backward kernels (`kernels/flash2/`: warp primitives, tiles and fragment
+/// products, the three passes), with their own primitives: NVRTC compiles them alone.
+pub const FLASH2: &str = concat!(
+    include_str!("kernels/flash2/flash2_warp.cu"),
+    include_str!("kernels/flash2/flash2_tiles.cu"),
+    include_str!("kernels/flash2/flash2.cu")
+);
+
 /// The generation engine's kernels (`gemv.cu`, `attend.cu`, `rows.cu`, `draw.cu`) with their weights and
 /// operands in bf16 (`bf16`) or f32.
 pub fn engine(bf16: bool) -> String {

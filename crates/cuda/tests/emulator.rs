@@ -17,14 +17,42 @@ fn engine_kernels_match_a_double_precision_reference_in_the_host_emulator() {
     for defines in [["-DWT=float"], ["-DWT=u16"]] {
         match run(&source, &defines).expect("building the emulator") {
             Emulated::Agreed(report) => {
-                // Eighteen cases and the summary line.
-                assert_eq!(report.lines().count(), 19, "{report}");
+                // Thirty-one cases and the summary line.
+                assert_eq!(report.lines().count(), 32, "{report}");
                 assert!(!report.contains("FAIL"), "{report}");
                 assert!(report.contains("all cases agree"), "{report}");
             }
             Emulated::Disagreed(report) => panic!("{defines:?}:\n{report}"),
             Emulated::NoCompiler => {
                 eprintln!("no C++ compiler: the engine kernels' emulator did not run");
+                return;
+            }
+        }
+    }
+}
+
+/// The FlashAttention-2 kernels (`src/kernels/flash2/`) run on the host: `flash2_emulator.cpp` runs every
+/// thread of a block as a host thread with the warp-level primitives (`mma.sync`, `ldmatrix`, shuffles, and
+/// Hopper's `wgmma` with its swizzled shared-memory operands) emulated from their PTX definitions, and
+/// compares the output, log-sum-exp and the three gradients with a double-precision reference (causal and
+/// not, ragged lengths, head sizes 32 and 64, f32 and bf16 operands, 4 and 8 warps per block, a spare grid
+/// row, scores so low that an unmasked past-the-end key would give NaN, rows that do not start on 16 bytes;
+/// the backward kernels' column step 32 and 64).
+#[test]
+fn flash2_kernels_match_a_double_precision_reference_in_the_host_emulator() {
+    let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/kernels/flash2/flash2_emulator.cpp");
+    // The backward kernels' column step as shipped (32) and doubled (the variant `SUB` selects), on
+    // `mma.sync` and on `wgmma` (head size 64 on sm_90a: the A operands of the block's own rows read from
+    // shared memory, the swizzled tile layout).
+    let wgmma = "-DUMGEN_WGMMA_EMULATED";
+    for defines in [&[][..], &["-DSUB=64"], &[wgmma], &[wgmma, "-DSUB=64"]] {
+        match run(&source, defines).expect("building the emulator") {
+            // Twenty cases (ten shapes, two of them with rows that do not start on 16 bytes, × 4 and 8
+            // warps), each with its five errors.
+            Emulated::Agreed(report) => assert_eq!(report.matches("warps, b").count(), 20, "{report}"),
+            Emulated::Disagreed(report) => panic!("{defines:?}:\n{report}"),
+            Emulated::NoCompiler => {
+                eprintln!("no C++ compiler: the flash2 kernels' emulator did not run");
                 return;
             }
         }

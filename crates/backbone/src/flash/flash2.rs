@@ -1,4 +1,5 @@
-//! Launches the `flash2` kernels (`flash2_warp.cu`, `flash2_tiles.cu` and `flash2.cu`, CUDA C compiled with
+//! Launches the `flash2` kernels (umgen-cuda's `kernels/flash2/`: `flash2_warp.cu`, `flash2_tiles.cu` and
+//! `flash2.cu`, CUDA C compiled with
 //! NVRTC) on cubecl's stream (or, with `train.kernel_stream = "side"`, on a side stream ordered with
 //! cubecl's), on burn's buffers as they lie in memory.
 //!
@@ -23,11 +24,7 @@ use std::cell::RefCell;
 use std::sync::OnceLock;
 
 /// The kernels' source: the GPU's primitives, the building blocks, then the three passes.
-const SOURCE: &str = concat!(
-    include_str!("flash2_warp.cu"),
-    include_str!("flash2_tiles.cu"),
-    include_str!("flash2.cu")
-);
+const SOURCE: &str = umgen_cuda::source::FLASH2;
 
 /// The grid's largest y (and z) extent.
 const GRID_YZ: usize = 65_535;

@@ -6,7 +6,6 @@ mod attention;
 mod causality;
 mod decode;
 mod emulator;
-mod flash2;
 mod gelu;
 mod heads;
 mod lookup;

@@ -224,36 +224,64 @@ impl From<PrecisionArg> for umgen::backbone::Precision {
 /// Arguments of `umgen bench generate`.
 #[derive(Debug, Args)]
 pub struct BenchGenerateArgs {
-    /// The config whose layout and backbone are measured (random weights; tokenizers are not needed).
-    #[command(flatten)]
-    pub config: ConfigArgs,
+    /// The config whose layout and backbone are measured (random weights; tokenizers are not needed);
+    /// default with `--preset`: `configs/<preset>.toml`.
+    #[arg(short, long, value_name = "FILE", required_unless_present = "preset")]
+    pub config: Option<PathBuf>,
+    /// Override a config key (applied after the preset's).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// The sizes of `torch_umgen.py`'s preset of this name (N = 2199: 60 agents, no boundary tokens), for
+    /// side-by-side timing with its `infer-scaling` and `infer-graph`.
+    #[arg(long, value_enum)]
+    pub preset: Option<BenchPreset>,
     /// `cpu`, or `cuda:N`.
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// What decodes: the generation engine, or the burn model (`umgen generate --decoder`).
+    #[arg(long, value_enum, default_value = "engine")]
+    pub decoder: super::DecoderArg,
+    /// The engine's weights and products on a GPU.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub precision: super::EnginePrecisionArg,
     /// History lengths T (frames); each must fit `backbone.max_frames`.
-    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,20")]
+    #[arg(long, value_delimiter = ',', default_value = "1,20")]
     pub history: Vec<usize>,
-    /// Scenes per batch.
-    #[arg(long, default_value_t = 1)]
-    pub batch: usize,
-    /// Tokens timed per vanilla-AR measurement.
+    /// Scenes per batch (each batch size is measured at every history length).
+    #[arg(long, value_delimiter = ',', default_value = "1")]
+    pub batch: Vec<usize>,
+    /// New frames timed per measurement (the median is reported); a frame of the paper layout takes
+    /// seconds with the burn decoder, so a quick look there can ask for 1.
+    #[arg(long, default_value_t = 3)]
+    pub frames: usize,
+    /// Also time a rollout of this many frames at the first batch size, from a history of the first
+    /// history length (the window grows, then slides): seconds in all and per frame.
+    #[arg(long, value_name = "FRAMES", default_value_t = 0)]
+    pub rollout: usize,
+    /// Also compare greedy frames (top-k 1) of the engine and of the burn decoder on the same weights and
+    /// histories, over this many frames at the first batch size and history length: how many tokens and
+    /// frames agree (all of them with `--precision f32`, up to float rounding).
+    #[arg(long, value_name = "FRAMES", default_value_t = 0)]
+    pub check: usize,
+    /// Engine: after the measurements, one more frame at the last batch size and history length with every
+    /// operation of its window pass timed (by kind), then each operation of a decoding step timed alone
+    /// (replayed 50 times as one graph).
+    #[arg(long)]
+    pub profile: bool,
+    /// Burn decoder: tokens timed per vanilla-AR measurement (0: no vanilla AR).
     #[arg(long, default_value_t = 64)]
     pub tokens: usize,
-    /// New frames timed per TAR/OAR measurement (the median is reported); a frame of the paper layout
-    /// takes seconds on a GPU, so a quick look can ask for 1.
-    #[arg(long, default_value_t = 5)]
-    pub frames: usize,
-    /// How draws on a CUDA device find the top-k ids.
+    /// Burn decoder: how draws on a CUDA device find the top-k ids.
     #[arg(long, value_enum, default_value = "reduce")]
     pub device_top_k: super::DeviceTopKArg,
-    /// Where the TAR/OAR frames draw (see `umgen generate --draw`).
+    /// Burn decoder: where the frames draw (see `umgen generate --draw`).
     #[arg(long, value_enum, default_value = "auto")]
     pub draw: super::DrawArg,
-    /// Speculative blocks of up to K positions for the TAR/OAR frames (0 = off; see `umgen generate`).
+    /// Burn decoder: speculative blocks of up to K positions (0 = off; see `umgen generate`).
     #[arg(long, value_name = "K", default_value_t = 0)]
     pub speculate: usize,
-    /// Also time the parts of a decoding step one by one (input, OAR layers, head, device draw with
-    /// each top-k method, host read-back), at the first history length.
+    /// Burn decoder: also time the parts of a decoding step one by one (input, OAR layers, head, device
+    /// draw with each top-k method, host read-back), at the first history length.
     #[arg(long)]
     pub breakdown: bool,
 }

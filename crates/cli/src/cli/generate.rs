@@ -88,6 +88,48 @@ pub struct GenerateArgs {
     /// `cpu`, or `cuda:N`.
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// What decodes the frames.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub decoder: DecoderArg,
+    /// The generation engine's weights and products on a GPU.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub precision: EnginePrecisionArg,
+}
+
+/// What decodes the frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum DecoderArg {
+    /// The engine on a GPU, burn on the CPU.
+    Auto,
+    /// The generation engine: a fixed program of kernels over buffers allocated once, each decoding step
+    /// one replayed CUDA graph on a GPU (the host executor on the CPU).
+    Engine,
+    /// The burn model, one operation at a time (`--speculate`, `--draw` and `--device-top-k` are its
+    /// settings).
+    Burn,
+}
+
+impl DecoderArg {
+    /// Whether the engine decodes on `cuda` (a GPU) or not.
+    pub fn engine(self, cuda: bool) -> bool {
+        match self {
+            Self::Auto => cuda,
+            Self::Engine => true,
+            Self::Burn => false,
+        }
+    }
+}
+
+/// The engine's number format on a GPU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum EnginePrecisionArg {
+    /// bf16 on a GPU (f32 on the CPU).
+    Auto,
+    /// Weights and product operands in bf16, f32 accumulation, residual streams, norms, softmax and logits:
+    /// half the memory, the tensor cores.
+    Bf16,
+    /// Everything f32: the burn decoder's numbers (greedy frames are its frames).
+    F32,
 }
 
 /// Arguments of `umgen eval`.

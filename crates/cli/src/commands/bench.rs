@@ -1,7 +1,9 @@
 //! `umgen bench …`: speed measurements.
 
-use crate::cli::{BenchCommand, BenchDataArgs};
+use crate::cli::{BenchCommand, BenchDataArgs, BenchPreset};
+use anyhow::Context;
 use std::io::Write;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 use umgen_data::Dataset;
 use umgen_render::{Camera, MapView};
@@ -19,6 +21,32 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Layers(args) => super::bench_layers::run(&args),
         BenchCommand::Repro(args) => super::bench_repro::run(&args),
     }
+}
+
+/// The config a benchmark measures: `config`, or `configs/<preset>.toml`, with the preset's overrides and
+/// then `set`; tokenizers need not exist (speed does not depend on them). Also the file read and every
+/// override applied.
+pub fn bench_config(
+    config: Option<&Path>,
+    preset: Option<BenchPreset>,
+    set: &[String],
+) -> anyhow::Result<(umgen::UmgenConfig, PathBuf, Vec<String>)> {
+    let path = match (config, preset) {
+        (Some(p), _) => p.to_path_buf(),
+        (None, Some(p)) => PathBuf::from(format!("configs/{}.toml", p.name())),
+        (None, None) => anyhow::bail!("give --config or --preset"),
+    };
+    let mut sets = preset.map(|p| p.overrides()).unwrap_or_default();
+    sets.extend(set.iter().cloned());
+    let loaded = umgen::UmgenConfig::load(&path, &sets).with_context(|| match preset {
+        Some(p) if config.is_none() => format!(
+            "preset `{}` reads {} (run from the repository root, or pass --config)",
+            p.name(),
+            path.display()
+        ),
+        _ => format!("loading {}", path.display()),
+    })?;
+    Ok((loaded.without_missing_tokenizers().0, path, sets))
 }
 
 /// Reads windows round-robin over every window of the dataset for a fixed time, single-threaded.

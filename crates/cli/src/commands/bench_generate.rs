@@ -1,63 +1,47 @@
-//! `umgen bench generate`: what one new frame costs per token as the history grows, for the TAR/OAR model
-//! and for a vanilla autoregressive transformer over all frames' tokens.
+//! `umgen bench generate`: generation with the engine (random weights, random valid histories, no rules).
+//! Once: the start-up (weights to the device, kernels compiled). Per batch size and history length: the
+//! first frame (the decoding steps captured as graphs the first time), then the median of `--frames`
+//! frames as ms per token of the whole frame and of the decoding steps alone, the window pass, frames per
+//! second, and memory. `torch_umgen.py infer-scaling` reports the first two as `per_token_ms` and
+//! `decode_ms_per_token`, `infer-graph` its CUDA-graph step as `graph_ms_per_token`.
 
-use crate::cli::BenchGenerateArgs;
-use crate::device::{Device, memory_in_use};
+use super::engine::AnyEngine;
+use crate::cli::{BenchGenerateArgs, DecoderArg};
+use crate::device::Device;
 use burn::tensor::backend::Backend;
-use burn::tensor::{Distribution, Tensor};
-use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
 use std::time::Instant;
-use umgen::backbone::{Backbone, BackboneSpec, Slot, VanillaAr};
-use umgen::generate::{FrameControl, Generator, Sampling};
-use umgen::{UmgenConfig, backbone_spec, builtin_catalog};
+use umgen::backbone::Backbone;
+use umgen::generate::engine::EngineSettings;
+use umgen::generate::{DEFAULT_PASS_FRAMES, FrameControl, Generator, NextFrame, Sampling};
+use umgen::{backbone_spec, builtin_catalog};
 
-/// Random valid frames `[batch][t][N]`.
-fn history(model_spec: &BackboneSpec, slots: &[Slot], batch: usize, t: usize) -> Vec<Vec<Vec<u32>>> {
-    let mut rng = StdRng::seed_from_u64(7);
-    (0..batch)
-        .map(|_| {
-            (0..t)
-                .map(|_| {
-                    slots
-                        .iter()
-                        .map(|s| match *s {
-                            Slot::Start(i) => model_spec.segments[i].vocab as u32,
-                            Slot::End(i) => model_spec.segments[i].vocab as u32 + 1,
-                            Slot::Content(i, _) => rng.random_range(0..model_spec.segments[i].vocab as u32),
-                        })
-                        .collect()
-                })
-                .collect()
-        })
-        .collect()
-}
-
-/// One row of the table.
+/// One measurement.
 struct Row {
+    batch: usize,
     t: usize,
-    ours_ms: f64,
-    ours_peak: u64,
-    vanilla_ms: f64,
-    vanilla_peak: u64,
-    vanilla_cache: u64,
+    first_s: f64,
+    frame_s: f64,
+    window_ms: f64,
+    step_ms: f64,
 }
 
 /// Measures.
 pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
-    let (config, _) = UmgenConfig::load(&a.config.config, &a.config.set)?.without_missing_tokenizers();
+    if a.decoder == DecoderArg::Burn {
+        for &batch in &a.batch {
+            super::bench_generate_burn::run(a, batch)?;
+        }
+        return Ok(());
+    }
+    let (config, path, _) = super::bench::bench_config(a.config.as_deref(), a.preset, &a.set)?;
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
-    let cfg = &config.backbone.for_inference();
+    let cfg = config.backbone.for_inference();
     let device = Device::parse(&a.device)?;
-    let on_gpu = matches!(device, Device::Cuda(_));
-    let n = spec.n;
-    // "Same total depth" as the PyTorch reference counts it: every attention layer of the model.
-    let depth = cfg.ego_hist_layers + cfg.ego_env_layers + 2 * cfg.tar_layers + cfg.oar_layers;
-    let vocab = spec.segments.iter().map(|s| s.vocab).max().unwrap_or(1);
     anyhow::ensure!(
-        a.batch >= 1 && a.tokens >= 1 && a.frames >= 1,
-        "--batch, --tokens and --frames must be at least 1"
+        a.frames >= 1 && !a.batch.is_empty() && a.batch.iter().all(|&b| b >= 1),
+        "--frames and every --batch must be at least 1"
     );
     if let Some(t) = a.history.iter().find(|t| **t == 0 || **t > cfg.max_frames) {
         anyhow::bail!(
@@ -65,169 +49,212 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
             cfg.max_frames
         );
     }
-    let (rows, parts) = crate::with_inference!(device, |I, dev| {
-        let sync = || <I as Backend>::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
-        <I as Backend>::seed(&dev, 0);
-        let model = Backbone::<I>::new(cfg, &spec, &dev)?;
-        let vanilla = VanillaAr::<I>::new(
-            cfg.d_model,
-            cfg.heads,
-            cfg.mlp_ratio,
-            depth,
-            vocab,
-            cfg.precision,
-            &dev,
-        );
-        let slots = model.slots();
-        let sampling = vec![Sampling::default(); spec.segments.len()];
-        let mut rows = Vec::new();
-        let mut parts = None;
+    let window = a.history.iter().copied().max().unwrap_or(1);
+    let n = spec.n;
+    let started = Instant::now();
+    <burn::backend::Flex as Backend>::seed(&Default::default(), 0);
+    let model = Backbone::<burn::backend::Flex>::new(&cfg, &spec, &Default::default())?;
+    let (plain, slots) = (model.plain(), model.slots());
+    let weights = match a.check {
+        0 => None,
+        _ => Some(umgen::checkpoint::burn_io::weights_to_bytes(&model)?),
+    };
+    drop(model);
+    let built_s = started.elapsed().as_secs_f64();
+    let settings = |sampling| EngineSettings {
+        sampling: vec![sampling; spec.segments.len()],
+        window,
+        seed: 0,
+        pass_frames: DEFAULT_PASS_FRAMES,
+    };
+    let started = Instant::now();
+    let mut e = AnyEngine::new(device, &plain, settings(Sampling::default()), a.precision)?.timed(true);
+    let start_s = started.elapsed().as_secs_f64();
+    let check = match weights {
+        Some(bytes) => {
+            let (batch, t) = (a.batch[0], a.history.first().copied().unwrap_or(1));
+            let h = super::bench_generate_burn::history(&spec, &slots, batch, t);
+            let mut greedy = AnyEngine::new(device, &plain, settings(Sampling::greedy()), a.precision)?;
+            let ours = roll(&mut greedy, h.clone(), a.check)?;
+            drop(greedy);
+            let theirs = crate::with_inference!(device, |I, dev| {
+                let model = Backbone::<I>::new(&cfg, &spec, &dev)?;
+                let model =
+                    umgen::checkpoint::burn_io::weights_from_bytes(model, bytes, "the engine's weights")?;
+                let mut g = Generator::new(&model, vec![Sampling::greedy(); spec.segments.len()], window, 0)?;
+                roll(&mut g, h, a.check)?
+            });
+            Some(agreement(&ours, &theirs))
+        }
+        None => None,
+    };
+    drop(plain);
+    tracing::info!("random weights in {built_s:.1} s; engine ready in {start_s:.1} s");
+    let control = FrameControl::default();
+    let mut rows = Vec::new();
+    for &batch in &a.batch {
         for &t in &a.history {
-            let h = history(&spec, &slots, a.batch, t);
-            let mut g = Generator::new(&model, sampling.clone(), t, 0)?
-                .draw_on_device(a.draw.on_device(on_gpu, a.batch))
-                .device_top_k(a.device_top_k.into())
-                .speculate(a.speculate);
-            // The first frame compiles kernels (CUDA) and warms caches.
+            let h = super::bench_generate_burn::history(&spec, &slots, batch, t);
             let t0 = Instant::now();
-            g.next_frame(&h, &FrameControl::default())?;
-            sync()?;
-            tracing::info!(
-                "T = {t}: first frame (compiles kernels) {:.1} s",
-                t0.elapsed().as_secs_f64()
-            );
-            // The median of a few frames: single frames of a small model are noisy on a shared CPU.
-            let mut times = Vec::new();
+            e.next_frame(&h, &control)?;
+            let first_s = t0.elapsed().as_secs_f64();
+            let before = e.times();
+            let mut times = Vec::with_capacity(a.frames);
             for _ in 0..a.frames {
                 let t0 = Instant::now();
-                g.next_frame(&h, &FrameControl::default())?;
-                sync()?;
-                times.push(1e3 * t0.elapsed().as_secs_f64() / n as f64);
+                e.next_frame(&h, &control)?;
+                times.push(t0.elapsed().as_secs_f64());
             }
             times.sort_by(f64::total_cmp);
-            let ours_ms = times[times.len() / 2];
-            let ours_peak = memory_in_use(device);
-            // Logged as measured, so that a run cut short still tells what it got.
-            tracing::info!("T = {t}: TAR/OAR {ours_ms:.3} ms/token");
-            if a.breakdown && parts.is_none() {
-                parts = Some(super::bench_decode::breakdown(
-                    &model,
-                    a.batch,
-                    Sampling::default(),
-                    on_gpu,
-                    &dev,
-                )?);
-            }
-            // The vanilla model decodes frame t + 1 after t·N cached tokens.
-            let mut rng = StdRng::seed_from_u64(3);
-            let step = |cache: &mut _, rng: &mut StdRng| -> anyhow::Result<()> {
-                let x = Tensor::<I, 2>::random([a.batch, cfg.d_model], Distribution::Normal(0.0, 1.0), &dev);
-                let logits = vanilla.step(x, cache)?;
-                let host: Vec<f32> = logits.into_data().iter::<f32>().collect();
-                for row in host.chunks(vocab) {
-                    Sampling::default().draw(row, rng);
-                }
-                Ok(())
-            };
-            // A fresh cache per run, with room for its --tokens steps only: attention covers the whole
-            // fixed-size cache, so spare room would count as history.
-            let fresh = || vanilla.filled_cache(a.batch, t * n, a.tokens, cfg.heads, &dev);
-            let mut cache = fresh();
-            step(&mut cache, &mut rng)?;
-            sync()?;
-            let mut times = Vec::new();
-            for _ in 0..5 {
-                cache = fresh();
-                sync()?;
-                let t0 = Instant::now();
-                for _ in 0..a.tokens {
-                    step(&mut cache, &mut rng)?;
-                }
-                sync()?;
-                times.push(1e3 * t0.elapsed().as_secs_f64() / a.tokens as f64);
-            }
-            times.sort_by(f64::total_cmp);
-            let vanilla_ms = times[times.len() / 2];
-            let vanilla_peak = memory_in_use(device);
-            tracing::info!("T = {t}: vanilla AR {vanilla_ms:.3} ms/token");
-            let vanilla_cache = (depth * 2 * a.batch * (t * n + a.tokens) * cfg.d_model * 4) as u64;
-            rows.push(Row {
+            let after = e.times();
+            let per = a.frames as f64;
+            let row = Row {
+                batch,
                 t,
-                ours_ms,
-                ours_peak,
-                vanilla_ms,
-                vanilla_peak,
-                vanilla_cache,
-            });
-            drop(cache);
+                first_s,
+                frame_s: times[times.len() / 2],
+                window_ms: 1e3 * (after.window - before.window) / per,
+                step_ms: 1e3 * (after.decode - before.decode) / (after.steps - before.steps).max(1) as f64,
+            };
+            tracing::info!(
+                "batch {batch}, T = {t}: first frame {first_s:.2} s, {:.3} ms/token, step {:.3} ms",
+                1e3 * row.frame_s / n as f64,
+                row.step_ms
+            );
+            rows.push(row);
         }
-        (rows, parts)
-    });
-    let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+    }
+    let profile = if a.profile {
+        let (batch, t) = (a.batch[a.batch.len() - 1], a.history.last().copied().unwrap_or(1));
+        let h = super::bench_generate_burn::history(&spec, &slots, batch, t);
+        e = e.profiled(true);
+        e.next_frame(&h, &control)?;
+        let window = e.window_profile();
+        e = e.profiled(false);
+        Some((batch, t, window, e.profile_step(50)?))
+    } else {
+        None
+    };
+    let rollout = if a.rollout > 0 {
+        let (batch, t) = (a.batch[0], a.history.first().copied().unwrap_or(1));
+        let mut h = super::bench_generate_burn::history(&spec, &slots, batch, t);
+        let t0 = Instant::now();
+        for _ in 0..a.rollout {
+            let next = e.next_frame(&h, &control)?;
+            for (scene, f) in h.iter_mut().zip(next) {
+                scene.push(f);
+            }
+        }
+        Some((batch, t, t0.elapsed().as_secs_f64()))
+    } else {
+        None
+    };
+    let gib = |b: usize| b as f64 / (1u64 << 30) as f64;
+    if let Some((tokens, total, frames, all)) = check {
+        writeln!(
+            std::io::stdout(),
+            "check    greedy frames, engine against the burn decoder: {tokens} of {total} tokens and {frames} of {all} frames agree"
+        )?;
+    }
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
-        "config   {} (N = {n}, d {}, TAR {} + OAR {}; vanilla AR depth {depth})",
-        a.config.config.display(),
+        "config   {} (N = {n}, d {}, TAR {} + OAR {}, window {window}); decoder engine on {}",
+        path.display(),
         cfg.d_model,
         cfg.tar_layers,
-        cfg.oar_layers
+        cfg.oar_layers,
+        a.device
     )?;
-    writeln!(out, "device   {}, batch {}", a.device, a.batch)?;
     writeln!(
         out,
-        "{:>4} {:>16} {:>18} {:>16} {:>18} {:>16} {:>16}",
-        "T",
-        "TAR/OAR ms/tok",
-        "TAR/OAR mem GiB",
-        "vanilla ms/tok",
-        "vanilla mem GiB",
-        "vanilla KV GiB",
-        "TAR/OAR frames/s"
+        "start    {start_s:.2} s (weights to the device, kernels compiled); engine buffers {:.2} GiB{}",
+        gib(e.bytes()),
+        e.device_memory().map_or(String::new(), |b| format!(
+            "; device memory in use {:.2} GiB",
+            gib(b)
+        ))
     )?;
-    for r in rows {
+    writeln!(
+        out,
+        "{:>5} {:>4} {:>13} {:>10} {:>10} {:>15} {:>11} {:>10}",
+        "batch", "T", "first frame s", "frame s", "ms/token", "step ms/token", "window ms", "frames/s"
+    )?;
+    for r in &rows {
         writeln!(
             out,
-            "{:>4} {:>16.3} {:>18} {:>16.3} {:>18} {:>16.3} {:>16.3}",
+            "{:>5} {:>4} {:>13.2} {:>10.3} {:>10.4} {:>15.4} {:>11.1} {:>10.2}",
+            r.batch,
             r.t,
-            r.ours_ms,
-            if r.ours_peak > 0 {
-                format!("{:.2}", gib(r.ours_peak))
-            } else {
-                "-".into()
-            },
-            r.vanilla_ms,
-            if r.vanilla_peak > 0 {
-                format!("{:.2}", gib(r.vanilla_peak))
-            } else {
-                "-".into()
-            },
-            gib(r.vanilla_cache),
-            // A new frame for every scene of the batch takes N steps.
-            1e3 * a.batch as f64 / (r.ours_ms * n as f64)
+            r.first_s,
+            r.frame_s,
+            1e3 * r.frame_s / n as f64,
+            r.step_ms,
+            r.window_ms,
+            r.batch as f64 / r.frame_s
+        )?;
+    }
+    if let Some((batch, t, mut window, step)) = profile {
+        window.sort_by(|x, y| y.1.total_cmp(&x.1));
+        let total: f64 = window.iter().map(|w| w.1).sum();
+        writeln!(
+            out,
+            "window pass, batch {batch}, T = {t}, each operation waited for: {:.1} ms",
+            1e3 * total
+        )?;
+        for (name, s, count) in &window {
+            writeln!(out, "  {name:<28} {:>9.2} ms {count:>6} ×", 1e3 * s)?;
+        }
+        let total: f64 = step.iter().map(|s| s.1).sum();
+        writeln!(
+            out,
+            "decoding step, each operation alone (50 in a graph): {total:.1} µs"
+        )?;
+        for (name, us) in &step {
+            writeln!(out, "  {name:<28} {us:>9.2} µs")?;
+        }
+    }
+    if let Some((batch, t, s)) = rollout {
+        writeln!(
+            out,
+            "rollout  {} frames × {batch} scene(s) from T = {t}: {s:.1} s ({:.2} s a frame)",
+            a.rollout,
+            s / a.rollout as f64
         )?;
     }
     writeln!(
         out,
-        "ms/tok: median of --frames new frames of N tokens (ego action, TAR over T frames, N OAR steps with sampling) / N; vanilla: median of 5 runs of --tokens decode steps after T·N cached tokens, with sampling. mem: device pool after the measurement (CUDA only). frames/s: new frames of the whole batch per second."
+        "first frame: the first at that batch and T (the steps' graphs captured at the first of a batch size). \
+         ms/token: median frame / N. step ms/token: the N decoding steps alone, per step of the batch. \
+         window: ego module, TAR and keep logits per frame. frames/s: frames of the whole batch per second."
     )?;
-    if let Some((parts, agree)) = parts {
-        writeln!(
-            out,
-            "\nparts of one decoding step (batch {}, T = {}; median of 3 runs, ms/step):",
-            a.batch,
-            a.history.first().copied().unwrap_or(0)
-        )?;
-        for p in parts {
-            writeln!(out, "  {:<48} {:>9.3}", p.name, p.ms)?;
-        }
-        if let Some(agree) = agree {
-            writeln!(
-                out,
-                "  top-k by reduce and by rounds: {}",
-                if agree { "same ids" } else { "DIFFERENT ids" }
-            )?;
+    Ok(())
+}
+
+/// `frames` more frames of every scene of `history` from `g`, without rules; the new frames.
+fn roll(
+    g: &mut dyn NextFrame,
+    mut history: Vec<Vec<Vec<u32>>>,
+    frames: usize,
+) -> anyhow::Result<Vec<Vec<Vec<u32>>>> {
+    let start = history.first().map_or(0, Vec::len);
+    for _ in 0..frames {
+        let next = g.next_frame(&history, &FrameControl::default())?;
+        for (scene, f) in history.iter_mut().zip(next) {
+            scene.push(f);
         }
     }
-    Ok(())
+    Ok(history.into_iter().map(|s| s[start..].to_vec()).collect())
+}
+
+/// Tokens that agree, tokens, frames that agree, frames.
+fn agreement(a: &[Vec<Vec<u32>>], b: &[Vec<Vec<u32>>]) -> (usize, usize, usize, usize) {
+    let frames: Vec<(&Vec<u32>, &Vec<u32>)> = a.iter().zip(b).flat_map(|(x, y)| x.iter().zip(y)).collect();
+    let tokens = frames
+        .iter()
+        .map(|(x, y)| x.iter().zip(*y).filter(|(p, q)| p == q).count())
+        .sum();
+    let total = frames.iter().map(|(x, _)| x.len()).sum();
+    let same = frames.iter().filter(|(x, y)| x == y).count();
+    (tokens, total, same, frames.len())
 }

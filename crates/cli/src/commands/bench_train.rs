@@ -9,12 +9,11 @@ use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
-use std::path::PathBuf;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec};
 use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
 use umgen::optim::FusedAdamW;
-use umgen::{UmgenConfig, backbone_spec, builtin_catalog};
+use umgen::{backbone_spec, builtin_catalog};
 
 /// The median of `times` (the upper one of an even count), `None` for none.
 pub(super) fn median(mut times: Vec<f64>) -> Option<f64> {
@@ -50,24 +49,7 @@ fn random_tokens<B: AutodiffBackend>(
 
 /// Measures.
 pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
-    // Speed does not depend on trained tokenizers; codebook sizes come from the config.
-    let path = match (&a.config, a.preset) {
-        (Some(p), _) => p.clone(),
-        (None, Some(p)) => PathBuf::from(format!("configs/{}.toml", p.name())),
-        (None, None) => anyhow::bail!("give --config or --preset"),
-    };
-    let mut sets = a.preset.map(|p| p.overrides()).unwrap_or_default();
-    sets.extend(a.set.iter().cloned());
-    let (config, _) = UmgenConfig::load(&path, &sets)
-        .with_context(|| match a.preset {
-            Some(p) if a.config.is_none() => format!(
-                "preset `{}` reads {} (run from the repository root, or pass --config)",
-                p.name(),
-                path.display()
-            ),
-            _ => format!("loading {}", path.display()),
-        })?
-        .without_missing_tokenizers();
+    let (config, path, sets) = super::bench::bench_config(a.config.as_deref(), a.preset, &a.set)?;
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let (cfg, tc) = (&config.backbone, &config.train);

@@ -8,7 +8,8 @@ use anyhow::Context;
 use std::path::Path;
 use umgen::backbone::Backbone;
 use umgen::checkpoint::burn_io::weights_from_bytes;
-use umgen::generate::{Control, FrameControl, Generator, Sampling};
+use umgen::generate::engine::EngineSettings;
+use umgen::generate::{Control, FrameControl, Generator, NextFrame, Sampling};
 use umgen::scene::SceneClip;
 use umgen::{Bundle, backbone_spec, builtin_catalog_with};
 
@@ -80,89 +81,67 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
     let bins = spec.action.as_ref().map(|x| x.bins);
     let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
     let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
-    let on_device = a.draw.on_device(matches!(device, Device::Cuda(_)), total);
+    let cuda = matches!(device, Device::Cuda(_));
+    let on_device = a.draw.on_device(cuda, total);
+    let engine = a.decoder.engine(cuda);
+    anyhow::ensure!(
+        !(engine && a.speculate > 0),
+        "--speculate decodes with the burn model: add --decoder burn"
+    );
+    let plan = Plan {
+        a,
+        control: &control,
+        bins,
+        agents: &agents,
+        recorded: recorded.as_ref(),
+        groups: &groups,
+    };
+    let mut history: Vec<Vec<Vec<u32>>> = (0..total)
+        .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
+        .collect();
     let started = std::time::Instant::now();
-    let (scenes, (new_tested, new_dropped)) = crate::with_inference!(device, |I, dev| {
-        let model = Backbone::<I>::new(&bundle.config.backbone.for_inference(), &spec, &dev)?;
+    let (new_tested, new_dropped) = if engine {
+        // The weights go to the engine's own buffers: the burn model that reads the bundle stays on the CPU.
+        let cfg = bundle.config.backbone.for_inference();
+        let model = Backbone::<burn::backend::Flex>::new(&cfg, &spec, &Default::default())?;
         let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
-        let mut g = Generator::new(&model, samplings, window, a.seed)?
-            .draw_on_device(on_device)
-            .pass_frames(a.pass_frames)
-            .device_top_k(a.device_top_k.into())
-            .speculate(a.speculate);
-        let mut history: Vec<Vec<Vec<u32>>> = (0..total)
-            .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
-            .collect();
-        let bar = crate::progress::bar(a.frames as u64, "frames")?;
-        let limit = crate::progress::TimeLimit::minutes(a.time_limit);
-        for k in 0..a.frames {
-            if k > 0 && limit.reached(&bar, k as u64) {
-                tracing::warn!(
-                    "time limit: {k} of {} frame(s) generated; writing those",
-                    a.frames
-                );
-                break;
-            }
-            let forced = bins.and_then(|b| control.action_at(k, &b));
-            if let Some((_, clamped)) = &forced
-                && *clamped > 0
-            {
-                tracing::warn!("frame {k}: {clamped} forced action value(s) outside the bins, clamped");
-            }
-            let ((placed, below), keep) = match &agents {
-                Some(slots) => (slots.placement(&control, k)?, slots.keep(&history)),
-                None => {
-                    anyhow::ensure!(
-                        control.agents_at(k).next().is_none(),
-                        "the control file sets agents, but this model has no agent modality"
-                    );
-                    Default::default()
-                }
-            };
-            let action = match &recorded {
-                Some(r) => Some((0..total).map(|s| r[s / a.scenes][k].clone()).collect()),
-                None => forced.map(|(ids, _)| vec![ids; total]),
-            };
-            let fc = FrameControl {
-                action,
-                tokens: placed,
-                below,
-                keep,
-                groups: groups.clone(),
-            };
-            let frame_start = std::time::Instant::now();
-            let next = g.next_frame(&history, &fc)?;
-            for (h, f) in history.iter_mut().zip(next) {
-                h.push(f);
-            }
-            bar.inc(1);
-            // Without a terminal the bar is hidden; a line per frame tells a log reader how far it got.
-            if bar.is_hidden() {
+        let settings = EngineSettings {
+            sampling: samplings,
+            window,
+            seed: a.seed,
+            pass_frames: a.pass_frames,
+        };
+        let mut e = super::engine::AnyEngine::new(device, &model.plain(), settings, a.precision)?;
+        drop(model);
+        plan.roll_out(&mut e, &mut history)?;
+        e.new_agents()
+    } else {
+        crate::with_inference!(device, |I, dev| {
+            let model = Backbone::<I>::new(&bundle.config.backbone.for_inference(), &spec, &dev)?;
+            let model = weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
+            let mut g = Generator::new(&model, samplings, window, a.seed)?
+                .draw_on_device(on_device)
+                .pass_frames(a.pass_frames)
+                .device_top_k(a.device_top_k.into())
+                .speculate(a.speculate);
+            plan.roll_out(&mut g, &mut history)?;
+            let (blocks, decided) = g.speculation();
+            if blocks > 0 {
                 tracing::info!(
-                    "frame {}/{}: {:.2} s",
-                    k + 1,
-                    a.frames,
-                    frame_start.elapsed().as_secs_f64()
+                    "speculative decoding: {blocks} blocks decided {decided} positions ({:.2} per OAR pass)",
+                    decided as f64 / blocks as f64
                 );
             }
-        }
-        bar.finish_and_clear();
-        let (blocks, decided) = g.speculation();
-        if blocks > 0 {
-            tracing::info!(
-                "speculative decoding: {blocks} blocks decided {decided} positions ({:.2} per OAR pass)",
-                decided as f64 / blocks as f64
-            );
-        }
-        let (tested, dropped) = g.new_agents();
-        if tested > 0 {
-            tracing::info!(
-                "new-agent rule: dropped {dropped} of {tested} new agents (overlapping a box decoded before \
-                 them, or over the frame's box budget)"
-            );
-        }
-        (history, (tested, dropped))
-    });
+            g.new_agents()
+        })
+    };
+    if new_tested > 0 {
+        tracing::info!(
+            "new-agent rule: dropped {new_dropped} of {new_tested} new agents (overlapping a box decoded before \
+             them, or over the frame's box budget)"
+        );
+    }
+    let scenes = history;
     let elapsed = started.elapsed().as_secs_f64();
     let n_context = context_rows.first().map_or(0, Vec::len);
     // Fewer than --frames when --time-limit stopped the rollout.
@@ -223,7 +202,8 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
             "sampling": sampling_meta,
             // The draws of a seed depend on it (their distribution does not).
             "speculate": a.speculate,
-            "draw": if on_device { "device" } else { "host" },
+            "decoder": if engine { "engine" } else { "burn" },
+            "draw": if engine { "engine" } else if on_device { "device" } else { "host" },
             "new_agents": {"tested": new_tested, "dropped": new_dropped},
             "interval": interval,
             "recorded_ego": a.recorded_ego,
@@ -243,6 +223,81 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         frames
     );
     Ok(())
+}
+
+/// What a rollout imposes on each frame: the control file, the recorded or forced ego actions, the agent
+/// slots' rules.
+struct Plan<'a> {
+    a: &'a GenerateArgs,
+    control: &'a Control,
+    bins: Option<[(f64, f64, u32); 3]>,
+    agents: &'a Option<super::agents::AgentSlots>,
+    recorded: Option<&'a Vec<Vec<Vec<u32>>>>,
+    groups: &'a [umgen::generate::TokenGroups],
+}
+
+impl Plan<'_> {
+    /// Generates `--frames` frames onto every scene's `history` with `g` (fewer when `--time-limit` stops
+    /// it), a progress bar or a log line per frame.
+    fn roll_out(&self, g: &mut dyn NextFrame, history: &mut [Vec<Vec<u32>>]) -> anyhow::Result<()> {
+        let (a, control) = (self.a, self.control);
+        let total = history.len();
+        let bar = crate::progress::bar(a.frames as u64, "frames")?;
+        let limit = crate::progress::TimeLimit::minutes(a.time_limit);
+        for k in 0..a.frames {
+            if k > 0 && limit.reached(&bar, k as u64) {
+                tracing::warn!(
+                    "time limit: {k} of {} frame(s) generated; writing those",
+                    a.frames
+                );
+                break;
+            }
+            let forced = self.bins.and_then(|b| control.action_at(k, &b));
+            if let Some((_, clamped)) = &forced
+                && *clamped > 0
+            {
+                tracing::warn!("frame {k}: {clamped} forced action value(s) outside the bins, clamped");
+            }
+            let ((placed, below), keep) = match self.agents {
+                Some(slots) => (slots.placement(control, k)?, slots.keep(history)),
+                None => {
+                    anyhow::ensure!(
+                        control.agents_at(k).next().is_none(),
+                        "the control file sets agents, but this model has no agent modality"
+                    );
+                    Default::default()
+                }
+            };
+            let action = match self.recorded {
+                Some(r) => Some((0..total).map(|s| r[s / a.scenes][k].clone()).collect()),
+                None => forced.map(|(ids, _)| vec![ids; total]),
+            };
+            let fc = FrameControl {
+                action,
+                tokens: placed,
+                below,
+                keep,
+                groups: self.groups.to_vec(),
+            };
+            let frame_start = std::time::Instant::now();
+            let next = g.next_frame(history, &fc)?;
+            for (h, f) in history.iter_mut().zip(next) {
+                h.push(f);
+            }
+            bar.inc(1);
+            // Without a terminal the bar is hidden; a line per frame tells a log reader how far it got.
+            if bar.is_hidden() {
+                tracing::info!(
+                    "frame {}/{}: {:.2} s",
+                    k + 1,
+                    a.frames,
+                    frame_start.elapsed().as_secs_f64()
+                );
+            }
+        }
+        bar.finish_and_clear();
+        Ok(())
+    }
 }
 
 /// The decoded scenes as a umgen dataset in `dir` (replacing one from an earlier run), each on its context

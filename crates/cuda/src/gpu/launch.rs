@@ -3,11 +3,21 @@
 use super::{CudaExec, device};
 use crate::ops::{Elem, Gemm, Op};
 use cudarc::cublas::{result as blas, sys as blas_sys};
-use cudarc::driver::{DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
+use std::collections::HashMap;
 use std::ffi::c_void;
 
 /// Warps per block of every kernel but the tiled attention (4).
 const WARPS: usize = 8;
+
+/// Warps that share a column of `umgen_gemv` (`gemv_split` of `gemv.cu`): each takes at most 1,024 inputs.
+fn gemv_split(k: usize) -> usize {
+    let mut split = 1;
+    while split < WARPS && split * 1024 < k {
+        split *= 2;
+    }
+    split
+}
 
 fn blocks(n: usize, per: usize) -> u32 {
     u32::try_from(n.div_ceil(per).max(1)).unwrap_or(u32::MAX)
@@ -17,13 +27,19 @@ fn blocks(n: usize, per: usize) -> u32 {
 pub(super) fn launch(x: &CudaExec, op: &Op) -> Result<(), ExecError> {
     let threads = (32 * WARPS) as u32;
     match op {
-        Op::Gemv(g) => kernel(x, "umgen_gemv", &x.gemv(g), blocks(g.n, WARPS), threads),
+        Op::Gemv(g) => kernel(
+            x,
+            "umgen_gemv",
+            &x.gemv(g),
+            blocks(g.n, WARPS / gemv_split(g.k)),
+            threads,
+        ),
         Op::Gemm(g) => gemm(x, g),
         Op::AttendRows(t) => kernel(
             x,
             "umgen_attend_rows",
             &x.attend_rows(t),
-            blocks(t.batches * t.rows * t.heads, 1),
+            blocks(t.batches * t.rows * t.heads * t.splits, 1),
             threads,
         ),
         Op::AttendTiles(t) => kernel(
@@ -33,6 +49,23 @@ pub(super) fn launch(x: &CudaExec, op: &Op) -> Result<(), ExecError> {
             blocks(t.instances * t.heads * t.lq.div_ceil(32), 1),
             128,
         ),
+        Op::Flash(f) => {
+            let name = match f.dh {
+                32 => "umgen_flash2_forward_bf16_32",
+                _ => "umgen_flash2_forward_bf16_64",
+            };
+            let functions = x
+                .flash
+                .as_ref()
+                .ok_or_else(|| ExecError::Invalid("this executor has no flash2 kernels".into()))?;
+            let bh = f.batch * f.heads;
+            let grid = (
+                blocks(f.lq, 16 * WARPS),
+                bh.min(FLASH_GRID_YZ) as u32,
+                bh.div_ceil(FLASH_GRID_YZ) as u32,
+            );
+            launch_3d(x, functions, name, &x.flash2(f), grid, threads)
+        }
         Op::Rows(r) => {
             let name = match x.allocs.get(r.dst.id as usize).map(|a| a.elem) {
                 Some(Elem::F32) => "umgen_rows_f",
@@ -44,7 +77,7 @@ pub(super) fn launch(x: &CudaExec, op: &Op) -> Result<(), ExecError> {
             x,
             "umgen_bias_t",
             &x.bias_t(b),
-            blocks(b.rows * b.cols, 256).min(1 << 16),
+            blocks(b.rows, 1).min(1 << 20),
             threads,
         ),
         Op::Embed(e) => kernel(x, "umgen_embed", &x.embed(e), blocks(e.rows, WARPS), threads),
@@ -83,12 +116,26 @@ fn kernel<P: DeviceRepr>(
     grid: u32,
     threads: u32,
 ) -> Result<(), ExecError> {
-    let f = x
-        .functions
+    launch_3d(x, &x.functions, name, params, (grid, 1, 1), threads)
+}
+
+/// The flash2 grid's largest y (and z) extent.
+const FLASH_GRID_YZ: usize = 65_535;
+
+/// Launches kernel `name` of `functions` with `params` on a `grid` of blocks of `threads` threads.
+fn launch_3d<P: DeviceRepr>(
+    x: &CudaExec,
+    functions: &HashMap<&'static str, CudaFunction>,
+    name: &'static str,
+    params: &P,
+    grid: (u32, u32, u32),
+    threads: u32,
+) -> Result<(), ExecError> {
+    let f = functions
         .get(name)
         .ok_or_else(|| ExecError::Device(format!("kernel {name} was not compiled")))?;
     let config = LaunchConfig {
-        grid_dim: (grid, 1, 1),
+        grid_dim: grid,
         block_dim: (threads, 1, 1),
         shared_mem_bytes: 0,
     };

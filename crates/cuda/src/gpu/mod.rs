@@ -28,6 +28,8 @@ pub struct CudaExec {
     ctx: Arc<CudaContext>,
     stream: Arc<CudaStream>,
     functions: HashMap<&'static str, CudaFunction>,
+    /// FlashAttention-2's forward kernels (bf16 executors on compute capability 8.0 or newer).
+    flash: Option<HashMap<&'static str, CudaFunction>>,
     blas: blas_sys::cublasHandle_t,
     allocs: Vec<Alloc>,
     graphs: HashMap<u64, CudaGraph>,
@@ -81,6 +83,29 @@ impl CudaExec {
                 .map_err(|e| device(name)(format!("{e:?}")))?;
             functions.insert(name, f);
         }
+        let flash = if bf16 && major >= 8 {
+            // As the training compiles them: Hopper's `wgmma` for head size 64 on sm_90a.
+            let options = CompileOptions {
+                arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
+                use_fast_math: Some(true),
+                ..Default::default()
+            };
+            let ptx = compile_ptx_with_opts(crate::source::FLASH2, options)
+                .map_err(|e| device("NVRTC (flash2)")(format!("{e:?}")))?;
+            let module = ctx
+                .load_module(ptx)
+                .map_err(|e| device("loading the flash2 kernels")(format!("{e:?}")))?;
+            let mut found = HashMap::new();
+            for name in ["umgen_flash2_forward_bf16_32", "umgen_flash2_forward_bf16_64"] {
+                let f = module
+                    .load_function(name)
+                    .map_err(|e| device(name)(format!("{e:?}")))?;
+                found.insert(name, f);
+            }
+            Some(found)
+        } else {
+            None
+        };
         tracing::debug!(
             "engine kernels compiled for sm_{major}{minor} ({}) in {:.1} s",
             if bf16 { "bf16" } else { "f32" },
@@ -100,12 +125,22 @@ impl CudaExec {
             ctx,
             stream,
             functions,
+            flash,
             blas: handle,
             allocs: Vec::new(),
             graphs: HashMap::new(),
             bf16,
             bytes: 0,
         })
+    }
+
+    /// Bytes of the device's memory in use by every process and context (total − free).
+    pub fn device_memory(&self) -> Result<usize, ExecError> {
+        let (free, total) = self
+            .ctx
+            .mem_get_info()
+            .map_err(|e| device("memory info")(format!("{e:?}")))?;
+        Ok(total.saturating_sub(free))
     }
 
     /// The device's name.
@@ -202,6 +237,25 @@ impl Exec for CudaExec {
         Ok(Buf { id, at: 0 })
     }
 
+    fn free(&mut self, id: u32) {
+        let Some((ptr, len, elem)) = self.allocs.get(id as usize).map(|a| (a.ptr, a.len, a.elem)) else {
+            return;
+        };
+        if ptr == 0 {
+            return;
+        }
+        // Graphs may name it: they go first. The stream finishes what may still read it.
+        self.graphs.clear();
+        let _ = self.stream.synchronize();
+        // SAFETY: this executor's own allocation, no longer used by queued work (synchronised above) nor by
+        // any graph; its entry keeps no pointer, so nothing reaches it again.
+        let _ = unsafe { result::free_sync(ptr) };
+        self.bytes -= (len.max(1) * self.size(elem)).div_ceil(256) * 256;
+        if let Some(a) = self.allocs.get_mut(id as usize) {
+            (a.ptr, a.len) = (0, 0);
+        }
+    }
+
     fn write(&mut self, dst: Buf, data: Data<'_>) -> Result<(), ExecError> {
         let a = self.alloc_of(dst, data.len(), data.kinds(), "write")?;
         let bytes: Vec<u8> = match data {
@@ -292,12 +346,22 @@ impl Exec for CudaExec {
         self.graphs.clear();
     }
 
+    fn sync(&mut self) -> Result<(), ExecError> {
+        self.stream
+            .synchronize()
+            .map_err(|e| device("synchronize")(format!("{e:?}")))
+    }
+
     fn bytes(&self) -> usize {
         self.bytes
     }
 
     fn bf16(&self) -> bool {
         self.bf16
+    }
+
+    fn flash(&self, dh: usize) -> bool {
+        self.flash.is_some() && (dh == 32 || dh == 64)
     }
 }
 
@@ -309,7 +373,7 @@ impl Drop for CudaExec {
         // executor's own, and the stream (synchronised above) no longer uses them.
         unsafe {
             let _ = blas::destroy_handle(self.blas);
-            for a in self.allocs.drain(..) {
+            for a in self.allocs.drain(..).filter(|a| a.ptr != 0) {
                 let _ = result::free_sync(a.ptr);
             }
         }

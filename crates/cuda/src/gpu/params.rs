@@ -49,6 +49,8 @@ pub(super) struct AttendRows {
     v: u64,
     y: u64,
     pos: u64,
+    part: u64,
+    count: u64,
     q_sb: i64,
     q_sr: i64,
     k_sb: i64,
@@ -60,6 +62,7 @@ pub(super) struct AttendRows {
     heads: i32,
     dh: i32,
     lk: i32,
+    splits: i32,
     scale: f32,
 }
 
@@ -80,6 +83,40 @@ pub(super) struct AttendTiles {
     causal: i32,
     off: i32,
     scale: f32,
+}
+
+/// `struct Params` of `flash2/flash2_tiles.cu`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Flash2 {
+    q: u64,
+    k: u64,
+    v: u64,
+    dout: u64,
+    lse: u64,
+    delta: u64,
+    out: u64,
+    lse_out: u64,
+    dq: u64,
+    dk: u64,
+    dv: u64,
+    qs: [i64; 3],
+    ks: [i64; 3],
+    vs: [i64; 3],
+    os: [i64; 3],
+    ls: [i64; 3],
+    es: [i64; 3],
+    outs: [i64; 3],
+    dqs: [i64; 3],
+    dks: [i64; 3],
+    dvs: [i64; 3],
+    heads: i32,
+    lq: i32,
+    lk: i32,
+    off: i32,
+    causal: i32,
+    scale: f32,
+    count: i32,
 }
 
 /// `struct Rows` of `rows.cu`.
@@ -225,6 +262,8 @@ unsafe impl DeviceRepr for AttendRows {}
 // SAFETY: as above.
 unsafe impl DeviceRepr for AttendTiles {}
 // SAFETY: as above.
+unsafe impl DeviceRepr for Flash2 {}
+// SAFETY: as above.
 unsafe impl DeviceRepr for Rows {}
 // SAFETY: as above.
 unsafe impl DeviceRepr for BiasT {}
@@ -327,6 +366,8 @@ impl CudaExec {
             v: self.ptr(t.v),
             y: self.ptr(t.y),
             pos,
+            part: self.ptr(t.part),
+            count: self.ptr(t.count),
             q_sb: l(t.q_sb),
             q_sr: l(t.q_sr),
             k_sb: l(t.k_sb),
@@ -338,6 +379,7 @@ impl CudaExec {
             heads: i(t.heads),
             dh: i(t.dh),
             lk: i(lk),
+            splits: i(t.splits),
             scale: t.scale,
         }
     }
@@ -361,6 +403,29 @@ impl CudaExec {
             causal: i32::from(t.causal.is_some()),
             off: i(t.causal.unwrap_or(0)),
             scale: t.scale,
+        }
+    }
+
+    pub(super) fn flash2(&self, f: &ops::Flash) -> Flash2 {
+        let st = |s: &[usize; 3]| s.map(l);
+        Flash2 {
+            q: self.ptr(f.q),
+            k: self.ptr(f.k),
+            v: self.ptr(f.v),
+            out: self.ptr(f.y),
+            lse_out: self.ptr(f.lse),
+            qs: st(&f.qs),
+            ks: st(&f.ks),
+            vs: st(&f.vs),
+            outs: st(&f.ys),
+            heads: i(f.heads),
+            lq: i(f.lq),
+            lk: i(f.lk),
+            off: i(f.lk.saturating_sub(f.lq)),
+            causal: i32::from(f.causal),
+            scale: (f.dh as f32).sqrt().recip(),
+            count: i(f.batch * f.heads),
+            ..Default::default()
         }
     }
 

@@ -13,6 +13,8 @@
 // "every position of every frame" and "every frame of every scene" are both one launch.
 
 #define ATT_DH 128
+// Splits an `umgen_attend_rows` query takes at most (keys: 32 per warp and split).
+#define ROWS_MAX_SPLITS 32
 
 struct AttendRows {
     const float* q;       // q(b, r, h) = q + b·q_sb + r·q_sr + h·dh
@@ -20,84 +22,139 @@ struct AttendRows {
     const WT* v;
     float* y;             // y(b, r, h) = y + b·y_sb + r·y_sr + h·dh
     const int* pos;       // keys: *pos + 1 when set, else lk
+    float* part;          // [batches·rows·heads][splits][2 + dh]: each split's maximum, sum and output
+    unsigned* count;      // [batches·rows·heads]: splits finished (zero between launches)
     long long q_sb, q_sr, k_sb, k_sh, k_sj, y_sb, y_sr;
-    int rows, heads, dh, lk;
+    int rows, heads, dh, lk, splits;
     float scale;
 };
 
+// Merges `n` partial softmax results (maximum, sum, unnormalised output) into `y`, by warp 0.
+DEV void merge_parts(const float* part, int stride, int n, int dh, float* y) {
+    float mx = NEG_INF;
+    for (int w = 0; w < n; w++) mx = fmaxf(mx, part[w * stride]);
+    float sum = 0.f;
+    for (int w = 0; w < n; w++) {
+        const float m = part[w * stride];
+        sum += m == NEG_INF ? 0.f : part[w * stride + 1] * expf(m - mx);
+    }
+    for (int d = lane_id(); d < dh; d += 32) {
+        float o = 0.f;
+        for (int w = 0; w < n; w++) {
+            const float m = part[w * stride];
+            if (m != NEG_INF) o += part[w * stride + 2 + d] * expf(m - mx);
+        }
+        y[d] = o / sum;
+    }
+}
+
+// Blocks (batch, row, head, split): split s takes keys [s·K, (s + 1)·K), K = 32 per warp; splits past the
+// last key return at once. A block's warps merge in shared memory; with several splits, each writes its
+// part and the last to finish merges them (a counter per query, reset by that block).
 KERNEL umgen_attend_rows(const AttendRows P) {
     SHARED float qs[ATT_DH];
-    SHARED float part_m[8], part_s[8];
-    SHARED float part_o[8][ATT_DH];
+    // The warps' parts, then (for the merging block) every split's: up to ROWS_MAX_SPLITS of them.
+    SHARED float bpart[ROWS_MAX_SPLITS][2 + ATT_DH];
+    SHARED int last;
     const long long blk = block_x();
-    const int h = (int)(blk % P.heads);
-    const long long br = blk / P.heads;
+    const int split = (int)(blk % P.splits);
+    const long long bhr = blk / P.splits;
+    const int h = (int)(bhr % P.heads);
+    const long long br = bhr / P.heads;
     const long long r = br % P.rows, b = br / P.rows;
+    const int lk = P.pos ? *P.pos + 1 : P.lk;
+    const int wpb = warps_per_block(), per = 32 * wpb;
+    const int active = (lk + per - 1) / per;
+    if (split >= active) return;
     const float* q = P.q + b * P.q_sb + r * P.q_sr + (long long)h * P.dh;
     for (int d = thread_id(); d < P.dh; d += threads()) qs[d] = q[d] * P.scale;
     sync_block();
-    const int lk = P.pos ? *P.pos + 1 : P.lk;
     const WT* kb = P.k + b * P.k_sb + (long long)h * P.k_sh;
     const WT* vb = P.v + b * P.k_sb + (long long)h * P.k_sh;
     float mrun = NEG_INF, srun = 0.f, acc[ATT_DH / 32];
     for (int i = 0; i < ATT_DH / 32; i++) acc[i] = 0.f;
-    const int wpb = warps_per_block();
-    for (int c0 = warp_id() * 32; c0 < lk; c0 += wpb * 32) {
+    const int c0 = split * per + warp_id() * 32;
+    if (c0 < lk) {
         const int j = c0 + lane_id();
         float sc = NEG_INF;
         if (j < lk) {
             const WT* kr = kb + (long long)j * P.k_sj;
             sc = 0.f;
             if ((P.dh & 7) == 0) {
-                for (int d = 0; d < P.dh; d += 8) {
-                    float kv[8];
-                    load8(kr + d, kv);
-                    for (int e = 0; e < 8; e++) sc = fmaf(qs[d + e], kv[e], sc);
+                // Unrolled to the largest head, so that every load of the key row is in flight at once.
+#pragma unroll
+                for (int d = 0; d < ATT_DH; d += 8) {
+                    if (d < P.dh) {
+                        float kv[8];
+                        load8(kr + d, kv);
+                        for (int e = 0; e < 8; e++) sc = fmaf(qs[d + e], kv[e], sc);
+                    }
                 }
             } else {
                 for (int d = 0; d < P.dh; d++) sc = fmaf(qs[d], value(kr + d), sc);
             }
         }
         // Lane 0's key is always there, so the chunk's maximum is a number.
-        const float mnew = fmaxf(mrun, warp_max(sc));
-        const float alpha = expf(mrun - mnew);
-        const float p = j < lk ? expf(sc - mnew) : 0.f;
-        srun = srun * alpha + warp_sum(p);
-        for (int i = 0; i < ATT_DH / 32; i++) acc[i] *= alpha;
+        mrun = warp_max(sc);
+        const float p = j < lk ? expf(sc - mrun) : 0.f;
+        srun = warp_sum(p);
         const int count = lk - c0 < 32 ? lk - c0 : 32;
-        for (int t = 0; t < count; t++) {
+        // Unrolled over the chunk (loads guarded), so that the value rows' loads overlap.
+#pragma unroll
+        for (int t = 0; t < 32; t++) {
             const float pt = from_lane(p, t);
-            const WT* vr = vb + (long long)(c0 + t) * P.k_sj;
-            for (int i = 0; i < ATT_DH / 32; i++) {
-                const int d = lane_id() + 32 * i;
-                if (d < P.dh) acc[i] = fmaf(pt, value(vr + d), acc[i]);
+            if (t < count) {
+                const WT* vr = vb + (long long)(c0 + t) * P.k_sj;
+                for (int i = 0; i < ATT_DH / 32; i++) {
+                    const int d = lane_id() + 32 * i;
+                    if (d < P.dh) acc[i] = fmaf(pt, value(vr + d), acc[i]);
+                }
             }
         }
-        mrun = mnew;
     }
     if (lane_id() == 0) {
-        part_m[warp_id()] = mrun;
-        part_s[warp_id()] = srun;
+        bpart[warp_id()][0] = mrun;
+        bpart[warp_id()][1] = srun;
     }
     for (int i = 0; i < ATT_DH / 32; i++) {
         const int d = lane_id() + 32 * i;
-        if (d < P.dh) part_o[warp_id()][d] = acc[i];
+        if (d < P.dh) bpart[warp_id()][2 + d] = acc[i];
     }
     sync_block();
-    if (warp_id() == 0) {
-        float mx = NEG_INF;
-        for (int w = 0; w < wpb; w++) mx = fmaxf(mx, part_m[w]);
-        float sum = 0.f, scale[8];
-        for (int w = 0; w < wpb; w++) {
-            scale[w] = part_m[w] == NEG_INF ? 0.f : expf(part_m[w] - mx);
-            sum += part_s[w] * scale[w];
-        }
-        float* y = P.y + b * P.y_sb + r * P.y_sr + (long long)h * P.dh;
-        for (int d = lane_id(); d < P.dh; d += 32) {
-            float o = 0.f;
-            for (int w = 0; w < wpb; w++) o += part_o[w][d] * scale[w];
-            y[d] = o / sum;
-        }
+    float* y = P.y + b * P.y_sb + r * P.y_sr + (long long)h * P.dh;
+    if (active == 1) {
+        if (warp_id() == 0) merge_parts(&bpart[0][0], 2 + ATT_DH, wpb, P.dh, y);
+        return;
+    }
+    // This split's merged part, then the counter: the last split to arrive merges every part.
+    const int stride = 2 + P.dh;
+    float* mine = P.part + (bhr * P.splits + split) * stride;
+    if (warp_id() == 0) merge_parts(&bpart[0][0], 2 + ATT_DH, wpb, P.dh, mine + 2);
+    if (thread_id() == 0) {
+        float mx = NEG_INF, sum = 0.f;
+        for (int w = 0; w < wpb; w++) mx = fmaxf(mx, bpart[w][0]);
+        for (int w = 0; w < wpb; w++)
+            sum += bpart[w][0] == NEG_INF ? 0.f : bpart[w][1] * expf(bpart[w][0] - mx);
+        // The merged output above is normalised: store it with sum 1 at maximum 0, scaled by log(sum)+mx.
+        mine[0] = mx + logf(sum);
+        mine[1] = 1.f;
+    }
+    sync_block();
+    if (thread_id() == 0) {
+        fence();
+        last = atomic_add_u(P.count + bhr, 1u) + 1 == (unsigned)active;
+    }
+    sync_block();
+    if (last) {
+        fence();
+        // Every split's part into shared memory at once (the block's own parts are no longer needed),
+        // read past L1, which may hold nothing of other blocks' writes but must not.
+        float* staged = &bpart[0][0];
+        const float* parts = P.part + bhr * P.splits * stride;
+        for (int e = thread_id(); e < active * stride; e += threads()) staged[e] = load_global(parts + e);
+        sync_block();
+        if (warp_id() == 0) merge_parts(staged, stride, active, P.dh, y);
+        if (thread_id() == 0) P.count[bhr] = 0;
     }
 }
 

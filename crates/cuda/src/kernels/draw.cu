@@ -15,6 +15,9 @@
 // The last block to finish advances the device position, so that the next step needs nothing from the host.
 
 #define DRAW_KMAX 64
+// Ids per thread a draw keeps in registers (vocabularies up to this many × the block's threads; larger
+// ones are scanned from memory at each round).
+#define DRAW_HELD 32
 // The id of "nothing found" (exact as a float, which the warp shuffles carry).
 #define NO_ID (1 << 30)
 
@@ -71,8 +74,8 @@ DEV bool allowed(const Rule& R, const GroupRun& G, int first, int i, bool limite
     return i < G.values && below;
 }
 
-// The block's best (value, id) of the threads' `v`, `i` (ties to the smaller id); every thread gets it.
-DEV void block_best(float* v, int* i, float* sv, int* si) {
+// The warp's best (value, id) of its lanes' `v`, `i` (ties to the smaller id); every lane gets it.
+DEV void warp_best(float* v, int* i) {
     for (int off = 16; off > 0; off >>= 1) {
         const float ov = from_xor(*v, off);
         const int oi = (int)from_xor((float)*i, off);
@@ -81,6 +84,11 @@ DEV void block_best(float* v, int* i, float* sv, int* si) {
             *i = oi;
         }
     }
+}
+
+// The block's best (value, id) of the threads' `v`, `i` (ties to the smaller id); every thread gets it.
+DEV void block_best(float* v, int* i, float* sv, int* si) {
+    warp_best(v, i);
     if (lane_id() == 0) {
         sv[warp_id()] = *v;
         si[warp_id()] = *i;
@@ -115,6 +123,101 @@ DEV void scan_best(const Draw& P, const float* row, const Rule& R, const GroupRu
     }
 }
 
+// The best of this thread's held logits (ids thread_id() + t·threads(); −∞ where not allowed) ranking
+// after (bv, bi) (after nothing when bi < 0).
+DEV void held_best(const float* held, float bv, int bi, float* v, int* i) {
+    *v = NEG_INF;
+    *i = NO_ID;
+#pragma unroll
+    for (int t = 0; t < DRAW_HELD; t++) {
+        const float x = held[t];
+        const int id = thread_id() + t * threads();
+        if (x == NEG_INF) continue;
+        if (bi >= 0 && !ranks_before(bv, bi, x, id)) continue;
+        if (ranks_before(x, id, *v, *i)) {
+            *v = x;
+            *i = id;
+        }
+    }
+}
+
+// The top-k (most likely first, ties to the smaller id) of a row a block holds in registers, into `cv`,
+// `ci` (shared); their count. Each warp finds the k best of its ids by rounds of shuffles alone, then warp 0
+// the k best of those lists: two block barriers in all, where a block-wide round took two per id.
+DEV int held_top_k(const Draw& P, const float* row, const Rule& R, const GroupRun& G, int first, bool limited,
+                   float* cv, int* ci) {
+    SHARED float lv[8][DRAW_KMAX];
+    SHARED int li[8][DRAW_KMAX];
+    SHARED int ln[8];
+    SHARED int total;
+    float held[DRAW_HELD];
+    // Every load in flight at once; a round then reads registers only.
+#pragma unroll
+    for (int t = 0; t < DRAW_HELD; t++) {
+        const int id = thread_id() + t * threads();
+        float x = id < P.vocab ? row[id] : NEG_INF;
+        if (!finite(x) || (id < P.vocab && !allowed(R, G, first, id, limited))) x = NEG_INF;
+        held[t] = x;
+    }
+    const int w = warp_id();
+    float v;
+    int i, n = 0;
+    held_best(held, 0.f, -1, &v, &i);
+    for (; n < P.top_k; n++) {
+        float xv = v;
+        int xi = i;
+        warp_best(&xv, &xi);
+        if (xv == NEG_INF) break;
+        if (lane_id() == 0) {
+            lv[w][n] = xv;
+            li[w][n] = xi;
+        }
+        if (i == xi) held_best(held, xv, xi, &v, &i);
+    }
+    if (lane_id() == 0) ln[w] = n;
+    sync_block();
+    if (w == 0) {
+        // Warp 0's lanes hold the lists' entries c = lane + 32·j, c = list·k + place.
+        const int k = P.top_k, lists = warps_per_block();
+        float mv[DRAW_KMAX / 4];
+        int mi[DRAW_KMAX / 4];
+#pragma unroll
+        for (int j = 0; j < DRAW_KMAX / 4; j++) {
+            const int c = lane_id() + 32 * j, list = c / k, place = c % k;
+            const bool there = list < lists && place < ln[list];
+            mv[j] = there ? lv[list][place] : NEG_INF;
+            mi[j] = there ? li[list][place] : NO_ID;
+        }
+        int count = 0;
+        float bv = 0.f;
+        int bi = -1;
+        for (; count < k; count++) {
+            // This lane's best entry ranking after the last winner.
+            float xv = NEG_INF;
+            int xi = NO_ID;
+#pragma unroll
+            for (int j = 0; j < DRAW_KMAX / 4; j++) {
+                if (mv[j] == NEG_INF || (bi >= 0 && !ranks_before(bv, bi, mv[j], mi[j]))) continue;
+                if (ranks_before(mv[j], mi[j], xv, xi)) {
+                    xv = mv[j];
+                    xi = mi[j];
+                }
+            }
+            warp_best(&xv, &xi);
+            if (xv == NEG_INF) break;
+            if (lane_id() == 0) {
+                cv[count] = xv;
+                ci[count] = xi;
+            }
+            bv = xv;
+            bi = xi;
+        }
+        if (lane_id() == 0) total = count;
+    }
+    sync_block();
+    return total;
+}
+
 // A draw from `row` under the rule; every thread returns it. `purpose` keeps the draws' numbers apart.
 DEV int draw_from(const Draw& P, const float* row, const Rule& R, const GroupRun& G, int first, bool limited,
                   int scene, int p, u32 purpose) {
@@ -142,22 +245,26 @@ DEV int draw_from(const Draw& P, const float* row, const Rule& R, const GroupRun
         return v == NEG_INF ? 0 : i;
     }
     int count = 0;
-    float v, bv = 0.f;
-    int i, bi = -1;
-    scan_best(P, row, R, G, first, limited, bv, bi, &v, &i);
-    for (; count < P.top_k; count++) {
-        float wv = v;
-        int wi = i;
-        block_best(&wv, &wi, sv, si);
-        if (wv == NEG_INF) break;
-        if (thread_id() == 0) {
-            cv[count] = wv;
-            ci[count] = wi;
+    if (P.vocab <= DRAW_HELD * threads()) {
+        count = held_top_k(P, row, R, G, first, limited, cv, ci);
+    } else {
+        // A vocabulary too large to hold: block-wide rounds, the winner's thread rescanning memory.
+        float v, bv = 0.f;
+        int i, bi = -1;
+        scan_best(P, row, R, G, first, limited, bv, bi, &v, &i);
+        for (; count < P.top_k; count++) {
+            float wv = v;
+            int wi = i;
+            block_best(&wv, &wi, sv, si);
+            if (wv == NEG_INF) break;
+            if (thread_id() == 0) {
+                cv[count] = wv;
+                ci[count] = wi;
+            }
+            bv = wv;
+            bi = wi;
+            if (i == wi) scan_best(P, row, R, G, first, limited, bv, bi, &v, &i);
         }
-        bv = wv;
-        bi = wi;
-        // Only the thread that held the winner looks for its next best.
-        if (i == wi) scan_best(P, row, R, G, first, limited, bv, bi, &v, &i);
     }
     if (thread_id() == 0) {
         int id = 0;

@@ -10,6 +10,7 @@
 #endif
 
 #ifdef UMGEN_EMULATED
+DEV float load_global(const float* p) { return *p; }
 DEV void fence() {}
 DEV unsigned atomic_add_u(unsigned* p, unsigned v) { return std::atomic_ref<unsigned>(*p).fetch_add(v); }
 DEV u32 mulhi32(u32 a, u32 b) { return (u32)(((unsigned long long)a * b) >> 32); }
@@ -17,6 +18,8 @@ DEV u32 mulhi32(u32 a, u32 b) { return (u32)(((unsigned long long)a * b) >> 32);
 DEV float mul_rn(float a, float b) { return a * b; }
 DEV float add_rn(float a, float b) { return a + b; }
 #else
+// A load that skips L1 (another block's write is seen as L2 holds it).
+DEV float load_global(const float* p) { return __ldcg(p); }
 DEV void fence() { __threadfence(); }
 DEV unsigned atomic_add_u(unsigned* p, unsigned v) { return atomicAdd(p, v); }
 DEV u32 mulhi32(u32 a, u32 b) { return __umulhi(a, b); }

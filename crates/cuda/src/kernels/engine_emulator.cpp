@@ -12,6 +12,7 @@
 #include "attend.cu"
 #include "rows.cu"
 #include "draw.cu"
+#include <algorithm>
 
 static std::mt19937 g_rng(7);
 
@@ -94,7 +95,7 @@ static bool test_gemv(int k) {
         P.dh = dh;
         P.cap = cap;
         const std::vector<float> before = out;
-        launch(umgen_gemv, P, 2, 8);
+        launch(umgen_gemv, P, (nn + 8 / gemv_split(k) - 1) / (8 / gemv_split(k)), 8);
         std::vector<double> want, got;
         for (int s = 0; s < m; s++) {
             std::vector<double> in(k);
@@ -170,7 +171,14 @@ static bool test_attend_rows(int dh) {
     const int batches = 2, rows = 3, heads = 2, cap = 70, p = 66;
     Buf k(size_t(batches) * heads * cap * dh), v(k.f.size());
     std::vector<float> q = randoms(size_t(batches) * rows * heads * dh), y(q.size(), NAN);
+    // Two warps a block: 64 keys a split, so the 67 keys take 2 splits (and the cache's 70, too).
+    const int splits = (cap + 63) / 64;
+    std::vector<float> part(size_t(batches) * rows * heads * splits * (2 + dh), NAN);
+    std::vector<unsigned> count(size_t(batches) * rows * heads, 0);
     AttendRows P{};
+    P.part = part.data();
+    P.count = count.data();
+    P.splits = splits;
     P.q = q.data();
     P.k = k.w.data();
     P.v = v.w.data();
@@ -187,7 +195,9 @@ static bool test_attend_rows(int dh) {
     P.heads = heads;
     P.dh = dh;
     P.scale = 1.f / std::sqrt(float(dh));
-    launch(umgen_attend_rows, P, (long long)batches * rows * heads, 8);
+    launch(umgen_attend_rows, P, (long long)batches * rows * heads * splits, 2);
+    for (unsigned c : count)
+        if (c != 0) return check("attend_rows: a counter left set", 1.0, 0.5);
     std::vector<double> want(y.size()), got(y.begin(), y.end());
     for (int b = 0; b < batches; b++)
         for (int h = 0; h < heads; h++) {
@@ -499,13 +509,126 @@ static bool test_draw() {
     }
     for (int p = 2; p < 6; p++) ok = ok && tok[size_t(n) + p] == 9;
     ok = ok && counts[1] >= 1;
+    // A vocabulary larger than a block holds in registers (one warp, 2,000 ids) is scanned from memory
+    // (position 7 has no rule).
+    const int big = 2000;
+    std::vector<float> wide(size_t(m) * big);
+    for (auto& v : wide) v = normal();
+    wide[1234] = 9.f;
+    wide[big + 77] = 9.f;
+    P.logits = wide.data();
+    P.vocab = big;
+    pos = 7;
+    launch(umgen_draw, P, m, 1);
+    ok = ok && tok[7] == 1234 && tok[n + 7] == 77;
     return check("draw (rules, greedy)", ok ? 0.0 : 1.0, 0.5);
+}
+
+// Sampled draws against a direct reference with the same Philox numbers: the top-k list (ties among the
+// logits, a vocabulary held in registers and one scanned from memory) with temperature and top-p, and
+// Gumbel-max over every id without top-k.
+static bool test_sampled_draws() {
+    bool ok = true;
+    for (const int vocab : {300, 2000}) {
+        for (const int top_k : {20, 0}) {
+            const int m = 3, n = 4;
+            const double temperature = 0.8, top_p = top_k ? 0.7 : 1.0;
+            std::vector<Rule> rules(n, Rule{0, 1 << 30, -1, 0, 0, 0, 0, -1, 0, 0});
+            GroupRun run{};
+            std::vector<float> logits(size_t(m) * vocab);
+            for (auto& v : logits) v = float(int(normal() * 4)) * 0.25f;  // many ties
+            std::vector<int> tok(size_t(m) * n, 0), nboxes(m, 1);
+            std::vector<unsigned char> flags(m, 0);
+            std::vector<double> boxes(size_t(m) * 5, 0.0);
+            unsigned done = 0, counts[2] = {0, 0};
+            const unsigned state[3] = {5, 0, 11};
+            int pos = 1;
+            Draw P{};
+            P.logits = logits.data();
+            P.keep_logits = logits.data();
+            P.rules = rules.data();
+            P.runs = &run;
+            P.keep_on = flags.data();
+            P.newborn = flags.data();
+            P.tok = tok.data();
+            P.pos = &pos;
+            P.done = &done;
+            P.counts = counts;
+            P.boxes = boxes.data();
+            P.nboxes = nboxes.data();
+            P.state = state;
+            P.temperature = temperature;
+            P.top_p = top_p;
+            P.m = m;
+            P.n = n;
+            P.vocab = vocab;
+            P.top_k = top_k;
+            P.keeps = 1;
+            P.groups = 1;
+            P.box_cap = 1;
+            P.key0 = 123;
+            P.key1 = 456;
+            launch(umgen_draw, P, m, vocab > 1000 ? 1 : 8);
+            for (int s = 0; s < m; s++) {
+                const float* row = logits.data() + size_t(s) * vocab;
+                int want = 0;
+                if (top_k > 0) {
+                    std::vector<int> order(vocab);
+                    for (int i = 0; i < vocab; i++) order[i] = i;
+                    std::sort(order.begin(), order.end(), [&](int a, int b) {
+                        return row[a] > row[b] || (row[a] == row[b] && a < b);
+                    });
+                    order.resize(top_k);
+                    std::vector<double> pr;
+                    double total = 0;
+                    for (int i : order) total += pr.emplace_back(std::exp((double(row[i]) - row[order[0]]) / temperature));
+                    for (auto& x : pr) x /= total;
+                    size_t keep = pr.size();
+                    double mass = 0;
+                    for (size_t j = 0; j < pr.size(); j++) {
+                        mass += pr[j];
+                        if (mass >= top_p) {
+                            keep = j + 1;
+                            break;
+                        }
+                    }
+                    double kept = 0;
+                    for (size_t j = 0; j < keep; j++) kept += pr[j];
+                    double u = uniform(123, 456, 11 + s, 1, 5, 0xffffffu);
+                    want = order[keep - 1];
+                    for (size_t j = 0; j < keep; j++) {
+                        if (u < pr[j] / kept) {
+                            want = order[j];
+                            break;
+                        }
+                        u -= pr[j] / kept;
+                    }
+                } else {
+                    float best = -INFINITY;
+                    for (int i = 0; i < vocab; i++) {
+                        const double u = uniform(123, 456, 11 + s, 1, 5, (u32)i) + 0x1p-54;
+                        const float key = (float)(double(row[i]) / temperature - std::log(-std::log(u)));
+                        if (key > best) best = key, want = i;
+                    }
+                }
+                if (tok[size_t(s) * n + 1] != want) {
+                    printf("sampled draw (vocab %d, top-k %d), scene %d: %d, want %d\n", vocab, top_k, s,
+                           tok[size_t(s) * n + 1], want);
+                    ok = false;
+                }
+            }
+        }
+    }
+    return check("draw (sampled)", ok ? 0.0 : 1.0, 0.5);
 }
 
 int main() {
     bool ok = true;
     ok = test_gemv(64) && ok;
     ok = test_gemv(20) && ok;
+    ok = test_gemv(3072) && ok;  // 4 warps a column (the MLP's second product)
+    ok = test_gemv(8256) && ok;  // 8 warps a column, slices past the prefetched 1,024
+    ok = test_gemv(2600) && ok;  // 4 warps a column, slices of 650: the scalar loop
     ok = test_attend_rows(8) && ok;
     ok = test_attend_rows(40) && ok;
     ok = test_attend_tiles(false) && ok;
@@ -513,6 +636,7 @@ int main() {
     ok = test_rows() && ok;
     ok = test_frame_parts() && ok;
     ok = test_draw() && ok;
+    ok = test_sampled_draws() && ok;
     printf(ok ? "all cases agree\n" : "some cases disagree\n");
     return ok ? 0 : 1;
 }

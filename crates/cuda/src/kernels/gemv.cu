@@ -87,19 +87,60 @@ DEV void gemv_out(const Gemv& P, int s, long long j, float r) {
     }
 }
 
+// Warps that share an output column: enough that each takes at most GEMV_SLICE inputs (a power of two, at
+// most the block's 8). The launch gives `ceil(n / (8 / gemv_split(k)))` blocks of 8 warps.
+#define GEMV_SLICE 1024
+DEV int gemv_split(int k) {
+    int split = 1;
+    while (split < 8 && split * GEMV_SLICE < k) split *= 2;
+    return split;
+}
+
+// Each warp takes `slice` inputs of one output column: it issues every load of its weights first (they
+// are in flight while the block computes the rows' norm statistics), then reads the inputs, sums across
+// its lanes and, with several warps a column, across them in shared memory.
 KERNEL umgen_gemv(const Gemv P) {
     SHARED float st[2 * GEMV_ROWS];
+    SHARED float partial[8][GEMV_ROWS];
     const int m = P.m;
+    const int split = gemv_split(P.k), per_block = warps_per_block() / split;
+    const int local = warp_id() / split, part = warp_id() % split;
+    const long long j = block_x() * per_block + local;
+    const bool here = j < P.n;
+    const int slice = (P.k + split - 1) / split;
+    const int k0 = part * slice, k1 = k0 + slice < P.k ? k0 + slice : P.k;
+    const bool vec = (P.k & 7) == 0 && (slice & 7) == 0;
+    const WT* wr = P.w + (here ? j : 0) * P.k;
+    float wv[4][8];
+    if (vec && here) {
+#pragma unroll
+        for (int c = 0; c < 4; c++) {
+            const int at = k0 + lane_id() * 8 + 256 * c;
+            if (at < k1) load8(wr + at, wv[c]);
+        }
+    }
     if (P.in_mode == 1) {
         // Warp s: row s's mean and 1/σ (biased variance, ε 1e-5, as burn's LayerNorm).
         const int s = warp_id();
         if (s < m) {
             const float* xr = P.x + (long long)s * P.ldx;
-            float sum = 0.f;
-            for (int i = lane_id(); i < P.k; i += 32) sum += xr[i];
+            // Rows of up to 1,024 are read once, into registers, with every load in flight together.
+            float v[32], sum = 0.f;
+#pragma unroll
+            for (int t = 0; t < 32; t++) {
+                const int i = lane_id() + 32 * t;
+                v[t] = i < P.k ? xr[i] : 0.f;
+                sum += v[t];
+            }
+            for (int i = lane_id() + 1024; i < P.k; i += 32) sum += xr[i];
             const float mean = warp_sum(sum) / P.k;
             float sq = 0.f;
-            for (int i = lane_id(); i < P.k; i += 32) {
+#pragma unroll
+            for (int t = 0; t < 32; t++) {
+                const float d = v[t] - mean;
+                sq += lane_id() + 32 * t < P.k ? d * d : 0.f;
+            }
+            for (int i = lane_id() + 1024; i < P.k; i += 32) {
                 const float d = xr[i] - mean;
                 sq += d * d;
             }
@@ -122,36 +163,52 @@ KERNEL umgen_gemv(const Gemv P) {
         for (int s = 0; s < GEMV_ROWS; s++)
             if (s < m) trow[s] = P.table + (long long)(P.row_base[P.seg_of[q]] + P.tok[s * P.ntok + q]) * P.k;
     }
-    const long long stride = blocks() * warps_per_block();
-    for (long long j = warp_index(); j < P.n; j += stride) {
-        float acc[GEMV_ROWS];
-        for (int s = 0; s < GEMV_ROWS; s++) acc[s] = 0.f;
-        const WT* wr = P.w + j * P.k;
-        if ((P.k & 7) == 0) {
-#pragma unroll 4
-            for (int c = lane_id() * 8; c < P.k; c += 256) {
-                float wv[8];
-                load8(wr + c, wv);
+    float acc[GEMV_ROWS];
+    for (int s = 0; s < GEMV_ROWS; s++) acc[s] = 0.f;
+    if (here && vec) {
+#pragma unroll
+        for (int c = 0; c < 4; c++) {
+            const int at = k0 + lane_id() * 8 + 256 * c;
+            if (at < k1) {
                 for (int s = 0; s < GEMV_ROWS; s++) {
                     if (s < m) {
                         float xv[8];
-                        gemv_in8(P, st, trow[s], prow, s, c, xv);
-                        for (int e = 0; e < 8; e++) acc[s] = fmaf(wv[e], xv[e], acc[s]);
+                        gemv_in8(P, st, trow[s], prow, s, at, xv);
+                        for (int e = 0; e < 8; e++) acc[s] = fmaf(wv[c][e], xv[e], acc[s]);
                     }
                 }
             }
-        } else {
-            for (int i = lane_id(); i < P.k; i += 32) {
-                const float wv = value(wr + i);
-                for (int s = 0; s < GEMV_ROWS; s++)
-                    if (s < m) acc[s] = fmaf(wv, gemv_in1(P, st, trow[s], prow, s, i), acc[s]);
+        }
+        // Slices past 4 × 256 inputs (k over 8 warps × 1,024) go on without prefetched weights.
+        for (int at = k0 + lane_id() * 8 + 1024; at < k1; at += 256) {
+            float w8[8];
+            load8(wr + at, w8);
+            for (int s = 0; s < GEMV_ROWS; s++) {
+                if (s < m) {
+                    float xv[8];
+                    gemv_in8(P, st, trow[s], prow, s, at, xv);
+                    for (int e = 0; e < 8; e++) acc[s] = fmaf(w8[e], xv[e], acc[s]);
+                }
             }
         }
-        for (int s = 0; s < GEMV_ROWS; s++) {
-            if (s < m) {
-                const float r = warp_sum(acc[s]);
-                if (lane_id() == 0) gemv_out(P, s, j, r);
-            }
+    } else if (here) {
+        for (int i = k0 + lane_id(); i < k1; i += 32) {
+            const float wv1 = value(wr + i);
+            for (int s = 0; s < GEMV_ROWS; s++)
+                if (s < m) acc[s] = fmaf(wv1, gemv_in1(P, st, trow[s], prow, s, i), acc[s]);
         }
     }
+    for (int s = 0; s < GEMV_ROWS; s++)
+        if (s < m) acc[s] = warp_sum(acc[s]);
+    if (split > 1) {
+        if (lane_id() == 0)
+            for (int s = 0; s < GEMV_ROWS; s++) partial[warp_id()][s] = acc[s];
+        sync_block();
+        if (part == 0 && lane_id() == 0)
+            for (int s = 0; s < GEMV_ROWS; s++)
+                for (int q = 1; q < split; q++) acc[s] += partial[warp_id() + q][s];
+    }
+    if (here && part == 0 && lane_id() == 0)
+        for (int s = 0; s < GEMV_ROWS; s++)
+            if (s < m) gemv_out(P, s, j, acc[s]);
 }

@@ -84,14 +84,14 @@ struct BiasT {
     int cols, ld, gelu;
 };
 
+// A block per row (grid-strided), its threads over the columns.
 KERNEL umgen_bias_t(const BiasT P) {
-    const long long total = P.rows * P.cols, stride = blocks() * threads();
-    for (long long e = block_x() * threads() + thread_id(); e < total; e += stride) {
-        const long long r = e / P.cols;
-        const int c = (int)(e % P.cols);
-        WT* x = P.x + r * P.ld + c;
-        float v = value(x) + P.bias[c];
-        store(x, P.gelu ? gelu(v) : v);
+    for (long long r = block_x(); r < P.rows; r += blocks()) {
+        WT* row = P.x + r * P.ld;
+        for (int c = thread_id(); c < P.cols; c += threads()) {
+            const float v = value(row + c) + P.bias[c];
+            store(row + c, P.gelu ? gelu(v) : v);
+        }
     }
 }
 

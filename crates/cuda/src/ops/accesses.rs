@@ -4,7 +4,10 @@
 //! bounded by the engine's invariants instead: tokens stay inside their vocabularies, the position
 //! inside the frame.
 
-use super::{Buf, DRAW_KMAX, Elem, ExecError, GEMV_ROWS, GemvIn, GemvOut, Keys, MAX_HEAD, Op, Strides};
+use super::{
+    Buf, DRAW_KMAX, Elem, ExecError, GEMV_ROWS, GemvIn, GemvOut, Keys, MAX_HEAD, Op, ROWS_MAX_SPLITS,
+    ROWS_SPLIT, Strides,
+};
 
 /// One buffer an operation reaches.
 #[derive(Debug, Clone, Copy)]
@@ -151,6 +154,7 @@ impl Op {
                     Keys::Pos(_) => t.key_cap,
                 };
                 let kv = span(&[(t.batches, t.k_sb), (t.heads, t.k_sh), (keys, t.k_sj)], t.dh);
+                let queries = t.batches * t.rows * t.heads;
                 let mut v = vec![
                     a(
                         t.q,
@@ -166,6 +170,8 @@ impl Op {
                         F32,
                         "y",
                     ),
+                    a(t.part, queries * t.splits * (2 + t.dh), F32, "part"),
+                    a(t.count, queries, U32, "count"),
                 ];
                 if let Keys::Pos(p) = t.keys {
                     v.push(a(p, 1, I32, "pos"));
@@ -189,6 +195,18 @@ impl Op {
                         W,
                         "y",
                     ),
+                ]
+            }
+            Op::Flash(f) => {
+                let each = |s: &[usize; 3], rows: usize| {
+                    span(&[(f.batch, s[0]), (f.heads, s[1]), (rows, s[2])], f.dh)
+                };
+                vec![
+                    a(f.q, each(&f.qs, f.lq), W, "q"),
+                    a(f.k, each(&f.ks, f.lk), W, "k"),
+                    a(f.v, each(&f.vs, f.lk), W, "v"),
+                    a(f.y, each(&f.ys, f.lq), W, "y"),
+                    a(f.lse, f.batch * f.heads * f.lq, F32, "lse"),
                 ]
             }
             Op::Rows(r) => {
@@ -299,8 +317,18 @@ impl Op {
                 if t.dh == 0 || t.dh > MAX_HEAD || t.batches * t.rows * t.heads == 0 {
                     return fail(format!("head size {} (1..={MAX_HEAD})", t.dh));
                 }
-                if matches!(t.keys, Keys::Fixed(0)) {
+                let keys = match t.keys {
+                    Keys::Fixed(n) => n,
+                    Keys::Pos(_) => t.key_cap,
+                };
+                if keys == 0 {
                     return fail("no keys".into());
+                }
+                if t.splits * ROWS_SPLIT < keys || t.splits > ROWS_MAX_SPLITS {
+                    return fail(format!(
+                        "{} splits of {ROWS_SPLIT} for {keys} keys (at most {ROWS_MAX_SPLITS} splits)",
+                        t.splits
+                    ));
                 }
                 let strides = [t.k_sb, t.k_sh, t.k_sj];
                 if t.dh.is_multiple_of(8)
@@ -320,6 +348,11 @@ impl Op {
                     || t.inner == 0 =>
             {
                 return fail(format!("head size {} (a multiple of 4 up to {MAX_HEAD})", t.dh));
+            }
+            Op::Flash(f)
+                if !(f.dh == 32 || f.dh == 64) || f.lq == 0 || f.lk == 0 || f.batch * f.heads == 0 =>
+            {
+                return fail(format!("head size {} (32 or 64), {} × {} rows", f.dh, f.lq, f.lk));
             }
             Op::Rows(r) if r.inner == 0 || r.d == 0 => return fail("no rows".into()),
             Op::Embed(e) if e.period == 0 => return fail("period 0".into()),

@@ -3,6 +3,10 @@
 
 use super::Buf;
 
+/// Keys a block of [`AttendRows`] takes (a key per lane of its 8 warps).
+pub const ROWS_SPLIT: usize = 256;
+/// Blocks an [`AttendRows`] query's keys may be split into (`ROWS_MAX_SPLITS` of `attend.cu`).
+pub const ROWS_MAX_SPLITS: usize = 32;
 /// Rows a [`Gemv`] takes at most (`GEMV_ROWS` of `gemv.cu`).
 pub const GEMV_ROWS: usize = 8;
 /// The largest head size the attention kernels take (`ATT_DH` of `attend.cu`).
@@ -171,6 +175,12 @@ pub struct AttendRows {
     pub v: Buf,
     /// Results (f32), with `y_sb`, `y_sr`.
     pub y: Buf,
+    /// Each split's partial result `[batches·rows·heads][splits][2 + dh]` (f32).
+    pub part: Buf,
+    /// Splits finished per query `[batches·rows·heads]` (u32, zero between launches).
+    pub count: Buf,
+    /// Blocks the keys are split into, [`ROWS_SPLIT`] keys each (enough for the keys seen).
+    pub splits: usize,
     /// Keys seen.
     pub keys: Keys,
     /// Keys a cache holds (for the bounds of [`Keys::Pos`]).
@@ -246,6 +256,44 @@ pub struct AttendTiles {
     pub causal: Option<usize>,
     /// Score scale.
     pub scale: f32,
+}
+
+/// FlashAttention-2's forward pass (`kernels/flash2/`): `batch` × `heads` heads of `lq` queries over `lk`
+/// keys, all `W` (bf16 on the executors that have it, [`super::Exec::flash`]); each operand's strides are
+/// (batch, head, row), its last dimension contiguous; `lse` (f32 `[batch·heads·lq]`) takes the rows'
+/// log-sum-exp.
+#[derive(Debug, Clone)]
+pub struct Flash {
+    /// Queries.
+    pub q: Buf,
+    /// Keys.
+    pub k: Buf,
+    /// Values.
+    pub v: Buf,
+    /// Results.
+    pub y: Buf,
+    /// Log-sum-exp of each query row.
+    pub lse: Buf,
+    /// Query strides.
+    pub qs: [usize; 3],
+    /// Key strides.
+    pub ks: [usize; 3],
+    /// Value strides.
+    pub vs: [usize; 3],
+    /// Result strides.
+    pub ys: [usize; 3],
+    /// Batches.
+    pub batch: usize,
+    /// Heads.
+    pub heads: usize,
+    /// Queries.
+    pub lq: usize,
+    /// Keys.
+    pub lk: usize,
+    /// Head size (32 or 64).
+    pub dh: usize,
+    /// Hide keys after each query (bottom-right aligned).
+    pub causal: bool,
 }
 
 /// `dst[r] (+)= gelu?(norm?(src[r']) + bias)`: row `r` is `(i1, i2) = (r / inner, r % inner)`, its source

@@ -5,7 +5,7 @@
 use super::Engine;
 use super::window::Map;
 use crate::error::Result;
-use umgen_cuda::ops::{AttendRows, BiasT, Exec, Keys, Op};
+use umgen_cuda::ops::{AttendRows, BiasT, Exec, Keys, Op, ROWS_SPLIT};
 
 impl<X: Exec> Engine<X> {
     /// The ego module's action tokens for the chunk's `cs` scenes (window `w`, embedded in `win.x`), drawn on
@@ -16,12 +16,12 @@ impl<X: Exec> Engine<X> {
             self.win
                 .ego
                 .as_ref()
-                .map(|e| (e.eq, e.qn, e.qf, e.ctx, e.kv, e.y, e.logits)),
+                .map(|e| (e.eq, e.qn, e.qf, e.ctx, e.kv, e.y, e.logits, (e.part, e.count))),
             self.lay.spec.action.clone(),
         ) else {
             return Ok(None);
         };
-        let (eq, qn, qf, ctx, kv, y, logits) = buf;
+        let (eq, qn, qf, ctx, kv, y, logits, (part, count)) = buf;
         let (n, d, x) = (self.lay.n, self.lay.d, self.win.x);
         let (q, [bs, len]) = (eg.q, eg.block);
         let rows = cs * q;
@@ -142,7 +142,7 @@ impl<X: Exec> Engine<X> {
                 };
                 self.gemm((ctx, d), l.kv, (kv, 2 * d), ctx_rows, false)?;
                 if let Some(b) = l.kv.b {
-                    self.x.run(&Op::BiasT(BiasT {
+                    self.run(&Op::BiasT(BiasT {
                         x: kv,
                         bias: b,
                         rows: ctx_rows,
@@ -152,11 +152,14 @@ impl<X: Exec> Engine<X> {
                     }))?;
                 }
                 let (heads, dh) = (self.lay.heads, self.lay.dh);
-                self.x.run(&Op::AttendRows(AttendRows {
+                self.run(&Op::AttendRows(AttendRows {
                     q: qf,
                     k: kv,
                     v: kv.at(d),
                     y,
+                    part,
+                    count,
+                    splits: lc.div_ceil(ROWS_SPLIT),
                     keys: Keys::Fixed(lc),
                     key_cap: lc,
                     q_sb: q * d,
@@ -195,7 +198,7 @@ impl<X: Exec> Engine<X> {
                 let hid = self.win.ego.as_ref().map_or(qn, |e| e.hid);
                 self.gemm((qn, d), l.fc, (hid, l.fc.n), rows, false)?;
                 if let Some(b) = l.fc.b {
-                    self.x.run(&Op::BiasT(BiasT {
+                    self.run(&Op::BiasT(BiasT {
                         x: hid,
                         bias: b,
                         rows,

@@ -108,6 +108,13 @@ impl Exec for HostExec {
         Ok(Buf { id, at: 0 })
     }
 
+    fn free(&mut self, id: u32) {
+        if let Some((_, s)) = self.bufs.get_mut(id as usize) {
+            self.bytes = self.bytes.saturating_sub(s.len() * 4);
+            *s = Store::U8(Vec::new());
+        }
+    }
+
     fn write(&mut self, dst: Buf, data: Data<'_>) -> Result<(), ExecError> {
         let (elem, len) = self.info(dst.id).ok_or(ExecError::Missing {
             what: "write".into(),

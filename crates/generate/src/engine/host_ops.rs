@@ -2,7 +2,9 @@
 //! `attend.cu`, `rows.cu`), in f32.
 
 use super::host::{HostExec, Store};
-use umgen_cuda::ops::{AttendRows, AttendTiles, Buf, ExecError, Gemm, Gemv, GemvIn, GemvOut, Keys, Op, Rows};
+use umgen_cuda::ops::{
+    AttendRows, AttendTiles, Buf, ExecError, Flash, Gemm, Gemv, GemvIn, GemvOut, Keys, Op, Rows,
+};
 
 /// Runs a checked operation.
 pub(super) fn run(x: &mut HostExec, op: &Op) -> Result<(), ExecError> {
@@ -11,6 +13,7 @@ pub(super) fn run(x: &mut HostExec, op: &Op) -> Result<(), ExecError> {
         Op::Gemm(g) => gemm(x, g),
         Op::AttendRows(t) => attend_rows(x, t),
         Op::AttendTiles(t) => attend_tiles(x, t),
+        Op::Flash(f) => flash(x, f),
         Op::Rows(r) => rows(x, r),
         Op::BiasT(b) => {
             let bias = x.f32s(b.bias)[..b.cols].to_vec();
@@ -253,6 +256,40 @@ fn attend_tiles(x: &mut HostExec, t: &AttendTiles) -> Result<(), ExecError> {
     Ok(())
 }
 
+/// FlashAttention-2's function (its arithmetic in f32 here): every head's rows, and their log-sum-exp.
+fn flash(x: &mut HostExec, f: &Flash) -> Result<(), ExecError> {
+    let (q, k, v) = (x.f32s(f.q).to_vec(), x.f32s(f.k).to_vec(), x.f32s(f.v).to_vec());
+    let scale = (f.dh as f32).sqrt().recip();
+    let off = f.lk.saturating_sub(f.lq);
+    let mut lse = vec![0.0f32; f.batch * f.heads * f.lq];
+    let y = x.f32s_mut(f.y);
+    for b in 0..f.batch {
+        for h in 0..f.heads {
+            for row in 0..f.lq {
+                let keys = if f.causal { (row + off + 1).min(f.lk) } else { f.lk };
+                let qo = b * f.qs[0] + h * f.qs[1] + row * f.qs[2];
+                let kv = |j: usize| {
+                    let (ko, vo) = (
+                        b * f.ks[0] + h * f.ks[1] + j * f.ks[2],
+                        b * f.vs[0] + h * f.vs[1] + j * f.vs[2],
+                    );
+                    (&k[ko..ko + f.dh], &v[vo..vo + f.dh])
+                };
+                let yo = b * f.ys[0] + h * f.ys[1] + row * f.ys[2];
+                attend_one(&q[qo..qo + f.dh], keys, scale, kv, &mut y[yo..yo + f.dh]);
+                let scores: Vec<f32> = (0..keys)
+                    .map(|j| dot(&q[qo..qo + f.dh], kv(j).0) * scale)
+                    .collect();
+                let mx = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                lse[(b * f.heads + h) * f.lq + row] =
+                    mx + scores.iter().map(|s| (s - mx).exp()).sum::<f32>().ln();
+            }
+        }
+    }
+    x.f32s_mut(f.lse)[..lse.len()].copy_from_slice(&lse);
+    Ok(())
+}
+
 fn rows(x: &mut HostExec, r: &Rows) -> Result<(), ExecError> {
     let idx = r.idx.map(|b| x.i32s(b)[..r.inner].to_vec());
     let norm = r
@@ -302,4 +339,103 @@ fn rows(x: &mut HostExec, r: &Rows) -> Result<(), ExecError> {
     }
     x.put(r.dst.id, Store::F32(dst));
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::panic)]
+    use super::*;
+    use umgen_cuda::ops::{Data, Elem, Exec, Strides};
+
+    /// The flash operation and the tiled one compute the same attention over the same strided operands.
+    #[test]
+    fn flash_equals_tiled_attention_on_the_host() {
+        let mut x = HostExec::new();
+        let (frames, n, heads, dh) = (3, 37, 2, 8);
+        let d = heads * dh;
+        let qkv = x
+            .alloc(Elem::W, frames * n * 3 * d)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let values: Vec<f32> = (0..frames * n * 3 * d)
+            .map(|i| ((i * 7919 % 97) as f32 - 48.0) / 31.0)
+            .collect();
+        x.write(qkv, Data::F32(&values)).unwrap_or_else(|e| panic!("{e}"));
+        let (y1, y2) = (x.alloc(Elem::W, frames * n * d), x.alloc(Elem::W, frames * n * d));
+        let (y1, y2) = (
+            y1.unwrap_or_else(|e| panic!("{e}")),
+            y2.unwrap_or_else(|e| panic!("{e}")),
+        );
+        let lse = x
+            .alloc(Elem::F32, frames * heads * n)
+            .unwrap_or_else(|e| panic!("{e}"));
+        for causal in [false, true] {
+            let qs = Strides {
+                s1: n * 3 * d,
+                s2: 0,
+                row: 3 * d,
+            };
+            let tiles = Op::AttendTiles(AttendTiles {
+                q: qkv,
+                k: qkv.at(d),
+                v: qkv.at(2 * d),
+                y: y1,
+                qs,
+                ks: qs,
+                ys: Strides {
+                    s1: n * d,
+                    s2: 0,
+                    row: d,
+                },
+                instances: frames,
+                inner: 1,
+                heads,
+                lq: n,
+                lk: n,
+                dh,
+                causal: causal.then_some(0),
+                scale: (dh as f32).sqrt().recip(),
+            });
+            let s3 = [n * 3 * d, dh, 3 * d];
+            let flash = Op::Flash(Flash {
+                q: qkv,
+                k: qkv.at(d),
+                v: qkv.at(2 * d),
+                y: y2,
+                lse,
+                qs: s3,
+                ks: s3,
+                vs: s3,
+                ys: [n * d, dh, d],
+                batch: frames,
+                heads,
+                lq: n,
+                lk: n,
+                dh: 32.max(dh),
+                causal,
+            });
+            x.run(&tiles).unwrap_or_else(|e| panic!("{e}"));
+            // The flash kernels take head sizes 32 and 64: the check of the operation refuses 8.
+            assert!(x.run(&flash).is_err());
+            let Op::Flash(mut f) = flash else {
+                panic!("a flash operation")
+            };
+            f.dh = dh;
+            flash_unchecked(&mut x, &f);
+            let (a, b) = (x.read_f32(y1, frames * n * d), x.read_f32(y2, frames * n * d));
+            let (a, b) = (
+                a.unwrap_or_else(|e| panic!("{e}")),
+                b.unwrap_or_else(|e| panic!("{e}")),
+            );
+            let err = a
+                .iter()
+                .zip(&b)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0f32, f32::max);
+            assert!(err < 1e-5, "causal {causal}: {err}");
+        }
+    }
+
+    fn flash_unchecked(x: &mut HostExec, f: &Flash) {
+        flash(x, f).unwrap_or_else(|e| panic!("{e}"));
+    }
 }

@@ -31,10 +31,11 @@ use crate::error::{GenerateError, Result};
 use crate::rules::{FrameControl, FrameRules, check_frame};
 use crate::sampling::Sampling;
 pub use host::HostExec;
+
 use rand::{SeedableRng, rngs::StdRng};
 use std::collections::HashMap;
 use umgen_backbone::{PlainBackbone, Slot};
-use umgen_cuda::ops::{Buf, DRAW_KMAX, Elem, Exec, GEMV_ROWS, MAX_HEAD, Op};
+use umgen_cuda::ops::{Buf, DRAW_KMAX, Elem, Exec, GEMV_ROWS, MAX_HEAD, Op, ROWS_SPLIT};
 use weights::Weights;
 
 /// Rows of the MLP's hidden activation held at once in the window pass (its products run in slices of
@@ -55,6 +56,27 @@ struct Layout {
     spec: umgen_backbone::BackboneSpec,
 }
 
+/// What the working buffers' sizes depend on beyond the layout: the model's parts.
+#[derive(Debug, Clone)]
+struct Sizes {
+    /// OAR layers.
+    layers: usize,
+    /// The ego module's query count, action block length and head width.
+    ego: Option<(usize, usize, usize)>,
+    /// Whether the tracked slots are moved (the spec's track and the model's projections).
+    track: bool,
+}
+
+impl Sizes {
+    fn of(m: &PlainBackbone) -> Self {
+        Self {
+            layers: m.oar.len(),
+            ego: m.ego.as_ref().map(|g| (g.q, g.block[1], g.head.d_out)),
+            track: m.track.is_some(),
+        }
+    }
+}
+
 /// The window pass's buffers, for `chunk` scenes of `window` frames.
 #[derive(Debug)]
 struct WindowBufs {
@@ -68,6 +90,8 @@ struct WindowBufs {
     hid_rows: usize,
     fresh_tok: Buf,
     fresh: Buf,
+    /// The flash2 kernels' log-sum-exp rows (not read).
+    lse: Buf,
     map: Option<Buf>,
     align_base: Option<Buf>,
     track: Option<(Buf, Buf, Buf)>,
@@ -85,6 +109,9 @@ struct EgoBufs {
     y: Buf,
     hid: Buf,
     logits: Buf,
+    /// The attention's split results and counters.
+    part: Buf,
+    count: Buf,
 }
 
 /// The decoding step's buffers, for `group` scenes.
@@ -99,6 +126,10 @@ struct DecodeBufs {
     logits: Buf,
     kc: Vec<Buf>,
     vc: Vec<Buf>,
+    /// The attention's split results and counters, and the split count.
+    part: Buf,
+    count: Buf,
+    splits: usize,
     pos: Buf,
     done: Buf,
     counts: Buf,
@@ -162,6 +193,26 @@ pub struct Engine<X: Exec> {
     new_agents: (u64, u64),
     /// The frame's keep entries: position and segment, in keep order.
     keeps: Vec<(usize, usize)>,
+    /// What the buffers are sized from.
+    sizes: Sizes,
+    /// Whether to wait for the device after each part of a frame and add up its time.
+    timed: bool,
+    times: Times,
+    /// The window pass's operations' seconds and counts by name, while profiling (`Engine::profiled`).
+    profile: Option<std::collections::BTreeMap<String, (f64, u64)>>,
+}
+
+/// Seconds spent in each part of the frames made while timing ([`Engine::timed`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Times {
+    /// The window pass (ego module, TAR, keep logits) and the frame's tables.
+    pub window: f64,
+    /// The decoding steps and the frame's read-back.
+    pub decode: f64,
+    /// Frames made.
+    pub frames: u64,
+    /// Decoding steps run (positions × scene groups).
+    pub steps: u64,
 }
 
 impl<X: Exec> Engine<X> {
@@ -232,10 +283,11 @@ impl<X: Exec> Engine<X> {
             spec: spec.clone(),
         };
         let w = Weights::upload(&mut x, model)?;
-        let group = GEMV_ROWS;
-        let chunk = (settings.pass_frames / settings.window).clamp(1, group);
-        let win = WindowBufs::new(&mut x, &lay, model, chunk, settings.window)?;
-        let dec = DecodeBufs::new(&mut x, &lay, model, group)?;
+        // Sized for one scene; `fit` grows them to the batch a frame brings (up to GEMV_ROWS scenes).
+        let (group, chunk) = (1, 1);
+        let sizes = Sizes::of(model);
+        let win = WindowBufs::new(&mut x, &lay, &sizes, chunk, settings.window)?;
+        let dec = DecodeBufs::new(&mut x, &lay, &sizes, group)?;
         let seed = settings.seed;
         Ok(Self {
             x,
@@ -253,6 +305,10 @@ impl<X: Exec> Engine<X> {
             generation: 0,
             new_agents: (0, 0),
             keeps: Vec::new(),
+            sizes,
+            timed: false,
+            times: Times::default(),
+            profile: None,
         })
     }
 
@@ -261,15 +317,21 @@ impl<X: Exec> Engine<X> {
     pub fn next_frame(&mut self, history: &[Vec<Vec<u32>>], control: &FrameControl) -> Result<Vec<Vec<u32>>> {
         let m = check_frame(&self.lay.spec, history, control)?;
         let rules = FrameRules::new(&self.lay.spec, &self.lay.slots, history, control)?;
+        self.fit(m)?;
         let frame = self.frames;
         self.frames = self.frames.wrapping_add(1);
         let mut out = Vec::with_capacity(m);
         for g0 in (0..m).step_by(self.group) {
             let gs = self.group.min(m - g0);
             let forced = control.action.as_ref().map(|a| &a[g0..g0 + gs]);
+            let started = std::time::Instant::now();
             let action = self.window_pass(&history[g0..g0 + gs], forced)?;
             self.prepare(&rules, control, g0, gs, action.as_deref(), frame)?;
             self.keep_logits(gs)?;
+            if self.timed {
+                self.x.sync()?;
+            }
+            let decoding = std::time::Instant::now();
             for p in 0..self.lay.n {
                 let s = self.lay.seg_of[p];
                 if !self.steps.contains_key(&(s, gs)) {
@@ -284,13 +346,113 @@ impl<X: Exec> Engine<X> {
             }
             let tok = self.x.read_i32(self.dec.tok, gs * self.lay.n)?;
             let counts = self.x.read_u32(self.dec.counts, 2)?;
+            if self.timed {
+                self.times.window += (decoding - started).as_secs_f64();
+                self.times.decode += decoding.elapsed().as_secs_f64();
+                self.times.steps += self.lay.n as u64;
+            }
             self.new_agents.0 += u64::from(counts[0]);
             self.new_agents.1 += u64::from(counts[1]);
             for row in tok.chunks(self.lay.n) {
                 out.push(row.iter().map(|&t| u32::try_from(t).unwrap_or(0)).collect());
             }
         }
+        self.times.frames += u64::from(self.timed);
         Ok(out)
+    }
+
+    /// Waits for the device after each part of a frame and adds up the parts' times ([`Engine::times`]);
+    /// the waits cost little (the host waits at the frame's end anyway) but end the host's run-ahead.
+    pub fn timed(mut self, on: bool) -> Self {
+        self.timed = on;
+        self
+    }
+
+    /// Times every operation of the window pass (waiting for the device after each), by kind, from now on
+    /// ([`Engine::window_profile`]).
+    pub fn profiled(mut self, on: bool) -> Self {
+        self.profile = on.then(Default::default);
+        self
+    }
+
+    /// Seconds and counts of the window pass's operations by kind since profiling began.
+    pub fn window_profile(&self) -> Vec<(String, f64, u64)> {
+        self.profile
+            .iter()
+            .flatten()
+            .map(|(k, (s, c))| (k.clone(), *s, *c))
+            .collect()
+    }
+
+    /// Each operation of a decoding step of the largest vocabulary's segment for the last frame's group
+    /// size, replayed `reps` times as one graph at the frame's middle position: microseconds per run, by
+    /// operation (after at least one frame, whose tables it reuses).
+    pub fn profile_step(&mut self, reps: usize) -> Result<Vec<(String, f64)>> {
+        let s = (0..self.lay.spec.segments.len())
+            .max_by_key(|&s| self.lay.spec.segments[s].vocab)
+            .unwrap_or(0);
+        let gs = self.steps.keys().map(|k| k.1).max().unwrap_or(1);
+        let ops = self.step_ops(s, gs)?;
+        let middle = (self.lay.n / 2) as i32;
+        let mut out = Vec::with_capacity(ops.len());
+        let mut layer = 0;
+        for (i, op) in ops.iter().enumerate() {
+            let batch = vec![op.clone(); reps.max(1)];
+            let key = u64::MAX - i as u64;
+            let mut best = f64::INFINITY;
+            for _ in 0..3 {
+                self.x
+                    .write(self.dec.pos, umgen_cuda::ops::Data::I32(&[middle]))?;
+                self.x.sync()?;
+                let t0 = std::time::Instant::now();
+                self.x.replay(key, &batch)?;
+                self.x.sync()?;
+                best = best.min(t0.elapsed().as_secs_f64());
+            }
+            let name = match op {
+                Op::Gemv(g) => match g.output {
+                    umgen_cuda::ops::GemvOut::Qkv { .. } => {
+                        layer += 1;
+                        format!("layer {layer}: ln1 + qkv")
+                    }
+                    _ => format!("gemv {} × {}", g.n, g.k),
+                },
+                other => other.name().to_string(),
+            };
+            out.push((name, 1e6 * best / reps.max(1) as f64));
+        }
+        self.x.forget_replays();
+        self.steps.clear();
+        Ok(out)
+    }
+
+    /// Runs an operation of the window pass (timed while profiling).
+    fn run(&mut self, op: &Op) -> Result<()> {
+        let Some(profile) = &self.profile else {
+            return Ok(self.x.run(op)?);
+        };
+        let _ = profile;
+        self.x.sync()?;
+        let t0 = std::time::Instant::now();
+        self.x.run(op)?;
+        self.x.sync()?;
+        let name = match op {
+            Op::Gemm(g) => format!("gemm × {}", g.n),
+            Op::AttendTiles(t) if t.causal.is_some() => "attend_tiles (time)".into(),
+            Op::AttendTiles(_) => "attend_tiles (frame)".into(),
+            other => other.name().into(),
+        };
+        if let Some(p) = &mut self.profile {
+            let e = p.entry(name).or_insert((0.0, 0));
+            e.0 += t0.elapsed().as_secs_f64();
+            e.1 += 1;
+        }
+        Ok(())
+    }
+
+    /// The parts' times since the engine was made (zeros unless [`Engine::timed`]).
+    pub fn times(&self) -> Times {
+        self.times
     }
 
     /// New agents the new-agent rule tested so far, and how many it dropped.
@@ -308,6 +470,25 @@ impl<X: Exec> Engine<X> {
         &self.x
     }
 
+    /// Grows the working buffers to decode `m` scenes at a time (at most [`GEMV_ROWS`]).
+    fn fit(&mut self, m: usize) -> Result<()> {
+        let group = m.clamp(1, GEMV_ROWS);
+        if group <= self.group {
+            return Ok(());
+        }
+        let mut old = self.win.bufs();
+        old.extend(self.dec.bufs());
+        for b in old {
+            self.x.free(b.id);
+        }
+        let chunk = (self.settings.pass_frames / self.settings.window).clamp(1, group);
+        self.win = WindowBufs::new(&mut self.x, &self.lay, &self.sizes, chunk, self.settings.window)?;
+        self.dec = DecodeBufs::new(&mut self.x, &self.lay, &self.sizes, group)?;
+        (self.group, self.chunk) = (group, chunk);
+        self.invalidate();
+        Ok(())
+    }
+
     /// Forgets the captured steps (after the step's buffers changed).
     fn invalidate(&mut self) {
         self.steps.clear();
@@ -322,7 +503,32 @@ fn alloc<X: Exec>(x: &mut X, elem: Elem, len: usize) -> Result<Buf> {
 }
 
 impl WindowBufs {
-    fn new<X: Exec>(x: &mut X, lay: &Layout, m: &PlainBackbone, chunk: usize, window: usize) -> Result<Self> {
+    /// Every buffer it holds.
+    fn bufs(&self) -> Vec<Buf> {
+        let mut v = vec![
+            self.tok,
+            self.act,
+            self.x,
+            self.xn,
+            self.qkv,
+            self.att,
+            self.hid,
+            self.fresh_tok,
+            self.fresh,
+        ];
+        v.extend(self.map.into_iter().chain(self.align_base));
+        if let Some((a, b, c)) = self.track {
+            v.extend([a, b, c]);
+        }
+        if let Some(e) = &self.ego {
+            v.extend([
+                e.eq, e.qn, e.qf, e.ctx, e.kv, e.y, e.hid, e.logits, e.part, e.count,
+            ]);
+        }
+        v
+    }
+
+    fn new<X: Exec>(x: &mut X, lay: &Layout, m: &Sizes, chunk: usize, window: usize) -> Result<Self> {
         let (n, d) = (lay.n, lay.d);
         let frames = chunk * window;
         let rows = frames * n;
@@ -349,8 +555,8 @@ impl WindowBufs {
             }
             None => None,
         };
-        let track = match (&spec.track, &m.track) {
-            (Some(t), Some(_)) => {
+        let track = match (&spec.track, m.track) {
+            (Some(t), true) => {
                 let l = spec.segments[t.segment].tokens;
                 Some((
                     alloc(x, Elem::I32, frames * l)?,
@@ -360,11 +566,11 @@ impl WindowBufs {
             }
             _ => None,
         };
-        let ego = match &m.ego {
-            Some(g) => {
-                let [_, len] = g.block;
+        let ego = match m.ego {
+            Some((queries, len, vocab)) => {
                 let ctx_rows = (window * len).max(n - len);
-                let q = chunk * g.q;
+                let q = chunk * queries;
+                let splits = ctx_rows.div_ceil(ROWS_SPLIT);
                 Some(EgoBufs {
                     eq: alloc(x, Elem::F32, q * d)?,
                     qn: alloc(x, Elem::W, q * d)?,
@@ -373,7 +579,9 @@ impl WindowBufs {
                     kv: alloc(x, Elem::W, chunk * ctx_rows * 2 * d)?,
                     y: alloc(x, Elem::F32, q * d)?,
                     hid: alloc(x, Elem::W, q * lay.hidden.max(d))?,
-                    logits: alloc(x, Elem::F32, q * g.head.d_out)?,
+                    logits: alloc(x, Elem::F32, q * vocab)?,
+                    part: alloc(x, Elem::F32, q * lay.heads * splits * (2 + lay.dh))?,
+                    count: alloc(x, Elem::U32, q * lay.heads)?,
                 })
             }
             None => None,
@@ -389,6 +597,7 @@ impl WindowBufs {
             hid_rows,
             fresh_tok: alloc(x, Elem::I32, chunk * block)?,
             fresh: alloc(x, Elem::F32, chunk * block * d)?,
+            lse: alloc(x, Elem::F32, frames * lay.heads * n)?,
             map,
             align_base,
             track,
@@ -398,11 +607,39 @@ impl WindowBufs {
 }
 
 impl DecodeBufs {
-    fn new<X: Exec>(x: &mut X, lay: &Layout, m: &PlainBackbone, group: usize) -> Result<Self> {
+    /// Every buffer it holds.
+    fn bufs(&self) -> Vec<Buf> {
+        let mut v = vec![
+            self.h,
+            self.xs,
+            self.t1,
+            self.q,
+            self.y,
+            self.hb,
+            self.logits,
+            self.part,
+            self.count,
+            self.pos,
+            self.done,
+            self.counts,
+            self.state,
+            self.keep_idx,
+            self.tok,
+            self.rules,
+        ];
+        v.extend(self.kc.iter().chain(&self.vc));
+        if let Some(t) = self.tables {
+            v.extend([t.runs, t.keep_on, t.newborn, t.boxes, t.nboxes, t.keep_logits]);
+        }
+        v
+    }
+
+    fn new<X: Exec>(x: &mut X, lay: &Layout, m: &Sizes, group: usize) -> Result<Self> {
         let (n, d) = (lay.n, lay.d);
         let vmax = lay.spec.segments.iter().map(|s| s.vocab).max().unwrap_or(1);
         let cache = group * lay.heads * n * lay.dh;
-        let layers = m.oar.len();
+        let layers = m.layers;
+        let splits = n.div_ceil(ROWS_SPLIT);
         Ok(Self {
             h: alloc(x, Elem::F32, group * n * d)?,
             xs: alloc(x, Elem::F32, group * d)?,
@@ -417,6 +654,9 @@ impl DecodeBufs {
             vc: (0..layers)
                 .map(|_| alloc(x, Elem::W, cache))
                 .collect::<Result<_>>()?,
+            part: alloc(x, Elem::F32, group * lay.heads * splits * (2 + lay.dh))?,
+            count: alloc(x, Elem::U32, group * lay.heads)?,
+            splits,
             pos: alloc(x, Elem::I32, 1)?,
             done: alloc(x, Elem::U32, 1)?,
             counts: alloc(x, Elem::U32, 2)?,

@@ -88,6 +88,9 @@ impl<X: Exec> Engine<X> {
                 k: dec.kc[l],
                 v: dec.vc[l],
                 y: dec.y,
+                part: dec.part,
+                count: dec.count,
+                splits: dec.splits,
                 keys: Keys::Pos(dec.pos),
                 key_cap: n,
                 q_sb: d,
@@ -326,6 +329,11 @@ impl<X: Exec> Engine<X> {
         };
         let g = self.group;
         let x = &mut self.x;
+        if let Some(t) = self.dec.tables.take() {
+            for b in [t.runs, t.keep_on, t.newborn, t.boxes, t.nboxes, t.keep_logits] {
+                x.free(b.id);
+            }
+        }
         self.dec.tables = Some(Tables {
             runs: alloc(x, Elem::Run, caps.runs)?,
             keep_on: alloc(x, Elem::U8, g * caps.keeps)?,

@@ -6,7 +6,9 @@ use super::Engine;
 use super::weights::SelfW;
 use super::window::{Map, Over};
 use crate::error::{GenerateError, Result};
-use umgen_cuda::ops::{Align, AttendTiles, BiasT, Data, Exec, Op, Rows, Shift, Strides, Track, TrackField};
+use umgen_cuda::ops::{
+    Align, AttendTiles, BiasT, Data, Exec, Flash, Op, Rows, Shift, Strides, Track, TrackField,
+};
 
 impl<X: Exec> Engine<X> {
     /// The TAR input's parts that follow the next action `act` of each scene of `part` (window `w`): frame
@@ -44,7 +46,7 @@ impl<X: Exec> Engine<X> {
             seg.block_start,
             fresh,
         )?;
-        self.x.run(&Op::Shift(Shift {
+        self.run(&Op::Shift(Shift {
             x,
             fresh,
             m: cs,
@@ -88,7 +90,7 @@ impl<X: Exec> Engine<X> {
                 bins,
                 width: ((hi - lo) / f64::from(bins)) as f32,
             });
-            self.x.run(&Op::Track(Track {
+            self.run(&Op::Track(Track {
                 tok: self.win.tok,
                 act: actb,
                 out: moved,
@@ -166,7 +168,7 @@ impl<X: Exec> Engine<X> {
                 None,
                 false,
             )?;
-            self.x.run(&Op::Align(Align {
+            self.run(&Op::Align(Align {
                 x,
                 src: map,
                 act: actb,
@@ -200,7 +202,7 @@ impl<X: Exec> Engine<X> {
         )?;
         self.gemm((xn, d), l.qkv, (qkv, 3 * d), rows, false)?;
         if let Some(b) = l.qkv.b {
-            self.x.run(&Op::BiasT(BiasT {
+            self.run(&Op::BiasT(BiasT {
                 x: qkv,
                 bias: b,
                 rows,
@@ -208,6 +210,28 @@ impl<X: Exec> Engine<X> {
                 ld: 3 * d,
                 gelu: false,
             }))?;
+        }
+        if matches!(over, Over::Frame) && self.x.flash(dh) {
+            // FlashAttention-2 on the tensor cores, each frame a batch entry.
+            let qs = [n * 3 * d, dh, 3 * d];
+            self.run(&Op::Flash(Flash {
+                q: qkv,
+                k: qkv.at(d),
+                v: qkv.at(2 * d),
+                y: att,
+                lse: self.win.lse,
+                qs,
+                ks: qs,
+                vs: qs,
+                ys: [n * d, dh, d],
+                batch: cs * w,
+                heads,
+                lq: n,
+                lk: n,
+                dh,
+                causal: false,
+            }))?;
+            return self.layer_tail(l, rows);
         }
         let (instances, inner, qs, ys, len, causal) = match over {
             // Instance (scene, position), rows the frames.
@@ -245,7 +269,7 @@ impl<X: Exec> Engine<X> {
                 None,
             ),
         };
-        self.x.run(&Op::AttendTiles(AttendTiles {
+        self.run(&Op::AttendTiles(AttendTiles {
             q: qkv,
             k: qkv.at(d),
             v: qkv.at(2 * d),
@@ -262,6 +286,13 @@ impl<X: Exec> Engine<X> {
             causal,
             scale: (dh as f32).sqrt().recip(),
         }))?;
+        self.layer_tail(l, rows)
+    }
+
+    /// The rest of a TAR layer once its attention is in `win.att`: the output projection and the MLP, each
+    /// added to the residual stream.
+    fn layer_tail(&mut self, l: &SelfW, rows: usize) -> Result<()> {
+        let (d, x, xn, att) = (self.lay.d, self.win.x, self.win.xn, self.win.att);
         self.gemm((att, d), l.proj, (x, d), rows, true)?;
         self.rows(
             Map::packed(x, d),
@@ -302,7 +333,7 @@ impl<X: Exec> Engine<X> {
                 .iter()
                 .map(|(_, t)| self.lay.spec.segments[*t].vocab)
                 .sum();
-            self.x.run(&Op::Rows(Rows {
+            self.run(&Op::Rows(Rows {
                 src: self.dec.h,
                 idx: Some(self.dec.keep_idx.at(first)),
                 dst: xn,

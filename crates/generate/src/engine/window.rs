@@ -62,7 +62,7 @@ impl<X: Exec> Engine<X> {
         if rows == 0 {
             return Ok(());
         }
-        Ok(self.x.run(&Op::Rows(Rows {
+        self.run(&Op::Rows(Rows {
             src: src.base,
             idx: None,
             dst: dst.base,
@@ -78,7 +78,7 @@ impl<X: Exec> Engine<X> {
             d,
             add,
             gelu: false,
-        }))?)
+        }))
     }
 
     /// `c (+)= a · l.wᵀ` over `rows` rows (no bias).
@@ -93,7 +93,7 @@ impl<X: Exec> Engine<X> {
         if rows == 0 {
             return Ok(());
         }
-        Ok(self.x.run(&Op::Gemm(Gemm {
+        self.run(&Op::Gemm(Gemm {
             a,
             w: l.w,
             c,
@@ -103,7 +103,7 @@ impl<X: Exec> Engine<X> {
             lda,
             ldc,
             accumulate,
-        }))?)
+        }))
     }
 
     /// `x += gelu(xn · fc + b) · fc2` (+ fc2's bias) over `rows` rows of `xn` (`W`, `ld` apart) into the f32
@@ -121,7 +121,7 @@ impl<X: Exec> Engine<X> {
             let r = cap.min(rows - r0);
             self.gemm((xn.at(r0 * ld), ld), fc, (hid, fc.n), r, false)?;
             if let Some(b) = fc.b {
-                self.x.run(&Op::BiasT(BiasT {
+                self.run(&Op::BiasT(BiasT {
                     x: hid,
                     bias: b,
                     rows: r,
@@ -152,7 +152,7 @@ impl<X: Exec> Engine<X> {
             e,
         });
         let (fc1, fc2) = (w.fc1, w.fc2);
-        self.x.run(&op)?;
+        self.run(&op)?;
         self.mlp((xn, e), (fc1, fc2), out, rows, false)
     }
 
@@ -192,7 +192,7 @@ impl<X: Exec> Engine<X> {
             }
             // The frame embedding, added to every position of frame t.
             let time = self.w.time;
-            self.x.run(&Op::Rows(Rows {
+            self.run(&Op::Rows(Rows {
                 src: time,
                 idx: None,
                 dst: x,

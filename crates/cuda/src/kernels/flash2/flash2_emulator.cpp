@@ -6,9 +6,9 @@
 // Rust crate can make:
 //
 //   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/flash2-emu
-//       crates/backbone/src/flash/flash2_emulator.cpp && /tmp/flash2-emu
+//       crates/cuda/src/kernels/flash2/flash2_emulator.cpp && /tmp/flash2-emu
 //
-// (`crates/backbone/tests/flash2_emulator.rs` runs it in the test suite.)
+// (`crates/cuda/tests/emulator.rs` runs it in the test suite.)
 //
 // Exit status 0 when every case agrees within bf16 tolerance.
 #include <barrier>
