@@ -185,12 +185,110 @@ fn version_help_and_doctor() {
     }
 }
 
+/// The rows of a `bench generate` table whose first column is one of `keys`, split in columns.
+fn table_rows<'a>(table: &'a str, keys: &[&str]) -> Vec<Vec<&'a str>> {
+    table
+        .lines()
+        .map(|l| l.split_whitespace().collect::<Vec<_>>())
+        .filter(|c| c.first().is_some_and(|w| keys.contains(w)) && c.len() >= 7)
+        .collect()
+}
+
 #[test]
-fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
+fn bench_generate_engine_prints_a_row_per_batch_and_history_and_agrees_with_burn() {
     let tiny = config("tiny.toml");
     let out = umgen(&[
         "bench",
         "generate",
+        "--config",
+        tiny.to_str().unwrap(),
+        "--history",
+        "1,2",
+        "--batch",
+        "1,2",
+        "--frames",
+        "1",
+        "--check",
+        "2",
+        "--rollout",
+        "2",
+        "--profile",
+    ]);
+    let table = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    // Greedy frames of the engine and of the burn decoder: both f32 on the CPU, the same tokens.
+    assert!(
+        table.contains("342 of 342 tokens and 2 of 2 frames agree"),
+        "{table}"
+    );
+    let rows = table_rows(&table, &["1", "2"]);
+    let keys: Vec<(&str, &str)> = rows.iter().map(|c| (c[0], c[1])).collect();
+    assert_eq!(keys, [("1", "1"), ("1", "2"), ("2", "1"), ("2", "2")], "{table}");
+    for c in &rows {
+        let num = |i: usize| c[i].parse::<f64>().unwrap();
+        let (batch, frame_s, ms, fps) = (num(0), num(3), num(4), num(7));
+        assert!(
+            num(2) > 0.0 && frame_s > 0.0 && num(5) > 0.0 && num(6) > 0.0,
+            "{table}"
+        );
+        // ms/token is the frame over N = 171 tokens, frames/s the batch's scenes over the frame; the
+        // frame column is printed to 1 ms, so `want` carries that rounding.
+        let tol = 0.0005 / frame_s + 0.002;
+        assert!((ms - 1e3 * frame_s / 171.0).abs() <= tol * ms + 1e-4, "{table}");
+        assert!((fps - batch / frame_s).abs() <= tol * fps + 0.01, "{table}");
+    }
+    // The profile lists the window's operations and the step's, each total the sum of its lines.
+    for (title, unit) in [("window pass", "ms"), ("decoding step", "µs")] {
+        let head = table.lines().position(|l| l.starts_with(title)).expect(title);
+        // The number before the unit, in a title or in an operation's line.
+        let number = |l: &str| -> f64 {
+            let w: Vec<&str> = l.split_whitespace().collect();
+            let at = w.iter().position(|&x| x == unit).expect(unit);
+            w[at - 1].parse().unwrap()
+        };
+        let lines: Vec<&str> = table.lines().collect();
+        let total = number(lines[head].rsplit(": ").next().unwrap());
+        let parts: Vec<f64> = lines[head + 1..]
+            .iter()
+            .take_while(|l| l.starts_with("  "))
+            .filter(|l| !l.ends_with("(not in the step)"))
+            .map(|l| number(l))
+            .collect();
+        assert!(!parts.is_empty() && parts.iter().all(|&p| p >= 0.0), "{table}");
+        // Each line is rounded to 0.005, the total to 0.05.
+        let sum: f64 = parts.iter().sum();
+        let tol = 0.05 + 0.005 * parts.len() as f64;
+        assert!((sum - total).abs() <= tol, "{title}: {sum} vs {total}\n{table}");
+    }
+    assert!(
+        table.contains("rollout  2 frames × 1 scene(s) from T = 1"),
+        "{table}"
+    );
+    let err = failure(
+        &[
+            "bench",
+            "generate",
+            "--config",
+            tiny.to_str().unwrap(),
+            "--history",
+            "9",
+        ],
+        &[],
+    );
+    assert!(
+        err.contains("--history 9") && err.contains("backbone.max_frames"),
+        "{err}"
+    );
+}
+
+#[test]
+fn bench_generate_burn_decoder_prints_a_row_per_history_and_the_parts_of_a_step() {
+    let tiny = config("tiny.toml");
+    let out = umgen(&[
+        "bench",
+        "generate",
+        "--decoder",
+        "burn",
         "--config",
         tiny.to_str().unwrap(),
         "--history",
@@ -216,17 +314,12 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
         table.contains("device draw, top-16 by rounds") && !table.contains("by reduce"),
         "{table}"
     );
-    let rows: Vec<&str> = table
-        .lines()
-        .filter(|l| l.split_whitespace().next().is_some_and(|w| w == "1" || w == "3"))
-        .collect();
+    let rows = table_rows(&table, &["1", "3"]);
     assert_eq!(rows.len(), 2, "{table}");
-    // Every timing is a positive number.
-    for r in rows {
-        let cols: Vec<&str> = r.split_whitespace().collect();
+    for cols in rows {
         assert!(
             cols[1].parse::<f64>().unwrap() > 0.0 && cols[3].parse::<f64>().unwrap() > 0.0,
-            "{r}"
+            "{cols:?}"
         );
         // Frames per second of the batch (1 scene) is 1000 / (ms/token × N), N = 171 for tiny. The table
         // prints ms/token to 3 decimals, so `want` carries that rounding (0.0005 ms, 0.24 % of 0.212 ms)
@@ -234,23 +327,11 @@ fn bench_generate_prints_a_row_per_history_and_refuses_too_long_ones() {
         let fps = cols[6].parse::<f64>().unwrap();
         let ms = cols[1].parse::<f64>().unwrap();
         let want = 1e3 / (ms * 171.0);
-        assert!((fps - want).abs() <= (0.0005 / ms + 0.002) * want + 0.001, "{r}");
+        assert!(
+            (fps - want).abs() <= (0.0005 / ms + 0.002) * want + 0.001,
+            "{cols:?}"
+        );
     }
-    let err = failure(
-        &[
-            "bench",
-            "generate",
-            "--config",
-            tiny.to_str().unwrap(),
-            "--history",
-            "9",
-        ],
-        &[],
-    );
-    assert!(
-        err.contains("--history 9") && err.contains("backbone.max_frames"),
-        "{err}"
-    );
 }
 
 /// `umgen bench attention --iters 1` with `args`: the header and each row as (case, numbers: block MiB,

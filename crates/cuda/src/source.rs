@@ -19,6 +19,18 @@ pub const FLASH2: &str = concat!(
     include_str!("kernels/flash2/flash2.cu")
 );
 
+/// [`FLASH2`] with only the bf16 forward kernels for head sizes 32 and 64 (the generation engine's window
+/// pass): the backward and f32 kernels would more than double the first start's compilation.
+pub fn flash2_forward_bf16() -> String {
+    let instance =
+        |d: usize| format!("KERNEL umgen_flash2_forward_bf16_{d}(Params p) {{ forward<u16, {d}>(p); }}");
+    format!(
+        "#define UMGEN_INSTANCE {} {}\n{FLASH2}",
+        instance(32),
+        instance(64)
+    )
+}
+
 /// The generation engine's kernels (`gemv.cu`, `attend.cu`, `rows.cu`, `draw.cu`) with their weights and
 /// operands in bf16 (`bf16`) or f32.
 pub fn engine(bf16: bool) -> String {

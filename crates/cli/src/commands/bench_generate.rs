@@ -205,13 +205,14 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
         for (name, s, count) in &window {
             writeln!(out, "  {name:<28} {:>9.2} ms {count:>6} ×", 1e3 * s)?;
         }
-        let total: f64 = step.iter().map(|s| s.1).sum();
+        let total: f64 = step.iter().filter(|s| s.2).map(|s| s.1).sum();
         writeln!(
             out,
             "decoding step, each operation alone (50 in a graph): {total:.1} µs"
         )?;
-        for (name, us) in &step {
-            writeln!(out, "  {name:<28} {us:>9.2} µs")?;
+        for (name, us, in_step) in &step {
+            let note = if *in_step { "" } else { " (not in the step)" };
+            writeln!(out, "  {name:<28} {us:>9.2} µs{note}")?;
         }
     }
     if let Some((batch, t, s)) = rollout {

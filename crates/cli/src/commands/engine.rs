@@ -76,7 +76,7 @@ impl AnyEngine {
     }
 
     /// Microseconds per run of each operation of a decoding step.
-    pub fn profile_step(&mut self, reps: usize) -> anyhow::Result<Vec<(String, f64)>> {
+    pub fn profile_step(&mut self, reps: usize) -> anyhow::Result<Vec<(String, f64, bool)>> {
         Ok(match self {
             Self::Host(e) => e.profile_step(reps)?,
             #[cfg(feature = "cuda")]

@@ -3,7 +3,7 @@
 use super::{CudaExec, device};
 use crate::ops::{Elem, Gemm, Op};
 use cudarc::cublas::{result as blas, sys as blas_sys};
-use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg, sys};
 use std::collections::HashMap;
 use std::ffi::c_void;
 
@@ -31,7 +31,7 @@ pub(super) fn launch(x: &CudaExec, op: &Op) -> Result<(), ExecError> {
             x,
             "umgen_gemv",
             &x.gemv(g),
-            blocks(g.n, WARPS / gemv_split(g.k)),
+            blocks(g.n, WARPS / gemv_split(g.k)).min(x.gemv_blocks),
             threads,
         ),
         Op::Gemm(g) => gemm(x, g),
@@ -116,7 +116,46 @@ fn kernel<P: DeviceRepr>(
     grid: u32,
     threads: u32,
 ) -> Result<(), ExecError> {
-    launch_3d(x, &x.functions, name, params, (grid, 1, 1), threads)
+    if !x.dependent_launch {
+        return launch_3d(x, &x.functions, name, params, (grid, 1, 1), threads);
+    }
+    let f = x
+        .functions
+        .get(name)
+        .ok_or_else(|| ExecError::Device(format!("kernel {name} was not compiled")))?;
+    // Programmatic dependent launch: the kernel may start while the one before it finishes; every engine
+    // kernel waits (`griddep_wait`) before it reads anything an earlier kernel writes.
+    // SAFETY: a zeroed union is a valid value for its integer members; the one set is the attribute's.
+    let mut value: sys::CUlaunchAttributeValue = unsafe { std::mem::zeroed() };
+    value.programmaticStreamSerializationAllowed = 1;
+    let mut attribute = sys::CUlaunchAttribute {
+        id: sys::CUlaunchAttributeID::CU_LAUNCH_ATTRIBUTE_PROGRAMMATIC_STREAM_SERIALIZATION,
+        pad: [0; 4],
+        value,
+    };
+    let config = sys::CUlaunchConfig {
+        gridDimX: grid,
+        gridDimY: 1,
+        gridDimZ: 1,
+        blockDimX: threads,
+        blockDimY: 1,
+        blockDimZ: 1,
+        sharedMemBytes: 0,
+        hStream: x.stream.cu_stream(),
+        attrs: &mut attribute,
+        numAttrs: 1,
+    };
+    let mut args = [(params as *const P).cast_mut().cast::<c_void>()];
+    x.ctx
+        .bind_to_thread()
+        .map_err(|e| device(name)(format!("{e:?}")))?;
+    // SAFETY: `check` passed the operation: every buffer its kernel reaches through `params` holds the
+    // elements it reaches, of the types it takes; `params` is laid out as the kernel's one parameter and
+    // outlives the call (the driver copies it); the kernel waits for its predecessors before it reads what
+    // they write.
+    unsafe { sys::cuLaunchKernelEx(&config, f.cu_function(), args.as_mut_ptr(), std::ptr::null_mut()) }
+        .result()
+        .map_err(|e| device(name)(format!("{e:?}")))
 }
 
 /// The flash2 grid's largest y (and z) extent.

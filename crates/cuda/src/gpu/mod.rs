@@ -30,6 +30,12 @@ pub struct CudaExec {
     functions: HashMap<&'static str, CudaFunction>,
     /// FlashAttention-2's forward kernels (bf16 executors on compute capability 8.0 or newer).
     flash: Option<HashMap<&'static str, CudaFunction>>,
+    /// Whether the engine's kernels launch with programmatic dependent launch (compute capability 9.0;
+    /// `UMGEN_DEPENDENT_LAUNCH=0` turns it off, for comparison).
+    dependent_launch: bool,
+    /// Blocks of `umgen_gemv` that fit on the GPU at once (SMs × resident blocks): its grid walks the
+    /// columns, so one wave streams every weight and no block waits for a second one.
+    gemv_blocks: u32,
     blas: blas_sys::cublasHandle_t,
     allocs: Vec<Alloc>,
     graphs: HashMap<u64, CudaGraph>,
@@ -83,6 +89,15 @@ impl CudaExec {
                 .map_err(|e| device(name)(format!("{e:?}")))?;
             functions.insert(name, f);
         }
+        let sms = ctx
+            .attribute(sys::CUdevice_attribute::CU_DEVICE_ATTRIBUTE_MULTIPROCESSOR_COUNT)
+            .map_err(|e| device("SM count")(format!("{e:?}")))?;
+        let resident = functions
+            .get("umgen_gemv")
+            .ok_or_else(|| ExecError::Invalid("the engine source has no umgen_gemv".into()))?
+            .occupancy_max_active_blocks_per_multiprocessor(256, 0, None)
+            .map_err(|e| device("umgen_gemv occupancy")(format!("{e:?}")))?;
+        let gemv_blocks = (sms.max(1) as u32).saturating_mul(resident.max(1));
         let flash = if bf16 && major >= 8 {
             // As the training compiles them: Hopper's `wgmma` for head size 64 on sm_90a.
             let options = CompileOptions {
@@ -90,7 +105,7 @@ impl CudaExec {
                 use_fast_math: Some(true),
                 ..Default::default()
             };
-            let ptx = compile_ptx_with_opts(crate::source::FLASH2, options)
+            let ptx = compile_ptx_with_opts(crate::source::flash2_forward_bf16(), options)
                 .map_err(|e| device("NVRTC (flash2)")(format!("{e:?}")))?;
             let module = ctx
                 .load_module(ptx)
@@ -106,7 +121,7 @@ impl CudaExec {
         } else {
             None
         };
-        tracing::debug!(
+        tracing::info!(
             "engine kernels compiled for sm_{major}{minor} ({}) in {:.1} s",
             if bf16 { "bf16" } else { "f32" },
             started.elapsed().as_secs_f64()
@@ -126,6 +141,9 @@ impl CudaExec {
             stream,
             functions,
             flash,
+            dependent_launch: major >= 9
+                && std::env::var("UMGEN_DEPENDENT_LAUNCH").map_or(true, |v| v != "0"),
+            gemv_blocks,
             blas: handle,
             allocs: Vec::new(),
             graphs: HashMap::new(),

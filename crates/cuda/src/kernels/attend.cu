@@ -52,6 +52,7 @@ DEV void merge_parts(const float* part, int stride, int n, int dh, float* y) {
 // last key return at once. A block's warps merge in shared memory; with several splits, each writes its
 // part and the last to finish merges them (a counter per query, reset by that block).
 KERNEL umgen_attend_rows(const AttendRows P) {
+    griddep_launch();
     SHARED float qs[ATT_DH];
     // The warps' parts, then (for the merging block) every split's: up to ROWS_MAX_SPLITS of them.
     SHARED float bpart[ROWS_MAX_SPLITS][2 + ATT_DH];
@@ -62,15 +63,27 @@ KERNEL umgen_attend_rows(const AttendRows P) {
     const int h = (int)(bhr % P.heads);
     const long long br = bhr / P.heads;
     const long long r = br % P.rows, b = br / P.rows;
-    const int lk = P.pos ? *P.pos + 1 : P.lk;
     const int wpb = warps_per_block(), per = 32 * wpb;
+    const WT* kb = P.k + b * P.k_sb + (long long)h * P.k_sh;
+    const WT* vb = P.v + b * P.k_sb + (long long)h * P.k_sh;
+    if (P.pos) {
+        // A decoding step: the position moves only between steps, and the keys and values before it were
+        // written by earlier steps, so their lines are asked of L2 while the kernel before finishes.
+        const int j = split * per + warp_id() * 32 + lane_id();
+        if (j < *P.pos) {
+            for (int e = 0; e < P.dh; e += 128 / (int)sizeof(WT)) {
+                prefetch_l2(kb + (long long)j * P.k_sj + e);
+                prefetch_l2(vb + (long long)j * P.k_sj + e);
+            }
+        }
+    }
+    griddep_wait();
+    const int lk = P.pos ? *P.pos + 1 : P.lk;
     const int active = (lk + per - 1) / per;
     if (split >= active) return;
     const float* q = P.q + b * P.q_sb + r * P.q_sr + (long long)h * P.dh;
     for (int d = thread_id(); d < P.dh; d += threads()) qs[d] = q[d] * P.scale;
     sync_block();
-    const WT* kb = P.k + b * P.k_sb + (long long)h * P.k_sh;
-    const WT* vb = P.v + b * P.k_sb + (long long)h * P.k_sh;
     float mrun = NEG_INF, srun = 0.f, acc[ATT_DH / 32];
     for (int i = 0; i < ATT_DH / 32; i++) acc[i] = 0.f;
     const int c0 = split * per + warp_id() * 32;
@@ -169,6 +182,8 @@ struct AttendTiles {
 };
 
 KERNEL umgen_attend_tiles(const AttendTiles P) {
+    griddep_launch();
+    griddep_wait();
     SHARED float ks[32][ATT_DH];
     SHARED float vs[32][ATT_DH];
     const long long blk = block_x();
@@ -204,40 +219,24 @@ KERNEL umgen_attend_tiles(const AttendTiles P) {
             vs[kk][d] = in ? value(vb + (long long)j * P.k_sr + d) : 0.f;
         }
         sync_block();
-        float sc[32];
-#pragma unroll
-        for (int kk = 0; kk < 32; kk++) {
+        // One key at a time with its own rescaling: a loop the compiler need not unroll (unrolled over 32
+        // keys and 128 dimensions it made NVRTC's slowest kernel), at two exponentials a key.
+        const int kn = kend - k0 < 32 ? kend - k0 : 32;
+        for (int kk = 0; kk < kn; kk++) {
             float s = 0.f;
 #pragma unroll
             for (int i = 0; i < ATT_DH / 4; i++)
                 if (i < per) s = fmaf(qv[i], ks[kk][part + 4 * i], s);
-            sc[kk] = s;
-        }
-        float mx = NEG_INF;
-#pragma unroll
-        for (int kk = 0; kk < 32; kk++) {
-            float s = sc[kk];
             s += from_xor(s, 1);
             s += from_xor(s, 2);
             const int j = k0 + kk;
-            if (j >= P.lk || (P.causal && j > row + P.off)) s = NEG_INF;
-            sc[kk] = s;
-            mx = fmaxf(mx, s);
-        }
-        const float mnew = fmaxf(mrun, mx);
-        if (mnew != NEG_INF) {
-            const float alpha = expf(mrun - mnew);
-            srun *= alpha;
+            if (j >= P.lk || (P.causal && j > row + P.off)) continue;
+            const float mnew = fmaxf(mrun, s);
+            const float alpha = expf(mrun - mnew), p = expf(s - mnew);
+            srun = fmaf(srun, alpha, p);
 #pragma unroll
-            for (int i = 0; i < ATT_DH / 4; i++) acc[i] *= alpha;
-#pragma unroll
-            for (int kk = 0; kk < 32; kk++) {
-                const float p = expf(sc[kk] - mnew);
-                srun += p;
-#pragma unroll
-                for (int i = 0; i < ATT_DH / 4; i++)
-                    if (i < per) acc[i] = fmaf(p, vs[kk][part + 4 * i], acc[i]);
-            }
+            for (int i = 0; i < ATT_DH / 4; i++)
+                if (i < per) acc[i] = fmaf(p, vs[kk][part + 4 * i], acc[i] * alpha);
             mrun = mnew;
         }
         sync_block();

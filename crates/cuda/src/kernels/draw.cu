@@ -123,94 +123,117 @@ DEV void scan_best(const Draw& P, const float* row, const Rule& R, const GroupRu
     }
 }
 
-// The best of this thread's held logits (ids thread_id() + t·threads(); −∞ where not allowed) ranking
-// after (bv, bi) (after nothing when bi < 0).
-DEV void held_best(const float* held, float bv, int bi, float* v, int* i) {
-    *v = NEG_INF;
-    *i = NO_ID;
-#pragma unroll
-    for (int t = 0; t < DRAW_HELD; t++) {
-        const float x = held[t];
-        const int id = thread_id() + t * threads();
-        if (x == NEG_INF) continue;
-        if (bi >= 0 && !ranks_before(bv, bi, x, id)) continue;
-        if (ranks_before(x, id, *v, *i)) {
-            *v = x;
-            *i = id;
+// A logit and its id as one key whose order is the draw's: larger logit first, ties to the smaller id (the
+// float's bits made order-preserving above, the id's complement below). 0 is no entry.
+typedef unsigned long long u64;
+DEV u64 draw_key(float x, int id) {
+    const u32 u = float_bits(x);
+    const u32 ord = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+    return ((u64)ord << 32) | (u64)(~(u32)id);
+}
+DEV float key_value(u64 k) {
+    const u32 o = (u32)(k >> 32);
+    return bits_float((o & 0x80000000u) ? (o & 0x7fffffffu) : ~o);
+}
+DEV int key_id(u64 k) { return (int)~(u32)k; }
+
+// The warp's largest key; every lane gets it.
+DEV u64 warp_max_key(u64 k) {
+    for (int off = 16; off > 0; off >>= 1) {
+        const u32 hi = float_bits(from_xor(bits_float((u32)(k >> 32)), off));
+        const u32 lo = float_bits(from_xor(bits_float((u32)k), off));
+        const u64 o = ((u64)hi << 32) | lo;
+        k = o > k ? o : k;
+    }
+    return k;
+}
+
+// The ids a position allows as two ranges, [r0, r1) ∪ [r2, r3): what `allowed` tests, once per draw.
+DEV void allowed_ranges(const Rule& R, const GroupRun& G, int first, bool limited, int* r) {
+    const int lim = limited ? R.limit : (1 << 30);
+    r[2] = r[3] = 0;
+    if (R.gstart < 0) {
+        r[0] = 0;
+        r[1] = lim;
+    } else if (R.gj == 0) {
+        r[0] = 0;
+        r[1] = G.values < lim ? G.values : lim;
+        if (G.pad < lim) {
+            r[2] = G.pad;
+            r[3] = G.pad + 1;
         }
+    } else if (first == G.pad) {
+        r[0] = G.pad;
+        r[1] = G.pad + 1;
+    } else if (R.gj + 1 == G.size) {
+        r[0] = G.last_lo;
+        r[1] = G.last_hi;
+    } else {
+        r[0] = 0;
+        r[1] = G.values < lim ? G.values : lim;
     }
 }
 
+// The largest of a thread's held keys below `bound` (0: none).
+DEV u64 held_below(const u64* held, u64 bound) {
+    u64 m = 0;
+#pragma unroll
+    for (int t = 0; t < DRAW_HELD; t++) m = held[t] < bound && held[t] > m ? held[t] : m;
+    return m;
+}
+
 // The top-k (most likely first, ties to the smaller id) of a row a block holds in registers, into `cv`,
-// `ci` (shared); their count. Each warp finds the k best of its ids by rounds of shuffles alone, then warp 0
-// the k best of those lists: two block barriers in all, where a block-wide round took two per id.
+// `ci` (shared); their count. Each warp finds the k largest keys of its ids by rounds of shuffles alone,
+// then warp 0 the k largest of those lists: two block barriers in all, and no branch per id.
 DEV int held_top_k(const Draw& P, const float* row, const Rule& R, const GroupRun& G, int first, bool limited,
                    float* cv, int* ci) {
-    SHARED float lv[8][DRAW_KMAX];
-    SHARED int li[8][DRAW_KMAX];
-    SHARED int ln[8];
+    SHARED u64 lists[8][DRAW_KMAX];
     SHARED int total;
-    float held[DRAW_HELD];
+    int r[4];
+    allowed_ranges(R, G, first, limited, r);
+    u64 held[DRAW_HELD];
     // Every load in flight at once; a round then reads registers only.
 #pragma unroll
     for (int t = 0; t < DRAW_HELD; t++) {
         const int id = thread_id() + t * threads();
-        float x = id < P.vocab ? row[id] : NEG_INF;
-        if (!finite(x) || (id < P.vocab && !allowed(R, G, first, id, limited))) x = NEG_INF;
-        held[t] = x;
+        const float x = id < P.vocab ? row[id] : NEG_INF;
+        const bool ok = ((id >= r[0] && id < r[1]) || (id >= r[2] && id < r[3])) && finite(x);
+        held[t] = ok ? draw_key(x, id) : 0ull;
     }
-    const int w = warp_id();
-    float v;
-    int i, n = 0;
-    held_best(held, 0.f, -1, &v, &i);
-    for (; n < P.top_k; n++) {
-        float xv = v;
-        int xi = i;
-        warp_best(&xv, &xi);
-        if (xv == NEG_INF) break;
-        if (lane_id() == 0) {
-            lv[w][n] = xv;
-            li[w][n] = xi;
-        }
-        if (i == xi) held_best(held, xv, xi, &v, &i);
+    const int w = warp_id(), k = P.top_k;
+    u64 mine = held_below(held, ~0ull);
+    int n = 0;
+    for (; n < k; n++) {
+        const u64 best = warp_max_key(mine);
+        if (best == 0) break;
+        if (lane_id() == 0) lists[w][n] = best;
+        if (mine == best) mine = held_below(held, best);
     }
-    if (lane_id() == 0) ln[w] = n;
+    // A short list ends in zeros (the array holds an earlier draw's entries).
+    if (lane_id() == 0)
+        for (; n < k; n++) lists[w][n] = 0ull;
     sync_block();
     if (w == 0) {
-        // Warp 0's lanes hold the lists' entries c = lane + 32·j, c = list·k + place.
-        const int k = P.top_k, lists = warps_per_block();
-        float mv[DRAW_KMAX / 4];
-        int mi[DRAW_KMAX / 4];
+        // Warp 0's lanes hold the lists' entries c = lane + 32·j, c = list·k + place (a list ends at 0).
+        u64 mk[DRAW_KMAX / 4];
 #pragma unroll
         for (int j = 0; j < DRAW_KMAX / 4; j++) {
-            const int c = lane_id() + 32 * j, list = c / k, place = c % k;
-            const bool there = list < lists && place < ln[list];
-            mv[j] = there ? lv[list][place] : NEG_INF;
-            mi[j] = there ? li[list][place] : NO_ID;
+            const int c = lane_id() + 32 * j, list = c / k;
+            mk[j] = list < warps_per_block() ? lists[list][c % k] : 0ull;
         }
+        u64 bound = ~0ull;
         int count = 0;
-        float bv = 0.f;
-        int bi = -1;
         for (; count < k; count++) {
-            // This lane's best entry ranking after the last winner.
-            float xv = NEG_INF;
-            int xi = NO_ID;
+            u64 m = 0;
 #pragma unroll
-            for (int j = 0; j < DRAW_KMAX / 4; j++) {
-                if (mv[j] == NEG_INF || (bi >= 0 && !ranks_before(bv, bi, mv[j], mi[j]))) continue;
-                if (ranks_before(mv[j], mi[j], xv, xi)) {
-                    xv = mv[j];
-                    xi = mi[j];
-                }
-            }
-            warp_best(&xv, &xi);
-            if (xv == NEG_INF) break;
+            for (int j = 0; j < DRAW_KMAX / 4; j++) m = mk[j] < bound && mk[j] > m ? mk[j] : m;
+            const u64 best = warp_max_key(m);
+            if (best == 0) break;
             if (lane_id() == 0) {
-                cv[count] = xv;
-                ci[count] = xi;
+                cv[count] = key_value(best);
+                ci[count] = key_id(best);
             }
-            bv = xv;
-            bi = xi;
+            bound = best;
         }
         if (lane_id() == 0) total = count;
     }
@@ -370,6 +393,8 @@ DEV void new_agent(const Draw& P, const Rule& R, const GroupRun& G, int b, int p
 }
 
 KERNEL umgen_draw(const Draw P) {
+    griddep_launch();
+    griddep_wait();
     const int b = (int)block_x();
     const int p = *P.pos;
     const Rule R = P.rules[p];

@@ -88,7 +88,8 @@ DEV void gemv_out(const Gemv& P, int s, long long j, float r) {
 }
 
 // Warps that share an output column: enough that each takes at most GEMV_SLICE inputs (a power of two, at
-// most the block's 8). The launch gives `ceil(n / (8 / gemv_split(k)))` blocks of 8 warps.
+// most the block's 8). The launch gives blocks of 8 warps: `ceil(n / (8 / gemv_split(k)))`, at most as many
+// as are resident on the GPU at once.
 #define GEMV_SLICE 1024
 DEV int gemv_split(int k) {
     int split = 1;
@@ -96,35 +97,45 @@ DEV int gemv_split(int k) {
     return split;
 }
 
-// Each warp takes `slice` inputs of one output column: it issues every load of its weights first (they
-// are in flight while the block computes the rows' norm statistics), then reads the inputs, sums across
-// its lanes and, with several warps a column, across them in shared memory.
+// Loads slice `k0..k1` of weight row `j` (8-wide, the first 4 × 256 inputs of it) into `wv`, packed.
+DEV void gemv_prefetch(const Gemv& P, long long j, int k0, int k1, Packed8* wv) {
+    const WT* wr = P.w + j * P.k;
+#pragma unroll
+    for (int c = 0; c < 4; c++) {
+        const int at = k0 + lane_id() * 8 + 256 * c;
+        if (at < k1) load_packed8(wr + at, wv[c]);
+    }
+}
+
+// The grid (SMs × resident blocks, or fewer) walks groups of output columns: each warp takes `slice`
+// inputs of one column of the group. A warp's weights for its first group are loaded before the wait for
+// the kernel before (weights are never written), those of its next group while the current one is summed;
+// the rows' norm statistics are computed once per block. With several warps a column, their sums meet in
+// shared memory.
 KERNEL umgen_gemv(const Gemv P) {
     SHARED float st[2 * GEMV_ROWS];
     SHARED float partial[8][GEMV_ROWS];
+    griddep_launch();
     const int m = P.m;
     const int split = gemv_split(P.k), per_block = warps_per_block() / split;
     const int local = warp_id() / split, part = warp_id() % split;
-    const long long j = block_x() * per_block + local;
-    const bool here = j < P.n;
     const int slice = (P.k + split - 1) / split;
     const int k0 = part * slice, k1 = k0 + slice < P.k ? k0 + slice : P.k;
     const bool vec = (P.k & 7) == 0 && (slice & 7) == 0;
-    const WT* wr = P.w + (here ? j : 0) * P.k;
-    float wv[4][8];
-    if (vec && here) {
-#pragma unroll
-        for (int c = 0; c < 4; c++) {
-            const int at = k0 + lane_id() * 8 + 256 * c;
-            if (at < k1) load8(wr + at, wv[c]);
-        }
+    const long long groups = (P.n + per_block - 1) / per_block;
+    Packed8 wv[4];
+    {
+        const long long j = block_x() * per_block + local;
+        if (vec && j < P.n) gemv_prefetch(P, j, k0, k1, wv);
     }
+    // Nothing above read what an earlier kernel writes: the weights' loads are in flight across the wait.
+    griddep_wait();
     if (P.in_mode == 1) {
-        // Warp s: row s's mean and 1/σ (biased variance, ε 1e-5, as burn's LayerNorm).
+        // Warp s: row s's mean and 1/σ (biased variance, ε 1e-5, as burn's LayerNorm), its first 1,024
+        // values read once into registers.
         const int s = warp_id();
         if (s < m) {
             const float* xr = P.x + (long long)s * P.ldx;
-            // Rows of up to 1,024 are read once, into registers, with every load in flight together.
             float v[32], sum = 0.f;
 #pragma unroll
             for (int t = 0; t < 32; t++) {
@@ -163,52 +174,65 @@ KERNEL umgen_gemv(const Gemv P) {
         for (int s = 0; s < GEMV_ROWS; s++)
             if (s < m) trow[s] = P.table + (long long)(P.row_base[P.seg_of[q]] + P.tok[s * P.ntok + q]) * P.k;
     }
-    float acc[GEMV_ROWS];
-    for (int s = 0; s < GEMV_ROWS; s++) acc[s] = 0.f;
-    if (here && vec) {
+    for (long long g = block_x(); g < groups; g += blocks()) {
+        const long long j = g * per_block + local, jn = (g + blocks()) * per_block + local;
+        const bool here = j < P.n;
+        Packed8 wn[4];
+        if (vec && jn < P.n) gemv_prefetch(P, jn, k0, k1, wn);
+        float acc[GEMV_ROWS];
+        for (int s = 0; s < GEMV_ROWS; s++) acc[s] = 0.f;
+        if (here && vec) {
 #pragma unroll
-        for (int c = 0; c < 4; c++) {
-            const int at = k0 + lane_id() * 8 + 256 * c;
-            if (at < k1) {
+            for (int c = 0; c < 4; c++) {
+                const int at = k0 + lane_id() * 8 + 256 * c;
+                if (at < k1) {
+                    float w8[8];
+                    unpack8(wv[c], w8);
+                    for (int s = 0; s < GEMV_ROWS; s++) {
+                        if (s < m) {
+                            float xv[8];
+                            gemv_in8(P, st, trow[s], prow, s, at, xv);
+                            for (int e = 0; e < 8; e++) acc[s] = fmaf(w8[e], xv[e], acc[s]);
+                        }
+                    }
+                }
+            }
+            // Slices past 4 × 256 inputs (k over 8 warps × 1,024) go on without prefetched weights.
+            const WT* wr = P.w + j * P.k;
+            for (int at = k0 + lane_id() * 8 + 1024; at < k1; at += 256) {
+                float w8[8];
+                load8(wr + at, w8);
                 for (int s = 0; s < GEMV_ROWS; s++) {
                     if (s < m) {
                         float xv[8];
                         gemv_in8(P, st, trow[s], prow, s, at, xv);
-                        for (int e = 0; e < 8; e++) acc[s] = fmaf(wv[c][e], xv[e], acc[s]);
+                        for (int e = 0; e < 8; e++) acc[s] = fmaf(w8[e], xv[e], acc[s]);
                     }
                 }
             }
-        }
-        // Slices past 4 × 256 inputs (k over 8 warps × 1,024) go on without prefetched weights.
-        for (int at = k0 + lane_id() * 8 + 1024; at < k1; at += 256) {
-            float w8[8];
-            load8(wr + at, w8);
-            for (int s = 0; s < GEMV_ROWS; s++) {
-                if (s < m) {
-                    float xv[8];
-                    gemv_in8(P, st, trow[s], prow, s, at, xv);
-                    for (int e = 0; e < 8; e++) acc[s] = fmaf(w8[e], xv[e], acc[s]);
-                }
+        } else if (here) {
+            const WT* wr = P.w + j * P.k;
+            for (int i = k0 + lane_id(); i < k1; i += 32) {
+                const float wv1 = value(wr + i);
+                for (int s = 0; s < GEMV_ROWS; s++)
+                    if (s < m) acc[s] = fmaf(wv1, gemv_in1(P, st, trow[s], prow, s, i), acc[s]);
             }
         }
-    } else if (here) {
-        for (int i = k0 + lane_id(); i < k1; i += 32) {
-            const float wv1 = value(wr + i);
-            for (int s = 0; s < GEMV_ROWS; s++)
-                if (s < m) acc[s] = fmaf(wv1, gemv_in1(P, st, trow[s], prow, s, i), acc[s]);
-        }
-    }
-    for (int s = 0; s < GEMV_ROWS; s++)
-        if (s < m) acc[s] = warp_sum(acc[s]);
-    if (split > 1) {
-        if (lane_id() == 0)
-            for (int s = 0; s < GEMV_ROWS; s++) partial[warp_id()][s] = acc[s];
-        sync_block();
-        if (part == 0 && lane_id() == 0)
-            for (int s = 0; s < GEMV_ROWS; s++)
-                for (int q = 1; q < split; q++) acc[s] += partial[warp_id() + q][s];
-    }
-    if (here && part == 0 && lane_id() == 0)
         for (int s = 0; s < GEMV_ROWS; s++)
-            if (s < m) gemv_out(P, s, j, acc[s]);
+            if (s < m) acc[s] = warp_sum(acc[s]);
+        if (split > 1) {
+            if (lane_id() == 0)
+                for (int s = 0; s < GEMV_ROWS; s++) partial[warp_id()][s] = acc[s];
+            sync_block();
+            if (part == 0 && lane_id() == 0)
+                for (int s = 0; s < GEMV_ROWS; s++)
+                    for (int q = 1; q < split; q++) acc[s] += partial[warp_id() + q][s];
+            sync_block();
+        }
+        if (here && part == 0 && lane_id() == 0)
+            for (int s = 0; s < GEMV_ROWS; s++)
+                if (s < m) gemv_out(P, s, j, acc[s]);
+#pragma unroll
+        for (int c = 0; c < 4; c++) wv[c] = wn[c];
+    }
 }

@@ -55,6 +55,8 @@ DEV const float* rows_source(const Rows& P, long long r, float* mean, float* rst
 }
 
 KERNEL umgen_rows_f(const Rows P) {
+    griddep_launch();
+    griddep_wait();
     const long long stride = blocks() * warps_per_block();
     for (long long r = warp_index(); r < P.rows; r += stride) {
         float mean, rstd;
@@ -68,6 +70,8 @@ KERNEL umgen_rows_f(const Rows P) {
 }
 
 KERNEL umgen_rows_t(const Rows P) {
+    griddep_launch();
+    griddep_wait();
     const long long stride = blocks() * warps_per_block();
     for (long long r = warp_index(); r < P.rows; r += stride) {
         float mean, rstd;
@@ -86,6 +90,8 @@ struct BiasT {
 
 // A block per row (grid-strided), its threads over the columns.
 KERNEL umgen_bias_t(const BiasT P) {
+    griddep_launch();
+    griddep_wait();
     for (long long r = block_x(); r < P.rows; r += blocks()) {
         WT* row = P.x + r * P.ld;
         for (int c = thread_id(); c < P.cols; c += threads()) {
@@ -107,6 +113,8 @@ struct Embed {
 };
 
 KERNEL umgen_embed(const Embed P) {
+    griddep_launch();
+    griddep_wait();
     const long long stride = blocks() * warps_per_block();
     for (long long r = warp_index(); r < P.rows; r += stride) {
         const int p = P.p0 + (int)(r % P.period);
@@ -123,6 +131,8 @@ struct Shift {
 };
 
 KERNEL umgen_shift_block(const Shift P) {
+    griddep_launch();
+    griddep_wait();
     const long long total = (long long)P.m * P.len * P.d, stride = blocks() * threads();
     for (long long e = block_x() * threads() + thread_id(); e < total; e += stride) {
         const int c = (int)(e % P.d);
@@ -148,6 +158,8 @@ struct Align {
 // One block per (frame, cell): the point the cell samples, as burn's `align` computes it in f32, then
 // `grid_sample_2d`'s bilinear weights (zeros outside, align_corners = false) in f64, as burn's CPU backend.
 KERNEL umgen_align(const Align P) {
+    griddep_launch();
+    griddep_wait();
     const long long cells = (long long)P.rows * P.cols;
     for (long long bc = block_x(); bc < P.frames * cells; bc += blocks()) {
         const long long f = bc / cells;
@@ -198,6 +210,8 @@ DEV float track_centre(const Track& P, int f, int id) {
 
 // One thread per (frame, slot), the arithmetic of `backbone::track::moved` op for op in f32.
 KERNEL umgen_track(const Track P) {
+    griddep_launch();
+    griddep_wait();
     const long long total = (long long)P.frames * P.slots, stride = blocks() * threads();
     for (long long e = block_x() * threads() + thread_id(); e < total; e += stride) {
         const long long f = e / P.slots;

@@ -160,7 +160,8 @@ pub struct Gemm {
 pub enum Keys {
     /// This many.
     Fixed(usize),
-    /// The device position + 1.
+    /// The device position + 1: a decoding step's, which no operation before the attention in the same
+    /// run writes (the kernel reads it, and the keys before it, while the previous kernel finishes).
     Pos(Buf),
 }
 

@@ -17,6 +17,7 @@
 //! Draws use Philox counters (seed, scene, position, frame) rather than the host's generator, so the
 //! frames have the distribution the burn decoder draws from, and greedy frames are the same frames.
 
+mod buffers;
 mod ego;
 mod host;
 mod host_draw;
@@ -32,10 +33,11 @@ use crate::rules::{FrameControl, FrameRules, check_frame};
 use crate::sampling::Sampling;
 pub use host::HostExec;
 
+use buffers::{Caps, DecodeBufs, Tables, WindowBufs, alloc};
 use rand::{SeedableRng, rngs::StdRng};
 use std::collections::HashMap;
 use umgen_backbone::{PlainBackbone, Slot};
-use umgen_cuda::ops::{Buf, DRAW_KMAX, Elem, Exec, GEMV_ROWS, MAX_HEAD, Op, ROWS_SPLIT};
+use umgen_cuda::ops::{DRAW_KMAX, Exec, GEMV_ROWS, MAX_HEAD, Op, ROWS_MAX_SPLITS, ROWS_SPLIT};
 use weights::Weights;
 
 /// Rows of the MLP's hidden activation held at once in the window pass (its products run in slices of
@@ -75,91 +77,6 @@ impl Sizes {
             track: m.track.is_some(),
         }
     }
-}
-
-/// The window pass's buffers, for `chunk` scenes of `window` frames.
-#[derive(Debug)]
-struct WindowBufs {
-    tok: Buf,
-    act: Buf,
-    x: Buf,
-    xn: Buf,
-    qkv: Buf,
-    att: Buf,
-    hid: Buf,
-    hid_rows: usize,
-    fresh_tok: Buf,
-    fresh: Buf,
-    /// The flash2 kernels' log-sum-exp rows (not read).
-    lse: Buf,
-    map: Option<Buf>,
-    align_base: Option<Buf>,
-    track: Option<(Buf, Buf, Buf)>,
-    ego: Option<EgoBufs>,
-}
-
-/// The ego module's buffers.
-#[derive(Debug)]
-struct EgoBufs {
-    eq: Buf,
-    qn: Buf,
-    qf: Buf,
-    ctx: Buf,
-    kv: Buf,
-    y: Buf,
-    hid: Buf,
-    logits: Buf,
-    /// The attention's split results and counters.
-    part: Buf,
-    count: Buf,
-}
-
-/// The decoding step's buffers, for `group` scenes.
-#[derive(Debug)]
-struct DecodeBufs {
-    h: Buf,
-    xs: Buf,
-    t1: Buf,
-    q: Buf,
-    y: Buf,
-    hb: Buf,
-    logits: Buf,
-    kc: Vec<Buf>,
-    vc: Vec<Buf>,
-    /// The attention's split results and counters, and the split count.
-    part: Buf,
-    count: Buf,
-    splits: usize,
-    pos: Buf,
-    done: Buf,
-    counts: Buf,
-    state: Buf,
-    keep_idx: Buf,
-    tok: Buf,
-    rules: Buf,
-    caps: Caps,
-    tables: Option<Tables>,
-}
-
-/// Capacities of the per-frame tables a control sizes: group runs, keep entries, groups, keep logits per
-/// scene. Growing one reallocates its table and forgets the captured steps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Caps {
-    runs: usize,
-    keeps: usize,
-    groups: usize,
-    keep_logits: usize,
-}
-
-/// The per-frame tables of [`Caps`].
-#[derive(Debug, Clone, Copy)]
-struct Tables {
-    runs: Buf,
-    keep_on: Buf,
-    newborn: Buf,
-    boxes: Buf,
-    nboxes: Buf,
-    keep_logits: Buf,
 }
 
 /// What the engine was asked to do and how.
@@ -247,6 +164,13 @@ impl<X: Exec> Engine<X> {
         if heads == 0 || dh * heads != d || dh > MAX_HEAD || !dh.is_multiple_of(4) {
             return Err(GenerateError::Settings(format!(
                 "{heads} heads of width {d}: the engine's attention takes head sizes that are multiples of 4 up to {MAX_HEAD}"
+            )));
+        }
+        // A query's keys are split over at most ROWS_MAX_SPLITS blocks of ROWS_SPLIT.
+        if n > ROWS_SPLIT * ROWS_MAX_SPLITS {
+            return Err(GenerateError::Settings(format!(
+                "N = {n} tokens a frame: the engine's attention takes frames of up to {} tokens",
+                ROWS_SPLIT * ROWS_MAX_SPLITS
             )));
         }
         let hidden = model
@@ -386,13 +310,24 @@ impl<X: Exec> Engine<X> {
 
     /// Each operation of a decoding step of the largest vocabulary's segment for the last frame's group
     /// size, replayed `reps` times as one graph at the frame's middle position: microseconds per run, by
-    /// operation (after at least one frame, whose tables it reuses).
-    pub fn profile_step(&mut self, reps: usize) -> Result<Vec<(String, f64)>> {
+    /// operation, and whether it is one of the step's (the draw is also timed at top-k 1 and 64); after at
+    /// least one frame, whose tables it reuses.
+    pub fn profile_step(&mut self, reps: usize) -> Result<Vec<(String, f64, bool)>> {
         let s = (0..self.lay.spec.segments.len())
             .max_by_key(|&s| self.lay.spec.segments[s].vocab)
             .unwrap_or(0);
         let gs = self.steps.keys().map(|k| k.1).max().unwrap_or(1);
-        let ops = self.step_ops(s, gs)?;
+        let mut ops = self.step_ops(s, gs)?;
+        let in_step = ops.len();
+        // The draw again at top-k 1 and 64: what its rounds cost.
+        if let Some(Op::Draw(d)) = ops.last().cloned() {
+            for k in [1, 64] {
+                ops.push(Op::Draw(umgen_cuda::ops::Draw {
+                    top_k: k,
+                    ..d.clone()
+                }));
+            }
+        }
         let middle = (self.lay.n / 2) as i32;
         let mut out = Vec::with_capacity(ops.len());
         let mut layer = 0;
@@ -417,9 +352,10 @@ impl<X: Exec> Engine<X> {
                     }
                     _ => format!("gemv {} × {}", g.n, g.k),
                 },
+                Op::Draw(d) => format!("umgen_draw (top-k {})", d.top_k),
                 other => other.name().to_string(),
             };
-            out.push((name, 1e6 * best / reps.max(1) as f64));
+            out.push((name, 1e6 * best / reps.max(1) as f64, i < in_step));
         }
         self.x.forget_replays();
         self.steps.clear();
@@ -494,183 +430,5 @@ impl<X: Exec> Engine<X> {
         self.steps.clear();
         self.x.forget_replays();
         self.generation += 1;
-    }
-}
-
-/// A new zeroed buffer.
-fn alloc<X: Exec>(x: &mut X, elem: Elem, len: usize) -> Result<Buf> {
-    Ok(x.alloc(elem, len)?)
-}
-
-impl WindowBufs {
-    /// Every buffer it holds.
-    fn bufs(&self) -> Vec<Buf> {
-        let mut v = vec![
-            self.tok,
-            self.act,
-            self.x,
-            self.xn,
-            self.qkv,
-            self.att,
-            self.hid,
-            self.fresh_tok,
-            self.fresh,
-        ];
-        v.extend(self.map.into_iter().chain(self.align_base));
-        if let Some((a, b, c)) = self.track {
-            v.extend([a, b, c]);
-        }
-        if let Some(e) = &self.ego {
-            v.extend([
-                e.eq, e.qn, e.qf, e.ctx, e.kv, e.y, e.hid, e.logits, e.part, e.count,
-            ]);
-        }
-        v
-    }
-
-    fn new<X: Exec>(x: &mut X, lay: &Layout, m: &Sizes, chunk: usize, window: usize) -> Result<Self> {
-        let (n, d) = (lay.n, lay.d);
-        let frames = chunk * window;
-        let rows = frames * n;
-        let hid_rows = rows.min(HIDDEN_ROWS);
-        let spec = &lay.spec;
-        let block = spec
-            .action
-            .as_ref()
-            .map_or(1, |a| spec.segments[a.segment].block_len);
-        let map = match &spec.align {
-            Some(al) => Some(alloc(x, Elem::F32, frames * al.rows * al.cols * d)?),
-            None => None,
-        };
-        let align_base = match &spec.align {
-            Some(al) => {
-                let mut base = Vec::with_capacity(al.rows * al.cols * 2);
-                for r in 0..al.rows {
-                    for c in 0..al.cols {
-                        base.push((2.0 * c as f32 + 1.0) / al.cols as f32 - 1.0);
-                        base.push((2.0 * r as f32 + 1.0) / al.rows as f32 - 1.0);
-                    }
-                }
-                Some(weights::upload(x, Elem::F32, &base)?)
-            }
-            None => None,
-        };
-        let track = match (&spec.track, m.track) {
-            (Some(t), true) => {
-                let l = spec.segments[t.segment].tokens;
-                Some((
-                    alloc(x, Elem::I32, frames * l)?,
-                    alloc(x, Elem::F32, frames * l * d)?,
-                    alloc(x, Elem::F32, chunk * l * d)?,
-                ))
-            }
-            _ => None,
-        };
-        let ego = match m.ego {
-            Some((queries, len, vocab)) => {
-                let ctx_rows = (window * len).max(n - len);
-                let q = chunk * queries;
-                let splits = ctx_rows.div_ceil(ROWS_SPLIT);
-                Some(EgoBufs {
-                    eq: alloc(x, Elem::F32, q * d)?,
-                    qn: alloc(x, Elem::W, q * d)?,
-                    qf: alloc(x, Elem::F32, q * d)?,
-                    ctx: alloc(x, Elem::W, chunk * ctx_rows * d)?,
-                    kv: alloc(x, Elem::W, chunk * ctx_rows * 2 * d)?,
-                    y: alloc(x, Elem::F32, q * d)?,
-                    hid: alloc(x, Elem::W, q * lay.hidden.max(d))?,
-                    logits: alloc(x, Elem::F32, q * vocab)?,
-                    part: alloc(x, Elem::F32, q * lay.heads * splits * (2 + lay.dh))?,
-                    count: alloc(x, Elem::U32, q * lay.heads)?,
-                })
-            }
-            None => None,
-        };
-        Ok(Self {
-            tok: alloc(x, Elem::I32, rows)?,
-            act: alloc(x, Elem::F32, frames * 3)?,
-            x: alloc(x, Elem::F32, rows * d)?,
-            xn: alloc(x, Elem::W, rows * d.max(lay.e))?,
-            qkv: alloc(x, Elem::W, rows * 3 * d)?,
-            att: alloc(x, Elem::W, rows * d)?,
-            hid: alloc(x, Elem::W, hid_rows * lay.hidden.max(d))?,
-            hid_rows,
-            fresh_tok: alloc(x, Elem::I32, chunk * block)?,
-            fresh: alloc(x, Elem::F32, chunk * block * d)?,
-            lse: alloc(x, Elem::F32, frames * lay.heads * n)?,
-            map,
-            align_base,
-            track,
-            ego,
-        })
-    }
-}
-
-impl DecodeBufs {
-    /// Every buffer it holds.
-    fn bufs(&self) -> Vec<Buf> {
-        let mut v = vec![
-            self.h,
-            self.xs,
-            self.t1,
-            self.q,
-            self.y,
-            self.hb,
-            self.logits,
-            self.part,
-            self.count,
-            self.pos,
-            self.done,
-            self.counts,
-            self.state,
-            self.keep_idx,
-            self.tok,
-            self.rules,
-        ];
-        v.extend(self.kc.iter().chain(&self.vc));
-        if let Some(t) = self.tables {
-            v.extend([t.runs, t.keep_on, t.newborn, t.boxes, t.nboxes, t.keep_logits]);
-        }
-        v
-    }
-
-    fn new<X: Exec>(x: &mut X, lay: &Layout, m: &Sizes, group: usize) -> Result<Self> {
-        let (n, d) = (lay.n, lay.d);
-        let vmax = lay.spec.segments.iter().map(|s| s.vocab).max().unwrap_or(1);
-        let cache = group * lay.heads * n * lay.dh;
-        let layers = m.layers;
-        let splits = n.div_ceil(ROWS_SPLIT);
-        Ok(Self {
-            h: alloc(x, Elem::F32, group * n * d)?,
-            xs: alloc(x, Elem::F32, group * d)?,
-            t1: alloc(x, Elem::F32, group * d)?,
-            q: alloc(x, Elem::F32, group * d)?,
-            y: alloc(x, Elem::F32, group * d)?,
-            hb: alloc(x, Elem::F32, group * lay.hidden)?,
-            logits: alloc(x, Elem::F32, group * vmax)?,
-            kc: (0..layers)
-                .map(|_| alloc(x, Elem::W, cache))
-                .collect::<Result<_>>()?,
-            vc: (0..layers)
-                .map(|_| alloc(x, Elem::W, cache))
-                .collect::<Result<_>>()?,
-            part: alloc(x, Elem::F32, group * lay.heads * splits * (2 + lay.dh))?,
-            count: alloc(x, Elem::U32, group * lay.heads)?,
-            splits,
-            pos: alloc(x, Elem::I32, 1)?,
-            done: alloc(x, Elem::U32, 1)?,
-            counts: alloc(x, Elem::U32, 2)?,
-            state: alloc(x, Elem::U32, 3)?,
-            keep_idx: alloc(x, Elem::I32, n)?,
-            tok: alloc(x, Elem::I32, group * n)?,
-            rules: alloc(x, Elem::Rule, n)?,
-            caps: Caps {
-                runs: 0,
-                keeps: 0,
-                groups: 0,
-                keep_logits: 0,
-            },
-            tables: None,
-        })
     }
 }
