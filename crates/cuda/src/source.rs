@@ -31,57 +31,66 @@ pub fn flash2_forward_bf16() -> String {
     )
 }
 
-/// The generation engine's kernels (`gemv.cu`, `attend.cu`, `rows.cu`, `draw.cu`) with their weights and
-/// operands in bf16 (`bf16`) or f32.
-pub fn engine(bf16: bool) -> String {
-    [
-        PRIMITIVES,
-        if bf16 {
-            "#define WT u16\n"
-        } else {
-            "#define WT float\n"
-        },
-        include_str!("kernels/engine_common.cuh"),
-        include_str!("kernels/gemv.cu"),
-        include_str!("kernels/attend.cu"),
-        include_str!("kernels/rows.cu"),
-        include_str!("kernels/draw.cu"),
-    ]
-    .join("\n")
-}
-
-/// The kernels [`engine`] defines.
-pub const ENGINE_KERNELS: [&str; 11] = [
-    "umgen_gemv",
-    "umgen_attend_rows",
-    "umgen_attend_tiles",
-    "umgen_rows_f",
-    "umgen_rows_t",
-    "umgen_bias_t",
-    "umgen_embed",
-    "umgen_shift_block",
-    "umgen_align",
-    "umgen_track",
-    "umgen_draw",
+/// The generation engine's kernel files, each with the kernels it defines: NVRTC compiles each with
+/// [`engine_part`] as its own program, so that a start-up compiles them side by side.
+pub const ENGINE_PARTS: [(&str, &[&str]); 4] = [
+    ("gemv.cu", &["umgen_gemv"]),
+    ("attend.cu", &["umgen_attend_rows", "umgen_attend_tiles"]),
+    (
+        "rows.cu",
+        &[
+            "umgen_rows_f",
+            "umgen_rows_t",
+            "umgen_bias_t",
+            "umgen_embed",
+            "umgen_shift_block",
+            "umgen_align",
+            "umgen_track",
+        ],
+    ),
+    ("draw.cu", &["umgen_draw"]),
 ];
+
+/// The source NVRTC compiles for the engine's kernel file `file` (one of [`ENGINE_PARTS`]) with weights and
+/// operands in bf16 (`bf16`) or f32: the primitives, the element type, `engine_common.cuh` and the file.
+/// `None` for a file that is not one of them.
+pub fn engine_part(bf16: bool, file: &str) -> Option<String> {
+    let body = match file {
+        "gemv.cu" => include_str!("kernels/gemv.cu"),
+        "attend.cu" => include_str!("kernels/attend.cu"),
+        "rows.cu" => include_str!("kernels/rows.cu"),
+        "draw.cu" => include_str!("kernels/draw.cu"),
+        _ => return None,
+    };
+    let wt = if bf16 {
+        "#define WT u16\n"
+    } else {
+        "#define WT float\n"
+    };
+    Some([PRIMITIVES, wt, include_str!("kernels/engine_common.cuh"), body].join("\n"))
+}
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn every_named_kernel_is_in_the_source_once_for_either_element_type() {
+    fn every_named_kernel_is_in_its_part_once_for_either_element_type() {
         for bf16 in [false, true] {
-            let src = engine(bf16);
-            for k in ENGINE_KERNELS {
-                let defined = format!("KERNEL {k}(");
-                assert_eq!(src.matches(&defined).count(), 1, "{k}");
+            for (file, kernels) in ENGINE_PARTS {
+                let src = engine_part(bf16, file).expect(file);
+                assert_eq!(src.matches("KERNEL umgen_").count(), kernels.len(), "{file}");
+                for k in kernels {
+                    let defined = format!("KERNEL {k}(");
+                    assert_eq!(src.matches(&defined).count(), 1, "{k}");
+                }
+                assert!(src.contains(if bf16 {
+                    "#define WT u16"
+                } else {
+                    "#define WT float"
+                }));
             }
-            assert!(src.contains(if bf16 {
-                "#define WT u16"
-            } else {
-                "#define WT float"
-            }));
         }
+        assert!(engine_part(true, "flash2.cu").is_none());
     }
 }

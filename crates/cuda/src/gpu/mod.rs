@@ -1,18 +1,18 @@
 //! [`CudaExec`]: the engine's operations on one GPU, on one stream of the device's primary context.
 //!
 //! Buffers are plain `cuMemAlloc` allocations, freed when the executor is dropped. The kernels are compiled
-//! by NVRTC once, for the device's architecture and the weights' element type. Event tracking (cudarc's
+//! by NVRTC once, for the device's architecture and the weights' element type (`compile.rs`). Event tracking (cudarc's
 //! ordering of its own buffers across streams) is off: everything runs on one stream, and a sequence
 //! captured as a graph must contain only kernel launches and cuBLAS calls.
 #![allow(unsafe_code)]
 
+mod compile;
 mod launch;
 mod params;
 
 use crate::ops::{Buf, Data, Elem, Exec, ExecError, Op, check};
 use cudarc::cublas::{result as blas, sys as blas_sys};
 use cudarc::driver::{CudaContext, CudaFunction, CudaGraph, CudaStream, result, sys};
-use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -72,23 +72,7 @@ impl CudaExec {
         let (major, minor) = ctx
             .compute_capability()
             .map_err(|e| device("compute capability")(format!("{e:?}")))?;
-        let options = CompileOptions {
-            arch: arch(major, minor),
-            ..Default::default()
-        };
-        let started = std::time::Instant::now();
-        let ptx = compile_ptx_with_opts(crate::source::engine(bf16), options)
-            .map_err(|e| device("NVRTC")(format!("{e:?}")))?;
-        let module = ctx
-            .load_module(ptx)
-            .map_err(|e| device("loading the kernels")(format!("{e:?}")))?;
-        let mut functions = HashMap::new();
-        for name in crate::source::ENGINE_KERNELS {
-            let f = module
-                .load_function(name)
-                .map_err(|e| device(name)(format!("{e:?}")))?;
-            functions.insert(name, f);
-        }
+        let (functions, flash) = compile::kernels(&ctx, (major, minor), bf16)?;
         let sms = ctx
             .attribute(sys::CUdevice_attribute::CU_DEVICE_ATTRIBUTE_MULTIPROCESSOR_COUNT)
             .map_err(|e| device("SM count")(format!("{e:?}")))?;
@@ -98,34 +82,6 @@ impl CudaExec {
             .occupancy_max_active_blocks_per_multiprocessor(256, 0, None)
             .map_err(|e| device("umgen_gemv occupancy")(format!("{e:?}")))?;
         let gemv_blocks = (sms.max(1) as u32).saturating_mul(resident.max(1));
-        let flash = if bf16 && major >= 8 {
-            // As the training compiles them: Hopper's `wgmma` for head size 64 on sm_90a.
-            let options = CompileOptions {
-                arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
-                use_fast_math: Some(true),
-                ..Default::default()
-            };
-            let ptx = compile_ptx_with_opts(crate::source::flash2_forward_bf16(), options)
-                .map_err(|e| device("NVRTC (flash2)")(format!("{e:?}")))?;
-            let module = ctx
-                .load_module(ptx)
-                .map_err(|e| device("loading the flash2 kernels")(format!("{e:?}")))?;
-            let mut found = HashMap::new();
-            for name in ["umgen_flash2_forward_bf16_32", "umgen_flash2_forward_bf16_64"] {
-                let f = module
-                    .load_function(name)
-                    .map_err(|e| device(name)(format!("{e:?}")))?;
-                found.insert(name, f);
-            }
-            Some(found)
-        } else {
-            None
-        };
-        tracing::info!(
-            "engine kernels compiled for sm_{major}{minor} ({}) in {:.1} s",
-            if bf16 { "bf16" } else { "f32" },
-            started.elapsed().as_secs_f64()
-        );
         // SAFETY: only asks whether the library could be loaded.
         if !unsafe { blas_sys::is_culib_present() } {
             return Err(ExecError::Device(
@@ -278,13 +234,13 @@ impl Exec for CudaExec {
         let a = self.alloc_of(dst, data.len(), data.kinds(), "write")?;
         let bytes: Vec<u8> = match data {
             Data::F32(d) if a.elem == Elem::W && self.bf16 => {
-                d.iter().flat_map(|x| bf16_bits(*x).to_le_bytes()).collect()
+                le_bytes(d, |x, o: &mut [u8; 2]| *o = bf16_bits(x).to_le_bytes())
             }
-            Data::F32(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
-            Data::I32(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
-            Data::U32(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            Data::F32(d) => le_bytes(d, |x, o: &mut [u8; 4]| *o = x.to_le_bytes()),
+            Data::I32(d) => le_bytes(d, |x, o: &mut [u8; 4]| *o = x.to_le_bytes()),
+            Data::U32(d) => le_bytes(d, |x, o: &mut [u8; 4]| *o = x.to_le_bytes()),
             Data::U8(d) => d.to_vec(),
-            Data::F64(d) => d.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            Data::F64(d) => le_bytes(d, |x, o: &mut [u8; 8]| *o = x.to_le_bytes()),
             Data::Rules(d) => d.iter().flat_map(params::rule_bytes).collect(),
             Data::Runs(d) => d.iter().flat_map(params::run_bytes).collect(),
         };
@@ -396,6 +352,34 @@ impl Drop for CudaExec {
             }
         }
     }
+}
+
+/// `data` as `W` bytes each, written by `put`; large slices on several threads (a model's weights are
+/// converted once at start-up, hundreds of millions of values for the `paper` sizes).
+fn le_bytes<T: Copy + Sync, const W: usize>(data: &[T], put: impl Fn(T, &mut [u8; W]) + Sync) -> Vec<u8> {
+    const CHUNK: usize = 1 << 20;
+    let mut out = vec![0u8; data.len() * W];
+    let fill = |src: &[T], dst: &mut [u8]| {
+        for (x, o) in src.iter().zip(dst.chunks_exact_mut(W)) {
+            if let Ok(o) = <&mut [u8; W]>::try_from(o) {
+                put(*x, o);
+            }
+        }
+    };
+    if data.len() <= CHUNK {
+        fill(data, &mut out);
+        return out;
+    }
+    let threads = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(16);
+    let per = data.len().div_ceil(threads).max(CHUNK);
+    std::thread::scope(|s| {
+        for (src, dst) in data.chunks(per).zip(out.chunks_mut(per * W)) {
+            s.spawn(|| fill(src, dst));
+        }
+    });
+    out
 }
 
 /// `x` as bf16 bits, to nearest with ties to even (NaN stays NaN), as `bf16.cuh`'s `to_bf16`.

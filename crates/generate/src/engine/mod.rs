@@ -206,7 +206,13 @@ impl<X: Exec> Engine<X> {
             seg_of,
             spec: spec.clone(),
         };
+        let started = std::time::Instant::now();
         let w = Weights::upload(&mut x, model)?;
+        tracing::info!(
+            "weights on the executor in {:.1} s ({:.2} GiB)",
+            started.elapsed().as_secs_f64(),
+            x.bytes() as f64 / (1u64 << 30) as f64
+        );
         // Sized for one scene; `fit` grows them to the batch a frame brings (up to GEMV_ROWS scenes).
         let (group, chunk) = (1, 1);
         let sizes = Sizes::of(model);

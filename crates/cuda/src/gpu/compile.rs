@@ -1,0 +1,111 @@
+//! The engine's kernels compiled at start-up: each kernel file of [`crate::source::ENGINE_PARTS`] and
+//! flash2's forward kernels as their own NVRTC program, compiled and loaded (the driver's translation to
+//! machine code) on a thread each, so that the first start on a machine waits for the slowest file rather
+//! than for all of them.
+
+use super::{arch, device};
+use crate::ops::ExecError;
+use cudarc::driver::{CudaContext, CudaFunction};
+use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// The kernels by name.
+pub(super) type Kernels = HashMap<&'static str, CudaFunction>;
+
+/// One program: what it is called in errors, its source, its options and the kernels to take from it.
+struct Program {
+    what: &'static str,
+    source: String,
+    options: CompileOptions,
+    kernels: &'static [&'static str],
+}
+
+/// flash2's forward kernels the window pass launches (bf16, head sizes 32 and 64).
+const FLASH2_FORWARD: [&str; 2] = ["umgen_flash2_forward_bf16_32", "umgen_flash2_forward_bf16_64"];
+
+/// Compiles and loads the engine's kernels for the device of `ctx` (compute capability `major.minor`) with
+/// bf16 (`bf16`) or f32 weights: the engine's kernels, and flash2's forward kernels when `bf16` and the
+/// device has bf16 tensor cores (compute capability 8.0 or newer).
+pub(super) fn kernels(
+    ctx: &Arc<CudaContext>,
+    (major, minor): (i32, i32),
+    bf16: bool,
+) -> Result<(Kernels, Option<Kernels>), ExecError> {
+    let started = Instant::now();
+    let mut programs = Vec::new();
+    for (file, kernels) in crate::source::ENGINE_PARTS {
+        let source = crate::source::engine_part(bf16, file)
+            .ok_or_else(|| ExecError::Invalid(format!("no engine source {file}")))?;
+        programs.push(Program {
+            what: file,
+            source,
+            options: CompileOptions {
+                arch: arch(major, minor),
+                ..Default::default()
+            },
+            kernels,
+        });
+    }
+    let flash = bf16 && major >= 8;
+    if flash {
+        // As the training compiles them: Hopper's `wgmma` for head size 64 on sm_90a.
+        programs.push(Program {
+            what: "flash2",
+            source: crate::source::flash2_forward_bf16(),
+            options: CompileOptions {
+                arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
+                use_fast_math: Some(true),
+                ..Default::default()
+            },
+            kernels: &FLASH2_FORWARD,
+        });
+    }
+    let loaded: Vec<Result<Kernels, ExecError>> = std::thread::scope(|s| {
+        let handles: Vec<_> = programs
+            .into_iter()
+            .map(|p| s.spawn(move || load(ctx, p)))
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err(ExecError::Device("a kernel compilation thread panicked".into())))
+            })
+            .collect()
+    });
+    let mut engine = HashMap::new();
+    let mut flash2 = HashMap::new();
+    for (i, kernels) in loaded.into_iter().enumerate() {
+        let into = if flash && i == crate::source::ENGINE_PARTS.len() {
+            &mut flash2
+        } else {
+            &mut engine
+        };
+        into.extend(kernels?);
+    }
+    tracing::info!(
+        "engine kernels compiled for sm_{major}{minor} ({}) in {:.1} s",
+        if bf16 { "bf16" } else { "f32" },
+        started.elapsed().as_secs_f64()
+    );
+    Ok((engine, flash.then_some(flash2)))
+}
+
+/// Compiles `p` with NVRTC, loads it into `ctx` and takes its kernels.
+fn load(ctx: &Arc<CudaContext>, p: Program) -> Result<Kernels, ExecError> {
+    let ptx = compile_ptx_with_opts(&p.source, p.options)
+        .map_err(|e| device("NVRTC")(format!("{}: {e:?}", p.what)))?;
+    let module = ctx
+        .load_module(ptx)
+        .map_err(|e| device("loading the kernels")(format!("{}: {e:?}", p.what)))?;
+    let mut found = HashMap::new();
+    for &name in p.kernels {
+        let f = module
+            .load_function(name)
+            .map_err(|e| device(name)(format!("{}: {e:?}", p.what)))?;
+        found.insert(name, f);
+    }
+    Ok(found)
+}
