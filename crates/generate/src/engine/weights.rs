@@ -4,6 +4,8 @@
 //! the embedding width once, here.
 
 use crate::error::{GenerateError, Result};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use umgen_backbone::{PlainBackbone, PlainCross, PlainLinear, PlainNorm, PlainSelf};
 use umgen_cuda::ops::{Buf, Data, Elem, Exec};
 
@@ -114,8 +116,16 @@ fn upload_i32<X: Exec>(x: &mut X, data: &[i32]) -> Result<Buf> {
     Ok(b)
 }
 
+/// A linear layer laid out for the executor: `w` `[n][k]`, the bias `[n]` if any.
+struct HostLinear {
+    w: Vec<f32>,
+    b: Option<Vec<f32>>,
+    n: usize,
+    k: usize,
+}
+
 /// Layers whose outputs are stacked: `[Σ n][k]` weights and their biases (zeros where a layer has none).
-fn stacked<X: Exec>(x: &mut X, parts: &[&PlainLinear]) -> Result<LinearW> {
+fn host_linear(parts: &[&PlainLinear]) -> Result<HostLinear> {
     let k = parts.first().map_or(0, |p| p.d_in);
     if parts.iter().any(|p| p.d_in != k) {
         return Err(GenerateError::Settings(
@@ -130,20 +140,108 @@ fn stacked<X: Exec>(x: &mut X, parts: &[&PlainLinear]) -> Result<LinearW> {
         b.extend(p.b.clone().unwrap_or_else(|| vec![0.0; p.d_out]));
     }
     let has_bias = parts.iter().any(|p| p.b.is_some());
-    Ok(LinearW {
-        w: upload(x, Elem::W, &w)?,
-        b: if has_bias {
-            Some(upload(x, Elem::F32, &b)?)
-        } else {
-            None
-        },
+    Ok(HostLinear {
+        w,
+        b: has_bias.then_some(b),
         n,
         k,
     })
 }
 
-fn linear<X: Exec>(x: &mut X, l: &PlainLinear) -> Result<LinearW> {
-    stacked(x, &[l])
+/// The host layouts of a model's linear layers, made on several threads before the uploads (a plain loop
+/// spent seconds on the `paper` sizes' transposes), by the address of each group's first layer.
+/// The second field counts groups laid out on the uploading thread because [`groups`] missed them.
+struct Prepared(HashMap<usize, Result<HostLinear>>, usize);
+
+impl Prepared {
+    /// Every group of `groups` laid out, on up to 16 threads.
+    fn of(groups: &[Vec<&PlainLinear>]) -> Self {
+        let next = AtomicUsize::new(0);
+        let threads = std::thread::available_parallelism()
+            .map_or(1, |n| n.get())
+            .clamp(1, 16);
+        let done: Vec<Vec<(usize, Result<HostLinear>)>> = std::thread::scope(|s| {
+            let workers: Vec<_> = (0..threads)
+                .map(|_| {
+                    s.spawn(|| {
+                        let mut mine = Vec::new();
+                        loop {
+                            let i = next.fetch_add(1, Ordering::Relaxed);
+                            let Some(g) = groups.get(i) else { break };
+                            mine.push((key(g), host_linear(g)));
+                        }
+                        mine
+                    })
+                })
+                .collect();
+            // A worker that panicked leaves its groups to `stacked`, which lays them out itself.
+            workers.into_iter().filter_map(|w| w.join().ok()).collect()
+        });
+        Self(done.into_iter().flatten().collect(), 0)
+    }
+
+    /// `parts` laid out: prepared, or made now (counted: [`groups`] should have listed it).
+    fn take(&mut self, parts: &[&PlainLinear]) -> Result<HostLinear> {
+        self.0.remove(&key(parts)).unwrap_or_else(|| {
+            self.1 += 1;
+            host_linear(parts)
+        })
+    }
+}
+
+/// A group's key: the address of its first layer.
+fn key(parts: &[&PlainLinear]) -> usize {
+    parts
+        .first()
+        .map_or(0, |p| std::ptr::from_ref::<PlainLinear>(p) as usize)
+}
+
+/// Every group of linear layers [`Weights::upload`] stacks, in the order it uploads them.
+fn groups(m: &PlainBackbone) -> Vec<Vec<&PlainLinear>> {
+    let mut g: Vec<Vec<&PlainLinear>> = vec![vec![&m.embed.fc1], vec![&m.embed.fc2]];
+    if let Some(e) = &m.ego {
+        for l in e.hist.iter().chain(&e.env) {
+            g.extend([
+                vec![&l.attn.q],
+                vec![&l.attn.kv],
+                vec![&l.attn.proj],
+                vec![&l.mlp.fc],
+                vec![&l.mlp.proj],
+            ]);
+        }
+        g.push(vec![&e.head]);
+    }
+    for l in m.tar.iter().flat_map(|(t, s)| [t, s]).chain(&m.oar) {
+        g.extend([
+            vec![&l.attn.q, &l.attn.kv],
+            vec![&l.attn.proj],
+            vec![&l.mlp.fc],
+            vec![&l.mlp.proj],
+        ]);
+    }
+    if let Some((i, o)) = &m.track {
+        g.extend([vec![i], vec![o]]);
+    }
+    g.extend(m.tar_heads.iter().chain(&m.oar_heads).map(|h| vec![h]));
+    g
+}
+
+/// Uploads `parts` stacked (see [`host_linear`]).
+fn stacked<X: Exec>(x: &mut X, p: &mut Prepared, parts: &[&PlainLinear]) -> Result<LinearW> {
+    let h = p.take(parts)?;
+    Ok(LinearW {
+        w: upload(x, Elem::W, &h.w)?,
+        b: match &h.b {
+            Some(b) => Some(upload(x, Elem::F32, b)?),
+            None => None,
+        },
+        n: h.n,
+        k: h.k,
+    })
+}
+
+fn linear<X: Exec>(x: &mut X, p: &mut Prepared, l: &PlainLinear) -> Result<LinearW> {
+    stacked(x, p, &[l])
 }
 
 fn norm<X: Exec>(x: &mut X, n: &PlainNorm) -> Result<NormW> {
@@ -153,27 +251,27 @@ fn norm<X: Exec>(x: &mut X, n: &PlainNorm) -> Result<NormW> {
     })
 }
 
-fn self_layer<X: Exec>(x: &mut X, l: &PlainSelf) -> Result<SelfW> {
+fn self_layer<X: Exec>(x: &mut X, p: &mut Prepared, l: &PlainSelf) -> Result<SelfW> {
     Ok(SelfW {
         ln1: norm(x, &l.ln1)?,
-        qkv: stacked(x, &[&l.attn.q, &l.attn.kv])?,
-        proj: linear(x, &l.attn.proj)?,
+        qkv: stacked(x, p, &[&l.attn.q, &l.attn.kv])?,
+        proj: linear(x, p, &l.attn.proj)?,
         ln2: norm(x, &l.ln2)?,
-        fc: linear(x, &l.mlp.fc)?,
-        fc2: linear(x, &l.mlp.proj)?,
+        fc: linear(x, p, &l.mlp.fc)?,
+        fc2: linear(x, p, &l.mlp.proj)?,
     })
 }
 
-fn cross_layer<X: Exec>(x: &mut X, l: &PlainCross) -> Result<CrossW> {
+fn cross_layer<X: Exec>(x: &mut X, p: &mut Prepared, l: &PlainCross) -> Result<CrossW> {
     Ok(CrossW {
         ln_q: norm(x, &l.ln_q)?,
         ln_ctx: norm(x, &l.ln_ctx)?,
-        q: linear(x, &l.attn.q)?,
-        kv: linear(x, &l.attn.kv)?,
-        proj: linear(x, &l.attn.proj)?,
+        q: linear(x, p, &l.attn.q)?,
+        kv: linear(x, p, &l.attn.kv)?,
+        proj: linear(x, p, &l.attn.proj)?,
         ln2: norm(x, &l.ln2)?,
-        fc: linear(x, &l.mlp.fc)?,
-        fc2: linear(x, &l.mlp.proj)?,
+        fc: linear(x, p, &l.mlp.fc)?,
+        fc2: linear(x, p, &l.mlp.proj)?,
     })
 }
 
@@ -198,11 +296,13 @@ impl Weights {
     pub(super) fn upload<X: Exec>(x: &mut X, m: &PlainBackbone) -> Result<Self> {
         let spec = &m.spec;
         let e = m.embed.e;
+        let mut p = Prepared::of(&groups(m));
+        let p = &mut p;
         let (mut table, mut row_base) = (Vec::new(), Vec::new());
         for t in &m.embed.tables {
             row_base.push(i32::try_from(table.len() / e.max(1)).map_err(|_| too_big("embedding table"))?);
             match &t.proj {
-                Some(p) => table.extend(project(&t.rows, t.dim, p)),
+                Some(proj) => table.extend(project(&t.rows, t.dim, proj)),
                 None => table.extend_from_slice(&t.rows),
             }
         }
@@ -214,40 +314,63 @@ impl Weights {
             Some(g) => Some(EgoW {
                 queries: upload(x, Elem::F32, &g.queries)?,
                 q: g.q,
-                hist: g.hist.iter().map(|l| cross_layer(x, l)).collect::<Result<_>>()?,
-                env: g.env.iter().map(|l| cross_layer(x, l)).collect::<Result<_>>()?,
+                hist: g
+                    .hist
+                    .iter()
+                    .map(|l| cross_layer(x, p, l))
+                    .collect::<Result<_>>()?,
+                env: g
+                    .env
+                    .iter()
+                    .map(|l| cross_layer(x, p, l))
+                    .collect::<Result<_>>()?,
                 ln: norm(x, &g.ln)?,
-                head: linear(x, &g.head)?,
+                head: linear(x, p, &g.head)?,
                 block: g.block,
                 last: g.last,
             }),
             None => None,
         };
-        Ok(Self {
+        let w = Self {
             table: upload(x, Elem::F32, &table)?,
             row_base: upload_i32(x, &row_base)?,
             seg_of: upload_i32(x, &seg_of)?,
             pos_emb: upload(x, Elem::F32, &m.embed.pos)?,
-            fc1: linear(x, &m.embed.fc1)?,
-            fc2: linear(x, &m.embed.fc2)?,
+            fc1: linear(x, p, &m.embed.fc1)?,
+            fc2: linear(x, p, &m.embed.fc2)?,
             time: upload(x, Elem::F32, &m.time)?,
             ego,
             tar: m
                 .tar
                 .iter()
-                .map(|(t, s)| Ok((self_layer(x, t)?, self_layer(x, s)?)))
+                .map(|(t, s)| Ok((self_layer(x, p, t)?, self_layer(x, p, s)?)))
                 .collect::<Result<_>>()?,
             ln_tar: norm(x, &m.ln_tar)?,
             bos: upload(x, Elem::F32, &m.bos)?,
-            oar: m.oar.iter().map(|l| self_layer(x, l)).collect::<Result<_>>()?,
+            oar: m.oar.iter().map(|l| self_layer(x, p, l)).collect::<Result<_>>()?,
             ln_oar: norm(x, &m.ln_oar)?,
             track: match &m.track {
-                Some((i, o)) => Some((linear(x, i)?, linear(x, o)?)),
+                Some((i, o)) => Some((linear(x, p, i)?, linear(x, p, o)?)),
                 None => None,
             },
-            tar_heads: m.tar_heads.iter().map(|h| linear(x, h)).collect::<Result<_>>()?,
-            oar_heads: m.oar_heads.iter().map(|h| linear(x, h)).collect::<Result<_>>()?,
-        })
+            tar_heads: m
+                .tar_heads
+                .iter()
+                .map(|h| linear(x, p, h))
+                .collect::<Result<_>>()?,
+            oar_heads: m
+                .oar_heads
+                .iter()
+                .map(|h| linear(x, p, h))
+                .collect::<Result<_>>()?,
+        };
+        if p.1 > 0 {
+            tracing::warn!(
+                "{} linear layers were laid out after the others (not in `groups`)",
+                p.1
+            );
+        }
+        Ok(w)
     }
 }
 
