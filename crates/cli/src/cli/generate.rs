@@ -128,7 +128,8 @@ pub enum EnginePrecisionArg {
     /// Weights and product operands in bf16, f32 accumulation, residual streams, norms, softmax and logits:
     /// half the memory, the tensor cores.
     Bf16,
-    /// Everything f32: the burn decoder's numbers (greedy frames are its frames).
+    /// Everything f32: greedy frames are the burn decoder's on the CPU (on CUDA burn's f32 products run
+    /// as TF32, so near-tie tokens can differ).
     F32,
 }
 
