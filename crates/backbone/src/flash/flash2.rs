@@ -18,10 +18,12 @@ use crate::side::Primitive;
 use crate::side::{KernelCache, Kernels, Pointers, launch_on_cubecl, with_cached};
 use crate::side::{empty_f32, empty_packed};
 use burn::tensor::DType;
-use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg};
+use cudarc::driver::{CudaFunction, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
 use std::sync::OnceLock;
+// `Params` of `flash2_tiles.cu`, field for field (one definition, shared with the generation engine).
+use umgen_cuda::gpu::Flash2 as Params;
 
 /// The kernels' source: the GPU's primitives, the building blocks, then the three passes.
 const SOURCE: &str = umgen_cuda::source::FLASH2;
@@ -53,43 +55,6 @@ fn source() -> Result<String, String> {
         None => Ok(SOURCE.to_string()),
     }
 }
-
-/// `Params` of `flash2_tiles.cu`, field for field.
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Default)]
-struct Params {
-    q: u64,
-    k: u64,
-    v: u64,
-    dout: u64,
-    lse: u64,
-    delta: u64,
-    out: u64,
-    lse_out: u64,
-    dq: u64,
-    dk: u64,
-    dv: u64,
-    qs: [i64; 3],
-    ks: [i64; 3],
-    vs: [i64; 3],
-    os: [i64; 3],
-    ls: [i64; 3],
-    es: [i64; 3],
-    outs: [i64; 3],
-    dqs: [i64; 3],
-    dks: [i64; 3],
-    dvs: [i64; 3],
-    heads: i32,
-    lq: i32,
-    lk: i32,
-    off: i32,
-    causal: i32,
-    scale: f32,
-    count: i32,
-}
-
-// SAFETY: plain old data, laid out as the C struct the kernels take by value.
-unsafe impl DeviceRepr for Params {}
 
 /// Why the kernels cannot take operands of head size `d` and type `dtype`, if they cannot.
 pub(super) fn unfit(d: usize, dtype: DType) -> Option<String> {

@@ -10,6 +10,8 @@ mod compile;
 mod launch;
 mod params;
 
+pub use params::Flash2;
+
 use crate::ops::{Buf, Data, Elem, Exec, ExecError, Op, check};
 use cudarc::cublas::{result as blas, sys as blas_sys};
 use cudarc::driver::{CudaContext, CudaFunction, CudaGraph, CudaStream, result, sys};

@@ -85,38 +85,68 @@ pub(super) struct AttendTiles {
     scale: f32,
 }
 
-/// `struct Params` of `flash2/flash2_tiles.cu`.
+/// `struct Params` of `flash2/flash2_tiles.cu`: pointers as device addresses, each stride triple (batch,
+/// head, row) in elements. The engine's window pass and the backbone's training attention both launch
+/// flash2 with it.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default)]
-pub(super) struct Flash2 {
-    q: u64,
-    k: u64,
-    v: u64,
-    dout: u64,
-    lse: u64,
-    delta: u64,
-    out: u64,
-    lse_out: u64,
-    dq: u64,
-    dk: u64,
-    dv: u64,
-    qs: [i64; 3],
-    ks: [i64; 3],
-    vs: [i64; 3],
-    os: [i64; 3],
-    ls: [i64; 3],
-    es: [i64; 3],
-    outs: [i64; 3],
-    dqs: [i64; 3],
-    dks: [i64; 3],
-    dvs: [i64; 3],
-    heads: i32,
-    lq: i32,
-    lk: i32,
-    off: i32,
-    causal: i32,
-    scale: f32,
-    count: i32,
+pub struct Flash2 {
+    /// Queries, keys and values (forward and backward).
+    pub q: u64,
+    /// Keys.
+    pub k: u64,
+    /// Values.
+    pub v: u64,
+    /// The output's gradient (backward).
+    pub dout: u64,
+    /// The forward pass's log-sum-exp rows (backward).
+    pub lse: u64,
+    /// Rows of `dout · out` (backward).
+    pub delta: u64,
+    /// The output (forward).
+    pub out: u64,
+    /// The log-sum-exp rows written (forward).
+    pub lse_out: u64,
+    /// The queries' gradient (backward).
+    pub dq: u64,
+    /// The keys' gradient (backward).
+    pub dk: u64,
+    /// The values' gradient (backward).
+    pub dv: u64,
+    /// Strides of `q`.
+    pub qs: [i64; 3],
+    /// Strides of `k`.
+    pub ks: [i64; 3],
+    /// Strides of `v`.
+    pub vs: [i64; 3],
+    /// Strides of `dout`.
+    pub os: [i64; 3],
+    /// Strides of `lse`.
+    pub ls: [i64; 3],
+    /// Strides of `delta`.
+    pub es: [i64; 3],
+    /// Strides of `out`.
+    pub outs: [i64; 3],
+    /// Strides of `dq`.
+    pub dqs: [i64; 3],
+    /// Strides of `dk`.
+    pub dks: [i64; 3],
+    /// Strides of `dv`.
+    pub dvs: [i64; 3],
+    /// Heads per batch entry.
+    pub heads: i32,
+    /// Query rows.
+    pub lq: i32,
+    /// Key rows.
+    pub lk: i32,
+    /// Causal offset: key `j` is hidden from query `i` when `j > i + off`.
+    pub off: i32,
+    /// 1 for causal attention.
+    pub causal: i32,
+    /// The scores' scale, 1/√d.
+    pub scale: f32,
+    /// Batch entries × heads.
+    pub count: i32,
 }
 
 /// `struct Rows` of `rows.cu`.
