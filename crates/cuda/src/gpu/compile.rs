@@ -20,6 +20,8 @@ struct Program {
     source: String,
     options: CompileOptions,
     kernels: &'static [&'static str],
+    /// Whether its kernels are flash2's.
+    flash2: bool,
 }
 
 /// flash2's forward kernels the window pass launches (bf16, head sizes 32 and 64).
@@ -46,6 +48,7 @@ pub(super) fn kernels(
                 ..Default::default()
             },
             kernels,
+            flash2: false,
         });
     }
     let flash = bf16 && major >= 8;
@@ -60,30 +63,28 @@ pub(super) fn kernels(
                 ..Default::default()
             },
             kernels: &FLASH2_FORWARD,
+            flash2: true,
         });
     }
-    let loaded: Vec<Result<Kernels, ExecError>> = std::thread::scope(|s| {
+    let loaded: Vec<(bool, Result<Kernels, ExecError>)> = std::thread::scope(|s| {
         let handles: Vec<_> = programs
             .into_iter()
-            .map(|p| s.spawn(move || load(ctx, p)))
+            .map(|p| (p.flash2, s.spawn(move || load(ctx, p))))
             .collect();
         handles
             .into_iter()
-            .map(|h| {
-                h.join()
-                    .unwrap_or_else(|_| Err(ExecError::Device("a kernel compilation thread panicked".into())))
+            .map(|(flash2, h)| {
+                let loaded = h.join().unwrap_or_else(|_| {
+                    Err(ExecError::Device("a kernel compilation thread panicked".into()))
+                });
+                (flash2, loaded)
             })
             .collect()
     });
     let mut engine = HashMap::new();
     let mut flash2 = HashMap::new();
-    for (i, kernels) in loaded.into_iter().enumerate() {
-        let into = if flash && i == crate::source::ENGINE_PARTS.len() {
-            &mut flash2
-        } else {
-            &mut engine
-        };
-        into.extend(kernels?);
+    for (is_flash2, kernels) in loaded {
+        if is_flash2 { &mut flash2 } else { &mut engine }.extend(kernels?);
     }
     tracing::info!(
         "engine kernels compiled for sm_{major}{minor} ({}) in {:.1} s",
