@@ -119,6 +119,34 @@ impl Default for BackboneConfig {
 }
 
 impl BackboneConfig {
+    /// The first setting no model can use, as (key under `[backbone]`, what is wrong with its value);
+    /// `None` when every one is usable. Layout-dependent checks (heads dividing the width, segments) come
+    /// later, in [`crate::BackboneSpec::validate`].
+    pub fn problem(&self) -> Option<(&'static str, String)> {
+        if !(0.0..1.0).contains(&self.dropout) {
+            return Some((
+                "dropout",
+                format!("{} must be a probability below 1", self.dropout),
+            ));
+        }
+        if !(self.step_s.is_finite() && self.step_s > 0.0) {
+            return Some((
+                "step_s",
+                format!("{} must be a positive number of seconds", self.step_s),
+            ));
+        }
+        let at_least_one = [
+            ("d_model", self.d_model),
+            ("heads", self.heads),
+            ("mlp_ratio", self.mlp_ratio),
+            ("max_frames", self.max_frames),
+        ];
+        at_least_one
+            .into_iter()
+            .find(|(_, v)| *v == 0)
+            .map(|(key, v)| (key, format!("{v} must be 1 or more")))
+    }
+
     /// The settings generation builds the model with: products in f32 whatever `precision` trained it
     /// (the parameters are f32 either way). Without autotuning, burn's bf16 matmul kernel is no faster than
     /// its f32 one on generation's shapes and the casts would come on top (docs/performance.md).

@@ -118,6 +118,39 @@ pub fn weights_to_bytes<B: Backend, M: Module<B>>(module: &M) -> Result<Vec<u8>>
     safetensors::serialize(views, None).map_err(|e| fail(e.to_string()))
 }
 
+/// The name of the first tensor (by name) of safetensors `bytes` that holds a NaN or an infinity, among
+/// its f32, f16 and bf16 tensors; `None` when every value is finite. Checkpoints and bundles are checked
+/// with it before they are written or used.
+pub fn first_non_finite(bytes: &[u8]) -> Result<Option<String>> {
+    let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| CheckpointError::Weights {
+        what: "weights".into(),
+        reason: e.to_string(),
+    })?;
+    let mut names: Vec<String> = st.names().into_iter().map(str::to_string).collect();
+    names.sort();
+    for name in names {
+        let Ok(view) = st.tensor(&name) else { continue };
+        let data = view.data();
+        let finite = match view.dtype() {
+            Dtype::F32 => data
+                .chunks_exact(4)
+                .all(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]).is_finite()),
+            // Both keep an exponent of all ones for NaN and infinity.
+            Dtype::BF16 => data
+                .chunks_exact(2)
+                .all(|b| u16::from_le_bytes([b[0], b[1]]) & 0x7f80 != 0x7f80),
+            Dtype::F16 => data
+                .chunks_exact(2)
+                .all(|b| u16::from_le_bytes([b[0], b[1]]) & 0x7c00 != 0x7c00),
+            _ => true,
+        };
+        if !finite {
+            return Ok(Some(name));
+        }
+    }
+    Ok(None)
+}
+
 /// Loads safetensors bytes into a module. Every tensor of the module must be present with its shape, and
 /// every tensor of the file must be used; `what` names the weights in errors.
 pub fn weights_from_bytes<B: Backend, M: Module<B>>(mut module: M, bytes: Vec<u8>, what: &str) -> Result<M> {
@@ -259,5 +292,49 @@ mod tests {
             err.contains("net") && err.contains("missing") && err.contains("b.weight"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn non_finite_weights_are_found_by_name_in_every_float_type() {
+        let file = |dtype: Dtype, bytes: Vec<u8>| {
+            let n = bytes.len() * 8 / dtype.bitsize();
+            let ok = vec![0u8; bytes.len()];
+            let views = vec![
+                ("a.ok", TensorView::new(dtype, vec![n], &ok).unwrap()),
+                ("b.bad", TensorView::new(dtype, vec![n], &bytes).unwrap()),
+            ];
+            safetensors::serialize(views, None).unwrap()
+        };
+        let f32s = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        assert_eq!(
+            first_non_finite(&file(Dtype::F32, f32s(&[1.0, -3e38]))).unwrap(),
+            None
+        );
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            let found = first_non_finite(&file(Dtype::F32, f32s(&[1.0, bad]))).unwrap();
+            assert_eq!(found.as_deref(), Some("b.bad"), "{bad}");
+        }
+        // bf16: the f32's high half; f16: 0x7c00 is +inf, 0x7e00 NaN, 0x7bff the largest finite value.
+        let halves = |v: &[u16]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let bf16 = |x: f32| (x.to_bits() >> 16) as u16;
+        assert_eq!(
+            first_non_finite(&file(Dtype::BF16, halves(&[bf16(3e38)]))).unwrap(),
+            None
+        );
+        assert!(
+            first_non_finite(&file(Dtype::BF16, halves(&[bf16(f32::NAN)])))
+                .unwrap()
+                .is_some()
+        );
+        assert_eq!(
+            first_non_finite(&file(Dtype::F16, halves(&[0x7bff]))).unwrap(),
+            None
+        );
+        assert!(
+            first_non_finite(&file(Dtype::F16, halves(&[0x7c00])))
+                .unwrap()
+                .is_some()
+        );
+        assert!(first_non_finite(b"not safetensors").is_err());
     }
 }

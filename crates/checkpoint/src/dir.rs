@@ -139,7 +139,9 @@ impl CheckpointDir {
         write_synced(&tmp.join(MANIFEST), &text)?;
         let dest = self.root.join(&name);
         if dest.exists() {
-            std::fs::remove_dir_all(&dest).map_err(io(&dest))?;
+            // Never deleted: a checkpoint of this step that did not verify stays for the user to inspect.
+            let aside = self.set_aside(&dest)?;
+            tracing::warn!("{} existed already: moved to {}", dest.display(), aside.display());
         }
         std::fs::rename(&tmp, &dest).map_err(io(&dest))?;
         let latest_tmp = self.root.join(format!(".{LATEST}.tmp-{}", std::process::id()));
@@ -174,22 +176,96 @@ impl CheckpointDir {
         Ok(())
     }
 
-    /// The newest checkpoint that verifies, trying `latest` first and then older ones; damaged ones are
-    /// reported in the log and skipped. `None` when there is none.
+    /// The checkpoint of the highest step that verifies; damaged newer ones are reported in the log and
+    /// passed over. `None` when there is no checkpoint at all; an error naming every checkpoint and why it
+    /// does not verify when there are some but none does. (`latest` only says what was written last: a
+    /// kill between a checkpoint's rename and `latest`'s leaves a complete newer checkpoint, which wins.)
     pub fn load_latest(&self) -> Result<Option<Loaded>> {
-        let mut candidates: Vec<PathBuf> = self.list()?.into_iter().rev().map(|(_, p)| p).collect();
-        if let Ok(name) = std::fs::read_to_string(self.root.join(LATEST)) {
-            let p = self.root.join(name.trim());
-            candidates.retain(|c| c != &p);
-            candidates.insert(0, p);
+        let candidates = self.list()?;
+        if candidates.is_empty() {
+            return Ok(None);
         }
-        for dir in candidates {
-            match load(&dir) {
-                Ok(l) => return Ok(Some(l)),
-                Err(e) => tracing::warn!("skipping checkpoint: {e}"),
+        let mut reasons = Vec::new();
+        for (_, dir) in candidates.iter().rev() {
+            match load(dir) {
+                Ok(l) => {
+                    for r in &reasons {
+                        tracing::warn!("passing over a damaged checkpoint: {r}");
+                    }
+                    return Ok(Some(l));
+                }
+                Err(e) => reasons.push(e.to_string()),
             }
         }
-        Ok(None)
+        Err(CheckpointError::NoneReadable {
+            root: self.root.clone(),
+            reasons,
+        })
+    }
+
+    /// Moves every checkpoint of a step above `step` out of the way (`step-…​.damaged`, or
+    /// `.damaged-2`, … if taken), so that a run resumed from `step` neither overwrites nor prunes in
+    /// favour of them; their paths after the move. A resumed run calls it once it has loaded `step`, when
+    /// every newer checkpoint has failed to verify.
+    pub fn set_aside_newer(&self, step: u64) -> Result<Vec<PathBuf>> {
+        let mut moved = Vec::new();
+        for (s, dir) in self.list()? {
+            if s > step {
+                moved.push(self.set_aside(&dir)?);
+            }
+        }
+        Ok(moved)
+    }
+
+    fn set_aside(&self, dir: &Path) -> Result<PathBuf> {
+        let name = dir
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+        let mut to = self.root.join(format!("{name}.damaged"));
+        let mut n = 2;
+        while to.exists() {
+            to = self.root.join(format!("{name}.damaged-{n}"));
+            n += 1;
+        }
+        std::fs::rename(dir, &to).map_err(io(&to))?;
+        Ok(to)
+    }
+
+    /// Removes what interrupted saves left (`.step-….tmp-PID` directories, `.latest.tmp-PID` files) and
+    /// returns each with its size in bytes. Call it when a run starts in this directory: no save of
+    /// another process may be under way in it then.
+    pub fn remove_stale_temporaries(&self) -> Result<Vec<(PathBuf, u64)>> {
+        let Ok(rd) = std::fs::read_dir(&self.root) else {
+            return Ok(Vec::new());
+        };
+        let mut removed = Vec::new();
+        for e in rd {
+            let e = e.map_err(io(&self.root))?;
+            let name = e.file_name().to_string_lossy().into_owned();
+            let stale = (name.starts_with(".step-") || name.starts_with(&format!(".{LATEST}.")))
+                && name.contains(".tmp-");
+            if !stale {
+                continue;
+            }
+            let path = e.path();
+            let bytes = size_of(&path);
+            if path.is_dir() {
+                std::fs::remove_dir_all(&path).map_err(io(&path))?;
+            } else {
+                std::fs::remove_file(&path).map_err(io(&path))?;
+            }
+            removed.push((path, bytes));
+        }
+        removed.sort();
+        Ok(removed)
+    }
+}
+
+/// Bytes under `path` (0 where unreadable: only reported).
+fn size_of(path: &Path) -> u64 {
+    match std::fs::read_dir(path) {
+        Ok(rd) => rd.flatten().map(|e| size_of(&e.path())).sum(),
+        Err(_) => std::fs::metadata(path).map_or(0, |m| m.len()),
     }
 }
 
@@ -229,63 +305,5 @@ fn write_synced(path: &Path, data: &[u8]) -> Result<()> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn save_keeps_the_last_k_and_points_latest_at_the_newest() {
-        let dir = tempfile::tempdir().unwrap();
-        let c = CheckpointDir::new(dir.path(), 2);
-        for step in [10, 20, 30] {
-            c.save(
-                "test",
-                step,
-                serde_json::json!({"step": step}),
-                &[("a.bin", &[step as u8; 4])],
-            )
-            .unwrap();
-        }
-        let steps: Vec<u64> = c.list().unwrap().into_iter().map(|(s, _)| s).collect();
-        assert_eq!(steps, vec![20, 30]);
-        assert_eq!(
-            std::fs::read_to_string(dir.path().join(LATEST)).unwrap(),
-            "step-000000030"
-        );
-        let l = c.load_latest().unwrap().unwrap();
-        assert_eq!((l.manifest.step, l.file("a.bin").unwrap()), (30, &[30u8; 4][..]));
-        assert!(
-            l.file("b.bin")
-                .unwrap_err()
-                .to_string()
-                .contains("no file `b.bin`")
-        );
-    }
-
-    #[test]
-    fn a_damaged_newest_checkpoint_falls_back_to_the_previous() {
-        let dir = tempfile::tempdir().unwrap();
-        let c = CheckpointDir::new(dir.path(), 3);
-        c.save("test", 1, serde_json::Value::Null, &[("w", b"one")])
-            .unwrap();
-        let newest = c
-            .save("test", 2, serde_json::Value::Null, &[("w", b"two")])
-            .unwrap();
-        std::fs::write(newest.join("w"), b"tw0").unwrap();
-        let err = load(&newest).unwrap_err().to_string();
-        assert!(
-            err.contains("step-000000002") && err.contains("checksum"),
-            "{err}"
-        );
-        let l = c.load_latest().unwrap().unwrap();
-        assert_eq!(l.manifest.step, 1);
-        // An interrupted save (no manifest) is skipped the same way.
-        std::fs::create_dir_all(dir.path().join("step-000000003")).unwrap();
-        assert_eq!(c.load_latest().unwrap().unwrap().manifest.step, 1);
-        assert!(
-            CheckpointDir::new(dir.path().join("none"), 1)
-                .load_latest()
-                .unwrap()
-                .is_none()
-        );
-    }
-}
+#[path = "dir_tests.rs"]
+mod tests;

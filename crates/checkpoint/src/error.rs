@@ -29,6 +29,18 @@ pub enum CheckpointError {
         /// What differs.
         reason: String,
     },
+    /// A run directory holds checkpoints and none of them verifies.
+    #[error(
+        "{root} holds {} checkpoint(s) and none is readable (nothing was changed; restore one, or move them away to start afresh): {}",
+        reasons.len(),
+        reasons.join("; ")
+    )]
+    NoneReadable {
+        /// The checkpoint directory.
+        root: PathBuf,
+        /// Why each checkpoint, newest first, does not verify.
+        reasons: Vec<String>,
+    },
     /// Weights cannot be serialised or applied.
     #[error("{what}: {reason}")]
     Weights {

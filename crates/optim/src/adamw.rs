@@ -9,6 +9,8 @@
 //! burn's record, so checkpoints written by either load into the other, and it takes the gradient
 //! clipping's factor as a device tensor so that clipping costs no pass over the gradients of its own.
 
+use crate::kernels::{AdamWSlot, AdamWStep, GradNorm, MultiTensor, norm_reference, typed1};
+use crate::skip::{GradientPeak, guarded_scale, skip_mask, unless_skipped};
 use burn::module::{AutodiffModule, ModuleMapper, ModuleVisitor, Param, ParamId};
 use burn::optim::adaptor::{GradAdaptor, OptimizerAdaptor};
 use burn::optim::record::AdaptorRecord;
@@ -18,7 +20,7 @@ use burn::optim::{
 };
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
+use burn::tensor::{Tensor, TensorPrimitive};
 use std::collections::HashMap;
 use std::marker::PhantomData;
 
@@ -48,76 +50,27 @@ impl AdamWSettings {
     }
 }
 
-/// One parameter tensor's AdamW step, of any rank (as a backend's primitives).
-#[derive(Debug, Clone)]
-pub struct AdamWSlot<B: Backend> {
-    /// The parameter before the step.
-    pub param: FloatTensor<B>,
-    /// Its gradient (before the clipping factor).
-    pub grad: FloatTensor<B>,
-    /// The first and second moments before the step; `None` at the parameter's first step (zero moments).
-    pub moments: Option<(FloatTensor<B>, FloatTensor<B>)>,
-    /// The step's number for this parameter (1 at its first), which sets the bias corrections.
-    pub time: usize,
-}
-
-/// What one [`AdamWKernel`] call applies to all its slots.
+/// What [`FusedAdamW::step_clipped`] did, on the device (nothing here makes the host wait).
 #[derive(Debug)]
-pub struct AdamWStep<B: Backend> {
-    /// The hyper-parameters.
-    pub settings: AdamWSettings,
-    /// The learning rate.
-    pub lr: LearningRate,
-    /// `[1]`: multiplies every gradient (the global-norm clipping's factor), if any.
-    pub grad_scale: Option<FloatTensor<B>>,
+pub struct Stepped<M, B: Backend> {
+    /// The module after the step (as it was, if the step was skipped).
+    pub module: M,
+    /// `[1]`: the gradients' global norm before clipping.
+    pub norm: Tensor<B, 1>,
+    /// `[1]`: 1 if the step was skipped (a non-finite norm or guard value), else 0.
+    pub skipped: Tensor<B, 1>,
+    /// `[K]`: the gradients' sums of squares by part ([`FusedAdamW::largest_gradient`] names the largest).
+    pub parts: Tensor<B, 1>,
 }
-
-impl<B: Backend> AdamWStep<B> {
-    /// The bias corrections `1 − β₁ᵗ` and `1 − β₂ᵗ` at step `time`, in f32 as burn computes them.
-    pub fn corrections(&self, time: usize) -> (f32, f32) {
-        let t = i32::try_from(time).unwrap_or(i32::MAX);
-        let s = &self.settings;
-        (1.0 - s.beta_1.powi(t), 1.0 - s.beta_2.powi(t))
-    }
-
-    /// The factor `1 − lr·λ` that decays every weight, or `None` when it is 1 (burn skips the product then).
-    pub fn decay(&self) -> Option<f32> {
-        let rate = self.lr * self.settings.weight_decay as f64;
-        (rate != 0.0).then_some((1.0 - rate) as f32)
-    }
-}
-
-/// What an [`AdamWKernel`] returns: every slot's new parameter, first and second moment, in the slots'
-/// order, each of its parameter's shape; or the slots back with the reason it cannot take them (the
-/// optimizer then steps them with burn's AdamW).
-pub type AdamWStepped<B> = Result<Vec<[FloatTensor<B>; 3]>, (Vec<AdamWSlot<B>>, String)>;
-
-/// A backend's multi-tensor AdamW step.
-pub type AdamWKernel<B> = fn(Vec<AdamWSlot<B>>, &AdamWStep<B>) -> AdamWStepped<B>;
-
-/// A backend's global L2 norm of tensors of any rank (`[1]`), or the reason it cannot take them.
-pub type NormKernel<B> = fn(&[FloatTensor<B>]) -> Result<FloatTensor<B>, String>;
-
-/// A backend's multi-tensor kernels for [`FusedAdamW`].
-#[derive(Debug)]
-pub struct MultiTensor<B: Backend> {
-    /// The AdamW step.
-    pub adamw: AdamWKernel<B>,
-    /// The gradients' global norm, for clipping.
-    pub norm: NormKernel<B>,
-}
-
-// By hand: derived, they would ask `B` to be `Copy`.
-impl<B: Backend> Clone for MultiTensor<B> {
-    fn clone(&self) -> Self {
-        *self
-    }
-}
-
-impl<B: Backend> Copy for MultiTensor<B> {}
 
 /// burn's AdamW record for a module `M`, which [`FusedAdamW`] keeps too.
 pub type AdamWRecord<M, B> = <OptimizerAdaptor<AdamW, M, B> as Optimizer<M, B>>::Record;
+
+/// A clipped step's gradient norm and whether it was skipped (`[1]`, 0 or 1).
+struct Checked<B: Backend> {
+    norm: GradNorm<B>,
+    skipped: Tensor<B, 1>,
+}
 
 /// AdamW stepping every parameter tensor at once through an [`AdamWKernel`] when there is one.
 #[derive(Clone)]
@@ -125,6 +78,10 @@ pub struct FusedAdamW<M: AutodiffModule<B>, B: AutodiffBackend> {
     settings: AdamWSettings,
     records: AdamWRecord<M, B>,
     kernels: Option<MultiTensor<B::InnerBackend>>,
+    /// The module path of each parameter that had a gradient in the last step, in slot order.
+    names: Vec<String>,
+    /// The slot of each part of the last step's [`Stepped::parts`].
+    owners: Vec<usize>,
     module: PhantomData<M>,
 }
 
@@ -135,6 +92,8 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
             settings,
             records: Default::default(),
             kernels: None,
+            names: Vec::new(),
+            owners: Vec::new(),
             module: PhantomData,
         }
     }
@@ -146,31 +105,69 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
     }
 
     /// One AdamW step of `module` with `grads` scaled to a global norm of at most `max_norm` (not scaled
-    /// when `max_norm <= 0`, or when the norm is not finite), as [`crate::clip_grad_norm`] scales them;
-    /// returns the stepped module and the norm before scaling, still on the device. The scaling happens as
-    /// the step reads each gradient, so clipping costs no pass over the gradients of its own.
+    /// when `max_norm <= 0`), as [`crate::clip_grad_norm`] scales them. The scaling happens as the step
+    /// reads each gradient, so clipping costs no pass over the gradients of its own.
+    ///
+    /// The step is skipped, on the device, when the norm or any value of `guard` (e.g. the loss) is not
+    /// finite: parameters and moments stay as they were (a skipped first step leaves zero moments), and
+    /// only AdamW's step count, which sets its bias corrections, still counts it. The host learns of it
+    /// when it reads [`Stepped::skipped`].
     pub fn step_clipped(
         &mut self,
         lr: LearningRate,
         module: M,
         grads: GradientsParams,
         max_norm: f64,
-    ) -> (M, Tensor<B::InnerBackend, 1>) {
-        let (module, norm) = self.step_adapted(lr, module, grads.into(), Some(max_norm));
-        let norm = norm.unwrap_or_else(|| Tensor::zeros([1], &Default::default()));
-        (module, norm)
+        guard: Option<Tensor<B::InnerBackend, 1>>,
+    ) -> Stepped<M, B::InnerBackend> {
+        let (module, norm) = self.step_adapted(lr, module, grads.into(), Some((max_norm, guard)));
+        let zero = || Tensor::zeros([1], &Default::default());
+        match norm {
+            Some(Checked { norm, skipped }) => Stepped {
+                module,
+                norm: norm.norm,
+                skipped,
+                parts: norm.parts,
+            },
+            None => Stepped {
+                module,
+                norm: zero(),
+                skipped: zero(),
+                parts: zero(),
+            },
+        }
+    }
+
+    /// Which parameter's gradient stands out among `parts` (the sums of squares of a latest step's
+    /// [`Stepped::parts`], read back): the first, in module order, whose norm is not finite, or else the
+    /// largest. `None` when there were no gradients.
+    pub fn largest_gradient(&self, parts: &[f32]) -> Option<GradientPeak> {
+        let mut sums = vec![0.0f64; self.names.len()];
+        for (&owner, &sq) in self.owners.iter().zip(parts) {
+            if let Some(s) = sums.get_mut(owner) {
+                *s += f64::from(sq);
+            }
+        }
+        let non_finite = sums.iter().filter(|s| !s.is_finite()).count();
+        let i = match sums.iter().position(|s| !s.is_finite()) {
+            Some(i) => i,
+            None => sums.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?.0,
+        };
+        Some(GradientPeak {
+            name: self.names.get(i)?.clone(),
+            norm: sums[i].sqrt(),
+            non_finite,
+            params: sums.len(),
+        })
     }
 
     /// The global norm of `grads` (`[1]`), through the norm kernel when there is one.
-    fn norm(&self, grads: &[FloatTensor<B::InnerBackend>]) -> Option<Tensor<B::InnerBackend, 1>> {
+    fn norm(&self, grads: &[FloatTensor<B::InnerBackend>]) -> Option<GradNorm<B::InnerBackend>> {
         if grads.is_empty() {
             return None;
         }
         let by_kernel = self.kernels.and_then(|k| (k.norm)(grads).ok());
-        Some(match by_kernel {
-            Some(norm) => typed1(norm),
-            None => norm_reference::<B::InnerBackend>(grads),
-        })
+        Some(by_kernel.unwrap_or_else(|| norm_reference::<B::InnerBackend>(grads)))
     }
 
     fn step_adapted(
@@ -178,26 +175,37 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
         lr: LearningRate,
         module: M,
         grads: GradAdaptor,
-        max_norm: Option<f64>,
-    ) -> (M, Option<Tensor<B::InnerBackend, 1>>) {
+        clip: Option<(f64, Option<Tensor<B::InnerBackend, 1>>)>,
+    ) -> (M, Option<Checked<B::InnerBackend>>) {
         let mut gather = Gather::<M, B> {
             grads,
             records: &mut self.records,
             ids: Vec::new(),
             slots: Vec::new(),
+            path: Vec::new(),
+            names: (self.names.is_empty() && clip.is_some()).then(Vec::new),
         };
         module.visit(&mut gather);
-        let Gather { ids, slots, .. } = gather;
-        let norm =
-            max_norm.and_then(|_| self.norm(&slots.iter().map(|s| s.grad.clone()).collect::<Vec<_>>()));
-        let grad_scale = match (&norm, max_norm) {
-            (Some(norm), Some(max)) if max > 0.0 => Some(clip_scale(norm.clone(), max)),
+        let Gather {
+            ids, slots, names, ..
+        } = gather;
+        if let Some(names) = names {
+            self.names = names;
+        }
+        let norm = clip
+            .as_ref()
+            .and_then(|_| self.norm(&slots.iter().map(|s| s.grad.clone()).collect::<Vec<_>>()));
+        let guarded = match (&norm, clip) {
+            (Some(norm), Some((max_norm, guard))) => {
+                self.owners.clone_from(&norm.owners);
+                Some(guarded_scale(norm.norm.clone(), max_norm, guard))
+            }
             _ => None,
         };
         let step = AdamWStep {
             settings: self.settings,
             lr,
-            grad_scale: grad_scale.map(|s| s.into_primitive().tensor()),
+            grad_scale: guarded.clone().map(|s| s.into_primitive().tensor()),
         };
         let stepped = match self.kernels {
             Some(kernels) if !slots.is_empty() => (kernels.adamw)(slots, &step),
@@ -220,27 +228,10 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
             burn: self.settings.burn(),
             records: &mut self.records,
         });
-        (module, norm)
+        let skipped = guarded.map(|scale| scale.is_finite().bool_not().float());
+        let checked = norm.zip(skipped).map(|(norm, skipped)| Checked { norm, skipped });
+        (module, checked)
     }
-}
-
-/// `min(1, max_norm / norm)`, and 1 where the norm is NaN or infinite (as if not clipped).
-pub(crate) fn clip_scale<B: Backend>(norm: Tensor<B, 1>, max_norm: f64) -> Tensor<B, 1> {
-    let factor = norm.clone().clamp_min(max_norm).recip().mul_scalar(max_norm);
-    factor.mask_fill(norm.is_finite().bool_not(), 1.0)
-}
-
-/// The global L2 norm of `grads` in burn's operations, as [`crate::grad_norm`] computes it (each tensor's
-/// sum of squares, then their sum): what the norm kernel is checked against, and what runs without one.
-pub fn norm_reference<B: Backend>(grads: &[FloatTensor<B>]) -> Tensor<B, 1> {
-    let parts = grads
-        .iter()
-        .map(|g| {
-            let n = g.shape().num_elements();
-            typed1::<B>(g.clone()).reshape([n]).powf_scalar(2.0).sum()
-        })
-        .collect();
-    Tensor::cat(parts, 0).sum().sqrt()
 }
 
 impl<M: AutodiffModule<B>, B: AutodiffBackend> Optimizer<M, B> for FusedAdamW<M, B> {
@@ -271,13 +262,28 @@ struct Gather<'a, M: AutodiffModule<B>, B: AutodiffBackend> {
     /// Each slot's parameter and step number.
     ids: Vec<(ParamId, usize)>,
     slots: Vec<AdamWSlot<B::InnerBackend>>,
+    /// The module path being visited.
+    path: Vec<String>,
+    /// Each slot's module path, when asked for (once: they do not change between steps).
+    names: Option<Vec<String>>,
 }
 
 impl<M: AutodiffModule<B>, B: AutodiffBackend> ModuleVisitor<B> for Gather<'_, M, B> {
+    fn enter_module(&mut self, name: &str, _container: &str) {
+        self.path.push(name.into());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container: &str) {
+        self.path.pop();
+    }
+
     fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<B, D>>) {
         let Some((grad, device)) = self.grads.remove::<B::InnerBackend, D>(param.id) else {
             return;
         };
+        if let Some(names) = self.names.as_mut() {
+            names.push(self.path.join("."));
+        }
         let tensor = param.val().inner().to_device(&device);
         let state = self.records.remove(&param.id).map(|r| {
             let s: AdamWState<B::InnerBackend, D> = r.into_state();
@@ -343,11 +349,24 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> ModuleMapper<B> for Apply<'_, M, 
                         max_moment_2: None,
                     },
                 });
+                let old = (typed(slot.param.clone()), state.clone());
                 let (p, s) = self.burn.step(self.step.lr, typed(slot.param), grad, state);
-                let Some(s) = s else {
+                let Some(mut s) = s else {
                     unreachable!("burn's AdamW always returns its state")
                 };
-                (p, s)
+                match skip_mask(self.step) {
+                    Some(skip) => {
+                        let m = &mut s.momentum;
+                        let (m1, m2) = match old.1 {
+                            Some(o) => (o.momentum.moment_1, o.momentum.moment_2),
+                            None => (m.moment_1.zeros_like(), m.moment_2.zeros_like()),
+                        };
+                        m.moment_1 = unless_skipped(m.moment_1.clone(), m1, &skip);
+                        m.moment_2 = unless_skipped(m.moment_2.clone(), m2, &skip);
+                        (unless_skipped(p, old.0, &skip), s)
+                    }
+                    None => (p, s),
+                }
             }
         };
         self.records.insert(id, AdaptorRecord::from_state(state));
@@ -357,53 +376,6 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> ModuleMapper<B> for Apply<'_, M, 
         }
         Param::from_mapped_value(id, value, mapper)
     }
-}
-
-/// `t` as a rank-1 tensor (the gradient scale).
-fn typed1<B: Backend>(t: FloatTensor<B>) -> Tensor<B, 1> {
-    Tensor::from_primitive(TensorPrimitive::Float(t))
-}
-
-/// [`AdamWKernel`]'s arithmetic in burn's operations on flattened tensors, in the order burn's AdamW
-/// computes it: the reference a kernel is checked against, and what a kernel can run when it cannot
-/// launch after taking the slots.
-pub fn adamw_reference<B: Backend>(
-    slots: Vec<AdamWSlot<B>>,
-    step: &AdamWStep<B>,
-) -> Vec<[FloatTensor<B>; 3]> {
-    let s = step.settings;
-    slots
-        .into_iter()
-        .map(|slot| {
-            let shape = slot.param.shape();
-            let flat = |t: FloatTensor<B>| {
-                let n = t.shape().num_elements();
-                Tensor::<B, 1>::from_primitive(TensorPrimitive::Float(t)).reshape([n])
-            };
-            let mut g = flat(slot.grad);
-            if let Some(scale) = &step.grad_scale {
-                g = g * typed1::<B>(scale.clone());
-            }
-            let (m, v) = match slot.moments {
-                Some((m, v)) => (
-                    flat(m).mul_scalar(s.beta_1) + g.clone().mul_scalar(1.0 - s.beta_1),
-                    flat(v).mul_scalar(s.beta_2) + g.square().mul_scalar(1.0 - s.beta_2),
-                ),
-                None => (
-                    g.clone().mul_scalar(1.0 - s.beta_1),
-                    g.square().mul_scalar(1.0 - s.beta_2),
-                ),
-            };
-            let (c1, c2) = step.corrections(slot.time);
-            let delta = m.clone().div_scalar(c1) / (v.clone().div_scalar(c2).sqrt().add_scalar(s.epsilon));
-            let mut p = flat(slot.param);
-            if let Some(decay) = step.decay() {
-                p = p.mul_scalar(decay);
-            }
-            let p = p - delta.mul_scalar(step.lr);
-            [p, m, v].map(|t| B::float_reshape(t.into_primitive().tensor(), shape.clone()))
-        })
-        .collect()
 }
 
 #[cfg(test)]

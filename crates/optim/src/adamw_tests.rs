@@ -2,6 +2,9 @@
 
 use super::*;
 use crate::clip_grad_norm;
+use crate::kernels::{
+    AdamWSlot, AdamWStep, AdamWStepped, GradNorm, MultiTensor, adamw_reference, norm_reference,
+};
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::{Int, Tolerance};
@@ -75,8 +78,8 @@ fn declines(slots: Vec<AdamWSlot<Inner>>, _: &AdamWStep<Inner>) -> AdamWStepped<
     Err((slots, "declined".into()))
 }
 
-fn norm(grads: &[FloatTensor<Inner>]) -> Result<FloatTensor<Inner>, String> {
-    Ok(norm_reference::<Inner>(grads).into_primitive().tensor())
+fn norm(grads: &[FloatTensor<Inner>]) -> Result<GradNorm<Inner>, String> {
+    Ok(norm_reference::<Inner>(grads))
 }
 
 /// Kernels that compute what the CPU would, through the multi-tensor path.
@@ -174,8 +177,10 @@ fn a_gradient_scale_is_clipping() {
                 let n1 = clip_grad_norm::<B, _>(&x, &mut g, bound);
                 x = theirs.step(1e-2, x, g);
                 let g = grads(&y, step);
-                let n2;
-                (y, n2) = ours.step_clipped(1e-2, y, g, bound);
+                let stepped = ours.step_clipped(1e-2, y, g, bound, None);
+                let n2 = stepped.norm;
+                y = stepped.module;
+                assert_eq!(stepped.skipped.into_scalar(), 0.0);
                 if bound < 1.0 {
                     assert!(n1.clone().into_scalar() > 10.0 * bound as f32, "the bound clips");
                 }
@@ -190,5 +195,65 @@ fn a_gradient_scale_is_clipping() {
                 }
             }
         }
+    }
+}
+
+/// The first and second moments of the 2-D parameter `id`.
+fn moments(o: &FusedAdamW<Net<B>, B>, id: ParamId) -> (burn::tensor::TensorData, burn::tensor::TensorData) {
+    let state: AdamWState<Inner, 2> = o.to_record()[&id].clone().into_state();
+    (
+        state.momentum.moment_1.into_data(),
+        state.momentum.moment_2.into_data(),
+    )
+}
+
+/// The gradients of a loss whose input holds a NaN.
+fn nan_grads(m: &Net<B>) -> GradientsParams {
+    let dev = Default::default();
+    let x = Tensor::<B, 2>::from_floats([[1.0, f32::NAN, 0.5, 0.0, 2.0]], &dev);
+    let loss = m.b.forward(m.a.forward(x).tanh()).sum();
+    GradientsParams::from_grads(loss.backward(), m)
+}
+
+/// A step whose guard or gradients are not finite leaves the weights and moments as they were (zero
+/// moments at a first step), reports itself skipped, and names the parameter whose gradient is not
+/// finite; the next finite step then steps from the unchanged state, with every kernel path.
+#[test]
+fn a_non_finite_guard_or_gradient_skips_the_step() {
+    let nan = || {
+        Some(Tensor::<Inner, 1>::from_floats(
+            [1.0, f32::NAN],
+            &Default::default(),
+        ))
+    };
+    for kernels in [None, Some(DECLINING), Some(REFERENCE)] {
+        let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels);
+        let x = net();
+        // A skipped first step: the weights stay, the moments are zeros.
+        let s = ours.step_clipped(1e-2, x.clone(), grads(&x, 0), 1.0, nan());
+        assert_eq!(s.skipped.into_scalar(), 1.0);
+        assert_eq!(weights(&s.module), weights(&x));
+        assert_eq!(
+            moments(&ours, x.a.weight.id)
+                .0
+                .iter::<f32>()
+                .map(f32::abs)
+                .sum::<f32>(),
+            0.0
+        );
+        // A step, then one with NaN gradients: skipped, with the weights and records of the first.
+        let y = ours.step_clipped(1e-2, s.module, grads(&x, 1), 1.0, None).module;
+        let before = (weights(&y), moments(&ours, x.a.weight.id));
+        let s = ours.step_clipped(1e-2, y.clone(), nan_grads(&y), 1.0, None);
+        assert_eq!(s.skipped.into_scalar(), 1.0);
+        assert!(s.norm.into_scalar().is_nan());
+        assert_eq!((weights(&s.module), moments(&ours, x.a.weight.id)), before);
+        let parts: Vec<f32> = s.parts.into_data().iter::<f32>().collect();
+        let peak = ours.largest_gradient(&parts).unwrap();
+        assert!(peak.non_finite > 0 && peak.name.starts_with("a."), "{peak:?}");
+        // A finite step goes ahead again.
+        let s = ours.step_clipped(1e-2, s.module, grads(&x, 2), 1.0, None);
+        assert_eq!(s.skipped.into_scalar(), 0.0);
+        assert_ne!(weights(&s.module), before.0);
     }
 }

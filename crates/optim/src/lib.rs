@@ -9,11 +9,15 @@
 //! - [`adam_epsilon`]: a configured AdamW ε as the f32 the optimizer takes, or nothing if it is not usable.
 
 mod adamw;
+mod kernels;
+mod skip;
 
-pub use adamw::{
-    AdamWKernel, AdamWRecord, AdamWSettings, AdamWSlot, AdamWStep, AdamWStepped, FusedAdamW, MultiTensor,
-    NormKernel, adamw_reference, norm_reference,
+pub use adamw::{AdamWRecord, AdamWSettings, FusedAdamW, Stepped};
+pub use kernels::{
+    AdamWKernel, AdamWSlot, AdamWStep, AdamWStepped, GradNorm, MultiTensor, NormKernel, adamw_reference,
+    norm_reference,
 };
+pub use skip::GradientPeak;
 
 use burn::module::{AutodiffModule, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
@@ -102,7 +106,7 @@ pub fn clip_grad_norm<B: AutodiffBackend, M: AutodiffModule<B>>(
 ) -> Tensor<B::InnerBackend, 1> {
     let norm = grad_norm::<B, M>(model, grads);
     if max_norm > 0.0 {
-        let factor = adamw::clip_scale(norm.clone(), max_norm);
+        let factor = skip::clip_scale(norm.clone(), max_norm);
         model.visit(&mut Scale::<B> {
             grads,
             factor,

@@ -114,6 +114,25 @@ pub struct TrainConfig {
     /// (cubecl's device thread, one blocking call per operation) or `caller` (the training thread, one
     /// blocking call to cubecl's device thread per device pointer), `umgen_backbone::kernel_stream`.
     pub launch_thread: LaunchThread,
+    /// What a step whose loss or gradient norm is not finite does: `skip` (the default: the step leaves
+    /// the weights and AdamW's moments as they were, and the run stops after `max_skipped_steps` such
+    /// steps in a row) or `stop` (the run stops with an error naming the step). Either way no checkpoint
+    /// is written from a skipped step.
+    pub nonfinite: NonFinite,
+    /// Skipped steps in a row after which a run with `nonfinite = "skip"` stops with an error.
+    pub max_skipped_steps: u64,
+}
+
+/// What a training step with a non-finite loss or gradient norm does (`train.nonfinite`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum NonFinite {
+    /// Leave the weights and optimizer state as they were and go on, up to `train.max_skipped_steps` in a
+    /// row.
+    #[default]
+    Skip,
+    /// Stop the run with an error at the first such step.
+    Stop,
 }
 
 impl Default for TrainConfig {
@@ -155,6 +174,8 @@ impl Default for TrainConfig {
             kernel_stream: KernelStream::default(),
             adamw: AdamWChoice::default(),
             launch_thread: LaunchThread::default(),
+            nonfinite: NonFinite::default(),
+            max_skipped_steps: 10,
         }
     }
 }
@@ -184,6 +205,106 @@ impl TrainConfig {
         Ok(())
     }
 
+    /// The first setting that no run can use, as (key under `[train]`, what is wrong with its value);
+    /// `None` when every one is usable. `UmgenConfig::load` refuses such a config before anything runs,
+    /// naming the key and where it was set.
+    pub fn problem(&self) -> Option<(&'static str, String)> {
+        let at_least_one: [(&'static str, u64); 8] = [
+            ("steps", self.steps),
+            ("batch_size", self.batch_size as u64),
+            ("grad_accum", self.grad_accum as u64),
+            ("frames", self.frames as u64),
+            ("gap", self.gap as u64),
+            ("log_every", self.log_every),
+            ("checkpoint_every", self.checkpoint_every),
+            ("keep_checkpoints", self.keep_checkpoints as u64),
+        ];
+        if let Some((key, v)) = at_least_one.into_iter().find(|(_, v)| *v == 0) {
+            return Some((key, format!("{v} must be 1 or more")));
+        }
+        let positive = |x: f64| x.is_finite() && x > 0.0;
+        let non_negative = |x: f64| x.is_finite() && x >= 0.0;
+        let fraction = |x: f64| (0.0..1.0).contains(&x);
+        let numbers: [(&'static str, f64, bool, &str); 7] = [
+            ("lr", self.lr, positive(self.lr), "a positive number"),
+            (
+                "min_lr_ratio",
+                self.min_lr_ratio,
+                (0.0..=1.0).contains(&self.min_lr_ratio),
+                "a fraction of the peak, 0 to 1",
+            ),
+            (
+                "weight_decay",
+                self.weight_decay,
+                non_negative(self.weight_decay),
+                "0 or a positive number",
+            ),
+            (
+                "beta1",
+                self.beta1,
+                fraction(self.beta1),
+                "at least 0 and below 1",
+            ),
+            (
+                "beta2",
+                self.beta2,
+                fraction(self.beta2),
+                "at least 0 and below 1",
+            ),
+            (
+                "grad_clip",
+                self.grad_clip,
+                non_negative(self.grad_clip),
+                "0 (no clipping) or a positive norm",
+            ),
+            (
+                "ego_loss_weight",
+                self.ego_loss_weight,
+                non_negative(self.ego_loss_weight),
+                "0 or a positive weight",
+            ),
+        ];
+        if let Some((key, v, _, want)) = numbers.into_iter().find(|(_, _, ok, _)| !ok) {
+            return Some((key, format!("{v} must be {want}")));
+        }
+        if !positive(self.bucket_mib) {
+            return Some((
+                "bucket_mib",
+                format!("{} must be a positive size", self.bucket_mib),
+            ));
+        }
+        if adam_epsilon(self.eps).is_none() {
+            return Some((
+                "eps",
+                format!("{} must be a positive number that f32 holds", self.eps),
+            ));
+        }
+        if self.attention_block_mib == 0 {
+            return Some(("attention_block_mib", "0 must be 1 or more".into()));
+        }
+        if let Err(e) = umgen_backbone::flash::check_step(self.attention_step) {
+            return Some(("attention_step", e));
+        }
+        if self.max_skipped_steps == 0 {
+            return Some((
+                "max_skipped_steps",
+                "0 must be 1 or more (train.nonfinite = \"stop\" stops at the first)".into(),
+            ));
+        }
+        if let Some(p) = self.loss_options_unchecked().problem() {
+            let key = if p.starts_with("prior_drop") {
+                "prior_drop"
+            } else {
+                "ordinal_sigma"
+            };
+            let value = p
+                .split_once(" = ")
+                .map_or(p.clone(), |(_, rest)| rest.to_string());
+            return Some((key, value));
+        }
+        None
+    }
+
     /// AdamW's settings (`beta1`, `beta2`, `eps`, `weight_decay`) as the optimizer takes them, checked: an
     /// ε that f32 cannot hold is an error naming `train.eps`. `umgen train` and `umgen bench train` step
     /// with these.
@@ -205,14 +326,18 @@ impl TrainConfig {
     /// The options of the training loss (`ego_loss_weight`, `prior_drop`, `ordinal_sigma`), checked: an
     /// error names the key and its value. `umgen train` and `umgen bench train` take the loss this way.
     pub fn loss_options(&self) -> Result<LossOptions> {
-        let options = LossOptions {
-            ego_weight: self.ego_loss_weight,
-            prior_drop: self.prior_drop,
-            ordinal_sigma: self.ordinal_sigma,
-        };
+        let options = self.loss_options_unchecked();
         match options.problem() {
             Some(problem) => Err(TrainError::Setup(format!("train.{problem}"))),
             None => Ok(options),
+        }
+    }
+
+    fn loss_options_unchecked(&self) -> LossOptions {
+        LossOptions {
+            ego_weight: self.ego_loss_weight,
+            prior_drop: self.prior_drop,
+            ordinal_sigma: self.ordinal_sigma,
         }
     }
 
@@ -248,6 +373,9 @@ impl TrainConfig {
                 "adamw",
                 // The same launches from another thread.
                 "launch_thread",
+                // What happens to a step that breaks the run, not how the run trains.
+                "nonfinite",
+                "max_skipped_steps",
             ] {
                 o.remove(k);
             }
@@ -269,101 +397,5 @@ impl TrainConfig {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn kernel_settings_parse_are_checked_and_resuming_may_change_them() {
-        let cublas = TrainConfig::default();
-        let parse = |json: &str| serde_json::from_str::<TrainConfig>(json);
-        let burn = parse(r#"{"matmul": "burn"}"#).expect("train.matmul = burn");
-        let named = parse(r#"{"matmul": "named"}"#).expect("train.matmul = named");
-        assert_eq!(
-            (cublas.matmul, named.matmul, burn.matmul),
-            (MatmulKernel::Cublas, MatmulKernel::Named, MatmulKernel::Burn)
-        );
-        assert_eq!(named.identity(), burn.identity());
-        assert_eq!(named.identity(), cublas.identity());
-        // A setting that changes the run still does.
-        let lr = parse(r#"{"lr": 0.5}"#).expect("lr");
-        assert_ne!(named.identity(), lr.identity());
-        let blocks = parse(r#"{"attention_block_mib": 256}"#).expect("attention_block_mib");
-        assert_eq!(named.identity(), blocks.identity());
-        let tiled = parse(r#"{"attention": "tiled"}"#).expect("attention = tiled");
-        let fused = parse(r#"{"attention": "fused"}"#).expect("attention = fused");
-        assert_eq!(
-            (named.attention, tiled.attention, fused.attention),
-            (
-                AttentionKernel::Flash2,
-                AttentionKernel::Tiled,
-                AttentionKernel::Fused
-            )
-        );
-        assert_eq!(named.identity(), tiled.identity());
-        assert_eq!(named.identity(), fused.identity());
-        let burn_norm = parse(r#"{"norm": "burn"}"#).expect("norm = burn");
-        assert_eq!(
-            (named.norm, burn_norm.norm),
-            (NormKernel::Fused, NormKernel::Burn)
-        );
-        assert_eq!(named.identity(), burn_norm.identity());
-        let burn_gelu = parse(r#"{"gelu": "burn"}"#).expect("gelu = burn");
-        assert_eq!(
-            (named.gelu, burn_gelu.gelu),
-            (GeluKernel::Fused, GeluKernel::Burn)
-        );
-        assert_eq!(named.identity(), burn_gelu.identity());
-        let burn_xent = parse(r#"{"xent": "burn"}"#).expect("xent = burn");
-        assert_eq!(
-            (named.xent, burn_xent.xent),
-            (XentKernel::Fused, XentKernel::Burn)
-        );
-        assert_eq!(named.identity(), burn_xent.identity());
-        let side = parse(r#"{"kernel_stream": "side"}"#).expect("kernel_stream = side");
-        assert_eq!(
-            (named.kernel_stream, side.kernel_stream),
-            (KernelStream::Cubecl, KernelStream::Side)
-        );
-        assert_eq!(named.identity(), side.identity());
-        let burn_adamw = parse(r#"{"adamw": "burn"}"#).expect("adamw = burn");
-        assert_eq!(
-            (named.adamw, burn_adamw.adamw),
-            (AdamWChoice::Fused, AdamWChoice::Burn)
-        );
-        assert_eq!(named.identity(), burn_adamw.identity());
-        let caller = parse(r#"{"launch_thread": "caller"}"#).expect("launch_thread = caller");
-        assert_eq!(
-            (named.launch_thread, caller.launch_thread),
-            (LaunchThread::Device, LaunchThread::Caller)
-        );
-        assert_eq!(named.identity(), caller.identity());
-        let e = parse(r#"{"adamw": "apex"}"#).unwrap_err().to_string();
-        assert!(e.contains("apex") && e.contains("fused"), "{e}");
-        let e = parse(r#"{"kernel_stream": "main"}"#).unwrap_err().to_string();
-        assert!(e.contains("main") && e.contains("cubecl"), "{e}");
-        let e = parse(r#"{"norm": "fast"}"#).unwrap_err().to_string();
-        assert!(e.contains("fast") && e.contains("fused"), "{e}");
-        let recompute = parse(r#"{"recompute": true}"#).expect("recompute = true");
-        assert!(recompute.recompute && !named.recompute);
-        assert_eq!(named.identity(), recompute.identity());
-        let e = parse(r#"{"attention": "flash"}"#).unwrap_err().to_string();
-        assert!(e.contains("flash") && e.contains("flash2"), "{e}");
-        let e = parse(r#"{"attention_block_mib": 0}"#)
-            .expect("parses")
-            .select_kernels()
-            .unwrap_err();
-        assert!(e.to_string().contains("train.attention_block_mib = 0"), "{e}");
-        let step = parse(r#"{"attention_step": 16}"#).expect("attention_step = 16");
-        assert_eq!(named.identity(), step.identity());
-        let e = parse(r#"{"attention_step": 48}"#)
-            .expect("parses")
-            .select_kernels()
-            .unwrap_err();
-        assert!(e.to_string().contains("train.attention_step = 48"), "{e}");
-        let e = parse(r#"{"matmul": "tma"}"#).unwrap_err().to_string();
-        assert!(
-            e.contains("tma") && e.contains("cublas") && e.contains("named") && e.contains("burn"),
-            "{e}"
-        );
-    }
-}
+#[path = "config_tests.rs"]
+mod tests;

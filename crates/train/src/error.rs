@@ -28,6 +28,17 @@ pub enum TrainError {
     /// A collective between ranks failed.
     #[error(transparent)]
     Dist(#[from] umgen_dist::DistError),
+    /// A step's loss or gradient norm is not finite and `train.nonfinite` (or `max_skipped_steps`) stops
+    /// the run; the newest checkpoint holds weights from before it.
+    #[error(
+        "step {step}: the loss or the gradient norm is not finite: {message}; the run stopped without writing a checkpoint from a skipped step"
+    )]
+    NonFinite {
+        /// The first such step (counted from 1).
+        step: u64,
+        /// The loss terms, gradient norm and largest gradient, and why the run stops.
+        message: String,
+    },
     /// Metric files.
     #[error("metrics in {path}: {error}")]
     Metrics {

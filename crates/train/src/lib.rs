@@ -8,16 +8,20 @@
 //!
 //! Checkpoints (`<out_dir>/checkpoints/step-…/`: `model.safetensors`, `optimizer.bin`, manifest with the
 //! run identity and resolved config) are written atomically; a damaged newest checkpoint falls back to
-//! the previous one; a checkpoint of another layout or configuration is refused with the differing keys.
-//! Metrics go to TensorBoard (`<out_dir>/tb`) and `<out_dir>/metrics.jsonl`.
+//! the previous one; a checkpoint of another layout or configuration is refused with the differing keys,
+//! and a refused run leaves its directory untouched. A step whose loss or gradient norm is not finite is
+//! skipped on the device and reported when the losses are read (`guard`, `train.nonfinite`); no
+//! checkpoint is written from it. Metrics go to TensorBoard (`<out_dir>/tb`) and `<out_dir>/metrics.jsonl`.
 
 mod config;
 mod error;
+mod guard;
+mod losses;
 mod run;
 mod sampler;
 mod trainer;
 
-pub use config::TrainConfig;
+pub use config::{NonFinite, TrainConfig};
 pub use error::{Result, TrainError};
 pub use run::RunSpec;
 pub use sampler::Sampler;

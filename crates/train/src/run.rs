@@ -1,7 +1,10 @@
-//! What a run trains ([`RunSpec`]) and what a resumed run, or another rank, must share with it.
+//! What a run trains ([`RunSpec`]), what a resumed run, or another rank, must share with it, and how a
+//! run takes its directory.
 
 use crate::config::TrainConfig;
+use crate::error::{Result, TrainError};
 use umgen_backbone::{BackboneConfig, BackboneSpec};
+use umgen_checkpoint::CheckpointDir;
 
 /// What a run trains.
 #[derive(Debug, Clone)]
@@ -71,4 +74,30 @@ pub(crate) fn describe_difference(saved: &serde_json::Value, now: &serde_json::V
         })
         .collect();
     format!("it was trained with another {}", differing.join(" and "))
+}
+
+/// Takes `out_dir` for a run that passed its checks: sets aside checkpoints newer than the one it resumes
+/// from (they failed to verify), removes what interrupted saves left, and writes `config.json`. A run
+/// refused before this point leaves the directory as it was.
+pub(crate) fn claim_run_dir(run: &RunSpec, ckpts: &CheckpointDir, step: u64) -> Result<()> {
+    for moved in ckpts.set_aside_newer(step)? {
+        tracing::warn!(
+            "set aside {} (it did not verify; the run continues from step {step})",
+            moved.display()
+        );
+    }
+    for (path, bytes) in ckpts.remove_stale_temporaries()? {
+        tracing::info!(
+            "removed {} ({bytes} bytes), left by an interrupted checkpoint save",
+            path.display()
+        );
+    }
+    let out = &run.train.out_dir;
+    let io = |error| TrainError::Metrics {
+        path: out.clone(),
+        error,
+    };
+    std::fs::create_dir_all(out).map_err(io)?;
+    let text = serde_json::to_vec_pretty(&run.config).map_err(|e| TrainError::Setup(e.to_string()))?;
+    std::fs::write(out.join("config.json"), text).map_err(io)
 }

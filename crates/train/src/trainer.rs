@@ -1,7 +1,9 @@
 //! The training loop.
 
 use crate::error::{Result, TrainError};
-use crate::run::{RunSpec, describe_difference};
+use crate::guard::Guard;
+use crate::losses::{averaged_parts, step_losses};
+use crate::run::{RunSpec, claim_run_dir, describe_difference};
 use crate::sampler::Sampler;
 use burn::optim::{GradientsAccumulator, GradientsParams};
 use burn::tensor::backend::AutodiffBackend;
@@ -12,7 +14,8 @@ use std::time::Instant;
 use umgen_backbone::Backbone;
 use umgen_checkpoint::CheckpointDir;
 use umgen_checkpoint::burn_io::{
-    optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes, weights_to_bytes,
+    first_non_finite, optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes,
+    weights_to_bytes,
 };
 use umgen_data::{TokenSet, Window};
 use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks};
@@ -123,7 +126,16 @@ pub fn train<B: AutodiffBackend>(
     let mut step = 0u64;
     let mut last_ckpt = None;
     if resume {
-        if let Some(l) = ckpts.load_latest()? {
+        // No checkpoint at all starts the run (a scheduler may pass --resume to every attempt); checkpoints
+        // of which none verifies are an error that names each, and nothing is touched.
+        let latest = ckpts.load_latest()?;
+        if latest.is_none() && lead {
+            tracing::info!(
+                "--resume: no checkpoint in {} yet, starting at step 1",
+                ckpts.root().display()
+            );
+        }
+        if let Some(l) = latest {
             let saved = &l.manifest.meta["identity"];
             if l.manifest.kind != KIND || saved != &run.identity() {
                 return Err(TrainError::Checkpoint(
@@ -165,6 +177,9 @@ pub fn train<B: AutodiffBackend>(
         "the step this run starts from (ranks need train.out_dir on a shared file system)",
         device,
     )?;
+    if lead {
+        claim_run_dir(run, &ckpts, step)?;
+    }
     let mut log = if lead {
         Some(MetricLog::open(out).map_err(|error| TrainError::Metrics {
             path: out.clone(),
@@ -185,6 +200,7 @@ pub fn train<B: AutodiffBackend>(
     let rank_salt = (rank as u64).wrapping_mul(0xd1b5_4a32_d192_ed03);
     let (mut first_loss, mut last_loss) = (None, None);
     let (mut interval, mut interval_from) = (Instant::now(), step);
+    let mut guard = Guard::new(tc.nonfinite, tc.max_skipped_steps, world, step, device);
     while step < tc.steps {
         let t0 = Instant::now();
         // Dropout differs between ranks (they see different samples) and is a function of (seed, step, rank).
@@ -204,15 +220,19 @@ pub fn train<B: AutodiffBackend>(
         }
         let grads = all_reduce_grads(&model, acc.grads(), group, bucket)?;
         let lr = schedule.lr(step);
-        let grad_norm;
-        (model, grad_norm) = optim.step_clipped(lr, model, grads, tc.grad_clip);
+        let losses = step_losses(&parts);
+        let guarded = guard.values(losses.clone().slice(0..1));
+        let stepped = optim.step_clipped(lr, model, grads, tc.grad_clip, guarded);
+        model = stepped.module;
+        let grad_norm = stepped.norm;
+        guard.observe(stepped.skipped, losses, grad_norm.clone(), stepped.parts);
         step += 1;
         let mut seconds = t0.elapsed().as_secs_f64();
         let logging = step.is_multiple_of(tc.log_every.max(1)) || step == tc.steps || step == 1;
         let values = if logging {
             // Reading the losses waits for the device; nothing else in a step does (clipping stays on the
             // device), so time is only meaningful averaged over the steps since the previous log.
-            let mut v = averaged_parts(&parts, group, lr, grad_norm)?;
+            let (mut v, skips) = averaged_parts(&parts, group, lr, grad_norm, guard.pending())?;
             seconds = interval.elapsed().as_secs_f64() / (step - interval_from).max(1) as f64;
             (interval, interval_from) = (Instant::now(), step);
             v.push(("tokens_per_s".into(), tokens_per_step / seconds));
@@ -223,6 +243,22 @@ pub fn train<B: AutodiffBackend>(
                         path: out.clone(),
                         error,
                     })?;
+            }
+            let names: Vec<String> = v
+                .iter()
+                .take_while(|(k, _)| k != "lr")
+                .map(|(k, _)| k.clone())
+                .collect();
+            let report = guard.settle(&skips, step, &names, |p| optim.largest_gradient(p))?;
+            if let (Some(r), true) = (report, lead) {
+                tracing::warn!(
+                    "{} step(s) skipped since the last log ({} in a row now; the run stops at train.max_skipped_steps = {}), the first at step {}: {}",
+                    r.skipped,
+                    r.streak,
+                    tc.max_skipped_steps,
+                    r.step,
+                    r.what
+                );
             }
             first_loss = first_loss.or(Some(v[0].1));
             last_loss = Some(v[0].1);
@@ -245,10 +281,22 @@ pub fn train<B: AutodiffBackend>(
             _ => logging && rank0_decides(group, stop, device)?,
         };
         let due = stop || step.is_multiple_of(tc.checkpoint_every.max(1)) || step == tc.steps;
-        if due && lead {
+        let skipping = due && lead && guard.streak_now() > 0.0;
+        if skipping {
+            tracing::warn!(
+                "no checkpoint at step {step}: the step was skipped (its loss or gradient norm is not finite)"
+            );
+        }
+        if due && lead && !skipping {
             let meta =
                 serde_json::json!({"identity": run.identity(), "config": run.config, "world_size": world});
             let w = weights_to_bytes(&model)?;
+            if let Some(name) = first_non_finite(&w)? {
+                return Err(TrainError::NonFinite {
+                    step,
+                    message: format!("the weights of `{name}` hold values that are not finite"),
+                });
+            }
             let o = optimizer_to_bytes::<B, _, _>(&optim)?;
             last_ckpt = Some(ckpts.save(
                 KIND,
@@ -293,39 +341,4 @@ fn load_batch<B: AutodiffBackend>(
         TensorData::new(ids, [picks.len(), f, n]),
         device,
     ))
-}
-
-/// Mean over micro-batches and ranks of every loss part and the gradient norm (equal on every rank), fetched
-/// from the device in one transfer, then `lr`, `grad_norm`. The first entry is the total loss.
-fn averaged_parts<B: AutodiffBackend>(
-    parts: &[umgen_backbone::Losses<B>],
-    group: &mut dyn ProcessGroup<B::InnerBackend>,
-    lr: f64,
-    grad_norm: Tensor<B::InnerBackend, 1>,
-) -> Result<Vec<(String, f64)>> {
-    let Some(first) = parts.first() else {
-        return Ok(Vec::new());
-    };
-    let mut names = vec!["loss".to_string()];
-    names.extend(first.parts.iter().map(|(k, _)| k.clone()));
-    let tensors: Vec<Tensor<B, 1>> = parts
-        .iter()
-        .flat_map(|l| std::iter::once(l.total.clone()).chain(l.parts.iter().map(|(_, t)| t.clone())))
-        .collect();
-    let local = Tensor::cat(vec![Tensor::cat(tensors, 0).inner(), grad_norm], 0);
-    let mut values: Vec<f64> = group.all_reduce_mean(local)?.into_data().iter::<f64>().collect();
-    let grad_norm = values.pop().unwrap_or(f64::NAN);
-    let k = names.len();
-    let mut out: Vec<(String, f64)> = names
-        .into_iter()
-        .enumerate()
-        .map(|(i, name)| {
-            (
-                name,
-                (0..parts.len()).map(|m| values[m * k + i]).sum::<f64>() / parts.len() as f64,
-            )
-        })
-        .collect();
-    out.extend([("lr".into(), lr), ("grad_norm".into(), grad_norm)]);
-    Ok(out)
 }

@@ -8,6 +8,7 @@ use crate::{backbone_spec, builtin_catalog};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use umgen_checkpoint::burn_io::first_non_finite;
 use umgen_checkpoint::{CheckpointDir, Loaded, sha256};
 use umgen_modality::{ModalityCatalog, ModalityRegistry};
 
@@ -166,6 +167,14 @@ pub fn export_bundle(checkpoint: &Path, out: &Path, dtype: WeightDtype) -> Resul
         ));
     }
     let spec = backbone_spec(&registry, &config.backbone)?;
+    if let Some(name) = first_non_finite(loaded.file(BUNDLE_WEIGHTS)?)? {
+        return Err(bundle_err(
+            &loaded.dir,
+            format!(
+                "its weights of `{name}` hold values that are not finite (a diverged run): export an earlier checkpoint"
+            ),
+        ));
+    }
     if out.exists() {
         return Err(bundle_err(out, "already exists; choose a new directory"));
     }
@@ -253,6 +262,16 @@ impl Bundle {
                 return Err(bundle_err(
                     &p,
                     "does not match the manifest's size and checksum (damaged or replaced)",
+                ));
+            }
+            if rel == BUNDLE_WEIGHTS
+                && let Some(name) = first_non_finite(&data)?
+            {
+                return Err(bundle_err(
+                    &p,
+                    format!(
+                        "the weights of `{name}` hold values that are not finite (exported from a diverged run)"
+                    ),
                 ));
             }
         }

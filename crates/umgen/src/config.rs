@@ -37,6 +37,24 @@ impl UmgenConfig {
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
         let layers = RawConfig::load(path, overrides)?;
         let mut config: Self = layers.parse()?;
+        let problem = config
+            .train
+            .problem()
+            .map(|(key, message)| (format!("train.{key}"), message))
+            .or_else(|| {
+                config
+                    .backbone
+                    .problem()
+                    .map(|(key, message)| (format!("backbone.{key}"), message))
+            });
+        if let Some((key, message)) = problem {
+            return Err(ConfigError::Key {
+                origin: layers.origin(&key),
+                key,
+                message,
+            }
+            .into());
+        }
         config.layers = Some(layers);
         Ok(config)
     }

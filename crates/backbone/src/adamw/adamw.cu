@@ -13,7 +13,9 @@
 //   m = β1 m + (1 − β1) g            (m = (1 − β1) g at a slot's first step)
 //   v = β2 v + (1 − β2) g²
 //   p = p (1 − lr λ) − lr (m / c1) / (√(v / c2) + ε),   c1 = 1 − β1ᵗ, c2 = 1 − β2ᵗ
-// with g the gradient times the clipping factor `scale[0]` when `has_scale`.
+// with g the gradient times the clipping factor `scale[0]` when `has_scale`. A scale that is not finite
+// skips the step (umgen_optim's guarded step): the parameter and moments are written back as they were,
+// zero moments for a slot's first step.
 
 #if !defined(UMGEN_ADAMW_SLOTS) || !defined(UMGEN_SUMSQ_SLOTS)
 #error "UMGEN_ADAMW_SLOTS and UMGEN_SUMSQ_SLOTS must be defined"
@@ -93,6 +95,14 @@ __device__ __forceinline__ void adamw_update(const AdamwParams& p, unsigned int 
     const bool fresh = p.fresh[i] != 0;
     const float c1 = p.c1[i];
     const float c2 = p.c2[i];
+    if (p.has_scale && !isfinite(factor)) {
+        for (unsigned int j = start + threadIdx.x; j < end; j += UMGEN_ADAMW_THREADS) {
+            s.param_out[j] = s.param[j];
+            s.m_out[j] = fresh ? 0.0f : s.m[j];
+            s.v_out[j] = fresh ? 0.0f : s.v[j];
+        }
+        return;
+    }
     for (unsigned int j = start + threadIdx.x; j < end; j += UMGEN_ADAMW_THREADS) {
         float g = s.grad[j];
         if (p.has_scale) {

@@ -10,10 +10,11 @@ use crate::side::{self, Handles, Inner, Primitive, SidePass, empty_f32};
 use burn::backend::Cuda;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, TensorMetadata};
+use burn::tensor::{Tensor, TensorPrimitive};
 use burn_cubecl::kernel::into_contiguous;
 use burn_ir::CustomOpIr;
 use cudarc::driver::DeviceRepr;
-use umgen_optim::norm_reference;
+use umgen_optim::{GradNorm, norm_reference};
 
 /// Gradients a launch reads (`UMGEN_SUMSQ_SLOTS`).
 pub(super) const SLOTS: usize = 128;
@@ -48,7 +49,7 @@ struct Pass {
 }
 
 /// The global norm of `grads` on `Cuda` ([`umgen_optim::NormKernel`]).
-pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<FloatTensor<Cuda>, String> {
+pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<GradNorm<Cuda>, String> {
     if selected() == AdamWChoice::Burn {
         return Err("train.adamw = \"burn\"".into());
     }
@@ -64,10 +65,22 @@ pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<FloatTensor<Cud
         CHOICE.fell_back(&why);
         return Err(why);
     }
-    let [norm] = side::register_many("umgen_grad_norm", grads.to_vec(), vec![vec![1]], Pass { lens })
+    // Each block of `SPAN` elements is a part; a gradient owns as many as it has spans.
+    let owners: Vec<usize> = lens
+        .iter()
+        .enumerate()
+        .flat_map(|(i, n)| std::iter::repeat_n(i, n.div_ceil(SPAN)))
+        .collect();
+    let outputs = vec![vec![1], vec![owners.len().max(1)]];
+    let [norm, parts] = side::register_many("umgen_grad_norm", grads.to_vec(), outputs, Pass { lens })
         .try_into()
-        .unwrap_or_else(|_| unreachable!("one output"));
-    Ok(norm)
+        .unwrap_or_else(|_| unreachable!("two outputs"));
+    let typed = |t| Tensor::<Cuda, 1>::from_primitive(TensorPrimitive::Float(t));
+    Ok(GradNorm {
+        norm: typed(norm),
+        parts: typed(parts),
+        owners,
+    })
 }
 
 impl SidePass for Pass {
@@ -82,10 +95,16 @@ impl SidePass for Pass {
             None => Err("no gradients".into()),
         };
         match launched {
-            Ok(norm) => vec![norm],
+            Ok((norm, parts)) => vec![norm, parts],
             Err(why) => {
                 CHOICE.fell_back(&why);
-                vec![norm_reference::<Inner>(&grads).into_primitive().tensor()]
+                // The parts by span, as the kernel's, from the reference's sums by gradient.
+                let reference = norm_reference::<Inner>(&grads);
+                let parts = span_parts(&reference.parts, &self.lens);
+                vec![
+                    reference.norm.into_primitive().tensor(),
+                    parts.into_primitive().tensor(),
+                ]
             }
         }
     }
@@ -93,7 +112,7 @@ impl SidePass for Pass {
 
 impl Pass {
     /// The partial sums of squares, 128 gradients a launch, then their sum's square root.
-    fn launch(&self, grads: &[Primitive]) -> Result<Primitive, String> {
+    fn launch(&self, grads: &[Primitive]) -> Result<(Primitive, Primitive), String> {
         let Some(like) = grads.first() else {
             return Err("no gradients".into());
         };
@@ -147,8 +166,29 @@ impl Pass {
                 &FinalParams { n: base },
             )
         }?;
-        Ok(norm)
+        Ok((norm, partials))
     }
+}
+
+/// Sums by gradient laid out as the kernel's parts by span: each gradient's sum in its first span, zeros
+/// in its others (what a fallback reports, so that the owners stay those of the spans).
+fn span_parts(by_gradient: &Tensor<Inner, 1>, lens: &[usize]) -> Tensor<Inner, 1> {
+    let device = by_gradient.device();
+    let mut pieces = Vec::with_capacity(2 * lens.len());
+    for (i, n) in lens.iter().enumerate() {
+        let spans = n.div_ceil(SPAN);
+        if spans == 0 {
+            continue;
+        }
+        pieces.push(by_gradient.clone().slice(i..i + 1));
+        if spans > 1 {
+            pieces.push(Tensor::zeros([spans - 1], &device));
+        }
+    }
+    if pieces.is_empty() {
+        return Tensor::zeros([1], &device);
+    }
+    Tensor::cat(pieces, 0)
 }
 
 /// `adamw.cu` and the entry point `umgen_sumsq`, which takes the partial sums and 128 gradients

@@ -384,13 +384,12 @@ fn adamw<B: AutodiffBackend>(
     // The gradients' global norm, through the kernel and in burn's operations.
     let grads: Vec<Raw<B>> = slots.iter().map(|s| s.grad.clone()).collect();
     let (ms, ours) = timed::<B, _>(a.iters, dev, || {
-        let raw = (kernels.norm)(&grads).map_err(|why| anyhow::anyhow!("the norm kernel declined: {why}"))?;
-        Ok(Tensor::<B::InnerBackend, 1>::from_primitive(
-            TensorPrimitive::Float(raw),
-        ))
+        let norm =
+            (kernels.norm)(&grads).map_err(|why| anyhow::anyhow!("the norm kernel declined: {why}"))?;
+        Ok(norm.norm)
     })?;
     let (burn_ms, theirs) = timed::<B, _>(a.iters, dev, || {
-        Ok(umgen::optim::norm_reference::<B::InnerBackend>(&grads))
+        Ok(umgen::optim::norm_reference::<B::InnerBackend>(&grads).norm)
     })?;
     let (ours, theirs) = (ours.reshape([1, 1, 1, 1]), theirs.reshape([1, 1, 1, 1]));
     writeln!(

@@ -151,11 +151,15 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
                 drop(loss.clone().into_data());
             }
             lap(0)?;
+            // The loss guards the step as in `umgen train`.
+            let guard = loss.clone().inner().reshape([1]);
             let grads = GradientsParams::from_grads(loss.backward(), &model);
             lap(1)?;
             let grads = all_reduce_grads(&model, grads, group.as_mut(), bucket)?;
             lap(2)?;
-            (model, _) = optim.step_clipped(tc.lr, model, grads, tc.grad_clip);
+            model = optim
+                .step_clipped(tc.lr, model, grads, tc.grad_clip, Some(guard))
+                .module;
             lap(3)?;
             // Wait for the step's work on the device before reading the clock.
             let queued = t0.elapsed().as_secs_f64();

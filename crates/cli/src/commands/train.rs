@@ -19,15 +19,8 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
     let device = Device::parse(&rank_device(&a.device, &env))?;
     let (run, tokens) = prepare(&config, device, &env)?;
+    // `train` writes `out_dir/config.json` once the run has passed its checks.
     let tc = &config.train;
-    if lead {
-        std::fs::create_dir_all(&tc.out_dir).with_context(|| format!("creating {}", tc.out_dir.display()))?;
-        std::fs::write(
-            tc.out_dir.join("config.json"),
-            serde_json::to_vec_pretty(&run.config)?,
-        )
-        .with_context(|| format!("writing {}", tc.out_dir.join("config.json").display()))?;
-    }
     tracing::info!(
         "training {} parameters on {} ({} windows of {} frames × N = {}), {} steps of {} × {} × {} rank(s) into {}",
         run.spec.param_count(&run.backbone),
