@@ -123,6 +123,72 @@ impl Control {
         Ok(())
     }
 
+    /// The entries that can apply to a rollout of `horizon` generated frames of a model that predicts an
+    /// ego action (`ego_action`) and has `agent_slots` agent slots (`None`: no agent modality), and a
+    /// description of each entry that cannot, in whole or in part (naming it as `ego[i]` or `agent[i]`, by
+    /// its place in the file). Entries that run past the horizon keep their frames within it.
+    pub fn applicable(
+        &self,
+        horizon: usize,
+        ego_action: bool,
+        agent_slots: Option<usize>,
+    ) -> (Control, Vec<String>) {
+        let mut problems = Vec::new();
+        let mut past = |what: String, from: usize, to: usize| {
+            if from >= horizon {
+                problems.push(format!(
+                    "{what} (frames {from} to {to}) starts after the last generated frame, {}",
+                    horizon.saturating_sub(1)
+                ));
+                false
+            } else {
+                if to > horizon {
+                    problems.push(format!(
+                        "{what} (frames {from} to {to}) runs past the last generated frame, {}: frames {horizon} to {to} do not apply",
+                        horizon - 1
+                    ));
+                }
+                true
+            }
+        };
+        let mut ego = Vec::new();
+        for (i, e) in self.ego.iter().enumerate() {
+            if past(format!("ego[{i}]"), e.from, e.to) {
+                ego.push(e.clone());
+            }
+        }
+        let mut agent = Vec::new();
+        for (i, a) in self.agent.iter().enumerate() {
+            if past(format!("agent[{i}]"), a.from, a.to) {
+                agent.push((i, a.clone()));
+            }
+        }
+        if !ego_action && !ego.is_empty() {
+            problems.push(format!(
+                "{} ego entr(ies): this model predicts no ego action",
+                ego.len()
+            ));
+            ego.clear();
+        }
+        agent.retain(|(i, a)| match agent_slots {
+            None => {
+                problems.push(format!("agent[{i}]: this model has no agent modality"));
+                false
+            }
+            Some(n) if a.slot >= n => {
+                problems.push(format!(
+                    "agent[{i}].slot = {}: this model has slots 0 to {}",
+                    a.slot,
+                    n.saturating_sub(1)
+                ));
+                false
+            }
+            Some(_) => true,
+        });
+        let agent = agent.into_iter().map(|(_, a)| a).collect();
+        (Control { ego, agent }, problems)
+    }
+
     /// The agent controls active at generated frame `k`.
     pub fn agents_at(&self, k: usize) -> impl Iterator<Item = &AgentControl> {
         self.agent.iter().filter(move |a| a.from <= k && k < a.to)
@@ -152,6 +218,36 @@ impl Control {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn entries_that_cannot_apply_are_named() {
+        let text = "[[ego]]\nfrom = 50\nto = 60\ndx = 2.0\n[[ego]]\nfrom = 0\nto = 4\ndx = 1.0\n\
+                    [[agent]]\nslot = 99\nfrom = 0\nto = 1\nx = 3.0\n[[agent]]\nslot = 2\nfrom = 1\nto = 2\nx = 3.0\n";
+        let c: Control = toml::from_str(text).unwrap();
+        c.validate().unwrap();
+        let (kept, problems) = c.applicable(2, true, Some(10));
+        assert_eq!(
+            problems,
+            [
+                "ego[0] (frames 50 to 60) starts after the last generated frame, 1",
+                "ego[1] (frames 0 to 4) runs past the last generated frame, 1: frames 2 to 4 do not apply",
+                "agent[0].slot = 99: this model has slots 0 to 9",
+            ]
+        );
+        assert_eq!(kept.ego, [c.ego[1].clone()]);
+        assert_eq!(kept.agent, [c.agent[1].clone()]);
+        // Everything applies to a long enough rollout of a model with the slots and the ego action.
+        let (all, none) = Control {
+            agent: vec![c.agent[1].clone()],
+            ..c.clone()
+        }
+        .applicable(60, true, Some(10));
+        assert!(none.is_empty() && all.ego.len() == 2, "{none:?}");
+        let (kept, problems) = c.applicable(60, false, None);
+        assert!(kept.ego.is_empty() && kept.agent.is_empty());
+        assert_eq!(problems.len(), 3, "{problems:?}");
+        assert!(problems[0].contains("2 ego entr(ies)") && problems[1].contains("no agent modality"));
+    }
 
     #[test]
     fn ranges_bins_and_errors() {

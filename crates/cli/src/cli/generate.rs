@@ -40,6 +40,11 @@ pub struct GenerateArgs {
     /// Control file (TOML or JSON), see docs/control.md.
     #[arg(long, value_name = "FILE")]
     pub control: Option<PathBuf>,
+    /// Generate even when control entries cannot apply, in whole or in part (past `--frames`, a slot the
+    /// model lacks, ego motion for a model without an ego action): each is named in a warning and left
+    /// out. Without it they are an error.
+    #[arg(long)]
+    pub allow_partial_control: bool,
     /// Force each context clip's recorded ego actions (the motion it recorded after its context) instead
     /// of the ego module's: `umgen eval` then measures the agents and the rest of the scene given the real
     /// ego motion. The clips need `--frames` more frames after their context; the control file may then

@@ -72,6 +72,11 @@ impl AgentSlots {
         (out, clamped)
     }
 
+    /// Agent slots per frame.
+    pub fn slots(&self) -> usize {
+        self.slots
+    }
+
     /// Tokens placed at generated frame `k`: each value the control file sets and the slot's category; the
     /// slot's other attributes are drawn from the value bins only (never pad or a category).
     pub fn placement(&self, control: &Control, k: usize) -> anyhow::Result<Placement> {

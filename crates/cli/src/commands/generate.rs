@@ -80,6 +80,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         .collect::<Result<_, serde_json::Error>>()?;
     let bins = spec.action.as_ref().map(|x| x.bins);
     let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
+    let control = applicable_control(a, control, bins.is_some(), agents.as_ref().map(|s| s.slots()))?;
     let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
     let cuda = matches!(device, Device::Cuda(_));
     let on_device = a.draw.on_device(cuda, total);
@@ -314,6 +315,33 @@ fn write_dataset(dir: &Path, scenes: Vec<SceneClip>) -> anyhow::Result<()> {
     }
     std::fs::rename(&partial, dir).with_context(|| format!("writing {}", dir.display()))?;
     Ok(())
+}
+
+/// The entries of `control` that can apply to this rollout; entries that cannot, in whole or in part, are
+/// an error naming the file and each entry, or with `--allow-partial-control` a warning each.
+fn applicable_control(
+    a: &GenerateArgs,
+    control: Control,
+    ego_action: bool,
+    agent_slots: Option<usize>,
+) -> anyhow::Result<Control> {
+    let (kept, problems) = control.applicable(a.frames, ego_action, agent_slots);
+    let Some(file) = a.control.as_ref().filter(|_| !problems.is_empty()) else {
+        return Ok(kept);
+    };
+    anyhow::ensure!(
+        a.allow_partial_control,
+        "{}: {} control entr(ies) cannot apply to {} generated frame(s) of this model: {} \
+         (--allow-partial-control generates with the rest)",
+        file.display(),
+        problems.len(),
+        a.frames,
+        problems.join("; ")
+    );
+    for p in &problems {
+        tracing::warn!("{}: {p}; generating without it", file.display());
+    }
+    Ok(kept)
 }
 
 fn read_control(p: &Path) -> anyhow::Result<Control> {
