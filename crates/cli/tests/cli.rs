@@ -460,7 +460,10 @@ fn bench_train_preset_names_the_config_it_reads_and_flags_are_checked() {
         ],
         &[],
     );
-    assert!(err.contains("train.ordinal_sigma = -2"), "{err}");
+    assert!(
+        err.contains("`train.ordinal_sigma` (from --set train.ordinal_sigma=-2): -2 must be"),
+        "{err}"
+    );
     // Neither a config nor a preset, and a time limit that is not a positive number: usage errors.
     let out = umgen(&["bench", "train"]);
     assert_eq!(out.status.code(), Some(2));
