@@ -85,7 +85,86 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
             assert!(at("p90") >= at("median"), "{who} at horizon {h}: {report}");
         }
     }
+    // Over the horizon: the rollouts' second against the real split; counts recomputed from scenes.json.
+    let scenes = json(multi.join("scenes.json"));
+    let frames: Vec<Vec<Vec<u64>>> = scenes
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| {
+            s["frames"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|f| {
+                    f["agents"]
+                        .as_array()
+                        .unwrap()
+                        .iter()
+                        .map(|a| a["track_id"].as_u64().unwrap())
+                        .collect()
+                })
+                .collect()
+        })
+        .collect();
+    let horizon = &report["horizon"];
+    let second = &horizon["seconds"][0]["generated"];
+    assert_eq!(
+        horizon["seconds"].as_array().unwrap().len(),
+        1,
+        "2 frames of 0.5 s: {horizon}"
+    );
+    assert_eq!(second["frames"], 6);
+    let counts: Vec<usize> = frames.iter().flatten().map(Vec::len).collect();
+    let mean = counts.iter().sum::<usize>() as f64 / 6.0;
+    assert!(
+        (second["agents_mean"].as_f64().unwrap() - mean).abs() < 1e-9,
+        "{second}"
+    );
+    let entries: usize = frames
+        .iter()
+        .map(|f| f[1].iter().filter(|id| !f[0].contains(id)).count())
+        .sum();
+    let exits: usize = frames
+        .iter()
+        .map(|f| f[0].iter().filter(|id| !f[1].contains(id)).count())
+        .sum();
+    assert_eq!(
+        second["entries_per_s"].as_f64(),
+        Some(entries as f64 / 1.5),
+        "{second}"
+    );
+    assert_eq!(
+        second["exits_per_s"].as_f64(),
+        Some(exits as f64 / 1.5),
+        "{second}"
+    );
+    let real = &horizon["real"];
+    assert!(real["agents_mean"].as_f64().unwrap() > 1.0, "{real}");
+    let total: f64 = real["agents_distribution"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p.as_f64().unwrap())
+        .sum();
+    assert!((total - 1.0).abs() < 1e-9, "{real}");
+    for rate in [
+        &real["off_road_rate"],
+        &second["off_road_rate"],
+        &real["collision_rate"],
+    ] {
+        assert!((0.0..=1.0).contains(&rate.as_f64().unwrap()), "{horizon}");
+    }
+    assert!(
+        real["heading_motion_median_deg"].as_f64().unwrap() < 10.0,
+        "real agents drive where they head: {real}"
+    );
+    assert!(multi.join("eval/horizon.png").exists() || horizon["seconds"].as_array().unwrap().len() < 2);
     let md = std::fs::read_to_string(multi.join("eval/report.md")).unwrap();
+    assert!(
+        md.contains("## Over the horizon") && md.contains("\n| real | "),
+        "{md}"
+    );
     assert!(md.contains("| binned const. vel. mean |"), "{md}");
     assert!(md.contains("| binned const. acc. mean |"), "{md}");
     assert!(md.contains("| binned real-state const. acc. mean |"), "{md}");

@@ -207,6 +207,9 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
             );
         }
     }
+    let per = meta["scenes_per_context"].as_u64().unwrap_or(1) as usize;
+    let horizon = super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, &a.split, dt)?;
+    report["horizon"] = horizon;
     report["recorded_ego"] = recorded_ego.into();
     let mut mmd_mean = serde_json::Map::new();
     for g in Group::ALL {
@@ -225,10 +228,11 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     if !l2_rows.is_empty() {
         super::eval_plot::l2_plot(&l2_rows, &out.join("l2.png"))?;
     }
+    super::eval_plot::horizon_plot(&report["horizon"], &out.join("horizon.png"))?;
     let md = super::eval_report::markdown(&a.generated, &report, real_frames.len())?;
     std::fs::write(out.join("report.md"), &md)?;
     tracing::info!(
-        "{}: report.json, report.md{}",
+        "{}: report.json, report.md, horizon.png{}",
         out.display(),
         if l2_rows.is_empty() { "" } else { ", l2.png" }
     );

@@ -1,4 +1,4 @@
-//! The L2-over-horizon picture of `umgen eval`.
+//! The pictures of `umgen eval`: L2 and the scene's statistics over the horizon.
 
 use std::path::Path;
 use umgen_viz::{Rgb, text, write_png};
@@ -11,14 +11,55 @@ pub fn l2_plot(rows: &[serde_json::Value], path: &Path) -> anyhow::Result<()> {
 
 /// The picture of [`l2_plot`].
 fn l2_picture(rows: &[serde_json::Value]) -> Rgb {
-    let (w, h, m) = (480usize, 320usize, 40.0);
-    let mut img = Rgb::filled(w, h, [255, 255, 255]);
     let series = [
         ("ego_model", [200, 40, 40], "EGO MODEL"),
         ("ego_constant_velocity", [240, 160, 160], "EGO CV"),
         ("agents_model", [40, 80, 200], "AGENTS MODEL"),
         ("agents_constant_velocity", [150, 170, 240], "AGENTS CV"),
     ];
+    curves(rows, &series, "L2 (M) OVER HORIZON")
+}
+
+/// Agents per frame, entries and exits per second of the rollouts over the horizon (solid) against the
+/// real split's (the same colours lighter, flat), as a PNG; nothing without horizon rows.
+pub fn horizon_plot(horizon: &serde_json::Value, path: &Path) -> anyhow::Result<()> {
+    if let Some(img) = horizon_picture(horizon) {
+        write_png(path, &img)?;
+    }
+    Ok(())
+}
+
+/// The picture of [`horizon_plot`].
+fn horizon_picture(horizon: &serde_json::Value) -> Option<Rgb> {
+    let seconds = horizon["seconds"].as_array().filter(|r| r.len() >= 2)?;
+    let keys = ["agents_mean", "entries_per_s", "exits_per_s"];
+    let rows: Vec<serde_json::Value> = seconds
+        .iter()
+        .map(|r| {
+            let mut row = serde_json::json!({"seconds": r["second"]});
+            for k in keys {
+                row[k] = r["generated"][k].clone();
+                row[format!("{k}_real")] = horizon["real"][k].clone();
+            }
+            row
+        })
+        .collect();
+    let series = [
+        ("agents_mean", [40, 80, 200], "AGENTS / FRAME"),
+        ("agents_mean_real", [150, 170, 240], "REAL"),
+        ("entries_per_s", [30, 150, 60], "ENTRIES / S"),
+        ("entries_per_s_real", [150, 215, 160], "REAL"),
+        ("exits_per_s", [200, 40, 40], "EXITS / S"),
+        ("exits_per_s_real", [240, 160, 160], "REAL"),
+    ];
+    Some(curves(&rows, &series, "SCENE OVER HORIZON"))
+}
+
+/// Curves of `series` (key, colour, legend) of `rows` (each with `seconds`) on a 480 × 320 picture, the
+/// largest value at the top, with a legend and the horizon's range.
+fn curves(rows: &[serde_json::Value], series: &[(&str, [u8; 3], &str)], title: &str) -> Rgb {
+    let (w, h, m) = (480usize, 320usize, 40.0);
+    let mut img = Rgb::filled(w, h, [255, 255, 255]);
     let top = rows
         .iter()
         .flat_map(|r| series.iter().filter_map(move |(k, _, _)| r[*k].as_f64()))
@@ -43,7 +84,7 @@ fn l2_picture(rows: &[serde_json::Value]) -> Rgb {
             img.line(p[0], p[1], 2.0, *colour);
         }
         // A swatch of the curve's colour, then the name in white on the label's darkened box (the
-        // light constant-velocity colours do not read on the dark box themselves).
+        // light colours do not read on the dark box themselves).
         let y = 6.0 + 12.0 * s as f64 + 5.0;
         img.line([w as f64 - 172.0, y], [w as f64 - 156.0, y], 3.0, *colour);
         text(&mut img, 6 + 12 * s, w - 150, 1, label, [255, 255, 255]);
@@ -62,7 +103,7 @@ fn l2_picture(rows: &[serde_json::Value]) -> Rgb {
         6,
         46,
         1,
-        &format!("L2 (M) OVER HORIZON, MAX {top:.2}"),
+        &format!("{title}, MAX {top:.2}"),
         [255, 255, 255],
     );
     img
@@ -97,5 +138,25 @@ mod tests {
         }
         // The largest value (agents, 8 m) is drawn at the top margin (y = 40), in the agents' colour.
         assert!((36..=44).any(|y| px(240, y) == [40, 80, 200]));
+    }
+
+    #[test]
+    fn the_horizon_plot_draws_the_rollout_and_the_real_level() {
+        let seconds: Vec<serde_json::Value> = (1..=3)
+            .map(|s| {
+                serde_json::json!({"second": s, "generated": {"agents_mean": 10.0 - 3.0 * s as f64,
+                    "entries_per_s": 1.0, "exits_per_s": null}})
+            })
+            .collect();
+        let horizon = serde_json::json!({"seconds": seconds,
+            "real": {"agents_mean": 10.0, "entries_per_s": 2.0, "exits_per_s": 2.0}});
+        let img = horizon_picture(&horizon).unwrap();
+        let w = img.width;
+        let px = |c: usize, r: usize| img.pixels[r * w + c];
+        // The real agents' level (10, the largest value) runs along the top margin across the plot; the
+        // rollout's agents start there and fall to 1 at the right (y = 40 + 240 · 0.9 = 256).
+        assert!((36..=44).any(|y| px(400, y) == [150, 170, 240]));
+        assert!((252..=260).any(|y| px(438, y) == [40, 80, 200]));
+        assert!(horizon_picture(&serde_json::json!({"seconds": [], "real": {}})).is_none());
     }
 }

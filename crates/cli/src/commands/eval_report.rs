@@ -36,6 +36,7 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
     for g in Group::ALL {
         writeln!(md, "| MMD {} | {} |", g.name(), num(&report["mmd"][g.name()]))?;
     }
+    horizon_markdown(&mut md, &report["horizon"])?;
     let rows = report["l2"].as_array().map_or(&[][..], |r| &r[..]);
     if rows.is_empty() {
         return Ok(md);
@@ -134,6 +135,54 @@ fn agents_table(
             })
             .collect();
         writeln!(md, "| {seconds:.1} | {} |", values.join(" | "))?;
+    }
+    Ok(())
+}
+
+/// The horizon table of `report.md`: the real split's statistics, then each second's of the rollouts.
+pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fmt::Result {
+    let Some(rows) = horizon["seconds"].as_array().filter(|r| !r.is_empty()) else {
+        return Ok(());
+    };
+    writeln!(
+        md,
+        "\n## Over the horizon\n\nPer second generated, against the real split over every frame of its clips \
+         (agents as the slots hold them). Collision: fraction of agents overlapping another; off-road: fraction \
+         of agent centres off the lanes, connectors and intersections; heading–motion: median angle between \
+         heading and velocity of agents above 1 m/s; speed (m/s) and acceleration (m/s²) as median (90th \
+         percentile).\n"
+    )?;
+    writeln!(
+        md,
+        "| second | frames | agents/frame | entries/s | exits/s | collision | off-road | heading–motion ° | speed | acceleration | MMD {} |",
+        Group::ALL.map(|g| g.name()).join(" / ")
+    )?;
+    writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|")?;
+    let spread = |v: &serde_json::Value| match (v["p50"].as_f64(), v["p90"].as_f64()) {
+        (Some(a), Some(b)) => format!("{a:.2} ({b:.2})"),
+        _ => "-".into(),
+    };
+    let line = |md: &mut String, label: String, s: &serde_json::Value, mmd: Option<&serde_json::Value>| {
+        let mmd = mmd.map_or("-".to_string(), |m| {
+            Group::ALL.map(|g| num(&m[g.name()])).join(" / ")
+        });
+        writeln!(
+            md,
+            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {mmd} |",
+            s["frames"],
+            num(&s["agents_mean"]),
+            num(&s["entries_per_s"]),
+            num(&s["exits_per_s"]),
+            num(&s["collision_rate"]),
+            num(&s["off_road_rate"]),
+            num(&s["heading_motion_median_deg"]),
+            spread(&s["speed"]),
+            spread(&s["acceleration"]),
+        )
+    };
+    line(md, "real".into(), &horizon["real"], None)?;
+    for r in rows {
+        line(md, r["second"].to_string(), &r["generated"], Some(&r["mmd"]))?;
     }
     Ok(())
 }

@@ -12,7 +12,7 @@ use umgen_eval::l2::{constant_velocity_ego, ego_l2};
 /// Agents of every frame of `clip` as the model's agent tokens decode them (slot ids as track ids, binned
 /// values). Only the agent modality runs: the map and image tokenizers are not needed here, and on a CPU
 /// their encoders take seconds per frame.
-fn decoded_agents(agent: &dyn Modality, clip: &SceneClip) -> anyhow::Result<Vec<Vec<Agent>>> {
+pub(super) fn decoded_agents(agent: &dyn Modality, clip: &SceneClip) -> anyhow::Result<Vec<Vec<Agent>>> {
     agent
         .tokenize_clip(clip)?
         .iter()

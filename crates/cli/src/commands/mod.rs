@@ -19,6 +19,7 @@ mod data;
 mod doctor;
 mod engine;
 mod eval;
+mod eval_horizon;
 mod eval_plot;
 mod eval_report;
 mod eval_truth;
