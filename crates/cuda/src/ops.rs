@@ -6,10 +6,16 @@
 //! buffers it reaches ([`Op::accesses`]); executors check those before they run it.
 
 mod accesses;
-mod args;
+mod attention;
+mod draw;
+mod products;
+mod rows;
 
 pub use accesses::Access;
-pub use args::*;
+pub use attention::*;
+pub use draw::*;
+pub use products::*;
+pub use rows::*;
 
 /// The element type of a buffer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
