@@ -219,7 +219,10 @@ impl<'a, B: Backend> Generator<'a, B> {
                                             *x = f32::NEG_INFINITY;
                                         }
                                     }
-                                    r[p] = smp.draw(&l, &mut self.rng);
+                                    r[p] = match group_pad(rules, p) {
+                                        Some(pad) => smp.draw_present(&l, pad, &mut self.rng),
+                                        None => smp.draw(&l, &mut self.rng),
+                                    };
                                 }
                             }
                         }
@@ -242,7 +245,10 @@ impl<'a, B: Backend> Generator<'a, B> {
                                             *x = f32::NEG_INFINITY;
                                         }
                                     }
-                                    out[b][p] = smp.draw(&l, &mut self.rng);
+                                    out[b][p] = match group_pad(rules, p) {
+                                        Some(pad) => smp.draw_present(&l, pad, &mut self.rng),
+                                        None => smp.draw(&l, &mut self.rng),
+                                    };
                                 }
                             }
                         }
@@ -309,4 +315,13 @@ pub(crate) fn host_rows<B: Backend>(t: Tensor<B, 2>) -> Vec<Vec<f32>> {
     let [_, v] = t.dims();
     let flat: Vec<f32> = t.into_data().iter::<f32>().collect();
     flat.chunks(v.max(1)).map(<[f32]>::to_vec).collect()
+}
+
+/// The pad id of the token group whose first position is `p`, if it is one: its draw keeps pad's
+/// untruncated share ([`Sampling::distribution_present`]).
+fn group_pad(rules: &Rules<'_>, p: usize) -> Option<u32> {
+    match rules.group[p] {
+        Some((_, 0, gi)) => rules.groups.get(gi).map(|g| g.pad),
+        _ => None,
+    }
 }

@@ -86,13 +86,72 @@ impl Sampling {
         last
     }
 
+    /// Draws the first id of a token group (an agent slot: an agent or `pad`) from `logits`, from
+    /// [`distribution_present`](Self::distribution_present).
+    pub fn draw_present(&self, logits: &[f32], pad: u32, rng: &mut impl Rng) -> u32 {
+        let dist = self.distribution_present(logits, pad);
+        let Some(&(last, _)) = dist.last() else {
+            return 0;
+        };
+        let mut u: f64 = rng.random();
+        for &(i, p) in &dist {
+            if u < p {
+                return i;
+            }
+            u -= p;
+        }
+        last
+    }
+
+    /// The distribution of a token group's first id (an agent slot: a value, or `pad` for no agent):
+    /// `pad` keeps its untruncated share of the tempered softmax over every finite logit, and the values
+    /// among the top-k ids (top-p among them) share the rest. A top-k list alone would give pad nearly all
+    /// of an empty slot's mass (an entering agent's is spread over many position bins) and so almost never
+    /// let an agent enter. With top-k 1 (greedy) or 0 (no truncation) it is [`distribution`](Self::distribution).
+    pub fn distribution_present(&self, logits: &[f32], pad: u32) -> Vec<(u32, f64)> {
+        if self.top_k <= 1 {
+            return self.distribution(logits);
+        }
+        let finite = || logits.iter().filter(|x| x.is_finite()).map(|&x| f64::from(x));
+        let Some(top) = finite().reduce(f64::max) else {
+            return Vec::new();
+        };
+        let e = |x: f64| ((x - top) / self.temperature).exp();
+        let total: f64 = finite().map(e).sum();
+        let share = logits
+            .get(pad as usize)
+            .filter(|x| x.is_finite())
+            .map_or(0.0, |&x| e(f64::from(x)) / total);
+        let mut order = self.ranked(logits);
+        order.retain(|&i| i != pad as usize);
+        if order.is_empty() {
+            return vec![(pad, 1.0)];
+        }
+        let mut out = vec![(pad, share)];
+        out.extend(
+            self.weighted(logits, order)
+                .into_iter()
+                .map(|(i, p)| (i, p * (1.0 - share))),
+        );
+        out
+    }
+
     /// The distribution [`draw`](Self::draw) draws from: ids with their probabilities, most likely first
     /// (empty when no logit is finite).
     pub fn distribution(&self, logits: &[f32]) -> Vec<(u32, f64)> {
+        let order = self.ranked(logits);
+        if order.is_empty() {
+            return Vec::new();
+        }
+        self.weighted(logits, order)
+    }
+
+    /// The ids a draw considers: the finite ones, the top k of them, most likely first (ties by id).
+    fn ranked(&self, logits: &[f32]) -> Vec<usize> {
         // Non-finite logits (NaN, masked −∞) are never drawn.
         let mut order: Vec<usize> = (0..logits.len()).filter(|&i| logits[i].is_finite()).collect();
         if order.is_empty() {
-            return Vec::new();
+            return order;
         }
         // Most likely first, ties by id: one total order, so the draw does not depend on how it is sorted.
         let most_likely = |a: &usize, b: &usize| logits[*b].total_cmp(&logits[*a]).then(a.cmp(b));
@@ -102,6 +161,12 @@ impl Sampling {
             order.truncate(self.top_k);
         }
         order.sort_unstable_by(most_likely);
+        order
+    }
+
+    /// `order` (non-empty, most likely first) with the probabilities of the tempered softmax over it,
+    /// cut to the top-p mass.
+    fn weighted(&self, logits: &[f32], mut order: Vec<usize>) -> Vec<(u32, f64)> {
         let top = f64::from(logits[order[0]]);
         let mut probs: Vec<f64> = order
             .iter()
@@ -257,6 +322,56 @@ pub(crate) mod tests {
                 assert_eq!(s.draw(&logits, &mut a), draw_by_full_sort(&s, &logits, &mut b));
             }
         }
+    }
+
+    #[test]
+    fn a_group_first_draw_keeps_pad_at_its_untruncated_share() {
+        // 200 equal values and pad at 9 × their mass: pad's share of the softmax is 0.9, of a top-5 list
+        // (pad and four values) 1800 / 1804.
+        let pad = 290u32;
+        let mut logits = vec![f32::NEG_INFINITY; 300];
+        logits[..200].iter_mut().for_each(|x| *x = 0.0);
+        logits[pad as usize] = (9.0f32 * 200.0).ln();
+        let s = Sampling {
+            top_k: 5,
+            top_p: 1.0,
+            temperature: 1.0,
+        };
+        let d = s.distribution_present(&logits, pad);
+        assert_eq!(d[0].0, pad);
+        // (The pad logit is ln 1800 in f32.)
+        assert!((d[0].1 - 0.9).abs() < 1e-6, "{d:?}");
+        // The list's four values (ties to the smaller ids) share the rest equally.
+        let values: Vec<u32> = d[1..].iter().map(|(i, _)| *i).collect();
+        assert_eq!(values, [0, 1, 2, 3]);
+        assert!(d[1..].iter().all(|(_, p)| (p - 0.025).abs() < 1e-6), "{d:?}");
+        let plain = s.distribution(&logits);
+        assert!((plain[0].1 - 1800.0 / 1804.0).abs() < 1e-6, "{plain:?}");
+        // Draws follow it.
+        let mut rng = StdRng::seed_from_u64(3);
+        let n = 20_000;
+        let pads = (0..n)
+            .filter(|_| s.draw_present(&logits, pad, &mut rng) == pad)
+            .count();
+        assert!((pads as f64 / n as f64 - 0.9).abs() < 0.01, "{pads}");
+        // Greedy and untruncated draws are the plain ones; a masked pad has no share; no values: pad.
+        for k in [0, 1] {
+            let t = Sampling { top_k: k, ..s };
+            assert_eq!(t.distribution_present(&logits, pad), t.distribution(&logits));
+        }
+        let mut no_pad = logits.clone();
+        no_pad[pad as usize] = f32::NEG_INFINITY;
+        let d = s.distribution_present(&no_pad, pad);
+        assert_eq!(d[0], (pad, 0.0));
+        assert!((d[1..].iter().map(|(_, p)| p).sum::<f64>() - 1.0).abs() < 1e-12);
+        let mut only_pad = vec![f32::NEG_INFINITY; 300];
+        only_pad[pad as usize] = 0.0;
+        assert_eq!(s.distribution_present(&only_pad, pad), [(pad, 1.0)]);
+        // With top-p, the values are cut among themselves: 0.5 of their mass keeps two of the four.
+        let t = Sampling { top_p: 0.5, ..s };
+        let d = t.distribution_present(&logits, pad);
+        assert_eq!(d.len(), 3, "{d:?}");
+        assert!((d[1].1 - 0.05).abs() < 1e-6, "{d:?}");
     }
 
     #[test]

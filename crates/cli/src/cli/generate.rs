@@ -74,7 +74,9 @@ pub struct GenerateArgs {
     /// made so far, for machines lent for a fixed time.
     #[arg(long, value_name = "MINUTES", value_parser = tokenizer::positive_minutes)]
     pub time_limit: Option<f64>,
-    /// Keep the k most likely ids (0 = all), every modality.
+    /// Keep the k most likely ids (0 = all), every modality. At an agent slot's first token pad keeps
+    /// its untruncated probability and the values among the k share the rest, so that agents enter and
+    /// leave at the model's rate (docs/control.md).
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,
     /// Top-k of one modality instead of `--top-k` (repeatable), e.g. `--top-k-of agent=5`; the authors'

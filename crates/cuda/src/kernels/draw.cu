@@ -7,6 +7,9 @@
 // - the draw: the top-k ids (most likely first, ties by id) with temperature and top-p, one uniform number
 //   from Philox (`uniform`), the distribution walked as `Sampling::draw` walks it; without top-k, Gumbel-max
 //   over every allowed id (top-p is then 1, which the engine checks);
+// - at a group's first position with a top-k above 1, pad keeps its untruncated probability (its share of
+//   the softmax over every allowed id) and the values among the top-k ids share the rest, so that a top-k
+//   does not take the rare "an agent enters" (or "leaves") away: it is drawn first, from its own uniform;
 // - a kept agent (its group was there in the previous frame) that draws pad redraws from the TAR head's
 //   logits, pad allowed again (the TAR, which sees the history, may let it leave);
 // - at a group's last position, the new-agent rule: a group that was empty in the previous frame and
@@ -241,6 +244,45 @@ DEV int held_top_k(const Draw& P, const float* row, const Rule& R, const GroupRu
     return total;
 }
 
+// The tempered softmax's probability of id `pad` over every allowed, finite id of `row` (0 where `pad` is
+// not among them); every thread returns it. Partial sums in double, added in thread order.
+DEV double pad_share(const Draw& P, const float* row, const Rule& R, const GroupRun& G, bool limited,
+                     float* sv, int* si) {
+    SHARED double part[1024];
+    SHARED double pad_e;
+    float v = NEG_INF;
+    int i = NO_ID;
+    for (int id = thread_id(); id < P.vocab; id += threads()) {
+        const float x = row[id];
+        if (finite(x) && allowed(R, G, -1, id, limited) && ranks_before(x, id, v, i)) {
+            v = x;
+            i = id;
+        }
+    }
+    block_best(&v, &i, sv, si);
+    const float top = v;
+    double acc = 0.0, mine = 0.0;
+    for (int id = thread_id(); id < P.vocab; id += threads()) {
+        const float x = row[id];
+        if (!finite(x) || !allowed(R, G, -1, id, limited)) continue;
+        const double e = exp(((double)x - (double)top) / P.temperature);
+        acc += e;
+        if (id == G.pad) mine = e;
+    }
+    part[thread_id()] = acc;
+    // The thread that visited `pad` (ids go to threads round-robin) holds its term.
+    if (thread_id() == G.pad % threads()) pad_e = mine;
+    sync_block();
+    double share = 0.0;
+    if (top != NEG_INF) {
+        double total = 0.0;
+        for (int t = 0; t < threads(); t++) total += part[t];
+        share = pad_e / total;
+    }
+    sync_block();
+    return share;
+}
+
 // A draw from `row` under the rule; every thread returns it. `purpose` keeps the draws' numbers apart.
 DEV int draw_from(const Draw& P, const float* row, const Rule& R, const GroupRun& G, int first, bool limited,
                   int scene, int p, u32 purpose) {
@@ -288,6 +330,28 @@ DEV int draw_from(const Draw& P, const float* row, const Rule& R, const GroupRun
             bi = wi;
             if (i == wi) scan_best(P, row, R, G, first, limited, bv, bi, &v, &i);
         }
+    }
+    // A group's first position: pad at its untruncated share, drawn first; the values of the list share the
+    // rest (the list without pad).
+    const bool present = R.gstart >= 0 && R.gj == 0 && P.top_k > 1;
+    const double pad_p = present ? pad_share(P, row, R, G, limited, sv, si) : 0.0;
+    if (present && thread_id() == 0) {
+        int kept = 0;
+        for (int j = 0; j < count; j++) {
+            if (ci[j] == G.pad) continue;
+            cv[kept] = cv[j];
+            ci[kept] = ci[j];
+            kept++;
+        }
+        if (count > 0 && (kept == 0 || uniform(P.key0, P.key1, sc, p, frame, purpose | 0xfffffeu) < pad_p)) {
+            ci[0] = G.pad;
+            cv[0] = 0.f;
+            kept = 1;
+        }
+        count = kept;
+    }
+    if (present) {
+        sync_block();
     }
     if (thread_id() == 0) {
         int id = 0;

@@ -84,7 +84,24 @@ fn draw_from(site: &Site<'_>, row: &[f32], limited: bool, purpose: u32) -> i32 {
         .map(|i| (row[i], i as i32))
         .collect();
     cands.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    // A group's first position: pad at its untruncated share, drawn first; the values of the top-k list
+    // share the rest (`draw.cu`'s `pad_share`).
+    let present = site.rule.gstart >= 0 && site.rule.gj == 0 && d.top_k > 1;
+    let pad_share = present.then(|| {
+        let top = cands.first().map_or(f64::NEG_INFINITY, |c| f64::from(c.0));
+        let e = |x: f32| ((f64::from(x) - top) / d.temperature).exp();
+        let total: f64 = cands.iter().map(|c| e(c.0)).sum();
+        let pad = cands.iter().find(|c| c.1 == site.run.pad).map_or(0.0, |c| e(c.0));
+        if total > 0.0 { pad / total } else { 0.0 }
+    });
     cands.truncate(d.top_k);
+    if let Some(share) = pad_share {
+        let any = !cands.is_empty();
+        cands.retain(|c| c.1 != site.run.pad);
+        if any && (cands.is_empty() || unif(0x00ff_fffe) < share) {
+            return site.run.pad;
+        }
+    }
     let Some(&(top, _)) = cands.first() else {
         return 0;
     };
@@ -247,6 +264,81 @@ mod tests {
             philox([u32::MAX; 4], [u32::MAX, u32::MAX]),
             [0x408f_276d, 0x41c8_3b0e, 0xa20b_c7c6, 0x6d54_51fd]
         );
+    }
+
+    /// A group's first position with top-k 5: pad comes out at its untruncated share (0.9 here; 0.998 if
+    /// the top-5 list alone counted), the values only from the list; as `draw.cu`'s emulator case.
+    #[test]
+    fn a_group_first_draw_keeps_pad_at_its_untruncated_share() {
+        let b = umgen_cuda::Buf { id: 0, at: 0 };
+        let d = Draw {
+            logits: b,
+            keep_logits: b,
+            rules: b,
+            runs: b,
+            keep_on: b,
+            newborn: b,
+            tok: b,
+            pos: b,
+            done: b,
+            counts: b,
+            boxes: b,
+            nboxes: b,
+            state: b,
+            temperature: 1.0,
+            top_p: 1.0,
+            m: 1,
+            n: 4,
+            vocab: 300,
+            top_k: 5,
+            keeps: 1,
+            groups: 1,
+            box_cap: 1,
+            keep_cap: 0,
+            run_count: 1,
+            key: [7, 9],
+        };
+        let rule = Rule {
+            known: 0,
+            limit: 1 << 30,
+            gstart: 1,
+            gj: 0,
+            grun: 0,
+            gindex: 0,
+            finish: 0,
+            keep: -1,
+            keep_pad: 0,
+            keep_off: 0,
+        };
+        let run = GroupRun {
+            size: 11,
+            pad: 290,
+            values: 256,
+            last_lo: 256,
+            last_hi: 260,
+            ..GroupRun::EMPTY
+        };
+        let mut row = vec![f32::NEG_INFINITY; 300];
+        row[..200].iter_mut().for_each(|x| *x = 0.0);
+        row[290] = (9.0f32 * 200.0).ln();
+        let n = 20_000u32;
+        let mut pads = 0;
+        for scene in 0..n {
+            let site = Site {
+                d: &d,
+                rule: &rule,
+                run: &run,
+                first: -1,
+                scene,
+                position: 1,
+                frame: 5,
+            };
+            match draw_from(&site, &row, true, 0) {
+                290 => pads += 1,
+                id => assert!((0..4).contains(&id), "{id} is not in the top-5 list"),
+            }
+        }
+        assert!((f64::from(pads) / f64::from(n) - 0.9).abs() < 0.01, "{pads}");
     }
 
     #[test]
