@@ -72,35 +72,13 @@ impl Sampling {
 
     /// Draws an id from `logits` (one row).
     pub fn draw(&self, logits: &[f32], rng: &mut impl Rng) -> u32 {
-        let dist = self.distribution(logits);
-        let Some(&(last, _)) = dist.last() else {
-            return 0;
-        };
-        let mut u: f64 = rng.random();
-        for &(i, p) in &dist {
-            if u < p {
-                return i;
-            }
-            u -= p;
-        }
-        last
+        walk(&self.distribution(logits), rng)
     }
 
     /// Draws the first id of a token group (an agent slot: an agent or `pad`) from `logits`, from
     /// [`distribution_present`](Self::distribution_present).
     pub fn draw_present(&self, logits: &[f32], pad: u32, rng: &mut impl Rng) -> u32 {
-        let dist = self.distribution_present(logits, pad);
-        let Some(&(last, _)) = dist.last() else {
-            return 0;
-        };
-        let mut u: f64 = rng.random();
-        for &(i, p) in &dist {
-            if u < p {
-                return i;
-            }
-            u -= p;
-        }
-        last
+        walk(&self.distribution_present(logits, pad), rng)
     }
 
     /// The distribution of a token group's first id (an agent slot: a value, or `pad` for no agent):
@@ -191,6 +169,21 @@ impl Sampling {
         order.into_iter().map(|i| i as u32).zip(probs).collect()
     }
 }
+/// One uniform number walked along `dist` (the last id where rounding leaves some over; 0 when empty).
+fn walk(dist: &[(u32, f64)], rng: &mut impl Rng) -> u32 {
+    let Some(&(last, _)) = dist.last() else {
+        return 0;
+    };
+    let mut u: f64 = rng.random();
+    for &(i, p) in dist {
+        if u < p {
+            return i;
+        }
+        u -= p;
+    }
+    last
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     #![allow(clippy::unwrap_used)]

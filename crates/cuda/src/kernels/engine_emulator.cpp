@@ -528,6 +528,47 @@ static bool test_draw() {
 // Sampled draws against a direct reference with the same Philox numbers: the top-k list (ties among the
 // logits, a vocabulary held in registers and one scanned from memory) with temperature and top-p, and
 // Gumbel-max over every id without top-k.
+// A draw at position 1 of `m` scenes with no keeps and no boxes in use: its buffers, and its arguments over
+// them (built in place: `P` points into the members).
+struct PlainDraw {
+    std::vector<int> tok, nboxes;
+    std::vector<unsigned char> flags;
+    std::vector<double> boxes;
+    unsigned done = 0, counts[2] = {0, 0};
+    unsigned state[3] = {5, 0, 11};
+    int pos = 1;
+    Draw P{};
+    PlainDraw(const std::vector<float>& logits, const std::vector<Rule>& rules, const GroupRun* run, int m, int n,
+              int vocab, int top_k, double temperature, double top_p, u32 key0, u32 key1)
+        : tok(size_t(m) * n, 0), nboxes(m, 1), flags(m, 0), boxes(size_t(m) * 5, 0.0) {
+        P.logits = logits.data();
+        P.keep_logits = logits.data();
+        P.rules = rules.data();
+        P.runs = run;
+        P.keep_on = flags.data();
+        P.newborn = flags.data();
+        P.tok = tok.data();
+        P.pos = &pos;
+        P.done = &done;
+        P.counts = counts;
+        P.boxes = boxes.data();
+        P.nboxes = nboxes.data();
+        P.state = state;
+        P.temperature = temperature;
+        P.top_p = top_p;
+        P.m = m;
+        P.n = n;
+        P.vocab = vocab;
+        P.top_k = top_k;
+        P.keeps = 1;
+        P.groups = 1;
+        P.box_cap = 1;
+        P.key0 = key0;
+        P.key1 = key1;
+    }
+    PlainDraw(const PlainDraw&) = delete;
+};
+
 // A group's first position with a top-k: pad comes out at its untruncated share of the softmax (0.9 here,
 // 0.998 if the top-5 list alone counted), the values only from the list.
 static bool test_group_first_draws() {
@@ -546,38 +587,9 @@ static bool test_group_first_draws() {
         for (int i = 0; i < 200; i++) logits[size_t(s) * vocab + i] = 0.f;
         logits[size_t(s) * vocab + pad] = float(std::log(9.0 * 200.0));
     }
-    std::vector<int> tok(size_t(m) * n, 0), nboxes(m, 1);
-    std::vector<unsigned char> flags(m, 0);
-    std::vector<double> boxes(size_t(m) * 5, 0.0);
-    unsigned done = 0, counts[2] = {0, 0};
-    const unsigned state[3] = {5, 0, 11};
-    int pos = 1;
-    Draw P{};
-    P.logits = logits.data();
-    P.keep_logits = logits.data();
-    P.rules = rules.data();
-    P.runs = &run;
-    P.keep_on = flags.data();
-    P.newborn = flags.data();
-    P.tok = tok.data();
-    P.pos = &pos;
-    P.done = &done;
-    P.counts = counts;
-    P.boxes = boxes.data();
-    P.nboxes = nboxes.data();
-    P.state = state;
-    P.temperature = 1.0;
-    P.top_p = 1.0;
-    P.m = m;
-    P.n = n;
-    P.vocab = vocab;
-    P.top_k = 5;
-    P.keeps = 1;
-    P.groups = 1;
-    P.box_cap = 1;
-    P.key0 = 7;
-    P.key1 = 9;
-    launch(umgen_draw, P, m, 1);
+    PlainDraw d(logits, rules, &run, m, n, vocab, 5, 1.0, 1.0, 7, 9);
+    launch(umgen_draw, d.P, m, 1);
+    const std::vector<int>& tok = d.tok;
     int pads = 0, outside = 0;
     for (int s = 0; s < m; s++) {
         const int id = tok[size_t(s) * n + 1];
@@ -600,38 +612,9 @@ static bool test_sampled_draws() {
             GroupRun run{};
             std::vector<float> logits(size_t(m) * vocab);
             for (auto& v : logits) v = float(int(normal() * 4)) * 0.25f;  // many ties
-            std::vector<int> tok(size_t(m) * n, 0), nboxes(m, 1);
-            std::vector<unsigned char> flags(m, 0);
-            std::vector<double> boxes(size_t(m) * 5, 0.0);
-            unsigned done = 0, counts[2] = {0, 0};
-            const unsigned state[3] = {5, 0, 11};
-            int pos = 1;
-            Draw P{};
-            P.logits = logits.data();
-            P.keep_logits = logits.data();
-            P.rules = rules.data();
-            P.runs = &run;
-            P.keep_on = flags.data();
-            P.newborn = flags.data();
-            P.tok = tok.data();
-            P.pos = &pos;
-            P.done = &done;
-            P.counts = counts;
-            P.boxes = boxes.data();
-            P.nboxes = nboxes.data();
-            P.state = state;
-            P.temperature = temperature;
-            P.top_p = top_p;
-            P.m = m;
-            P.n = n;
-            P.vocab = vocab;
-            P.top_k = top_k;
-            P.keeps = 1;
-            P.groups = 1;
-            P.box_cap = 1;
-            P.key0 = 123;
-            P.key1 = 456;
-            launch(umgen_draw, P, m, vocab > 1000 ? 1 : 8);
+            PlainDraw d(logits, rules, &run, m, n, vocab, top_k, temperature, top_p, 123, 456);
+            launch(umgen_draw, d.P, m, vocab > 1000 ? 1 : 8);
+            const std::vector<int>& tok = d.tok;
             for (int s = 0; s < m; s++) {
                 const float* row = logits.data() + size_t(s) * vocab;
                 int want = 0;
