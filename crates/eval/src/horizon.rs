@@ -1,8 +1,9 @@
 //! Scene statistics over a rollout's horizon, in the same terms for generated rollouts and real clips:
 //! agents per frame (mean and distribution), agents entering and leaving per second, the collision and
-//! off-road rates, how far moving agents' headings are from their direction of motion, and the speed and
-//! acceleration distributions. [`SceneStats`] gathers them frame by frame, each frame with the one before
-//! it in its sequence (entries, exits and accelerations need both); [`SceneStats::summary`] reports them.
+//! off-road rates, how far moving agents' headings are from their direction of motion, the speed and
+//! acceleration distributions, and how fast agents are when they enter. [`SceneStats`] gathers them frame
+//! by frame, each frame with the one before it in its sequence (entries, exits and accelerations need
+//! both); [`SceneStats::summary`] reports them.
 
 use crate::collision::colliding;
 use crate::l2::{global_position, global_velocity, median, quantile};
@@ -36,6 +37,8 @@ pub struct SceneStats {
     speeds: Vec<f64>,
     /// Magnitude of the change of global velocity (m/s²) of agents in consecutive frames.
     accelerations: Vec<f64>,
+    /// Speeds (m/s) of agents in the frame they entered.
+    entry_speeds: Vec<f64>,
 }
 
 /// Mean, 10th, 50th and 90th percentile of a distribution.
@@ -87,6 +90,8 @@ pub struct Summary {
     pub speed: Option<Spread>,
     /// Agents' accelerations (m/s²), from their global velocities in consecutive frames.
     pub acceleration: Option<Spread>,
+    /// Speeds (m/s) of entering agents, in the frame they entered.
+    pub entry_speed: Option<Spread>,
 }
 
 impl SceneStats {
@@ -125,6 +130,8 @@ impl SceneStats {
                 stayed += 1;
                 let v1 = global_velocity(&frame.ego, a);
                 self.accelerations.push((v1[0] - v0[0]).hypot(v1[1] - v0[1]) / dt);
+            } else {
+                self.entry_speeds.push(a.vx.hypot(a.vy));
             }
         }
         self.transitions += 1;
@@ -155,6 +162,7 @@ impl SceneStats {
             heading_motion_median_deg: median(&self.heading_motion),
             speed: Spread::of(&self.speeds),
             acceleration: Spread::of(&self.accelerations),
+            entry_speed: Spread::of(&self.entry_speeds),
         }
     }
 }
@@ -258,6 +266,9 @@ mod tests {
             (p90 - (10.0 + 0.6 * (101f64.sqrt() - 10.0))).abs() < 1e-12,
             "{p90}"
         );
+        // Agents 3 (5 m/s) and 4 (standing) entered in frame 2.
+        let e = r.entry_speed.unwrap();
+        assert_eq!((e.mean, e.p50, e.p90), (2.5, 2.5, 4.5));
     }
 
     #[test]
