@@ -80,8 +80,8 @@ pub struct FusedAdamW<M: AutodiffModule<B>, B: AutodiffBackend> {
     kernels: Option<MultiTensor<B::InnerBackend>>,
     /// The module path of each parameter that had a gradient in the last step, in slot order.
     names: Vec<String>,
-    /// The slot of each part of the last step's [`Stepped::parts`].
-    owners: Vec<usize>,
+    /// How many of the last step's [`Stepped::parts`] each slot has, in slot order.
+    spans: Vec<usize>,
     module: PhantomData<M>,
 }
 
@@ -93,7 +93,7 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
             records: Default::default(),
             kernels: None,
             names: Vec::new(),
-            owners: Vec::new(),
+            spans: Vec::new(),
             module: PhantomData,
         }
     }
@@ -142,12 +142,17 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
     /// [`Stepped::parts`], read back): the first, in module order, whose norm is not finite, or else the
     /// largest. `None` when there were no gradients.
     pub fn largest_gradient(&self, parts: &[f32]) -> Option<GradientPeak> {
-        let mut sums = vec![0.0f64; self.names.len()];
-        for (&owner, &sq) in self.owners.iter().zip(parts) {
-            if let Some(s) = sums.get_mut(owner) {
-                *s += f64::from(sq);
-            }
-        }
+        let mut rest = parts;
+        let sums: Vec<f64> = self
+            .spans
+            .iter()
+            .take(self.names.len())
+            .map(|&k| {
+                let (mine, after) = rest.split_at(k.min(rest.len()));
+                rest = after;
+                mine.iter().map(|&sq| f64::from(sq)).sum()
+            })
+            .collect();
         let non_finite = sums.iter().filter(|s| !s.is_finite()).count();
         let i = match sums.iter().position(|s| !s.is_finite()) {
             Some(i) => i,
@@ -197,7 +202,7 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
             .and_then(|_| self.norm(&slots.iter().map(|s| s.grad.clone()).collect::<Vec<_>>()));
         let guarded = match (&norm, clip) {
             (Some(norm), Some((max_norm, guard))) => {
-                self.owners.clone_from(&norm.owners);
+                self.spans.clone_from(&norm.spans);
                 Some(guarded_scale(norm.norm.clone(), max_norm, guard))
             }
             _ => None,

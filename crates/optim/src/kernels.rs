@@ -63,8 +63,9 @@ pub struct GradNorm<B: Backend> {
     pub norm: Tensor<B, 1>,
     /// `[K]`: sums of squares of parts of the gradients, each part within one gradient.
     pub parts: Tensor<B, 1>,
-    /// The gradient (its index among those given) that each part belongs to.
-    pub owners: Vec<usize>,
+    /// How many consecutive parts each gradient (in the order given) has: the parts are the gradients'
+    /// in order, so the first `spans[0]` belong to the first gradient, and so on.
+    pub spans: Vec<usize>,
 }
 
 /// A backend's global L2 norm of tensors of any rank, or the reason it cannot take them.
@@ -102,7 +103,7 @@ pub fn norm_reference<B: Backend>(grads: &[FloatTensor<B>]) -> GradNorm<B> {
     GradNorm {
         norm: parts.clone().sum().sqrt(),
         parts,
-        owners: (0..grads.len()).collect(),
+        spans: vec![1; grads.len()],
     }
 }
 /// `t` as a rank-1 tensor (the gradient scale).

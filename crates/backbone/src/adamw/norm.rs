@@ -66,12 +66,8 @@ pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<GradNorm<Cuda>,
         return Err(why);
     }
     // Each block of `SPAN` elements is a part; a gradient owns as many as it has spans.
-    let owners: Vec<usize> = lens
-        .iter()
-        .enumerate()
-        .flat_map(|(i, n)| std::iter::repeat_n(i, n.div_ceil(SPAN)))
-        .collect();
-    let outputs = vec![vec![1], vec![owners.len().max(1)]];
+    let spans: Vec<usize> = lens.iter().map(|n| n.div_ceil(SPAN)).collect();
+    let outputs = vec![vec![1], vec![spans.iter().sum::<usize>().max(1)]];
     let [norm, parts] = side::register_many("umgen_grad_norm", grads.to_vec(), outputs, Pass { lens })
         .try_into()
         .unwrap_or_else(|_| unreachable!("two outputs"));
@@ -79,7 +75,7 @@ pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<GradNorm<Cuda>,
     Ok(GradNorm {
         norm: typed(norm),
         parts: typed(parts),
-        owners,
+        spans,
     })
 }
 
@@ -171,7 +167,7 @@ impl Pass {
 }
 
 /// Sums by gradient laid out as the kernel's parts by span: each gradient's sum in its first span, zeros
-/// in its others (what a fallback reports, so that the owners stay those of the spans).
+/// in its others (what a fallback reports, so that each gradient keeps its number of parts).
 fn span_parts(by_gradient: &Tensor<Inner, 1>, lens: &[usize]) -> Tensor<Inner, 1> {
     let device = by_gradient.device();
     let mut pieces = Vec::with_capacity(2 * lens.len());

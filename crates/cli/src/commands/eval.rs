@@ -14,7 +14,7 @@ use umgen_eval::l2::{
 use umgen_eval::mmd::{Group, mmd};
 
 /// MMD per attribute group between two agent sets.
-fn mmd_groups(generated: &[&Agent], real: &[&Agent]) -> serde_json::Value {
+pub(super) fn mmd_groups(generated: &[&Agent], real: &[&Agent]) -> serde_json::Value {
     let mut out = serde_json::Map::new();
     for g in Group::ALL {
         let x: Vec<Vec<f64>> = generated.iter().map(|a| g.features(a)).collect();
@@ -89,10 +89,14 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         serde_json::json!({"generated": a.generated, "reference": a.reference, "scenes": scenes.len()});
 
     // The real data's collision rate over a sample of the split (raw agents).
+    // Read once: the horizon statistics take every frame of these clips too.
+    let split_clips = (0..ds.clips().len())
+        .filter(|&i| ds.clips()[i].split == a.split)
+        .map(|i| ds.read_clip(i))
+        .collect::<Result<Vec<_>, _>>()?;
     let mut real_frames: Vec<Vec<Agent>> = Vec::new();
     let mut initial: Vec<Agent> = Vec::new();
-    for i in (0..ds.clips().len()).filter(|&i| ds.clips()[i].split == a.split) {
-        let clip = ds.read_clip(i)?;
+    for clip in &split_clips {
         initial.extend(clip.frames.first().map(|f| f.agents.clone()).unwrap_or_default());
         real_frames.extend(
             clip.frames
@@ -208,7 +212,7 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
         }
     }
     let per = meta["scenes_per_context"].as_u64().unwrap_or(1) as usize;
-    let horizon = super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, &a.split, dt)?;
+    let horizon = super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, split_clips, dt)?;
     report["horizon"] = horizon;
     report["recorded_ego"] = recorded_ego.into();
     let mut mmd_mean = serde_json::Map::new();

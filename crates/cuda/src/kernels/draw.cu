@@ -244,23 +244,13 @@ DEV int held_top_k(const Draw& P, const float* row, const Rule& R, const GroupRu
     return total;
 }
 
-// The tempered softmax's probability of id `pad` over every allowed, finite id of `row` (0 where `pad` is
-// not among them); every thread returns it. Partial sums in double, added in thread order.
+// The tempered softmax's probability of id `pad` over every allowed, finite id of `row`, whose largest logit
+// is `top` (the head of the top-k list); 0 where `pad` is not among them. Every thread returns it. Partial
+// sums in double, added in thread order.
 DEV double pad_share(const Draw& P, const float* row, const Rule& R, const GroupRun& G, bool limited,
-                     float* sv, int* si) {
+                     float top) {
     SHARED double part[1024];
     SHARED double pad_e;
-    float v = NEG_INF;
-    int i = NO_ID;
-    for (int id = thread_id(); id < P.vocab; id += threads()) {
-        const float x = row[id];
-        if (finite(x) && allowed(R, G, -1, id, limited) && ranks_before(x, id, v, i)) {
-            v = x;
-            i = id;
-        }
-    }
-    block_best(&v, &i, sv, si);
-    const float top = v;
     double acc = 0.0, mine = 0.0;
     for (int id = thread_id(); id < P.vocab; id += threads()) {
         const float x = row[id];
@@ -273,12 +263,9 @@ DEV double pad_share(const Draw& P, const float* row, const Rule& R, const Group
     // The thread that visited `pad` (ids go to threads round-robin) holds its term.
     if (thread_id() == G.pad % threads()) pad_e = mine;
     sync_block();
-    double share = 0.0;
-    if (top != NEG_INF) {
-        double total = 0.0;
-        for (int t = 0; t < threads(); t++) total += part[t];
-        share = pad_e / total;
-    }
+    double total = 0.0;
+    for (int t = 0; t < threads(); t++) total += part[t];
+    const double share = pad_e / total;
     sync_block();
     return share;
 }
@@ -334,7 +321,9 @@ DEV int draw_from(const Draw& P, const float* row, const Rule& R, const GroupRun
     // A group's first position: pad at its untruncated share, drawn first; the values of the list share the
     // rest (the list without pad).
     const bool present = R.gstart >= 0 && R.gj == 0 && P.top_k > 1;
-    const double pad_p = present ? pad_share(P, row, R, G, limited, sv, si) : 0.0;
+    // The list's head (every thread sees it: the selection ended on a block-wide exchange) is the row's
+    // largest allowed logit.
+    const double pad_p = present && count > 0 ? pad_share(P, row, R, G, limited, cv[0]) : 0.0;
     if (present && thread_id() == 0) {
         int kept = 0;
         for (int j = 0; j < count; j++) {
