@@ -177,22 +177,15 @@ pub fn second_of(h: usize, dt: f64) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use umgen_scene::{Agent, AgentCategory, EgoPose, RoadNetwork};
+    use crate::collision::bev_box;
+    use umgen_scene::{Agent, EgoPose, RoadNetwork};
 
     fn agent(id: u64, x: f64, y: f64, vx: f64, vy: f64, heading: f64) -> Agent {
         Agent {
             track_id: id,
-            category: AgentCategory::Vehicle,
-            x,
-            y,
-            z: 0.0,
             vx,
             vy,
-            vz: 0.0,
-            heading,
-            length: 4.0,
-            width: 2.0,
-            height: 1.5,
+            ..bev_box(x, y, heading, 4.0, 2.0)
         }
     }
 

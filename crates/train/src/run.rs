@@ -93,9 +93,9 @@ pub(crate) fn claim_run_dir(run: &RunSpec, ckpts: &CheckpointDir, step: u64) -> 
         );
     }
     let out = &run.train.out_dir;
-    let io = |error| TrainError::Metrics {
+    let io = |error: std::io::Error| TrainError::RunDir {
         path: out.clone(),
-        error,
+        message: format!("writing config.json: {error}"),
     };
     std::fs::create_dir_all(out).map_err(io)?;
     let text = serde_json::to_vec_pretty(&run.config).map_err(|e| TrainError::Setup(e.to_string()))?;

@@ -299,16 +299,8 @@ mod tests {
             key: [7, 9],
         };
         let rule = Rule {
-            known: 0,
-            limit: 1 << 30,
             gstart: 1,
-            gj: 0,
-            grun: 0,
-            gindex: 0,
-            finish: 0,
-            keep: -1,
-            keep_pad: 0,
-            keep_off: 0,
+            ..Rule::FREE
         };
         let run = GroupRun {
             size: 11,
