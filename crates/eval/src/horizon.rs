@@ -32,6 +32,9 @@ pub struct SceneStats {
     /// Agents tested against a map, and those off its drivable area.
     on_map: usize,
     off_road: usize,
+    /// Frames tested against a map, and those whose ego is off its drivable area.
+    ego_on_map: usize,
+    ego_off_road: usize,
     /// Degrees between heading and direction of motion of moving agents.
     heading_motion: Vec<f64>,
     speeds: Vec<f64>,
@@ -83,6 +86,9 @@ pub struct Summary {
     /// Fraction of agents whose centre is off the drivable area (lanes, connectors, intersections) of
     /// the scene's map; `None` without maps.
     pub off_road_rate: Option<f64>,
+    /// Fraction of frames whose ego is off the drivable area of the scene's map: agents are placed
+    /// relative to the ego, so an ego that leaves the road carries them off it too.
+    pub ego_off_road_rate: Option<f64>,
     /// Median angle (degrees) between heading and direction of motion of agents faster than
     /// [`MOVING_M_S`].
     pub heading_motion_median_deg: Option<f64>,
@@ -100,6 +106,10 @@ impl SceneStats {
     pub fn add(&mut self, frame: &Frame, before: Option<&Frame>, dt: f64, drivable: Option<&Drivable>) {
         let agents = &frame.agents;
         self.counts.push(agents.len());
+        if let Some(d) = drivable {
+            self.ego_on_map += 1;
+            self.ego_off_road += usize::from(!d.contains([frame.ego.x, frame.ego.y]));
+        }
         if !agents.is_empty() {
             let (hit, n) = colliding(agents);
             self.collision_rates.push(hit as f64 / n as f64);
@@ -159,6 +169,8 @@ impl SceneStats {
             exits_per_s: per_s(self.exits),
             collision_rate: mean(&self.collision_rates),
             off_road_rate: (self.on_map > 0).then(|| self.off_road as f64 / self.on_map as f64),
+            ego_off_road_rate: (self.ego_on_map > 0)
+                .then(|| self.ego_off_road as f64 / self.ego_on_map as f64),
             heading_motion_median_deg: median(&self.heading_motion),
             speed: Spread::of(&self.speeds),
             acceleration: Spread::of(&self.accelerations),
@@ -247,6 +259,12 @@ mod tests {
         // Off road: agent 2 (y = 20); in frame 2 the ego looks along +y, so ego (30, 0) is global (0, 30)
         // and (31, 0) is (0, 31): off; ego (0, -15) is global (15, 0): on.
         assert_eq!(r.off_road_rate, Some(3.0 / 5.0));
+        // Both egos stand at the origin, on the road; one moved to y = 50 is off it.
+        assert_eq!(r.ego_off_road_rate, Some(0.0));
+        let mut off = f1.clone();
+        off.ego.y = 50.0;
+        s.add(&off, None, 0.5, Some(&road));
+        assert_eq!(s.summary().ego_off_road_rate, Some(1.0 / 3.0));
         // Moving agents: 1 twice (0° and atan(1/10) ≈ 5.71° off), 3 (30°).
         let m = r.heading_motion_median_deg.unwrap();
         assert!((m - (1.0f64 / 10.0).atan().to_degrees()).abs() < 1e-9, "{m}");
