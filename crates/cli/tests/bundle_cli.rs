@@ -271,6 +271,8 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         "0.000001",
         "--top-k-of",
         "agent=5",
+        "--top-p-of",
+        "agent=0.8",
         "--speculate",
         "4",
         "--out",
@@ -286,6 +288,8 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
     // Per-modality top-k is recorded; an unknown modality is refused by name.
     assert_eq!(meta["sampling"]["agent"]["top_k"], 5);
     assert_eq!(meta["sampling"]["map"]["top_k"], 16);
+    assert_eq!(meta["sampling"]["agent"]["top_p"], 0.8);
+    assert_eq!(meta["sampling"]["map"]["top_p"], 1.0);
     let out = umgen(&[
         "generate",
         "--bundle",
@@ -298,6 +302,18 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
     ]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("`lidar`"), "{err}");
+    let out = umgen(&[
+        "generate",
+        "--bundle",
+        bf16_dir.to_str().unwrap(),
+        "--from-scratch",
+        "--top-p-of",
+        "agent=1.5",
+        "--out",
+        fx.dir.path().join("gen-bad").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("`agent=1.5`"), "{err}");
     assert_eq!(
         json(cut.join("tokens.json"))["scenes"][0]
             .as_array()

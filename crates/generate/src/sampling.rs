@@ -36,19 +36,30 @@ impl Sampling {
         }
     }
 
-    /// One sampling per segment (`labels`, in frame order): `self`, with the top-k of the segments named in
-    /// `top_k` replaced (the authors' evaluation draws ego, map and agents from their top 5, the image
-    /// from its top 16). A name that is not a segment is refused, naming the segments there are.
-    pub fn per_segment(self, top_k: &[(String, usize)], labels: &[&str]) -> Result<Vec<Self>> {
-        let mut out = vec![self; labels.len()];
-        for (name, k) in top_k {
-            let i = labels.iter().position(|l| l == name).ok_or_else(|| {
+    /// One sampling per segment (`labels`, in frame order): `self`, with the top-k and top-p of the
+    /// segments named in `top_k` and `top_p` replaced (the authors' evaluation draws ego, map and agents
+    /// from their top 5, the image from its top 16). A name that is not a segment is refused, naming the
+    /// segments there are.
+    pub fn per_segment(
+        self,
+        top_k: &[(String, usize)],
+        top_p: &[(String, f64)],
+        labels: &[&str],
+    ) -> Result<Vec<Self>> {
+        let segment = |what: &str, name: &str| {
+            labels.iter().position(|l| *l == name).ok_or_else(|| {
                 GenerateError::Settings(format!(
-                    "top-k for `{name}`: this model has no such modality (it has {})",
+                    "{what} for `{name}`: this model has no such modality (it has {})",
                     labels.join(", ")
                 ))
-            })?;
-            out[i].top_k = *k;
+            })
+        };
+        let mut out = vec![self; labels.len()];
+        for (name, k) in top_k {
+            out[segment("top-k", name)?].top_k = *k;
+        }
+        for (name, p) in top_p {
+            out[segment("top-p", name)?].top_p = *p;
         }
         Ok(out)
     }
@@ -191,26 +202,28 @@ pub(crate) mod tests {
     use rand::{SeedableRng, rngs::StdRng};
 
     #[test]
-    fn per_segment_top_k_replaces_named_segments_and_refuses_unknown_ones() {
+    fn per_segment_settings_replace_named_segments_and_refuse_unknown_ones() {
         let labels = ["ego", "map", "agent", "image"];
         let base = Sampling::default();
         let got = base
-            .per_segment(&[("map".into(), 5), ("agent".into(), 5)], &labels)
+            .per_segment(
+                &[("map".into(), 5), ("agent".into(), 64)],
+                &[("agent".into(), 0.8)],
+                &labels,
+            )
             .unwrap();
         let ks: Vec<usize> = got.iter().map(|s| s.top_k).collect();
-        assert_eq!(ks, [16, 5, 5, 16]);
-        assert!(
-            got.iter()
-                .all(|s| s.temperature == base.temperature && s.top_p == base.top_p)
-        );
-        let e = base
-            .per_segment(&[("lidar".into(), 5)], &labels)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            e.contains("`lidar`") && e.contains("ego, map, agent, image"),
-            "{e}"
-        );
+        assert_eq!(ks, [16, 5, 64, 16]);
+        let ps: Vec<f64> = got.iter().map(|s| s.top_p).collect();
+        assert_eq!(ps, [1.0, 1.0, 0.8, 1.0]);
+        assert!(got.iter().all(|s| s.temperature == base.temperature));
+        for (k, p, what) in [
+            (vec![("lidar".to_string(), 5)], vec![], "top-k for `lidar`"),
+            (vec![], vec![("lidar".to_string(), 0.5)], "top-p for `lidar`"),
+        ] {
+            let e = base.per_segment(&k, &p, &labels).unwrap_err().to_string();
+            assert!(e.contains(what) && e.contains("ego, map, agent, image"), "{e}");
+        }
     }
 
     fn counts(s: Sampling, logits: &[f32], draws: usize) -> Vec<usize> {

@@ -86,6 +86,11 @@ pub struct GenerateArgs {
     /// Nucleus mass (1 = off), every modality.
     #[arg(long, default_value_t = 1.0)]
     pub top_p: f64,
+    /// Nucleus mass of one modality instead of `--top-p` (repeatable), e.g. `--top-p-of agent=0.8`
+    /// with `--top-k-of agent=64`: the agents' values keep the modes a top-5 list cuts away
+    /// (docs/control.md).
+    #[arg(long = "top-p-of", value_name = "MODALITY=P", value_parser = modality_top_p)]
+    pub top_p_of: Vec<(String, f64)>,
     /// Softmax temperature, every modality.
     #[arg(long, default_value_t = 1.0)]
     pub temperature: f64,
@@ -168,6 +173,16 @@ fn modality_top_k(s: &str) -> Result<(String, usize), String> {
             .map(|k| (name.to_string(), k))
             .map_err(|_| format!("`{s}`: K must be a whole number (0 = all ids)")),
         _ => Err(format!("`{s}`: expected MODALITY=K, e.g. agent=5")),
+    }
+}
+
+fn modality_top_p(s: &str) -> Result<(String, f64), String> {
+    match s.split_once('=') {
+        Some((name, p)) if !name.is_empty() => match p.parse::<f64>() {
+            Ok(p) if p > 0.0 && p <= 1.0 => Ok((name.to_string(), p)),
+            _ => Err(format!("`{s}`: P must be a number in (0, 1] (1 = off)")),
+        },
+        _ => Err(format!("`{s}`: expected MODALITY=P, e.g. agent=0.8")),
     }
 }
 

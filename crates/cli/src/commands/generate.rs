@@ -71,7 +71,7 @@ pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
         temperature: a.temperature,
     };
     let labels: Vec<&str> = spec.segments.iter().map(|s| s.label.as_str()).collect();
-    let samplings = sampling.per_segment(&a.top_k_of, &labels)?;
+    let samplings = sampling.per_segment(&a.top_k_of, &a.top_p_of, &labels)?;
     // Recorded in meta.json: what each modality was drawn with.
     let sampling_meta: serde_json::Map<String, serde_json::Value> = labels
         .iter()
