@@ -307,7 +307,7 @@ mod tests {
         // Cubes per SM of 228 KB, each also reserving 1 KB.
         let per_sm = |bytes: usize| 233_472 / (bytes + 1024);
         // Head size 64 in f32 with steps of 16 (the default): two key/value cubes, three query-gradient
-        // cubes, four forward cubes. (Nsight Compute, thirteenth session, with rows padded by 8 floats
+        // cubes, four forward cubes. (Nsight Compute, with rows padded by 8 floats
         // instead of 4: 103.55, 79.87 and 56.32 KB, so two query-gradient cubes.)
         assert_eq!(kernel_shared_bytes(64, 4, 16), [53_760, 98_944, 76_288]);
         assert_eq!(kernel_shared_bytes(64, 4, 16).map(per_sm), [4, 2, 3]);

@@ -12,7 +12,7 @@
 //! Independently, the custom operations' launches (with the device pointers they fetch) run on cubecl's
 //! device thread by default (`train.launch_thread = "device"`), each operation as one call the host waits
 //! for, rather than on the calling thread with one round trip to the device thread per pointer
-//! (`"caller"`, as before the twenty-fourth session).
+//! (`"caller"`).
 
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -157,10 +157,10 @@ impl Side {
         let (count, dim) = one();
         signal::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
         // Submitted before this side's wait, so that the GPU meets the two in dependency order: cubecl's device
-        // thread answers a call only after the launches queued before it. (`client.flush()` did this until the
-        // twenty-third session, but it also waits on the host for the previous flush's fence, so the host never
-        // ran more than one side-stream launch ahead of the GPU: `small`'s step took 218–224 ms against
-        // 192 ms with this call, docs/perf-notes.md.)
+        // thread answers a call only after the launches queued before it. (`client.flush()` would do
+        // this too, but it also waits on the host for the previous flush's fence, so the host never runs more
+        // than one side-stream launch ahead of the GPU: `small`'s step took 218–224 ms with it against 192 ms
+        // with this call on one H100.)
         drop(
             client
                 .get_resource(self.flags.handle.clone())

@@ -1,8 +1,8 @@
 //! `umgen bench train --alternate KEY=V1,V2`: steps that take turns between the values of one kernel setting
 //! in one process, each value's steps timed apart.
 //!
-//! On an H100 the median step of one binary moved by about 20 ms between processes in one lease (226–246 ms
-//! for `small`, docs/perf-notes.md), more than most kernel changes now save; steps of one process agree far
+//! On an H100 the median step of one binary moved by about 20 ms between processes on one machine (226–246
+//! ms for `small`), more than most kernel changes save; steps of one process agree far
 //! better. The kernel settings are process-wide choices read at every call (`TrainConfig::select_kernels`),
 //! so one model can run its steps under each value in turn.
 
