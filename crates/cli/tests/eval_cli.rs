@@ -180,6 +180,34 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
             json(out.join("eval/report.json"))
         })
         .collect();
+    // The map at the pose: 3 contexts × 2 real frames and 3 scenes × 2 generated frames, every layer of
+    // the fixture's map; the three contexts pooled lie between the contexts alone, layer by layer (sums of
+    // intersections over sums of unions), which holds only if each context's rows met its own clip's poses.
+    let map = &report["map"];
+    assert_eq!(map["layers"].as_array().unwrap().len(), 6, "{map}");
+    assert_eq!(
+        (&map["context"]["frames"], &map["seconds"][0]["frames"]),
+        (&6.into(), &6.into()),
+        "{map}"
+    );
+    for layer in 0..6 {
+        let alone: Vec<f64> = singles
+            .iter()
+            .filter_map(|r| r["map"]["context"]["iou"][layer].as_f64())
+            .collect();
+        let Some(pooled) = map["context"]["iou"][layer].as_f64() else {
+            assert!(alone.is_empty(), "layer {layer}: {map}");
+            continue;
+        };
+        assert!((0.0..=1.0).contains(&pooled), "{map}");
+        let (lo, hi) = alone
+            .iter()
+            .fold((1.0f64, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
+        assert!(
+            lo - 1e-12 <= pooled && pooled <= hi + 1e-12,
+            "layer {layer}: {pooled} outside {alone:?}"
+        );
+    }
     for h in 0..2 {
         for key in ["ego_constant_velocity", "agents_constant_velocity"] {
             let cv: Vec<f64> = singles

@@ -214,6 +214,12 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
     let per = meta["scenes_per_context"].as_u64().unwrap_or(1) as usize;
     let horizon = super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, split_clips, dt)?;
     report["horizon"] = horizon;
+    if let Some(view) = super::scenes::map_view(&bundle)? {
+        let tokens = super::scenes::read_json(&a.generated, "tokens.json")?;
+        let map =
+            super::eval_map::map_consistency(&view, &registry, &tokens, &scenes, &contexts, per, &ds, dt)?;
+        report["map"] = map.into();
+    }
     report["recorded_ego"] = recorded_ego.into();
     let mut mmd_mean = serde_json::Map::new();
     for g in Group::ALL {

@@ -37,6 +37,7 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
         writeln!(md, "| MMD {} | {} |", g.name(), num(&report["mmd"][g.name()]))?;
     }
     horizon_markdown(&mut md, &report["horizon"])?;
+    map_markdown(&mut md, &report["map"])?;
     let rows = report["l2"].as_array().map_or(&[][..], |r| &r[..]);
     if rows.is_empty() {
         return Ok(md);
@@ -185,6 +186,32 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
     line(md, "real".into(), &horizon["real"], None)?;
     for r in rows {
         line(md, r["second"].to_string(), &r["generated"], Some(&r["mmd"]))?;
+    }
+    Ok(())
+}
+
+/// The map table of `report.md`: each layer's IoU of the decoded map codes with the map rendered at the
+/// ego pose, for the context frames (real codes, real poses) and each second generated.
+pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Result {
+    let (Some(layers), Some(rows)) = (map["layers"].as_array(), map["seconds"].as_array()) else {
+        return Ok(());
+    };
+    writeln!(
+        md,
+        "\n## Map at the generated pose\n\nPer layer, the IoU of the map decoded from the map codes with the map \
+         rendered from the context clip's road network at the frame's ego pose (cells pooled over the frames). \
+         The context frames hold real codes at real poses: what the tokenizer keeps.\n"
+    )?;
+    let names: Vec<&str> = layers.iter().filter_map(|l| l.as_str()).collect();
+    writeln!(md, "| second | frames | {} |", names.join(" | "))?;
+    writeln!(md, "|---|---|{}", "---|".repeat(names.len()))?;
+    let line = |md: &mut String, label: String, r: &serde_json::Value| {
+        let ious: Vec<String> = (0..names.len()).map(|i| num(&r["iou"][i])).collect();
+        writeln!(md, "| {label} | {} | {} |", r["frames"], ious.join(" | "))
+    };
+    line(md, "context".into(), &map["context"])?;
+    for r in rows {
+        line(md, r["second"].to_string(), r)?;
     }
     Ok(())
 }

@@ -20,6 +20,7 @@ mod doctor;
 mod engine;
 mod eval;
 mod eval_horizon;
+mod eval_map;
 mod eval_plot;
 mod eval_report;
 mod eval_truth;

@@ -43,16 +43,9 @@ pub fn decode(
     Ok((SceneClip::new("generated", interval, frames)?, malformed))
 }
 
-/// A decoded scene as a GIF (and `frame-NNNN.png` into `png_dir`): BEV from the decoded map raster with the
-/// decoded agents, camera below; the first `context` frames are labelled CTX, the others GEN.
-pub fn draw(
-    bundle: &Bundle,
-    clip: &SceneClip,
-    gif: &Path,
-    png_dir: Option<&Path>,
-    context: usize,
-) -> anyhow::Result<()> {
-    let view = bundle
+/// The map renderer of the bundle's map modality (raster size, extent, layers), if it has one.
+pub fn map_view(bundle: &Bundle) -> anyhow::Result<Option<umgen_render::MapView>> {
+    Ok(bundle
         .config
         .modality
         .iter()
@@ -62,8 +55,19 @@ pub fn draw(
                 .then(|| umgen::modality::parse_settings::<umgen::modality_map::MapConfig>(name, table))
                 .map(|c| c.and_then(|c| c.map_view(name)))
         })
-        .transpose()?
-        .unwrap_or_default();
+        .transpose()?)
+}
+
+/// A decoded scene as a GIF (and `frame-NNNN.png` into `png_dir`): BEV from the decoded map raster with the
+/// decoded agents, camera below; the first `context` frames are labelled CTX, the others GEN.
+pub fn draw(
+    bundle: &Bundle,
+    clip: &SceneClip,
+    gif: &Path,
+    png_dir: Option<&Path>,
+    context: usize,
+) -> anyhow::Result<()> {
+    let view = map_view(bundle)?.unwrap_or_default();
     let pictures: Vec<_> = clip
         .frames
         .iter()
