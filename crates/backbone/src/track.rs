@@ -4,7 +4,7 @@
 //! next is, to a few centimetres on most data, where its velocity takes it, seen from where the ego will
 //! be: `p' = R(−dθ)·(p + v·Δt − d)`, `v' = R(−dθ)·v`, `θ' = θ − dθ` for the ego action `(dx, dy, dθ)`
 //! of the next frame. Through token embeddings alone the model would have to learn that arithmetic on
-//! bin indices (and did not, docs/results.md). The TAR instead receives, at each slot, the embedding of
+//! bin indices (and did not, docs/decisions/002-agent-slot-hints.md). The TAR instead receives, at each slot, the embedding of
 //! the slot so moved (re-binned; other tokens, empty slots and categories as they are) next to the
 //! slot's own, and again at its output, so that "keep going" is a copy and what the model learns is the
 //! departure from it. With `accel` the slot moves by constant acceleration instead: the velocity's change

@@ -85,7 +85,7 @@ macro_rules! with_autodiff {
 /// that is the plain cubecl backend, without burn's fusion: fusion keeps an execution plan per sequence of
 /// operations it has seen, with the operations that followed each one as triggers, and token-by-token decoding
 /// (a slice at a new position every step) grows those lists without end, so its host thread spent minutes
-/// matching plans while the GPU sat idle (`docs/perf-notes.md`, sixth session). Plain kernels launch at once.
+/// matching plans while the GPU sat idle (a `small` frame did not finish in minutes). Plain kernels launch at once.
 #[macro_export]
 macro_rules! with_inference {
     ($device:expr, |$B:ident, $dev:ident| $body:block) => {

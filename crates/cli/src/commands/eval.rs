@@ -1,4 +1,4 @@
-//! `umgen eval`: the paper's measures on the output of `umgen generate` (docs/results.md explains them).
+//! `umgen eval`: the paper's measures on the output of `umgen generate` (docs/evaluation.md defines them).
 
 use super::agents::AgentSlots;
 use super::eval_truth::ground_truth;
