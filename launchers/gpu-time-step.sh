@@ -5,7 +5,7 @@
 #
 # `profile-step.sh` times kernels through cubecl's profiling mode, which syncs around every kernel and
 # overstated burn-fusion's element-wise kernels (a kernel that took 25 ms off its sum left the step as it
-# was, docs/perf-notes.md). This script instead runs `umgen bench train` under `ncu` with one metric,
+# was). This script instead runs `umgen bench train` under `ncu` with one metric,
 # `gpu__time_duration` (each kernel's own duration, the kernels as a normal run compiles them, cuBLAS's
 # included), for one step and for two, and prints the second run less the first: a steady step's GPU time
 # in all and by kernel. Compare the total with the step time `bench train` reports: equal means the step

@@ -68,7 +68,7 @@ pub enum Precision {
     /// gradients, optimizer state, norms, softmax statistics and losses stay f32.
     Bf16,
     /// Linear layers and output heads as [`Precision::Bf16`], the attention's products in f32: on CUDA the
-    /// fused attention kernels are faster on f32 operands than on bf16 ones (docs/perf-notes.md), the named
+    /// fused attention kernels are faster on f32 operands than on bf16 ones (docs/decisions/006-products-on-cublas-in-bf16.md), the named
     /// matmul kernel is faster on bf16 ones.
     #[serde(rename = "bf16-linear")]
     Bf16Linear,

@@ -4,7 +4,7 @@
 //! burn-fusion runs as one element-wise kernel writing the activation in f32 (and keeping the
 //! pre-activation for the backward pass), then a cast to bf16 for the next product; the backward pass is
 //! GELU's derivative, the bias's row sums and another cast. In the `small` preset's timeline
-//! (docs/perf-notes.md) those passes over the `[70,368, 1,536]` hidden activations were the largest family
+//! (docs/decisions/007-memory-bound-training-kernels.md) those passes over the `[70,368, 1,536]` hidden activations were the largest family
 //! of kernel time: twenty kernels of 0.7–0.78 ms and casts of 0.23 ms. On the training backends
 //! [`linear_gelu`] is instead the product (without its bias, written in the next product's format: bf16
 //! with the bf16 presets, as PyTorch's autocast writes it) followed by a custom autodiff operation whose

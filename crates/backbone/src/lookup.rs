@@ -2,7 +2,7 @@
 //!
 //! burn's embedding gradient is `select_assign` into a zero table, and cubecl's `select_assign` kernel
 //! gives each of the table's `d` columns one unit that walks every looked-up row in turn: 36,864 map
-//! tokens of a `small` step walked by 32 … 384 units took 6–13 ms per table (profile, docs/perf-notes.md).
+//! tokens of a `small` step walked by 32 … 384 units took 6–13 ms per table (profile, docs/decisions/007-memory-bound-training-kernels.md).
 //! [`embed`] is a custom autodiff operation on the training backends whose forward pass is burn's lookup.
 //! On CUDA its backward pass is a counting sort of the ids and a walk over the sorted rows (`lookup/cuda.rs`,
 //! `lookup/lookup.cu`: a unit per row or per column of a tile at each step, the rows of each id summed in

@@ -2,7 +2,7 @@
 //!
 //! burn's `LayerNorm` is a decomposition (mean, centred variance, normalisation, scale, shift), and its
 //! autodiff keeps the intermediate tensors and runs a backward kernel for each step. In a profiled `small`
-//! step on an H100 (docs/perf-notes.md) one layer norm of a `[70,368, 384]` activation took 8 kernels and
+//! step on an H100 (docs/decisions/007-memory-bound-training-kernels.md) one layer norm of a `[70,368, 384]` activation took 8 kernels and
 //! about 0.7 ms forward, where reading the input once and writing the output takes 0.08 ms; the step has
 //! 26 of them. On the training backends [`layer_norm`] is instead a custom autodiff operation whose passes
 //! are [`FusedNorm`]'s: on CUDA, one kernel each (`norm/norm.cu`, one warp a row); on the CPU, the same

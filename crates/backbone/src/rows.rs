@@ -3,7 +3,7 @@
 //! burn's autodiff reduces a broadcast operand's gradient one broadcast axis at a time, in axis order. For
 //! activations `[32, 2199, 384]` (the `small` preset) the last of those sums runs down 2,199 rows with only
 //! 384 outputs, and cubecl's reduction gives each output one unit that walks its column alone: a profiled
-//! `small` step spent 41 ms in 37 such sums of 1.1 ms each (docs/perf-notes.md), where the data they read
+//! `small` step spent 41 ms in 37 such sums of 1.1 ms each (docs/decisions/007-memory-bound-training-kernels.md), where the data they read
 //! takes 0.04 ms. [`add`] is a custom autodiff operation on the training backends whose forward pass is
 //! burn's broadcast (so element-wise fusion around it is unchanged) and whose backward pass sums the rows
 //! with [`sum`]: rows in groups, then the groups (on CUDA one kernel each, `rows/rows.cu`, whose blocks

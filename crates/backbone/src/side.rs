@@ -20,7 +20,7 @@
 //! deadlock. The side streams showed a race this protocol does not explain: with the CUDA C kernels on
 //! side streams, 14 of 15 same-seed one-step runs of `small-bundled` with burn's layer norm gave a wrong
 //! gradient (a host wait after the cross-entropy's launches, [`waits`], hides it), and none of 30 with the
-//! kernels on cubecl's stream (docs/perf-notes.md). Each user keeps one [`Side`] per thread and device:
+//! kernels on cubecl's stream (docs/decisions/004-cuda-kernels-on-cubecl-stream.md). Each user keeps one [`Side`] per thread and device:
 //! cubecl gives each thread its own stream, and the protocol needs the two streams to take turns. (The
 //! driver's stream memory operations, `cuStreamWaitValue32`, would spare the kernels on this side, but
 //! refused cubecl's pool memory with `CUDA_ERROR_INVALID_VALUE` on an H100; the two small kernels are

@@ -5,7 +5,7 @@
 //! Grouping the frames of each position as `[b · n, heads, t, dh]` for an attention kernel takes a
 //! transposition of the layer's input and output (`[b, t, n, d]` ↔ `[b, n, t, d]`) and of the heads, and
 //! burn's attention over 8 keys runs matrix products and a softmax for tiles of 8 × 8: in a profiled
-//! `small` step (docs/perf-notes.md) the temporal attention and its transpositions took about 1.8 ms of each
+//! `small` step (docs/decisions/007-memory-bound-training-kernels.md) the temporal attention and its transpositions took about 1.8 ms of each
 //! TAR layer's forward pass. On the training backends [`over_time_for`] hands out a custom autodiff
 //! operation whose passes are [`TemporalAttention`]'s: on CUDA one kernel each (`temporal/temporal.cu`,
 //! one warp per position and head, up to 32 frames) reading the operands in place, so the layer's other

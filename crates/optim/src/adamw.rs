@@ -2,7 +2,7 @@
 //!
 //! burn's `OptimizerAdaptor<AdamW>` steps one parameter tensor at a time, a chain of about ten tensor
 //! operations each: `small` has 331 parameter tensors, and on CUDA the chain's host work took 17–22 ms a
-//! step against PyTorch's fused AdamW's 0.7 ms (docs/perf-notes.md). [`FusedAdamW`] gathers every
+//! step against PyTorch's fused AdamW's 0.7 ms (docs/decisions/007-memory-bound-training-kernels.md). [`FusedAdamW`] gathers every
 //! parameter, gradient and moment of a step into [`AdamWSlot`]s and hands them to a backend's
 //! multi-tensor [`AdamWKernel`] (umgen's CUDA kernel updates them all in a few launches), and steps
 //! tensor by tensor with burn's own `AdamW` where there is none, or where the kernel declines. It keeps

@@ -2,7 +2,7 @@
 //!
 //! burn's `GroupNorm` sums each (sample, group) in one reduction over `C/G · H · W` values. At the
 //! `small` map tokenizer's full resolution that is 512 rows of 131,072 values per normalisation, too few
-//! rows to occupy a GPU: on an H200 the reductions took 30% of a training step (docs/perf-notes.md).
+//! rows to occupy a GPU: on an H200 the reductions took 30% of a training step (docs/decisions/008-tokenizer-convolutions-and-kernel-compilation.md).
 //! Summing each image row first (`b · G · C/G · H` rows of `W` values) and then the per-group partial sums
 //! gives the same statistics from reductions that fill the device, and is no less accurate in f32. The
 //! parameters are those of burn's [`GroupNorm`], so checkpoints and trained tokenizers are unchanged.

@@ -3,7 +3,7 @@
 //!
 //! With keys and values split off `kv` before the attention operation, burn's autodiff gave `kv` its
 //! gradient as two zero tensors, each with one half slice-assigned from the merged head layout, and their
-//! sum: about 1.1 ms of each `small` attention layer's backward pass on an H100 (docs/perf-notes.md).
+//! sum: about 1.1 ms of each `small` attention layer's backward pass on an H100 (docs/decisions/005-training-attention-flash2.md).
 //! Here the operation's parents are the queries and `kv`; keys and values are split into heads as views
 //! on the inner backend, run through the same [`FusedAttention`] passes as [`super::tiled_autodiff`], and
 //! the backward pass writes `dk` and `dv` into one `[b, lk, 2d]` gradient (one copy each).

@@ -5,7 +5,7 @@
 //! and burn's autodiff differentiates through the shift: `max_dim`'s backward pass scatters the maximum's
 //! gradient into a zero tensor of the scores' shape. The softmax does not depend on the shift, so that
 //! gradient cancels in the sum, yet its scatter took 0.68 ms for each of the ego module's four masked
-//! cross-attention layers in a `small` step (H100 timeline, docs/perf-notes.md). Here the shift is taken
+//! cross-attention layers in a `small` step (H100 timeline, docs/decisions/007-memory-bound-training-kernels.md). Here the shift is taken
 //! from the detached scores; forward values are burn's, operation for operation.
 
 use burn::tensor::backend::Backend;

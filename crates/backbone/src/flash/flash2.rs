@@ -9,7 +9,7 @@
 //! bf16 operands (rounded to bf16 on the way into shared memory), compute capability 8.0 or newer; the
 //! caller runs the `fused` kernels for anything else. On a compute capability 9.0 device both streams
 //! compile them for `sm_90a` (cubecl always does; `build` asks for `compute_90a`), and there the head size
-//! 64 products run on Hopper's `wgmma` (docs/perf-notes.md). `flash2_emulator.cpp` checks the fragment
+//! 64 products run on Hopper's `wgmma` (docs/decisions/005-training-attention-flash2.md). `flash2_emulator.cpp` checks the fragment
 //! layouts on the host.
 #![allow(unsafe_code)]
 
@@ -32,7 +32,7 @@ const SOURCE: &str = umgen_cuda::source::FLASH2;
 const GRID_YZ: usize = 65_535;
 
 /// Warps per block (each owns 16 rows): `UMGEN_FLASH2_WARPS`, 4 or 8 (default 8, which was 10–18 %
-/// faster on an H100: docs/perf-notes.md), read once.
+/// faster on an H100: docs/decisions/005-training-attention-flash2.md), read once.
 fn warps() -> usize {
     static WARPS: OnceLock<usize> = OnceLock::new();
     *WARPS.get_or_init(|| match std::env::var("UMGEN_FLASH2_WARPS").as_deref() {
@@ -136,7 +136,7 @@ fn strides(t: &Primitive, what: &str) -> Result<[i64; 3], String> {
 /// The output and dq are views of buffers laid out merged, `[b, rows, h·d]`, which is how the next product
 /// reads them: the head merge after the attention (`layers::merge_heads`) then only relabels them, where a
 /// contiguous `[b, h, rows, d]` result took a copy (0.26–0.32 ms each on an H100: 148 ms of `paper`'s
-/// step with the keys' and values' concatenation, docs/perf-notes.md).
+/// step with the keys' and values' concatenation, docs/decisions/005-training-attention-flash2.md).
 pub(super) fn launch(
     q: &Primitive,
     k: &Primitive,

@@ -5,7 +5,7 @@
 //!
 //! The fusion stream cannot fuse a custom operation, so element-wise work around a product (a bias, a
 //! cast) runs as its own kernels instead of inside burn's fused matmul; the kernel's speed pays for that
-//! many times over on the training step's shapes (`umgen bench matmul`, `docs/perf-notes.md`).
+//! many times over on the training step's shapes (`umgen bench matmul`, `docs/decisions/006-products-on-cublas-in-bf16.md`).
 
 use super::NamedMatmul;
 use crate::precision::float_format;

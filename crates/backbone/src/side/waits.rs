@@ -1,11 +1,11 @@
 //! Where the host waits around side-stream work, and a check that the work meets one cubecl stream only:
 //! the two ways the ordering of [`super::Side`]'s protocol is examined (`umgen bench repro`).
 
-/// The kernel family whose launches the host waits for by default (`docs/perf-notes.md`, "Same-seed runs
-/// that diverge"): without the wait, one-step runs from one seed gave a wrong gradient (a 3 % lower norm,
-/// every time the same value) in 1 of 15 runs of `small-bundled` and 13 of 15 with burn's layer norm, on an
-/// H100; with it, none of 30 (15 each way). Waiting before the launch instead cured it too; why either is
-/// needed was not found.
+/// The kernel family whose launches the host waits for by default on the `train.kernel_stream = "side"`
+/// path (docs/decisions/004-cuda-kernels-on-cubecl-stream.md): without the wait, one-step runs from one
+/// seed gave a wrong gradient (a 3 % lower norm, every time the same value) in 1 of 15 runs of
+/// `small-bundled` and 13 of 15 with burn's layer norm, on an H100; with it, none of 30 (15 each way).
+/// Waiting before the launch instead cured it too; why either is needed was not found.
 const WAITED_FOR: &str = "cross-entropy";
 
 /// The kernel families that run on side streams, as `UMGEN_SIDE_SYNC` names them.

@@ -3,7 +3,7 @@
 //
 // burn's decomposition of a row's log-sum-exp is four passes over the logits (max, subtract, exp, sum)
 // and its backward pass `g · (exp(x − lse) − q)` three more (exp, scatter, multiply); for the 8,192-way
-// map and image heads of `small` each pass is 0.75–1 ms on an H100 (docs/perf-notes.md). Here the
+// map and image heads of `small` each pass is 0.75–1 ms on an H100 (docs/decisions/007-memory-bound-training-kernels.md). Here the
 // forward pass reads each logit once, keeping a running maximum and sum per lane (the online
 // log-sum-exp), and the backward pass reads each logit once and writes its gradient once, then takes the
 // target distribution's few weights off the target ids.

@@ -17,7 +17,7 @@
 // Columns (queries, or keys for the query gradients) of a tile that the backward kernels take at a time:
 // 32 (half a tile) or 64 (the whole tile). 32 halves their score and score-gradient registers and the
 // key/value kernel's spills (336 against 528 bytes a thread in bf16), and was 11-16 % faster on an H100
-// (docs/perf-notes.md). Define it before this file to change it (`UMGEN_FLASH2_SOURCE`).
+// (docs/decisions/005-training-attention-flash2.md). Define it before this file to change it (`UMGEN_FLASH2_SOURCE`).
 #ifndef SUB
 #define SUB 32
 #endif

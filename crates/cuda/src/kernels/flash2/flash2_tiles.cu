@@ -128,7 +128,7 @@ DEV void load_tile(u16* tile, const T* src, long long stride, int row0, int rows
 // before the current tile's products, stored after them, so that the loads' latency overlaps the products.
 // Each thread moves whole 8-element chunks (one 16-byte load and store; two loads for f32), where pairs of
 // elements took four times the loads, stores and address arithmetic (integer work was the busiest pipe of
-// the `wgmma` forward kernel, Nsight Compute, docs/perf-notes.md). Only blocks of 8 warps whose head's rows
+// the `wgmma` forward kernel, Nsight Compute, docs/decisions/005-training-attention-flash2.md). Only blocks of 8 warps whose head's rows
 // start on 16 bytes (`chunks`: burn's buffers as the backbone lays them out) stage; others load the tile
 // when it is stored.
 template <typename T, int D>

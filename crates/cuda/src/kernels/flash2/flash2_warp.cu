@@ -8,7 +8,7 @@ typedef unsigned short u16;
 #define DEV __device__ __forceinline__
 // At most 128 registers a thread, so that two blocks of 8 warps share an SM: the key/value-gradient kernel
 // spills about 500 bytes a thread for it and still runs 10 % faster than with 254 registers and one block
-// (H100, docs/perf-notes.md).
+// (H100, docs/decisions/005-training-attention-flash2.md).
 #define KERNEL extern "C" __global__ void __launch_bounds__(256, 2)
 #define SHARED __shared__
 #define ALIGNED __align__(16)
