@@ -285,35 +285,33 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
     assert_eq!(meta["speculate"], 4);
     // The CPU draws on the host whatever --draw says.
     assert_eq!(meta["draw"], "host");
-    // Per-modality top-k is recorded; an unknown modality is refused by name.
+    // Per-modality top-k and top-p are recorded.
     assert_eq!(meta["sampling"]["agent"]["top_k"], 5);
     assert_eq!(meta["sampling"]["map"]["top_k"], 16);
     assert_eq!(meta["sampling"]["agent"]["top_p"], 0.8);
     assert_eq!(meta["sampling"]["map"]["top_p"], 1.0);
-    let out = umgen(&[
-        "generate",
-        "--bundle",
-        bf16_dir.to_str().unwrap(),
-        "--from-scratch",
-        "--top-k-of",
-        "lidar=5",
-        "--out",
-        fx.dir.path().join("gen-bad").to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("`lidar`"), "{err}");
-    let out = umgen(&[
-        "generate",
-        "--bundle",
-        bf16_dir.to_str().unwrap(),
-        "--from-scratch",
-        "--top-p-of",
-        "agent=1.5",
-        "--out",
-        fx.dir.path().join("gen-bad").to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("`agent=1.5`"), "{err}");
+    // Per-modality settings naming no modality, or a nucleus outside (0, 1], are refused by name.
+    for (flag, value, named) in [
+        ("--top-k-of", "lidar=5", "`lidar`"),
+        ("--top-p-of", "agent=1.5", "`agent=1.5`"),
+    ] {
+        let bad = fx.dir.path().join("gen-bad");
+        let out = umgen(&[
+            "generate",
+            "--bundle",
+            bf16_dir.to_str().unwrap(),
+            "--from-scratch",
+            flag,
+            value,
+            "--out",
+            bad.to_str().unwrap(),
+        ]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(named),
+            "{flag} {value}: {err}"
+        );
+    }
     assert_eq!(
         json(cut.join("tokens.json"))["scenes"][0]
             .as_array()

@@ -200,6 +200,8 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
             continue;
         };
         assert!((0.0..=1.0).contains(&pooled), "{map}");
+        let f1 = map["context"]["f1_within_1px"][layer].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&f1), "{map}");
         let (lo, hi) = alone
             .iter()
             .fold((1.0f64, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));

@@ -4,12 +4,11 @@
 //! and how far [`kinematics`] alone predicts a dataset's agents, which bounds what beating that baseline
 //! can mean on it. Over a rollout's [`horizon`], the same statistics for generated and real scenes:
 //! agents per frame, entries and exits, collisions, agents [`offroad`], heading against motion, speed and
-//! acceleration; and per layer the [`map_iou`] of generated map codes with the map at the generated pose.
+//! acceleration.
 
 pub mod collision;
 pub mod horizon;
 pub mod kinematics;
 pub mod l2;
-pub mod map_iou;
 pub mod mmd;
 pub mod offroad;

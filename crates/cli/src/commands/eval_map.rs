@@ -1,19 +1,38 @@
-//! The map part of `umgen eval`: per second generated, each layer's IoU of the map decoded from the
-//! generated map codes with the map rendered from the context clip's road network at the generated ego
-//! pose ([`umgen_eval::map_iou`]). The context frames give the reference: their real codes decoded
-//! against the map at their real poses, what the map tokenizer alone keeps.
+//! The map part of `umgen eval`: per second generated, each layer's IoU (and F1 within one pixel) of the
+//! map decoded from the generated map codes with the map rendered from the context clip's road network at
+//! the generated ego pose, cells pooled over the frames as the tokenizer's own evaluation pools them
+//! ([`IouCounter`]). The context frames give the reference: their real codes decoded against the map at
+//! their real poses, what the map tokenizer alone keeps.
 
 use anyhow::Context;
-use std::collections::HashMap;
-use std::sync::Arc;
 use umgen::data::Dataset;
 use umgen::modality::ModalityRegistry;
-use umgen::scene::{Frame, Pose2, RoadNetwork, SceneClip};
+use umgen::scene::{Frame, MapRaster, Pose2, RoadNetwork, SceneClip};
+use umgen::tokenizer_vq::IouCounter;
 use umgen_eval::horizon::second_of;
-use umgen_eval::map_iou::LayerIou;
 use umgen_render::MapView;
 
-/// Decodes `row` and adds its map, against `network` rendered at `pose`, to `iou`; false when the row
+/// Frames pooled: the counts and how many frames went in.
+#[derive(Default)]
+struct Pooled {
+    iou: IouCounter,
+    frames: usize,
+}
+
+impl Pooled {
+    /// `{"frames", "iou": [per layer], "f1_within_1px": [per layer]}`.
+    fn json(&self) -> serde_json::Value {
+        let f1: Vec<Option<f64>> = self.iou.near().iter().map(|n| n.map(|n| n.f1)).collect();
+        serde_json::json!({"frames": self.frames, "iou": self.iou.iou(), "f1_within_1px": f1})
+    }
+}
+
+/// The cells of a raster as the map modality reads them: set above 127.
+fn cells(r: &MapRaster) -> Vec<f32> {
+    r.data.iter().map(|&v| if v > 127 { 1.0 } else { 0.0 }).collect()
+}
+
+/// Decodes `row` and adds its map, against `network` rendered at `pose`, to `pooled`; false when the row
 /// decodes to no map raster.
 fn add_frame(
     registry: &ModalityRegistry,
@@ -21,20 +40,25 @@ fn add_frame(
     row: &[u32],
     network: &RoadNetwork,
     pose: &Pose2,
-    iou: &mut LayerIou,
+    pooled: &mut Pooled,
 ) -> anyhow::Result<bool> {
     let mut f = Frame::default();
     registry.detokenize(row, &mut f)?;
     let Some(decoded) = f.map else {
         return Ok(false);
     };
-    iou.add(&decoded, &view.render(network, pose))?;
+    let rendered = view.render(network, pose);
+    let shape = |r: &MapRaster| [r.channels, r.height, r.width];
+    anyhow::ensure!(
+        shape(&decoded) == shape(&rendered),
+        "the map codes decode to a {:?} raster but the map modality renders {:?} (channels, rows, columns)",
+        shape(&decoded),
+        shape(&rendered)
+    );
+    let [c, h, w] = shape(&rendered);
+    pooled.iou.add(c, [h, w], &cells(&decoded), &cells(&rendered));
+    pooled.frames += 1;
     Ok(true)
-}
-
-/// The JSON of one pooled set of frames.
-fn json(iou: &LayerIou) -> serde_json::Value {
-    serde_json::json!({"frames": iou.frames(), "iou": iou.ious()})
 }
 
 /// `{"layers", "context", "seconds": [{"second", "frames", "iou"}]}` for generated `scenes` whose scene `s`
@@ -65,30 +89,15 @@ pub(super) fn map_consistency(
         rows.len(),
         scenes.len()
     );
-    let mut networks: HashMap<String, Arc<RoadNetwork>> = HashMap::new();
-    let (mut context, mut seconds, mut without) = (LayerIou::default(), Vec::<LayerIou>::new(), 0usize);
+    let (mut context, mut seconds, mut without) = (Pooled::default(), Vec::<Pooled>::new(), 0usize);
     for (c, ctx) in contexts.iter().enumerate() {
         let id = ctx["clip"].as_str().context("meta.json: contexts[].clip")?;
         let idx = ds.find_clip(id)?;
-        let log = &ds.clips()[idx].log;
-        let Some(net_id) = ds
-            .index()
-            .logs
-            .iter()
-            .find(|l| &l.id == log)
-            .map(|l| l.network.clone())
-        else {
+        // The clip's frames come with its road network (the dataset reads each network once).
+        let real = ds.read_window(idx, 0, n_context, 1)?;
+        let Some(network) = real.network.clone() else {
             continue;
         };
-        let network = match networks.get(&net_id) {
-            Some(n) => n.clone(),
-            None => {
-                let n = ds.network(&net_id)?;
-                networks.insert(net_id, n.clone());
-                n
-            }
-        };
-        let real = ds.read_window(idx, 0, n_context, 1)?;
         let first = c * per;
         // The context rows are the real frames' codes, the same in each of the context's scenes.
         for (row, f) in rows[first][..n_context].iter().zip(&real.frames) {
@@ -105,7 +114,7 @@ pub(super) fn map_consistency(
             for (k, (row, f)) in rows[s][n_context..].iter().zip(&scenes[s].frames).enumerate() {
                 let second = second_of(k + 1, dt);
                 if seconds.len() < second {
-                    seconds.resize_with(second, LayerIou::default);
+                    seconds.resize_with(second, Pooled::default);
                 }
                 let pose = f.ego.pose2();
                 without += usize::from(!add_frame(
@@ -126,14 +135,14 @@ pub(super) fn map_consistency(
         .iter()
         .enumerate()
         .map(|(i, s)| {
-            let mut v = json(s);
+            let mut v = s.json();
             v["second"] = (i + 1).into();
             v
         })
         .collect();
     Ok(Some(serde_json::json!({
         "layers": view.layers.iter().map(|l| l.name()).collect::<Vec<_>>(),
-        "context": json(&context),
+        "context": context.json(),
         "seconds": rows,
     })))
 }

@@ -199,14 +199,20 @@ pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Resul
     writeln!(
         md,
         "\n## Map at the generated pose\n\nPer layer, the IoU of the map decoded from the map codes with the map \
-         rendered from the context clip's road network at the frame's ego pose (cells pooled over the frames). \
-         The context frames hold real codes at real poses: what the tokenizer keeps.\n"
+         rendered from the context clip's road network at the frame's ego pose, cells pooled over the frames, with \
+         the F1 within one pixel in brackets. The context frames hold real codes at real poses: what the \
+         tokenizer keeps.\n"
     )?;
     let names: Vec<&str> = layers.iter().filter_map(|l| l.as_str()).collect();
     writeln!(md, "| second | frames | {} |", names.join(" | "))?;
     writeln!(md, "|---|---|{}", "---|".repeat(names.len()))?;
     let line = |md: &mut String, label: String, r: &serde_json::Value| {
-        let ious: Vec<String> = (0..names.len()).map(|i| num(&r["iou"][i])).collect();
+        let ious: Vec<String> = (0..names.len())
+            .map(|i| match r["f1_within_1px"][i].as_f64() {
+                Some(f1) => format!("{} ({f1:.3})", num(&r["iou"][i])),
+                None => num(&r["iou"][i]),
+            })
+            .collect();
         writeln!(md, "| {label} | {} | {} |", r["frames"], ious.join(" | "))
     };
     line(md, "context".into(), &map["context"])?;
