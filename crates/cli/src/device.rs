@@ -139,9 +139,16 @@ pub fn device_thread(device: Device) -> [(u64, f64); 2] {
         Device::Cuda(i) => {
             use burn::cubecl::Runtime;
             let dev = burn::backend::cuda::CudaDevice::new(i);
+            // `launches` is an API of the vendored cubecl-cuda (vendor/README.md).
+            #[cfg(feature = "patched-cubecl")]
             let launches = burn::cubecl::cuda::CudaRuntime::client(&dev)
                 .exclusive(burn::cubecl::cuda::launches)
                 .unwrap_or((0, 0.0));
+            #[cfg(not(feature = "patched-cubecl"))]
+            let launches = {
+                let _ = burn::cubecl::cuda::CudaRuntime::client(&dev);
+                (0, 0.0)
+            };
             [umgen::backbone::device_thread_calls(), launches]
         }
         #[cfg(not(feature = "cuda"))]

@@ -9,6 +9,7 @@
 //! product (a signal, a wait and their answers), which the default saves.
 #![allow(unsafe_code)]
 
+#[cfg(feature = "patched-cubecl")]
 use crate::kernel_stream::{KernelStream, LaunchThread};
 use crate::side::Primitive;
 use crate::side::{Cache, Side, pointer, with_cached};
@@ -72,9 +73,12 @@ impl Blas {
         gemm: impl FnOnce(sys::cublasHandle_t) -> Result<(), String>,
     ) -> Result<(), String> {
         let handle = self.handle;
-        let on_cubecl = crate::kernel_stream::selected() == KernelStream::Cubecl
-            && crate::kernel_stream::selected_thread() == LaunchThread::Device;
-        if on_cubecl {
+        // `last_stream` is an API of the vendored cubecl-cuda (vendor/README.md); built against an
+        // unpatched one, cuBLAS runs on the side stream.
+        #[cfg(feature = "patched-cubecl")]
+        if crate::kernel_stream::selected() == KernelStream::Cubecl
+            && crate::kernel_stream::selected_thread() == LaunchThread::Device
+        {
             // The stream cubecl resolved for the caller's last command on this thread.
             let stream = burn::cubecl::cuda::last_stream();
             if stream.is_null() {
