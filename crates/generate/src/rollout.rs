@@ -213,16 +213,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                             match allowed(rules, p, r, true) {
                                 Allowed::Only(id) => r[p] = id,
                                 Allowed::Ids(ok) => {
-                                    let mut l = l.clone();
-                                    for (id, x) in l.iter_mut().enumerate() {
-                                        if !ok(id as u32) {
-                                            *x = f32::NEG_INFINITY;
-                                        }
-                                    }
-                                    r[p] = match group_pad(rules, p) {
-                                        Some(pad) => smp.draw_present(&l, pad, &mut self.rng),
-                                        None => smp.draw(&l, &mut self.rng),
-                                    };
+                                    r[p] = draw_allowed(&smp, rules, p, l, &ok, &mut self.rng);
                                 }
                             }
                         }
@@ -239,16 +230,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                                     let Allowed::Ids(ok) = allowed(rules, p, &out[b], false) else {
                                         continue;
                                     };
-                                    let mut l = tar[b].clone();
-                                    for (id, x) in l.iter_mut().enumerate() {
-                                        if !ok(id as u32) {
-                                            *x = f32::NEG_INFINITY;
-                                        }
-                                    }
-                                    out[b][p] = match group_pad(rules, p) {
-                                        Some(pad) => smp.draw_present(&l, pad, &mut self.rng),
-                                        None => smp.draw(&l, &mut self.rng),
-                                    };
+                                    out[b][p] = draw_allowed(&smp, rules, p, &tar[b], &ok, &mut self.rng);
                                 }
                             }
                         }
@@ -317,11 +299,27 @@ pub(crate) fn host_rows<B: Backend>(t: Tensor<B, 2>) -> Vec<Vec<f32>> {
     flat.chunks(v.max(1)).map(<[f32]>::to_vec).collect()
 }
 
-/// The pad id of the token group whose first position is `p`, if it is one: its draw keeps pad's
-/// untruncated share ([`Sampling::distribution_present`]).
-fn group_pad(rules: &Rules<'_>, p: usize) -> Option<u32> {
-    match rules.group[p] {
-        Some((_, 0, gi)) => rules.groups.get(gi).map(|g| g.pad),
+/// Draws position `p` from `logits` among the ids `ok` allows; at a token group's first position pad keeps
+/// its untruncated share ([`Sampling::distribution_present`]).
+fn draw_allowed(
+    smp: &Sampling,
+    rules: &Rules<'_>,
+    p: usize,
+    logits: &[f32],
+    ok: &dyn Fn(u32) -> bool,
+    rng: &mut StdRng,
+) -> u32 {
+    let l: Vec<f32> = logits
+        .iter()
+        .enumerate()
+        .map(|(id, &x)| if ok(id as u32) { x } else { f32::NEG_INFINITY })
+        .collect();
+    let group_first = match rules.group[p] {
+        Some((_, 0, gi)) => rules.groups.get(gi),
         _ => None,
+    };
+    match group_first {
+        Some(g) => smp.draw_present(&l, g.pad, rng),
+        None => smp.draw(&l, rng),
     }
 }

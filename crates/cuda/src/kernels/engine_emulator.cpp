@@ -525,9 +525,6 @@ static bool test_draw() {
     return check("draw (rules, greedy)", ok ? 0.0 : 1.0, 0.5);
 }
 
-// Sampled draws against a direct reference with the same Philox numbers: the top-k list (ties among the
-// logits, a vocabulary held in registers and one scanned from memory) with temperature and top-p, and
-// Gumbel-max over every id without top-k.
 // A draw at position 1 of `m` scenes with no keeps and no boxes in use: its buffers, and its arguments over
 // them (built in place: `P` points into the members).
 struct PlainDraw {
@@ -602,6 +599,9 @@ static bool test_group_first_draws() {
     return check("draw (group first: pad share)", outside > 0 ? 1.0 : std::fabs(share - 0.9), 0.04);
 }
 
+// Sampled draws against a direct reference with the same Philox numbers: the top-k list (ties among the
+// logits, a vocabulary held in registers and one scanned from memory) with temperature and top-p, and
+// Gumbel-max over every id without top-k.
 static bool test_sampled_draws() {
     bool ok = true;
     for (const int vocab : {300, 2000}) {
