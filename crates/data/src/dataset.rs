@@ -130,6 +130,16 @@ impl Dataset {
         Ok(net)
     }
 
+    /// The id of the road network of clip `clip`'s log, if the index names one.
+    pub fn clip_network_id(&self, clip: usize) -> Option<&str> {
+        let entry = self.index.clips.get(clip)?;
+        self.index
+            .logs
+            .iter()
+            .find(|l| l.id == entry.log)
+            .map(|l| l.network.as_str())
+    }
+
     /// A whole clip at its native interval.
     pub fn read_clip(&self, clip: usize) -> Result<SceneClip> {
         let frames = self.clip(clip)?.frames;
@@ -173,14 +183,7 @@ impl Dataset {
             dt,
             &self.options,
         )?;
-        let network_id = &self
-            .index
-            .logs
-            .iter()
-            .find(|l| l.id == entry.log)
-            .map(|l| l.network.clone())
-            .unwrap_or_default();
-        let network = self.network(network_id)?;
+        let network = self.network(self.clip_network_id(clip).unwrap_or_default())?;
         let id = if start == 0 && gap == 1 && frames_n == entry.frames {
             entry.id.clone()
         } else {

@@ -21,15 +21,23 @@ pub struct AgentSlots {
     bins: Vec<ScalarBins>,
 }
 
-/// The registry's agent modality and its segment of the frame layout; `None` when the layout has none.
-pub fn agent_modality(registry: &ModalityRegistry) -> anyhow::Result<Option<(&dyn Modality, &Segment)>> {
+/// The registry's modality of `kind` and its segment of the frame layout; `None` when the layout has none.
+pub fn modality_of_kind<'a>(
+    registry: &'a ModalityRegistry,
+    kind: &str,
+) -> anyhow::Result<Option<(&'a dyn Modality, &'a Segment)>> {
     let layout = registry.layout()?;
     let found = registry
         .modalities()
         .iter()
         .zip(layout.segments())
-        .find(|(_, seg)| seg.kind == umgen::modality_agent::KIND);
+        .find(|(_, seg)| seg.kind == kind);
     Ok(found.map(|(m, seg)| (m.as_ref(), seg)))
+}
+
+/// The registry's agent modality and its segment of the frame layout; `None` when the layout has none.
+pub fn agent_modality(registry: &ModalityRegistry) -> anyhow::Result<Option<(&dyn Modality, &Segment)>> {
+    modality_of_kind(registry, umgen::modality_agent::KIND)
 }
 
 impl AgentSlots {

@@ -40,18 +40,10 @@ impl Maps<'_> {
 
     /// The drivable area of the network of the dataset's clip `id`, if the dataset has it.
     fn of_clip(&mut self, id: &str) -> anyhow::Result<Option<Arc<Drivable>>> {
-        let log = &self.ds.clips()[self.ds.find_clip(id)?].log;
-        let Some(net) = self
-            .ds
-            .index()
-            .logs
-            .iter()
-            .find(|l| &l.id == log)
-            .map(|l| l.network.clone())
-        else {
+        let Some(net) = self.ds.clip_network_id(self.ds.find_clip(id)?) else {
             return Ok(None);
         };
-        let network = self.ds.network(&net)?;
+        let network = self.ds.network(net)?;
         Ok(Some(self.of(&network)))
     }
 }

@@ -6,7 +6,7 @@
 
 use anyhow::Context;
 use umgen::data::Dataset;
-use umgen::modality::ModalityRegistry;
+use umgen::modality::{Modality, ModalityRegistry, Segment};
 use umgen::scene::{Frame, MapRaster, Pose2, RoadNetwork, SceneClip};
 use umgen::tokenizer_vq::IouCounter;
 use umgen_eval::horizon::second_of;
@@ -32,18 +32,29 @@ fn cells(r: &MapRaster) -> Vec<f32> {
     r.data.iter().map(|&v| if v > 127 { 1.0 } else { 0.0 }).collect()
 }
 
-/// Decodes `row` and adds its map, against `network` rendered at `pose`, to `pooled`; false when the row
-/// decodes to no map raster.
+/// The map modality and its segment of the frame layout: what decodes a row's map codes.
+type MapCodes<'a> = (&'a dyn Modality, &'a Segment);
+
+/// Decodes the map codes of `row` (the other modalities are not decoded) and adds the map, against
+/// `network` rendered at `pose`, to `pooled`; false when the codes decode to no map raster.
 fn add_frame(
-    registry: &ModalityRegistry,
+    (map, seg): MapCodes<'_>,
     view: &MapView,
     row: &[u32],
     network: &RoadNetwork,
     pose: &Pose2,
     pooled: &mut Pooled,
 ) -> anyhow::Result<bool> {
+    let codes = row.get(seg.content()).with_context(|| {
+        format!(
+            "tokens.json: a row of {} tokens has no `{}` codes at {:?}",
+            row.len(),
+            seg.modality,
+            seg.content()
+        )
+    })?;
     let mut f = Frame::default();
-    registry.detokenize(row, &mut f)?;
+    map.detokenize(codes, &mut f)?;
     let Some(decoded) = f.map else {
         return Ok(false);
     };
@@ -63,7 +74,8 @@ fn add_frame(
 
 /// `{"layers", "context", "seconds": [{"second", "frames", "iou"}]}` for generated `scenes` whose scene `s`
 /// continues `contexts[s / per]` of `ds`, their token rows `tokens` (tokens.json) decoded with `registry`
-/// and the bundle's map `view`; `None` without contexts (scenes from scratch have no real map).
+/// and the bundle's map `view`; `None` without a map modality or without contexts (scenes from scratch have
+/// no real map).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn map_consistency(
     view: &MapView,
@@ -75,6 +87,9 @@ pub(super) fn map_consistency(
     ds: &Dataset,
     dt: f64,
 ) -> anyhow::Result<Option<serde_json::Value>> {
+    let Some(map) = super::agents::modality_of_kind(registry, umgen::modality_map::KIND)? else {
+        return Ok(None);
+    };
     if contexts.is_empty() {
         return Ok(None);
     }
@@ -102,7 +117,7 @@ pub(super) fn map_consistency(
         // The context rows are the real frames' codes, the same in each of the context's scenes.
         for (row, f) in rows[first][..n_context].iter().zip(&real.frames) {
             without += usize::from(!add_frame(
-                registry,
+                map,
                 view,
                 row,
                 &network,
@@ -118,7 +133,7 @@ pub(super) fn map_consistency(
                 }
                 let pose = f.ego.pose2();
                 without += usize::from(!add_frame(
-                    registry,
+                    map,
                     view,
                     row,
                     &network,
