@@ -138,6 +138,11 @@ fn horizon_chart(horizon: &serde_json::Value) -> anyhow::Result<Option<Plot>> {
     let Some(seconds) = horizon["seconds"].as_array().filter(|r| r.len() >= 2) else {
         return Ok(None);
     };
+    // The real levels span the seconds the rollouts reached.
+    let (first, last) = seconds
+        .iter()
+        .filter_map(|r| r["second"].as_f64())
+        .fold((f64::MAX, 0.0f64), |(a, b), s| (a.min(s), b.max(s)));
     let mut series = Vec::new();
     for (key, colour, light, label) in [
         (
@@ -163,10 +168,6 @@ fn horizon_chart(horizon: &serde_json::Value) -> anyhow::Result<Option<Plot>> {
             .iter()
             .filter_map(|r| Some((r["second"].as_f64()?, r["generated"][key].as_f64()?)))
             .collect();
-        let span = seconds.iter().filter_map(|r| r["second"].as_f64());
-        let (first, last) = span
-            .clone()
-            .fold((f64::MAX, 0.0f64), |(a, b), s| (a.min(s), b.max(s)));
         let real = horizon["real"][key]
             .as_f64()
             .map(|v| vec![(first, v), (last, v)])
