@@ -1,6 +1,9 @@
 //! The CUDA C sources, as NVRTC compiles them (it resolves no include files, so each source is the
 //! concatenation of what it needs).
 
+use crate::ops::ExecError;
+use std::path::Path;
+
 /// The warp- and block-level primitives and the bf16 loads and stores that every CUDA C kernel of umgen is
 /// written against (`kernels/warp_device.cuh`, `kernels/bf16.cuh`); `kernels/warp_emulator.h` defines the
 /// same names on the host.
@@ -33,7 +36,7 @@ pub fn flash2_forward_bf16() -> String {
 
 /// The generation engine's kernel files, each with the kernels it defines: NVRTC compiles each with
 /// [`engine_part`] as its own program, so that a start-up compiles them side by side.
-pub const ENGINE_PARTS: [(&str, &[&str]); 4] = [
+pub const ENGINE_PARTS: [(&str, &[&str]); 5] = [
     ("gemv.cu", &["umgen_gemv"]),
     ("attend.cu", &["umgen_attend_rows", "umgen_attend_tiles"]),
     (
@@ -49,17 +52,63 @@ pub const ENGINE_PARTS: [(&str, &[&str]); 4] = [
         ],
     ),
     ("draw.cu", &["umgen_draw"]),
+    ("chain.cu", &["umgen_chain"]),
 ];
 
 /// The source NVRTC compiles for the engine's kernel file `file` (one of [`ENGINE_PARTS`]) with weights and
-/// operands in bf16 (`bf16`) or f32: the primitives, the element type, `engine_common.cuh` and the file.
-/// `None` for a file that is not one of them.
+/// operands in bf16 (`bf16`) or f32: the primitives, the element type, `engine_common.cuh` and the file
+/// (`chain.cu` after the bodies of `gemv.cu` and `attend.cu`, without their kernels). `None` for a file
+/// that is not one of them.
 pub fn engine_part(bf16: bool, file: &str) -> Option<String> {
-    let body = match file {
+    assemble(bf16, file, engine_part_file)
+}
+
+/// [`engine_part`] with each of `engine_common.cuh` and the kernel files read from `dir` where it has them
+/// (`UMGEN_ENGINE_SOURCE=DIR`: a kernel change tried on a GPU without rebuilding umgen); the error names a
+/// file that is there but cannot be read.
+pub fn engine_part_from(bf16: bool, file: &str, dir: &Path) -> Result<Option<String>, ExecError> {
+    let mut failed = None;
+    let part = assemble(bf16, file, |name| {
+        let path = dir.join(name);
+        if !path.exists() {
+            return engine_part_file(name);
+        }
+        std::fs::read_to_string(&path)
+            .map_err(|e| failed = Some(ExecError::Invalid(format!("{}: {e}", path.display()))))
+            .ok()
+    });
+    match failed {
+        Some(e) => Err(e),
+        None => Ok(part),
+    }
+}
+
+/// The embedded text of one engine file.
+fn engine_part_file(name: &str) -> Option<String> {
+    let text = match name {
+        "engine_common.cuh" => include_str!("kernels/engine_common.cuh"),
         "gemv.cu" => include_str!("kernels/gemv.cu"),
         "attend.cu" => include_str!("kernels/attend.cu"),
         "rows.cu" => include_str!("kernels/rows.cu"),
         "draw.cu" => include_str!("kernels/draw.cu"),
+        "chain.cu" => include_str!("kernels/chain.cu"),
+        _ => return None,
+    };
+    Some(text.to_owned())
+}
+
+/// The primitives, the element type, `engine_common.cuh` and `file` (`chain.cu` after the bodies of
+/// `gemv.cu` and `attend.cu`), each file's text from `text`.
+fn assemble(bf16: bool, file: &str, mut text: impl FnMut(&str) -> Option<String>) -> Option<String> {
+    let body = match file {
+        "gemv.cu" | "attend.cu" | "rows.cu" | "draw.cu" => text(file)?,
+        "chain.cu" => [
+            "#define UMGEN_CHAIN".to_owned(),
+            text("gemv.cu")?,
+            text("attend.cu")?,
+            text(file)?,
+        ]
+        .join("\n"),
         _ => return None,
     };
     let wt = if bf16 {
@@ -67,7 +116,15 @@ pub fn engine_part(bf16: bool, file: &str) -> Option<String> {
     } else {
         "#define WT float\n"
     };
-    Some([PRIMITIVES, wt, include_str!("kernels/engine_common.cuh"), body].join("\n"))
+    Some(
+        [
+            PRIMITIVES.to_owned(),
+            wt.to_owned(),
+            text("engine_common.cuh")?,
+            body,
+        ]
+        .join("\n"),
+    )
 }
 
 #[cfg(test)]
@@ -79,7 +136,15 @@ mod tests {
         for bf16 in [false, true] {
             for (file, kernels) in ENGINE_PARTS {
                 let src = engine_part(bf16, file).expect(file);
-                assert_eq!(src.matches("KERNEL umgen_").count(), kernels.len(), "{file}");
+                // The chain's source holds the products' and attentions' kernels too, left out by
+                // `UMGEN_CHAIN` (defined before them).
+                let guarded = src.matches("#ifndef UMGEN_CHAIN").count();
+                if file == "chain.cu" {
+                    assert_eq!(guarded, 2);
+                    assert!(src.find("#define UMGEN_CHAIN") < src.find("#ifndef UMGEN_CHAIN"));
+                } else {
+                    assert_eq!(src.matches("KERNEL umgen_").count(), kernels.len(), "{file}");
+                }
                 for k in kernels {
                     let defined = format!("KERNEL {k}(");
                     assert_eq!(src.matches(&defined).count(), 1, "{k}");
@@ -92,5 +157,24 @@ mod tests {
             }
         }
         assert!(engine_part(true, "flash2.cu").is_none());
+    }
+
+    #[test]
+    fn a_source_directory_replaces_the_files_it_has_and_only_those() {
+        let dir = std::env::temp_dir().join(format!("umgen-engine-source-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        std::fs::write(dir.join("attend.cu"), "// tried attention\n").expect("write");
+        for file in ["attend.cu", "chain.cu"] {
+            let src = engine_part_from(false, file, &dir).expect("read").expect(file);
+            assert!(src.contains("// tried attention"), "{file}");
+            assert!(!src.contains("KERNEL umgen_attend_rows("), "{file}");
+        }
+        let gemv = engine_part_from(false, "gemv.cu", &dir).expect("read");
+        assert_eq!(gemv, engine_part(false, "gemv.cu"));
+        // A file that is there but is not text is an error that names it.
+        std::fs::write(dir.join("gemv.cu"), [0xff, 0xfe, 0x00]).expect("write");
+        let err = engine_part_from(false, "gemv.cu", &dir).expect_err("not UTF-8");
+        assert!(err.to_string().contains("gemv.cu"), "{err}");
+        std::fs::remove_dir_all(&dir).expect("clean up");
     }
 }

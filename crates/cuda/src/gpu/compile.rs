@@ -37,9 +37,13 @@ pub(super) fn kernels(
 ) -> Result<(Kernels, Option<Kernels>), ExecError> {
     let started = Instant::now();
     let mut programs = Vec::new();
+    let dir = std::env::var_os("UMGEN_ENGINE_SOURCE").map(std::path::PathBuf::from);
     for (file, kernels) in crate::source::ENGINE_PARTS {
-        let source = crate::source::engine_part(bf16, file)
-            .ok_or_else(|| ExecError::Invalid(format!("no engine source {file}")))?;
+        let source = match &dir {
+            Some(dir) => crate::source::engine_part_from(bf16, file, dir)?,
+            None => crate::source::engine_part(bf16, file),
+        }
+        .ok_or_else(|| ExecError::Invalid(format!("no engine source {file}")))?;
         programs.push(Program {
             what: file,
             source,

@@ -25,7 +25,7 @@ struct AttendRows {
     float* part;          // [batches·rows·heads][splits][2 + dh]: each split's maximum, sum and output
     unsigned* count;      // [batches·rows·heads]: splits finished (zero between launches)
     long long q_sb, q_sr, k_sb, k_sh, k_sj, y_sb, y_sr;
-    int rows, heads, dh, lk, splits;
+    int rows, heads, dh, lk, splits, batches;
     float scale;
 };
 
@@ -48,16 +48,100 @@ DEV void merge_parts(const float* part, int stride, int n, int dh, float* y) {
     }
 }
 
+// One warp's chunk of 32 keys from `c0` (some key of it below `lk`): its scores against `qs`, their running
+// maximum and sum, and the values' weighted sum (a lane per head dimension, `acc[i]` for dimension
+// lane + 32·i). Any head size, loads guarded.
+DEV void rows_chunk_any(const AttendRows& P, const float* qs, const WT* kb, const WT* vb, int c0, int lk,
+                        float& mrun, float& srun, float* acc) {
+    const int j = c0 + lane_id();
+    float sc = NEG_INF;
+    if (j < lk) {
+        const WT* kr = kb + (long long)j * P.k_sj;
+        sc = 0.f;
+        if ((P.dh & 7) == 0) {
+            // Unrolled to the largest head, so that every load of the key row is in flight at once.
+#pragma unroll
+            for (int d = 0; d < ATT_DH; d += 8) {
+                if (d < P.dh) {
+                    float kv[8];
+                    load8(kr + d, kv);
+                    for (int e = 0; e < 8; e++) sc = fmaf(qs[d + e], kv[e], sc);
+                }
+            }
+        } else {
+            for (int d = 0; d < P.dh; d++) sc = fmaf(qs[d], value(kr + d), sc);
+        }
+    }
+    // Lane 0's key is always there, so the chunk's maximum is a number.
+    mrun = warp_max(sc);
+    const float p = j < lk ? expf(sc - mrun) : 0.f;
+    srun = warp_sum(p);
+    const int count = lk - c0 < 32 ? lk - c0 : 32;
+    // Unrolled over the chunk (loads guarded), so that the value rows' loads overlap.
+#pragma unroll
+    for (int t = 0; t < 32; t++) {
+        const float pt = from_lane(p, t);
+        if (t < count) {
+            const WT* vr = vb + (long long)(c0 + t) * P.k_sj;
+            for (int i = 0; i < ATT_DH / 32; i++) {
+                const int d = lane_id() + 32 * i;
+                if (d < P.dh) acc[i] = fmaf(pt, value(vr + d), acc[i]);
+            }
+        }
+    }
+}
+
+// `rows_chunk_any` for head size DH (32 or 64, rows on 16 bytes): no load is behind a branch, so a lane's
+// key row and the chunk's value rows are all in flight at once (a key past `lk` reads the last key's row
+// and is masked; a value row past it is weighted 0), one round trip to L2 rather than one per row.
+template <int DH>
+DEV void rows_chunk(const AttendRows& P, const float* qs, const WT* kb, const WT* vb, int c0, int lk,
+                    float& mrun, float& srun, float* acc) {
+    const int j = c0 + lane_id();
+    const int jc = j < lk ? j : lk - 1;
+    Packed8 kp[DH / 8];
+    const WT* kr = kb + (long long)jc * P.k_sj;
+#pragma unroll
+    for (int c = 0; c < DH / 8; c++) load_packed8(kr + 8 * c, kp[c]);
+    float vv[32][DH / 32];
+#pragma unroll
+    for (int t = 0; t < 32; t++) {
+        const int jt = c0 + t < lk ? c0 + t : lk - 1;
+        const WT* vr = vb + (long long)jt * P.k_sj;
+#pragma unroll
+        for (int i = 0; i < DH / 32; i++) vv[t][i] = value(vr + lane_id() + 32 * i);
+    }
+    float sc = 0.f;
+#pragma unroll
+    for (int c = 0; c < DH / 8; c++) {
+        float kv[8];
+        unpack8(kp[c], kv);
+        for (int e = 0; e < 8; e++) sc = fmaf(qs[8 * c + e], kv[e], sc);
+    }
+    if (j >= lk) sc = NEG_INF;
+    // Lane 0's key is always there, so the chunk's maximum is a number.
+    mrun = warp_max(sc);
+    const float p = j < lk ? expf(sc - mrun) : 0.f;
+    srun = warp_sum(p);
+#pragma unroll
+    for (int t = 0; t < 32; t++) {
+        const float pt = from_lane(p, t);
+#pragma unroll
+        for (int i = 0; i < DH / 32; i++) acc[i] = fmaf(pt, vv[t][i], acc[i]);
+    }
+}
+
 // Blocks (batch, row, head, split): split s takes keys [s·K, (s + 1)·K), K = 32 per warp; splits past the
 // last key return at once. A block's warps merge in shared memory; with several splits, each writes its
 // part and the last to finish merges them (a counter per query, reset by that block).
-KERNEL umgen_attend_rows(const AttendRows P) {
-    griddep_launch();
+// Block `blk` of the attention (of a kernel's grid, or a block of `umgen_chain` taking it in turn); `dep` as
+// `gemv_run`'s: the cache's lines are asked of L2 before the wait.
+DEV void attend_rows_block(const AttendRows& P, long long blk, bool dep) {
+    if (dep) griddep_launch();
     SHARED float qs[ATT_DH];
     // The warps' parts, then (for the merging block) every split's: up to ROWS_MAX_SPLITS of them.
     SHARED float bpart[ROWS_MAX_SPLITS][2 + ATT_DH];
     SHARED int last;
-    const long long blk = block_x();
     const int split = (int)(blk % P.splits);
     const long long bhr = blk / P.splits;
     const int h = (int)(bhr % P.heads);
@@ -66,7 +150,7 @@ KERNEL umgen_attend_rows(const AttendRows P) {
     const int wpb = warps_per_block(), per = 32 * wpb;
     const WT* kb = P.k + b * P.k_sb + (long long)h * P.k_sh;
     const WT* vb = P.v + b * P.k_sb + (long long)h * P.k_sh;
-    if (P.pos) {
+    if (dep && P.pos) {
         // A decoding step: the position moves only between steps, and the keys and values before it were
         // written by earlier steps, so their lines are asked of L2 while the kernel before finishes.
         const int j = split * per + warp_id() * 32 + lane_id();
@@ -77,7 +161,7 @@ KERNEL umgen_attend_rows(const AttendRows P) {
             }
         }
     }
-    griddep_wait();
+    if (dep) griddep_wait();
     const int lk = P.pos ? *P.pos + 1 : P.lk;
     const int active = (lk + per - 1) / per;
     if (split >= active) return;
@@ -88,41 +172,12 @@ KERNEL umgen_attend_rows(const AttendRows P) {
     for (int i = 0; i < ATT_DH / 32; i++) acc[i] = 0.f;
     const int c0 = split * per + warp_id() * 32;
     if (c0 < lk) {
-        const int j = c0 + lane_id();
-        float sc = NEG_INF;
-        if (j < lk) {
-            const WT* kr = kb + (long long)j * P.k_sj;
-            sc = 0.f;
-            if ((P.dh & 7) == 0) {
-                // Unrolled to the largest head, so that every load of the key row is in flight at once.
-#pragma unroll
-                for (int d = 0; d < ATT_DH; d += 8) {
-                    if (d < P.dh) {
-                        float kv[8];
-                        load8(kr + d, kv);
-                        for (int e = 0; e < 8; e++) sc = fmaf(qs[d + e], kv[e], sc);
-                    }
-                }
-            } else {
-                for (int d = 0; d < P.dh; d++) sc = fmaf(qs[d], value(kr + d), sc);
-            }
-        }
-        // Lane 0's key is always there, so the chunk's maximum is a number.
-        mrun = warp_max(sc);
-        const float p = j < lk ? expf(sc - mrun) : 0.f;
-        srun = warp_sum(p);
-        const int count = lk - c0 < 32 ? lk - c0 : 32;
-        // Unrolled over the chunk (loads guarded), so that the value rows' loads overlap.
-#pragma unroll
-        for (int t = 0; t < 32; t++) {
-            const float pt = from_lane(p, t);
-            if (t < count) {
-                const WT* vr = vb + (long long)(c0 + t) * P.k_sj;
-                for (int i = 0; i < ATT_DH / 32; i++) {
-                    const int d = lane_id() + 32 * i;
-                    if (d < P.dh) acc[i] = fmaf(pt, value(vr + d), acc[i]);
-                }
-            }
+        if (P.dh == 64 && (P.k_sj & 7) == 0) {
+            rows_chunk<64>(P, qs, kb, vb, c0, lk, mrun, srun, acc);
+        } else if (P.dh == 32 && (P.k_sj & 7) == 0) {
+            rows_chunk<32>(P, qs, kb, vb, c0, lk, mrun, srun, acc);
+        } else {
+            rows_chunk_any(P, qs, kb, vb, c0, lk, mrun, srun, acc);
         }
     }
     if (lane_id() == 0) {
@@ -170,6 +225,9 @@ KERNEL umgen_attend_rows(const AttendRows P) {
         if (thread_id() == 0) P.count[bhr] = 0;
     }
 }
+
+#ifndef UMGEN_CHAIN
+KERNEL umgen_attend_rows(const AttendRows P) { attend_rows_block(P, block_x(), true); }
 
 struct AttendTiles {
     const WT* q;          // q(i, h, r) = q + (i / inner)·q_s1 + (i % inner)·q_s2 + r·q_sr + h·dh
@@ -248,3 +306,4 @@ KERNEL umgen_attend_tiles(const AttendTiles P) {
             if (i < per) store(y + part + 4 * i, acc[i] / srun);
     }
 }
+#endif

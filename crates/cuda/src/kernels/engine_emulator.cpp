@@ -180,6 +180,7 @@ static bool test_attend_rows(int dh) {
     P.part = part.data();
     P.count = count.data();
     P.splits = splits;
+    P.batches = batches;
     P.q = q.data();
     P.k = k.w.data();
     P.v = v.w.data();
@@ -678,6 +679,8 @@ int main() {
     ok = test_gemv(2600, 6) && ok;   // 4 warps a column, slices of 650: the scalar loop
     ok = test_attend_rows(8) && ok;
     ok = test_attend_rows(40) && ok;
+    ok = test_attend_rows(64) && ok;  // the head sizes whose loads are all in flight at once
+    ok = test_attend_rows(32) && ok;
     ok = test_attend_tiles(false) && ok;
     ok = test_attend_tiles(true) && ok;
     ok = test_rows() && ok;

@@ -112,10 +112,12 @@ DEV void gemv_prefetch(const Gemv& P, long long j, int k0, int k1, Packed8* wv) 
 // the kernel before (weights are never written), those of its next group while the current one is summed;
 // the rows' norm statistics are computed once per block. With several warps a column, their sums meet in
 // shared memory.
-KERNEL umgen_gemv(const Gemv P) {
+// The product as block `bx` of `nb` (the kernel's grid, or `umgen_chain`'s persistent blocks); `dep`: launched
+// with programmatic dependent launch, so the first weights are loaded before the wait for the kernel before.
+DEV void gemv_run(const Gemv& P, long long bx, long long nb, bool dep) {
     SHARED float st[2 * GEMV_ROWS];
     SHARED float partial[8][GEMV_ROWS];
-    griddep_launch();
+    if (dep) griddep_launch();
     const int m = P.m;
     const int split = gemv_split(P.k), per_block = warps_per_block() / split;
     const int local = warp_id() / split, part = warp_id() % split;
@@ -125,11 +127,11 @@ KERNEL umgen_gemv(const Gemv P) {
     const long long groups = (P.n + per_block - 1) / per_block;
     Packed8 wv[4];
     {
-        const long long j = block_x() * per_block + local;
+        const long long j = bx * per_block + local;
         if (vec && j < P.n) gemv_prefetch(P, j, k0, k1, wv);
     }
     // Nothing above read what an earlier kernel writes: the weights' loads are in flight across the wait.
-    griddep_wait();
+    if (dep) griddep_wait();
     if (P.in_mode == 1) {
         // Warp s: row s's mean and 1/σ (biased variance, ε 1e-5, as burn's LayerNorm), its first 1,024
         // values read once into registers.
@@ -174,8 +176,8 @@ KERNEL umgen_gemv(const Gemv P) {
         for (int s = 0; s < GEMV_ROWS; s++)
             if (s < m) trow[s] = P.table + (long long)(P.row_base[P.seg_of[q]] + P.tok[s * P.ntok + q]) * P.k;
     }
-    for (long long g = block_x(); g < groups; g += blocks()) {
-        const long long j = g * per_block + local, jn = (g + blocks()) * per_block + local;
+    for (long long g = bx; g < groups; g += nb) {
+        const long long j = g * per_block + local, jn = (g + nb) * per_block + local;
         const bool here = j < P.n;
         Packed8 wn[4];
         if (vec && jn < P.n) gemv_prefetch(P, jn, k0, k1, wn);
@@ -236,3 +238,7 @@ KERNEL umgen_gemv(const Gemv P) {
         for (int c = 0; c < 4; c++) wv[c] = wn[c];
     }
 }
+
+#ifndef UMGEN_CHAIN
+KERNEL umgen_gemv(const Gemv P) { gemv_run(P, block_x(), blocks(), true); }
+#endif
