@@ -36,7 +36,7 @@ pub fn flash2_forward_bf16() -> String {
 
 /// The generation engine's kernel files, each with the kernels it defines: NVRTC compiles each with
 /// [`engine_part`] as its own program, so that a start-up compiles them side by side.
-pub const ENGINE_PARTS: [(&str, &[&str]); 5] = [
+pub const ENGINE_PARTS: [(&str, &[&str]); 4] = [
     ("gemv.cu", &["umgen_gemv"]),
     ("attend.cu", &["umgen_attend_rows", "umgen_attend_tiles"]),
     (
@@ -52,13 +52,11 @@ pub const ENGINE_PARTS: [(&str, &[&str]); 5] = [
         ],
     ),
     ("draw.cu", &["umgen_draw"]),
-    ("chain.cu", &["umgen_chain"]),
 ];
 
 /// The source NVRTC compiles for the engine's kernel file `file` (one of [`ENGINE_PARTS`]) with weights and
-/// operands in bf16 (`bf16`) or f32: the primitives, the element type, `engine_common.cuh` and the file
-/// (`chain.cu` after the bodies of `gemv.cu` and `attend.cu`, without their kernels). `None` for a file
-/// that is not one of them.
+/// operands in bf16 (`bf16`) or f32: the primitives, the element type, `engine_common.cuh` and the file.
+/// `None` for a file that is not one of them.
 pub fn engine_part(bf16: bool, file: &str) -> Option<String> {
     assemble(bf16, file, engine_part_file)
 }
@@ -91,26 +89,16 @@ fn engine_part_file(name: &str) -> Option<String> {
         "attend.cu" => include_str!("kernels/attend.cu"),
         "rows.cu" => include_str!("kernels/rows.cu"),
         "draw.cu" => include_str!("kernels/draw.cu"),
-        "chain.cu" => include_str!("kernels/chain.cu"),
         _ => return None,
     };
     Some(text.to_owned())
 }
 
-/// The primitives, the element type, `engine_common.cuh` and `file` (`chain.cu` after the bodies of
-/// `gemv.cu` and `attend.cu`), each file's text from `text`.
+/// The primitives, the element type, `engine_common.cuh` and `file`, each file's text from `text`.
 fn assemble(bf16: bool, file: &str, mut text: impl FnMut(&str) -> Option<String>) -> Option<String> {
-    let body = match file {
-        "gemv.cu" | "attend.cu" | "rows.cu" | "draw.cu" => text(file)?,
-        "chain.cu" => [
-            "#define UMGEN_CHAIN".to_owned(),
-            text("gemv.cu")?,
-            text("attend.cu")?,
-            text(file)?,
-        ]
-        .join("\n"),
-        _ => return None,
-    };
+    if !matches!(file, "gemv.cu" | "attend.cu" | "rows.cu" | "draw.cu") {
+        return None;
+    }
     let wt = if bf16 {
         "#define WT u16\n"
     } else {
@@ -121,7 +109,7 @@ fn assemble(bf16: bool, file: &str, mut text: impl FnMut(&str) -> Option<String>
             PRIMITIVES.to_owned(),
             wt.to_owned(),
             text("engine_common.cuh")?,
-            body,
+            text(file)?,
         ]
         .join("\n"),
     )
@@ -136,15 +124,7 @@ mod tests {
         for bf16 in [false, true] {
             for (file, kernels) in ENGINE_PARTS {
                 let src = engine_part(bf16, file).expect(file);
-                // The chain's source holds the products' and attentions' kernels too, left out by
-                // `UMGEN_CHAIN` (defined before them).
-                let guarded = src.matches("#ifndef UMGEN_CHAIN").count();
-                if file == "chain.cu" {
-                    assert_eq!(guarded, 2);
-                    assert!(src.find("#define UMGEN_CHAIN") < src.find("#ifndef UMGEN_CHAIN"));
-                } else {
-                    assert_eq!(src.matches("KERNEL umgen_").count(), kernels.len(), "{file}");
-                }
+                assert_eq!(src.matches("KERNEL umgen_").count(), kernels.len(), "{file}");
                 for k in kernels {
                     let defined = format!("KERNEL {k}(");
                     assert_eq!(src.matches(&defined).count(), 1, "{k}");
@@ -164,11 +144,12 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("umgen-engine-source-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("temp dir");
         std::fs::write(dir.join("attend.cu"), "// tried attention\n").expect("write");
-        for file in ["attend.cu", "chain.cu"] {
-            let src = engine_part_from(false, file, &dir).expect("read").expect(file);
-            assert!(src.contains("// tried attention"), "{file}");
-            assert!(!src.contains("KERNEL umgen_attend_rows("), "{file}");
-        }
+        let src = engine_part_from(false, "attend.cu", &dir)
+            .expect("read")
+            .expect("attend.cu");
+        assert!(src.contains("// tried attention"));
+        assert!(!src.contains("KERNEL umgen_attend_rows("));
+        assert!(src.contains("#define WT float"));
         let gemv = engine_part_from(false, "gemv.cu", &dir).expect("read");
         assert_eq!(gemv, engine_part(false, "gemv.cu"));
         // A file that is there but is not text is an error that names it.

@@ -31,30 +31,6 @@ fn engine_kernels_match_a_double_precision_reference_in_the_host_emulator() {
     }
 }
 
-/// The decoding step's persistent kernel (`src/kernels/chain.cu`) run on the host: `chain_emulator.cpp` runs
-/// a layer's tasks (norm + q, k, v into the caches, the attention over the cache, the output product, the
-/// MLP) as a chain on fewer blocks than their column groups and attention blocks, and one by one as their
-/// own grids; every result must be the same bits. Weights and operands in f32 and in bf16.
-#[test]
-fn the_chain_of_a_layer_gives_the_bits_of_its_kernels_one_by_one_in_the_host_emulator() {
-    let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/kernels/chain_emulator.cpp");
-    for defines in [["-DWT=float"], ["-DWT=u16"]] {
-        match run(&source, &defines).expect("building the emulator") {
-            Emulated::Agreed(report) => {
-                // Two grids, each with its title and six checks, and the summary line.
-                assert_eq!(report.lines().count(), 15, "{report}");
-                assert_eq!(report.matches("the same bits").count(), 10, "{report}");
-                assert!(report.contains("all cases agree"), "{report}");
-            }
-            Emulated::Disagreed(report) => panic!("{defines:?}:\n{report}"),
-            Emulated::NoCompiler => {
-                eprintln!("no C++ compiler: the chain's emulator did not run");
-                return;
-            }
-        }
-    }
-}
-
 /// The FlashAttention-2 kernels (`src/kernels/flash2/`) run on the host: `flash2_emulator.cpp` runs every
 /// thread of a block as a host thread with the warp-level primitives (`mma.sync`, `ldmatrix`, shuffles, and
 /// Hopper's `wgmma` with its swizzled shared-memory operands) emulated from their PTX definitions, and

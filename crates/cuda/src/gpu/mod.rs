@@ -6,7 +6,6 @@
 //! captured as a graph must contain only kernel launches and cuBLAS calls.
 #![allow(unsafe_code)]
 
-mod chain;
 mod compile;
 mod launch;
 mod params;
@@ -39,16 +38,9 @@ pub struct CudaExec {
     /// Blocks of `umgen_gemv` that fit on the GPU at once (SMs × resident blocks): its grid walks the
     /// columns, so one wave streams every weight and no block waits for a second one.
     gemv_blocks: u32,
-    /// Blocks of a chain (`chain.rs`): SMs × the blocks of `umgen_chain` each holds (at most
-    /// `UMGEN_CHAIN_BLOCKS_PER_SM`, default 2) with `UMGEN_CHAIN=1`; 0 (one launch per operation) without.
-    chain_blocks: u32,
-    /// The chains' grid barrier: two words, zero between launches.
-    chain_barrier: u64,
     blas: blas_sys::cublasHandle_t,
     allocs: Vec<Alloc>,
     graphs: HashMap<u64, CudaGraph>,
-    /// The device memory each graph's chains read their tasks from, freed with the graph.
-    graph_memory: Vec<u64>,
     bf16: bool,
     bytes: usize,
 }
@@ -92,15 +84,6 @@ impl CudaExec {
             .occupancy_max_active_blocks_per_multiprocessor(256, 0, None)
             .map_err(|e| device("umgen_gemv occupancy")(format!("{e:?}")))?;
         let gemv_blocks = (sms.max(1) as u32).saturating_mul(resident.max(1));
-        let chain_blocks = chain_blocks(&functions, sms)?;
-        ctx.bind_to_thread()
-            .map_err(|e| device("binding the context")(format!("{e:?}")))?;
-        // SAFETY: a plain allocation of the bound context, zeroed before any launch reads it.
-        let chain_barrier = unsafe {
-            let ptr = result::malloc_sync(8).map_err(|e| device("cuMemAlloc (barrier)")(format!("{e:?}")))?;
-            result::memset_d8_sync(ptr, 0, 8).map_err(|e| device("zeroing")(format!("{e:?}")))?;
-            ptr
-        };
         // SAFETY: only asks whether the library could be loaded.
         if !unsafe { blas_sys::is_culib_present() } {
             return Err(ExecError::Device(
@@ -119,12 +102,9 @@ impl CudaExec {
             dependent_launch: major >= 9
                 && std::env::var("UMGEN_DEPENDENT_LAUNCH").map_or(true, |v| v != "0"),
             gemv_blocks,
-            chain_blocks,
-            chain_barrier,
             blas: handle,
             allocs: Vec::new(),
             graphs: HashMap::new(),
-            graph_memory: Vec::new(),
             bf16,
             bytes: 0,
         })
@@ -211,38 +191,11 @@ impl CudaExec {
         launch::launch(self, op)
     }
 
-    /// Drops every captured graph and, once the stream has finished with them, the memory they read.
+    /// Drops every captured graph, once the stream has finished what may still use them.
     fn forget_graphs(&mut self) {
         self.graphs.clear();
         let _ = self.stream.synchronize();
-        for ptr in self.graph_memory.drain(..) {
-            // SAFETY: a chain's task array, named only by the graphs dropped above; the stream is done.
-            let _ = unsafe { result::free_sync(ptr) };
-        }
     }
-}
-
-/// Blocks a chain runs on: every SM's share of `umgen_chain`'s resident blocks, capped by
-/// `UMGEN_CHAIN_BLOCKS_PER_SM` (default 2: more blocks make each barrier longer), with `UMGEN_CHAIN=1`;
-/// 0 without (a chain measured slower than the kernels one by one).
-fn chain_blocks(functions: &HashMap<&'static str, CudaFunction>, sms: i32) -> Result<u32, ExecError> {
-    if !std::env::var("UMGEN_CHAIN").is_ok_and(|v| v == "1") {
-        return Ok(0);
-    }
-    let cap = match std::env::var("UMGEN_CHAIN_BLOCKS_PER_SM") {
-        Ok(v) => v.parse::<u32>().ok().filter(|&n| n > 0).ok_or_else(|| {
-            ExecError::Invalid(format!(
-                "UMGEN_CHAIN_BLOCKS_PER_SM={v}: not a positive whole number"
-            ))
-        })?,
-        Err(_) => 2,
-    };
-    let resident = functions
-        .get("umgen_chain")
-        .ok_or_else(|| ExecError::Invalid("the engine source has no umgen_chain".into()))?
-        .occupancy_max_active_blocks_per_multiprocessor(256, 0, None)
-        .map_err(|e| device("umgen_chain occupancy")(format!("{e:?}")))?;
-    Ok((sms.max(1) as u32).saturating_mul(resident.min(cap)))
 }
 
 impl Exec for CudaExec {
@@ -349,17 +302,10 @@ impl Exec for CudaExec {
             for op in ops {
                 check(op, |id| self.allocs.get(id as usize).map(|a| (a.elem, a.len)))?;
             }
-            let mut owned = Vec::new();
-            let planned = self.plan(ops, &mut owned);
-            self.graph_memory.extend(owned);
-            let planned = planned?;
             self.stream
                 .begin_capture(sys::CUstreamCaptureMode::CU_STREAM_CAPTURE_MODE_THREAD_LOCAL)
                 .map_err(|e| device("begin capture")(format!("{e:?}")))?;
-            let launched = planned.iter().try_for_each(|l| match l {
-                chain::Launch::One(op) => self.launch(op),
-                chain::Launch::Chain(tasks, count) => self.launch_chain(*tasks, *count),
-            });
+            let launched = ops.iter().try_for_each(|op| self.launch(op));
             let graph = self
                 .stream
                 .end_capture(sys::CUgraphInstantiate_flags(0))
@@ -407,7 +353,6 @@ impl Drop for CudaExec {
         // executor's own, and the stream (synchronised above) no longer uses them.
         unsafe {
             let _ = blas::destroy_handle(self.blas);
-            let _ = result::free_sync(self.chain_barrier);
             for a in self.allocs.drain(..).filter(|a| a.ptr != 0) {
                 let _ = result::free_sync(a.ptr);
             }

@@ -63,11 +63,7 @@ pub(super) struct AttendRows {
     dh: i32,
     lk: i32,
     splits: i32,
-    batches: i32,
     scale: f32,
-    /// The C struct's tail padding, named so that the struct has no padding bytes (a chain's task copies
-    /// its bytes).
-    pad: i32,
 }
 
 /// `struct AttendTiles` of `attend.cu`.
@@ -414,9 +410,7 @@ impl CudaExec {
             dh: i(t.dh),
             lk: i(lk),
             splits: i(t.splits),
-            batches: i(t.batches),
             scale: t.scale,
-            pad: 0,
         }
     }
 

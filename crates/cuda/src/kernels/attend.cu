@@ -25,7 +25,7 @@ struct AttendRows {
     float* part;          // [batches·rows·heads][splits][2 + dh]: each split's maximum, sum and output
     unsigned* count;      // [batches·rows·heads]: splits finished (zero between launches)
     long long q_sb, q_sr, k_sb, k_sh, k_sj, y_sb, y_sr;
-    int rows, heads, dh, lk, splits, batches;
+    int rows, heads, dh, lk, splits;
     float scale;
 };
 
@@ -91,11 +91,12 @@ DEV void rows_chunk_any(const AttendRows& P, const float* qs, const WT* kb, cons
     }
 }
 
-// `rows_chunk_any` for head size DH (32 or 64, rows on 16 bytes): no load is behind a branch, so a lane's
-// key row and the chunk's value rows are all in flight at once (a key past `lk` reads the last key's row
-// and is masked; a value row past it is weighted 0), one round trip to L2 rather than one per row.
+// `rows_chunk_any` for head size DH (32 or 64, rows on 16 bytes) with the query `q` read here (scaled) rather
+// than from shared memory: no load is behind a branch, so the query, a lane's key row and the chunk's value
+// rows are all in flight at once (a key past `lk` reads the last key's row and is masked; a value row past
+// it is weighted 0), one round trip to L2 rather than one per row, and no block barrier before it.
 template <int DH>
-DEV void rows_chunk(const AttendRows& P, const float* qs, const WT* kb, const WT* vb, int c0, int lk,
+DEV void rows_chunk(const AttendRows& P, const float* q, const WT* kb, const WT* vb, int c0, int lk,
                     float& mrun, float& srun, float* acc) {
     const int j = c0 + lane_id();
     const int jc = j < lk ? j : lk - 1;
@@ -111,12 +112,15 @@ DEV void rows_chunk(const AttendRows& P, const float* qs, const WT* kb, const WT
 #pragma unroll
         for (int i = 0; i < DH / 32; i++) vv[t][i] = value(vr + lane_id() + 32 * i);
     }
+    float qv[DH];
+#pragma unroll
+    for (int d = 0; d < DH; d++) qv[d] = q[d] * P.scale;
     float sc = 0.f;
 #pragma unroll
     for (int c = 0; c < DH / 8; c++) {
         float kv[8];
         unpack8(kp[c], kv);
-        for (int e = 0; e < 8; e++) sc = fmaf(qs[8 * c + e], kv[e], sc);
+        for (int e = 0; e < 8; e++) sc = fmaf(qv[8 * c + e], kv[e], sc);
     }
     if (j >= lk) sc = NEG_INF;
     // Lane 0's key is always there, so the chunk's maximum is a number.
@@ -134,14 +138,13 @@ DEV void rows_chunk(const AttendRows& P, const float* qs, const WT* kb, const WT
 // Blocks (batch, row, head, split): split s takes keys [s·K, (s + 1)·K), K = 32 per warp; splits past the
 // last key return at once. A block's warps merge in shared memory; with several splits, each writes its
 // part and the last to finish merges them (a counter per query, reset by that block).
-// Block `blk` of the attention (of a kernel's grid, or a block of `umgen_chain` taking it in turn); `dep` as
-// `gemv_run`'s: the cache's lines are asked of L2 before the wait.
-DEV void attend_rows_block(const AttendRows& P, long long blk, bool dep) {
-    if (dep) griddep_launch();
+KERNEL umgen_attend_rows(const AttendRows P) {
+    griddep_launch();
     SHARED float qs[ATT_DH];
     // The warps' parts, then (for the merging block) every split's: up to ROWS_MAX_SPLITS of them.
     SHARED float bpart[ROWS_MAX_SPLITS][2 + ATT_DH];
     SHARED int last;
+    const long long blk = block_x();
     const int split = (int)(blk % P.splits);
     const long long bhr = blk / P.splits;
     const int h = (int)(bhr % P.heads);
@@ -150,35 +153,35 @@ DEV void attend_rows_block(const AttendRows& P, long long blk, bool dep) {
     const int wpb = warps_per_block(), per = 32 * wpb;
     const WT* kb = P.k + b * P.k_sb + (long long)h * P.k_sh;
     const WT* vb = P.v + b * P.k_sb + (long long)h * P.k_sh;
-    if (dep && P.pos) {
-        // A decoding step: the position moves only between steps, and the keys and values before it were
-        // written by earlier steps, so their lines are asked of L2 while the kernel before finishes.
+    // The keys: in a decoding step, the device position + 1, read before the wait (the position moves only
+    // between steps, and the keys and values before it were written by earlier steps, so their lines are
+    // asked of L2 while the kernel before finishes). Splits past the last key have nothing to do.
+    const int lk = P.pos ? *P.pos + 1 : P.lk;
+    const int active = (lk + per - 1) / per;
+    if (split >= active) return;
+    if (P.pos) {
         const int j = split * per + warp_id() * 32 + lane_id();
-        if (j < *P.pos) {
+        if (j < lk - 1) {
             for (int e = 0; e < P.dh; e += 128 / (int)sizeof(WT)) {
                 prefetch_l2(kb + (long long)j * P.k_sj + e);
                 prefetch_l2(vb + (long long)j * P.k_sj + e);
             }
         }
     }
-    if (dep) griddep_wait();
-    const int lk = P.pos ? *P.pos + 1 : P.lk;
-    const int active = (lk + per - 1) / per;
-    if (split >= active) return;
+    griddep_wait();
     const float* q = P.q + b * P.q_sb + r * P.q_sr + (long long)h * P.dh;
-    for (int d = thread_id(); d < P.dh; d += threads()) qs[d] = q[d] * P.scale;
-    sync_block();
     float mrun = NEG_INF, srun = 0.f, acc[ATT_DH / 32];
     for (int i = 0; i < ATT_DH / 32; i++) acc[i] = 0.f;
     const int c0 = split * per + warp_id() * 32;
-    if (c0 < lk) {
-        if (P.dh == 64 && (P.k_sj & 7) == 0) {
-            rows_chunk<64>(P, qs, kb, vb, c0, lk, mrun, srun, acc);
-        } else if (P.dh == 32 && (P.k_sj & 7) == 0) {
-            rows_chunk<32>(P, qs, kb, vb, c0, lk, mrun, srun, acc);
-        } else {
-            rows_chunk_any(P, qs, kb, vb, c0, lk, mrun, srun, acc);
+    if ((P.dh == 64 || P.dh == 32) && ((P.k_sj | P.k_sh | P.k_sb) & 7) == 0) {
+        if (c0 < lk) {
+            if (P.dh == 64) rows_chunk<64>(P, q, kb, vb, c0, lk, mrun, srun, acc);
+            else rows_chunk<32>(P, q, kb, vb, c0, lk, mrun, srun, acc);
         }
+    } else {
+        for (int d = thread_id(); d < P.dh; d += threads()) qs[d] = q[d] * P.scale;
+        sync_block();
+        if (c0 < lk) rows_chunk_any(P, qs, kb, vb, c0, lk, mrun, srun, acc);
     }
     if (lane_id() == 0) {
         bpart[warp_id()][0] = mrun;
@@ -225,9 +228,6 @@ DEV void attend_rows_block(const AttendRows& P, long long blk, bool dep) {
         if (thread_id() == 0) P.count[bhr] = 0;
     }
 }
-
-#ifndef UMGEN_CHAIN
-KERNEL umgen_attend_rows(const AttendRows P) { attend_rows_block(P, block_x(), true); }
 
 struct AttendTiles {
     const WT* q;          // q(i, h, r) = q + (i / inner)·q_s1 + (i % inner)·q_s2 + r·q_sr + h·dh
@@ -306,4 +306,3 @@ KERNEL umgen_attend_tiles(const AttendTiles P) {
             if (i < per) store(y + part + 4 * i, acc[i] / srun);
     }
 }
-#endif

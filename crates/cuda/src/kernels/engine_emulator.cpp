@@ -180,7 +180,6 @@ static bool test_attend_rows(int dh) {
     P.part = part.data();
     P.count = count.data();
     P.splits = splits;
-    P.batches = batches;
     P.q = q.data();
     P.k = k.w.data();
     P.v = v.w.data();

@@ -61,15 +61,16 @@ DEV void gemv_in8(const Gemv& P, const float* st, const float* trow, const float
     }
 }
 
-// What happens to result `r` of input row `s`, output column `j`.
-DEV void gemv_out(const Gemv& P, int s, long long j, float r) {
-    if (P.bias) r += P.bias[j];
+// What happens to result `r` of input row `s`, output column `j`, whose bias is `bias_j` and whose output
+// held `prev` (out_mode 1; both loaded ahead, so that no load waits at the end).
+DEV void gemv_out(const Gemv& P, int s, long long j, float r, float bias_j, float prev) {
+    if (P.bias) r += bias_j;
     if (P.gelu) r = gelu(r);
     float* o = P.out + (long long)s * P.ldo + j;
     if (P.out_mode == 0) {
         *o = r;
     } else if (P.out_mode == 1) {
-        *o += r;
+        *o = prev + r;
     } else if (P.out_mode == 2) {
         const long long d = (long long)P.heads * P.dh;
         if (j < d) {
@@ -112,12 +113,11 @@ DEV void gemv_prefetch(const Gemv& P, long long j, int k0, int k1, Packed8* wv) 
 // the kernel before (weights are never written), those of its next group while the current one is summed;
 // the rows' norm statistics are computed once per block. With several warps a column, their sums meet in
 // shared memory.
-// The product as block `bx` of `nb` (the kernel's grid, or `umgen_chain`'s persistent blocks); `dep`: launched
-// with programmatic dependent launch, so the first weights are loaded before the wait for the kernel before.
-DEV void gemv_run(const Gemv& P, long long bx, long long nb, bool dep) {
+KERNEL umgen_gemv(const Gemv P) {
     SHARED float st[2 * GEMV_ROWS];
     SHARED float partial[8][GEMV_ROWS];
-    if (dep) griddep_launch();
+    griddep_launch();
+    const long long bx = block_x(), nb = blocks();
     const int m = P.m;
     const int split = gemv_split(P.k), per_block = warps_per_block() / split;
     const int local = warp_id() / split, part = warp_id() % split;
@@ -126,12 +126,15 @@ DEV void gemv_run(const Gemv& P, long long bx, long long nb, bool dep) {
     const bool vec = (P.k & 7) == 0 && (slice & 7) == 0;
     const long long groups = (P.n + per_block - 1) / per_block;
     Packed8 wv[4];
+    // The bias is a weight too: the column's is loaded with its row.
+    float bias_j = 0.f;
     {
         const long long j = bx * per_block + local;
         if (vec && j < P.n) gemv_prefetch(P, j, k0, k1, wv);
+        if (P.bias && j < P.n) bias_j = P.bias[j];
     }
     // Nothing above read what an earlier kernel writes: the weights' loads are in flight across the wait.
-    if (dep) griddep_wait();
+    griddep_wait();
     if (P.in_mode == 1) {
         // Warp s: row s's mean and 1/σ (biased variance, ε 1e-5, as burn's LayerNorm), its first 1,024
         // values read once into registers.
@@ -179,8 +182,14 @@ DEV void gemv_run(const Gemv& P, long long bx, long long nb, bool dep) {
     for (long long g = bx; g < groups; g += nb) {
         const long long j = g * per_block + local, jn = (g + nb) * per_block + local;
         const bool here = j < P.n;
+        const bool writer = here && part == 0 && lane_id() == 0;
+        // The residual stream's values this column adds to, asked for before the products.
+        float prev[GEMV_ROWS];
+        for (int s = 0; s < GEMV_ROWS; s++)
+            prev[s] = writer && P.out_mode == 1 && s < m ? P.out[(long long)s * P.ldo + j] : 0.f;
         Packed8 wn[4];
         if (vec && jn < P.n) gemv_prefetch(P, jn, k0, k1, wn);
+        const float bias_next = P.bias && jn < P.n ? P.bias[jn] : 0.f;
         float acc[GEMV_ROWS];
         for (int s = 0; s < GEMV_ROWS; s++) acc[s] = 0.f;
         if (here && vec) {
@@ -231,14 +240,11 @@ DEV void gemv_run(const Gemv& P, long long bx, long long nb, bool dep) {
                     for (int q = 1; q < split; q++) acc[s] += partial[warp_id() + q][s];
             sync_block();
         }
-        if (here && part == 0 && lane_id() == 0)
+        if (writer)
             for (int s = 0; s < GEMV_ROWS; s++)
-                if (s < m) gemv_out(P, s, j, acc[s]);
+                if (s < m) gemv_out(P, s, j, acc[s], bias_j, prev[s]);
 #pragma unroll
         for (int c = 0; c < 4; c++) wv[c] = wn[c];
+        bias_j = bias_next;
     }
 }
-
-#ifndef UMGEN_CHAIN
-KERNEL umgen_gemv(const Gemv P) { gemv_run(P, block_x(), blocks(), true); }
-#endif
