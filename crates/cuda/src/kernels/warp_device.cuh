@@ -4,6 +4,8 @@
 // host `warp_emulator.h` defines the same names.
 #define DEV static __device__ __forceinline__
 #define KERNEL extern "C" __global__ void __launch_bounds__(256)
+// A kernel whose registers are held to what `n` blocks of 256 threads on one SM leave it.
+#define KERNEL_RESIDENT(n) extern "C" __global__ void __launch_bounds__(256, n)
 // NVRTC has no <math.h>.
 #define NEG_INF __int_as_float(0xff800000)
 typedef unsigned short u16;

@@ -15,6 +15,7 @@
 #define UMGEN_EMULATED
 #define DEV static inline
 #define KERNEL void
+#define KERNEL_RESIDENT(n) void
 #define NEG_INF (-INFINITY)
 // Blocks run one at a time, so a function's static arrays serve as the block's shared memory.
 #define SHARED static
