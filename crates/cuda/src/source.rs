@@ -96,7 +96,7 @@ fn engine_part_file(name: &str) -> Option<String> {
 
 /// The primitives, the element type, `engine_common.cuh` and `file`, each file's text from `text`.
 fn assemble(bf16: bool, file: &str, mut text: impl FnMut(&str) -> Option<String>) -> Option<String> {
-    if !matches!(file, "gemv.cu" | "attend.cu" | "rows.cu" | "draw.cu") {
+    if !ENGINE_PARTS.iter().any(|(part, _)| *part == file) {
         return None;
     }
     let wt = if bf16 {

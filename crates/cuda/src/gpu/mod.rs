@@ -191,7 +191,7 @@ impl CudaExec {
         launch::launch(self, op)
     }
 
-    /// Drops every captured graph, once the stream has finished what may still use them.
+    /// Drops every captured graph and waits for the stream, before memory they may name is freed.
     fn forget_graphs(&mut self) {
         self.graphs.clear();
         let _ = self.stream.synchronize();
@@ -324,7 +324,7 @@ impl Exec for CudaExec {
     }
 
     fn forget_replays(&mut self) {
-        self.forget_graphs();
+        self.graphs.clear();
     }
 
     fn sync(&mut self) -> Result<(), ExecError> {
