@@ -2,8 +2,9 @@
 //! `engine_emulator.cpp` runs every thread of a block as a host thread with the warp shuffles emulated and
 //! compares each kernel with a double-precision reference: every input and output mode of the
 //! matrix-vector product (8-wide loads and the scalar tail), few-query attention over a cache as long as
-//! the device position says, tiled attention over split instances (causal and not, ragged lengths), row
-//! gathers with norms, periods and index lists, scatter-adds, embedding inputs, the action block's shift,
+//! the device position says, tiled attention over split instances (causal and not, ragged lengths, 16-byte
+//! and scalar loads), bias and GELU in place, row gathers with norms, periods and index lists (held in
+//! registers and not), scatter-adds, embedding inputs, the action block's shift,
 //! AMA's bilinear move, and the draw's token rules, greedy ties, sampled draws, a group's first token at
 //! pad's untruncated share and the new-agent rule. Weights and operands in f32 and in bf16.
 #![allow(clippy::expect_used, clippy::panic, clippy::print_stderr, missing_docs)]
@@ -17,8 +18,8 @@ fn engine_kernels_match_a_double_precision_reference_in_the_host_emulator() {
     for defines in [["-DWT=float"], ["-DWT=u16"]] {
         match run(&source, &defines).expect("building the emulator") {
             Emulated::Agreed(report) => {
-                // Thirty-four cases and the summary line.
-                assert_eq!(report.lines().count(), 35, "{report}");
+                // Forty-two cases and the summary line.
+                assert_eq!(report.lines().count(), 43, "{report}");
                 assert!(!report.contains("FAIL"), "{report}");
                 assert!(report.contains("all cases agree"), "{report}");
             }

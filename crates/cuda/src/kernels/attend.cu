@@ -13,6 +13,8 @@
 // "every position of every frame" and "every frame of every scene" are both one launch.
 
 #define ATT_DH 128
+// 16-byte loads each of `umgen_attend_tiles`'s 128 threads makes for a tile of 32 rows of ATT_DH.
+#define ATT_TILE_LOADS (32 * ATT_DH / 8 / 128)
 // Splits an `umgen_attend_rows` query takes at most (keys: 32 per warp and split).
 #define ROWS_MAX_SPLITS 32
 
@@ -239,11 +241,11 @@ struct AttendTiles {
     float scale;
 };
 
-KERNEL umgen_attend_tiles(const AttendTiles P) {
-    griddep_launch();
-    griddep_wait();
-    SHARED float ks[32][ATT_DH];
-    SHARED float vs[32][ATT_DH];
+// One block of `umgen_attend_tiles` for head sizes up to DHMAX (the loops over a thread's dimensions are
+// unrolled to DHMAX / 4: a head of 64 compiled as such runs half the instructions of one compiled for
+// ATT_DH and masked).
+template <int DHMAX>
+DEV void attend_tiles(const AttendTiles& P, float (*ks)[ATT_DH], float (*vs)[ATT_DH]) {
     const long long blk = block_x();
     const int qblocks = (P.lq + 31) / 32;
     const int qb = (int)(blk % qblocks);
@@ -252,14 +254,14 @@ KERNEL umgen_attend_tiles(const AttendTiles P) {
     const long long inst = ih / P.heads;
     const long long i1 = inst / P.inner, i2 = inst % P.inner;
     const int t = thread_id(), part = t & 3, row = qb * 32 + (t >> 2);
-    const int per = P.dh / 4;
+    const int per = DHMAX == ATT_DH ? P.dh / 4 : DHMAX / 4;
     const WT* kb = P.k + i1 * P.k_s1 + i2 * P.k_s2 + (long long)h * P.dh;
     const WT* vb = P.v + i1 * P.k_s1 + i2 * P.k_s2 + (long long)h * P.dh;
     // Dimensions part, part + 4, ... of this thread's query, scaled.
-    float qv[ATT_DH / 4], acc[ATT_DH / 4];
+    float qv[DHMAX / 4], acc[DHMAX / 4];
     const WT* qr = P.q + i1 * P.q_s1 + i2 * P.q_s2 + (long long)(row < P.lq ? row : 0) * P.q_sr + (long long)h * P.dh;
 #pragma unroll
-    for (int i = 0; i < ATT_DH / 4; i++) {
+    for (int i = 0; i < DHMAX / 4; i++) {
         qv[i] = i < per ? value(qr + part + 4 * i) * P.scale : 0.f;
         acc[i] = 0.f;
     }
@@ -269,21 +271,52 @@ KERNEL umgen_attend_tiles(const AttendTiles P) {
         const int last = qb * 32 + 31 + P.off + 1;
         if (last < kend) kend = last;
     }
+    // Whole 16-byte groups of 8 values where the head, the rows and the bases allow: every load of a tile
+    // is then in flight at once (the TAR's attention over time reads 20 rows a frame apart, and one memory
+    // trip per value made it a millisecond a layer).
+    const bool vec = P.dh % 8 == 0 && P.k_sr % 8 == 0 && aligned16(kb) && aligned16(vb);
     for (int k0 = 0; k0 < kend; k0 += 32) {
-        for (int idx = t; idx < 32 * P.dh; idx += threads()) {
-            const int kk = idx / P.dh, d = idx % P.dh, j = k0 + kk;
-            const bool in = j < P.lk;
-            ks[kk][d] = in ? value(kb + (long long)j * P.k_sr + d) : 0.f;
-            vs[kk][d] = in ? value(vb + (long long)j * P.k_sr + d) : 0.f;
+        const int rows = kend - k0 < 32 ? kend - k0 : 32;
+        if (vec) {
+            const int groups = P.dh / 8, total = rows * groups;
+            Packed8 kp[ATT_TILE_LOADS], vp[ATT_TILE_LOADS];
+#pragma unroll
+            for (int u = 0; u < ATT_TILE_LOADS; u++) {
+                const int idx = t + u * 128;
+                if (idx < total) {
+                    const long long at = (long long)(k0 + idx / groups) * P.k_sr + 8 * (idx % groups);
+                    load_packed8(kb + at, kp[u]);
+                    load_packed8(vb + at, vp[u]);
+                }
+            }
+#pragma unroll
+            for (int u = 0; u < ATT_TILE_LOADS; u++) {
+                const int idx = t + u * 128;
+                if (idx < total) {
+                    const int kk = idx / groups, d = 8 * (idx % groups);
+                    unpack8(kp[u], &ks[kk][d]);
+                    unpack8(vp[u], &vs[kk][d]);
+                }
+            }
+        } else {
+            for (int idx = t; idx < rows * P.dh; idx += threads()) {
+                const int kk = idx / P.dh, d = idx % P.dh;
+                ks[kk][d] = value(kb + (long long)(k0 + kk) * P.k_sr + d);
+                vs[kk][d] = value(vb + (long long)(k0 + kk) * P.k_sr + d);
+            }
         }
         sync_block();
+        // The keys this warp's rows see (the same for its 32 lanes, whose shuffles take them all): none for a
+        // warp past the last query, those up to its last row's under `causal`.
+        const int wfirst = qb * 32 + 8 * warp_id();
+        int kn = wfirst < P.lq ? rows : 0;
+        if (P.causal && wfirst + 8 + P.off - k0 < kn) kn = wfirst + 8 + P.off - k0 > 0 ? wfirst + 8 + P.off - k0 : 0;
         // One key at a time with its own rescaling: a loop the compiler need not unroll (unrolled over 32
         // keys and 128 dimensions it made NVRTC's slowest kernel), at two exponentials a key.
-        const int kn = kend - k0 < 32 ? kend - k0 : 32;
         for (int kk = 0; kk < kn; kk++) {
             float s = 0.f;
 #pragma unroll
-            for (int i = 0; i < ATT_DH / 4; i++)
+            for (int i = 0; i < DHMAX / 4; i++)
                 if (i < per) s = fmaf(qv[i], ks[kk][part + 4 * i], s);
             s += from_xor(s, 1);
             s += from_xor(s, 2);
@@ -293,7 +326,7 @@ KERNEL umgen_attend_tiles(const AttendTiles P) {
             const float alpha = expf(mrun - mnew), p = expf(s - mnew);
             srun = fmaf(srun, alpha, p);
 #pragma unroll
-            for (int i = 0; i < ATT_DH / 4; i++)
+            for (int i = 0; i < DHMAX / 4; i++)
                 if (i < per) acc[i] = fmaf(p, vs[kk][part + 4 * i], acc[i] * alpha);
             mrun = mnew;
         }
@@ -302,7 +335,18 @@ KERNEL umgen_attend_tiles(const AttendTiles P) {
     if (row < P.lq) {
         WT* y = P.y + i1 * P.y_s1 + i2 * P.y_s2 + (long long)row * P.y_sr + (long long)h * P.dh;
 #pragma unroll
-        for (int i = 0; i < ATT_DH / 4; i++)
+        for (int i = 0; i < DHMAX / 4; i++)
             if (i < per) store(y + part + 4 * i, acc[i] / srun);
     }
+}
+
+KERNEL umgen_attend_tiles(const AttendTiles P) {
+    griddep_launch();
+    griddep_wait();
+    SHARED float ks[32][ATT_DH];
+    SHARED float vs[32][ATT_DH];
+    if (P.dh == 64)
+        attend_tiles<64>(P, ks, vs);
+    else
+        attend_tiles<ATT_DH>(P, ks, vs);
 }

@@ -104,6 +104,41 @@ DEV void unpack8(const Packed8& r, float* v) {
 }
 #endif
 
+// Whether `p` may be read or written 16 bytes at a time.
+DEV bool aligned16(const void* p) { return ((unsigned long long)p & 15) == 0; }
+
+// Eight f32 values stored as `WT` at `p` (16-byte aligned).
+#ifdef UMGEN_EMULATED
+DEV void store8(WT* p, const float* v) {
+    for (int i = 0; i < 8; i++) store(p + i, v[i]);
+}
+#else
+DEV void store8(u16* p, const float* v) {
+    u32 w[4];
+#pragma unroll
+    for (int i = 0; i < 4; i++) w[i] = (u32)to_bf16(v[2 * i]) | ((u32)to_bf16(v[2 * i + 1]) << 16);
+    uint4 u;
+    u.x = w[0];
+    u.y = w[1];
+    u.z = w[2];
+    u.w = w[3];
+    *(uint4*)p = u;
+}
+DEV void store8(float* p, const float* v) {
+    float4 a, b;
+    a.x = v[0];
+    a.y = v[1];
+    a.z = v[2];
+    a.w = v[3];
+    b.x = v[4];
+    b.y = v[5];
+    b.z = v[6];
+    b.w = v[7];
+    *(float4*)p = a;
+    *(float4*)(p + 4) = b;
+}
+#endif
+
 // GELU's exact form (erf), as burn's and PyTorch's `gelu`.
 DEV float gelu(float x) { return 0.5f * x * (1.0f + erff(x * 0.70710678118654752f)); }
 

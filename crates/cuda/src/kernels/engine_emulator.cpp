@@ -220,9 +220,10 @@ static bool test_attend_rows(int dh) {
     return check(name, relative_error(got, want), 1e-5);
 }
 
-// Many queries: instances split into (i1, i2) with their own strides, causal and not.
-static bool test_attend_tiles(bool causal) {
-    const int n1 = 2, inner = 3, heads = 2, dh = 8, lq = 37, lk = 41, off = 4, ld = 3 * heads * dh;
+// Many queries: instances split into (i1, i2) with their own strides, causal and not; head sizes 8 and 64
+// take the 16-byte loads, 12 the loads of one value.
+static bool test_attend_tiles(bool causal, int dh) {
+    const int n1 = 2, inner = 3, heads = 2, lq = 37, lk = 41, off = 4, ld = 3 * heads * dh;
     const long long s1 = (long long)inner * lk * ld, s2 = (long long)lk * ld;
     Buf qkv(size_t(n1) * s1);
     std::vector<WT> y(size_t(n1) * inner * lq * heads * dh);
@@ -264,12 +265,45 @@ static bool test_attend_tiles(bool causal) {
                     for (int e = 0; e < dh; e++)
                         want[a * P.y_s1 + c * P.y_s2 + i * P.y_sr + h * dh + e] = r[i * dh + e];
             }
-    return check(causal ? "attend_tiles causal" : "attend_tiles", relative_error(got, want), tol());
+    char name[64];
+    snprintf(name, sizeof name, "attend_tiles%s dh %d", causal ? " causal" : "", dh);
+    return check(name, relative_error(got, want), tol());
 }
 
-// The rows kernel: a layer norm of gathered rows (index list, period) into WT, and a scattered f32 add.
-static bool test_rows() {
-    const int d = 40, inner = 3, rows = 12, period = 2;
+// A bias (and GELU) added in place to `WT` rows of `cols` columns, `cols + 8` apart.
+static bool test_bias_t(int cols) {
+    const int rows = 7, ld = cols + 8;
+    bool ok = true;
+    for (int act = 0; act < 2; act++) {
+        Buf x(size_t(rows) * ld);
+        std::vector<float> bias = randoms(cols);
+        BiasT P{};
+        P.x = x.w.data();
+        P.bias = bias.data();
+        P.rows = rows;
+        P.cols = cols;
+        P.ld = ld;
+        P.gelu = act;
+        launch(umgen_bias_t, P, 2, 2);
+        std::vector<double> want, got;
+        for (int r = 0; r < rows; r++)
+            for (int c = 0; c < ld; c++) {
+                const double v = x.f[size_t(r) * ld + c];
+                const double b = c < cols ? v + bias[c] : v;
+                want.push_back(c < cols && act ? ref_gelu(b) : b);
+                got.push_back(value(&x.w[size_t(r) * ld + c]));
+            }
+        char name[64];
+        snprintf(name, sizeof name, "bias_t %d columns%s", cols, act ? " gelu" : "");
+        ok = check(name, relative_error(got, want), tol()) && ok;
+    }
+    return ok;
+}
+
+// The rows kernel: a layer norm of gathered rows (index list, period) into WT, and a scattered f32 add;
+// rows of 40 held in registers, of 1,056 read once per pass.
+static bool test_rows(int d) {
+    const int inner = 3, rows = 12, period = 2;
     std::vector<float> src = randoms(size_t(period) * 7 * d), g = randoms(d), b = randoms(d), bias = randoms(d);
     std::vector<int> idx = {5, 0, 3};
     std::vector<WT> dst(size_t(rows) * d);
@@ -301,7 +335,9 @@ static bool test_rows() {
             got.push_back(value(&dst[size_t(r) * d + c]));
         }
     }
-    bool ok = check("rows_t norm gather", relative_error(got, want), tol());
+    char name[64];
+    snprintf(name, sizeof name, "rows_t norm gather d %d", d);
+    bool ok = check(name, relative_error(got, want), tol());
     // Scatter-add rows of 5 into every other row of a [4][2][d] f32 buffer.
     std::vector<float> acc = randoms(size_t(4) * 2 * d), add = randoms(size_t(4) * d);
     const std::vector<float> before = acc;
@@ -323,7 +359,8 @@ static bool test_rows() {
                 w2.push_back(before[at] + (j == 0 ? add[size_t(r) * d + c] : 0.f));
                 g2.push_back(acc[at]);
             }
-    return check("rows_f scatter add", relative_error(g2, w2), 1e-6) && ok;
+    snprintf(name, sizeof name, "rows_f scatter add d %d", d);
+    return check(name, relative_error(g2, w2), 1e-6) && ok;
 }
 
 // Embedding inputs, the action block's shift, and AMA's bilinear move against grid_sample's arithmetic.
@@ -680,9 +717,14 @@ int main() {
     ok = test_attend_rows(40) && ok;
     ok = test_attend_rows(64) && ok;  // the head sizes whose loads are all in flight at once
     ok = test_attend_rows(32) && ok;
-    ok = test_attend_tiles(false) && ok;
-    ok = test_attend_tiles(true) && ok;
-    ok = test_rows() && ok;
+    ok = test_attend_tiles(false, 8) && ok;
+    ok = test_attend_tiles(true, 8) && ok;
+    ok = test_attend_tiles(true, 12) && ok;
+    ok = test_attend_tiles(true, 64) && ok;  // compiled for its head size
+    ok = test_bias_t(24) && ok;  // 16-byte groups
+    ok = test_bias_t(20) && ok;  // a block per row
+    ok = test_rows(40) && ok;
+    ok = test_rows(1056) && ok;
     ok = test_frame_parts() && ok;
     ok = test_draw() && ok;
     ok = test_sampled_draws() && ok;

@@ -31,6 +31,47 @@ DEV float rows_value(const Rows& P, const float* s, float mean, float rstd, int 
     return v;
 }
 
+// Values of a row held in registers per lane (rows of up to 32·ROWS_HELD): the row is read in one memory trip
+// rather than once per pass and per 32 values.
+#define ROWS_HELD 32
+
+// Row r's results for columns lane + 32·i in `v[i]`, with the sums in the order `rows_source` takes them.
+DEV void rows_held(const Rows& P, long long r, float* v) {
+    long long i1 = r / P.inner;
+    const long long i2 = r % P.inner;
+    if (P.period) i1 %= P.period;
+    const float* s = P.src + i1 * P.s_s1 + (P.idx ? P.idx[i2] : i2) * P.s_s2;
+    const int lane = lane_id();
+#pragma unroll
+    for (int i = 0; i < ROWS_HELD; i++) v[i] = lane + 32 * i < P.d ? s[lane + 32 * i] : 0.f;
+    float mean = 0.f, rstd = 0.f;
+    if (P.g) {
+        float sum = 0.f;
+#pragma unroll
+        for (int i = 0; i < ROWS_HELD; i++)
+            if (lane + 32 * i < P.d) sum += v[i];
+        mean = warp_sum(sum) / P.d;
+        float sq = 0.f;
+#pragma unroll
+        for (int i = 0; i < ROWS_HELD; i++)
+            if (lane + 32 * i < P.d) {
+                const float e = v[i] - mean;
+                sq += e * e;
+            }
+        rstd = rsqrtf(warp_sum(sq) / P.d + 1e-5f);
+    }
+#pragma unroll
+    for (int i = 0; i < ROWS_HELD; i++) {
+        const int c = lane + 32 * i;
+        if (c >= P.d) continue;
+        float x = v[i];
+        if (P.g) x = (x - mean) * rstd * P.g[c] + P.b[c];
+        if (P.bias) x += P.bias[c];
+        if (P.gelu) x = gelu(x);
+        v[i] = x;
+    }
+}
+
 // Row r's source row and its statistics (mean, 1/σ; zeros without a norm).
 DEV const float* rows_source(const Rows& P, long long r, float* mean, float* rstd) {
     long long i1 = r / P.inner;
@@ -59,9 +100,19 @@ KERNEL umgen_rows_f(const Rows P) {
     griddep_wait();
     const long long stride = blocks() * warps_per_block();
     for (long long r = warp_index(); r < P.rows; r += stride) {
+        float* d = (float*)P.dst + (r / P.inner) * P.d_s1 + (r % P.inner) * P.d_s2;
+        if (P.d <= 32 * ROWS_HELD) {
+            float v[ROWS_HELD];
+            rows_held(P, r, v);
+#pragma unroll
+            for (int i = 0; i < ROWS_HELD; i++) {
+                const int c = lane_id() + 32 * i;
+                if (c < P.d) d[c] = P.add ? d[c] + v[i] : v[i];
+            }
+            continue;
+        }
         float mean, rstd;
         const float* s = rows_source(P, r, &mean, &rstd);
-        float* d = (float*)P.dst + (r / P.inner) * P.d_s1 + (r % P.inner) * P.d_s2;
         for (int c = lane_id(); c < P.d; c += 32) {
             const float v = rows_value(P, s, mean, rstd, c);
             d[c] = P.add ? d[c] + v : v;
@@ -74,9 +125,19 @@ KERNEL umgen_rows_t(const Rows P) {
     griddep_wait();
     const long long stride = blocks() * warps_per_block();
     for (long long r = warp_index(); r < P.rows; r += stride) {
+        WT* d = (WT*)P.dst + (r / P.inner) * P.d_s1 + (r % P.inner) * P.d_s2;
+        if (P.d <= 32 * ROWS_HELD) {
+            float v[ROWS_HELD];
+            rows_held(P, r, v);
+#pragma unroll
+            for (int i = 0; i < ROWS_HELD; i++) {
+                const int c = lane_id() + 32 * i;
+                if (c < P.d) store(d + c, v[i]);
+            }
+            continue;
+        }
         float mean, rstd;
         const float* s = rows_source(P, r, &mean, &rstd);
-        WT* d = (WT*)P.dst + (r / P.inner) * P.d_s1 + (r % P.inner) * P.d_s2;
         for (int c = lane_id(); c < P.d; c += 32) store(d + c, rows_value(P, s, mean, rstd, c));
     }
 }
@@ -88,10 +149,32 @@ struct BiasT {
     int cols, ld, gelu;
 };
 
-// A block per row (grid-strided), its threads over the columns.
+// Groups of 8 columns over every thread of the grid where the rows allow 16-byte accesses (a memory trip
+// per 8 values rather than one per value), else a block per row (grid-strided), its threads over the
+// columns.
 KERNEL umgen_bias_t(const BiasT P) {
     griddep_launch();
     griddep_wait();
+    if (P.cols % 8 == 0 && P.ld % 8 == 0 && aligned16(P.x) && aligned16(P.bias)) {
+        const long long per = P.cols / 8, total = P.rows * per;
+        const long long all = blocks() * threads();
+        for (long long i = block_x() * threads() + thread_id(); i < total; i += all) {
+            WT* at = P.x + (i / per) * P.ld + 8 * (i % per);
+            const float* b = P.bias + 8 * (i % per);
+            Packed8 raw;
+            load_packed8(at, raw);
+            float v[8], bv[8];
+            unpack8(raw, v);
+            load8(b, bv);
+#pragma unroll
+            for (int j = 0; j < 8; j++) {
+                const float s = v[j] + bv[j];
+                v[j] = P.gelu ? gelu(s) : s;
+            }
+            store8(at, v);
+        }
+        return;
+    }
     for (long long r = block_x(); r < P.rows; r += blocks()) {
         WT* row = P.x + r * P.ld;
         for (int c = thread_id(); c < P.cols; c += threads()) {
