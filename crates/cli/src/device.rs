@@ -161,19 +161,10 @@ pub fn memory_in_use(device: Device) -> u64 {
     memory(device).reserved
 }
 
-/// Where compiled CUDA kernels are kept between processes: `$UMGEN_KERNEL_CACHE` (`off` for nowhere), else
-/// `$XDG_CACHE_HOME/umgen/kernels`, else `~/.cache/umgen/kernels`.
+/// Where compiled CUDA kernels are kept between processes ([`umgen_cuda::kernel_cache_dir`]).
 #[cfg(feature = "cuda")]
 pub fn kernel_cache_dir() -> Option<std::path::PathBuf> {
-    match std::env::var_os("UMGEN_KERNEL_CACHE") {
-        Some(v) if v == "off" => None,
-        Some(v) if !v.is_empty() => Some(v.into()),
-        _ => std::env::var_os("XDG_CACHE_HOME")
-            .filter(|v| !v.is_empty())
-            .map(std::path::PathBuf::from)
-            .or_else(|| std::env::var_os("HOME").map(|h| std::path::Path::new(&h).join(".cache")))
-            .map(|c| c.join("umgen").join("kernels")),
-    }
+    umgen_cuda::kernel_cache_dir()
 }
 
 /// Keeps compiled CUDA kernels between processes. cubecl compiles every kernel with NVRTC at run time and,

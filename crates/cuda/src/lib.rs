@@ -8,7 +8,8 @@
 //! the reference a GPU run is checked against).
 //!
 //! With the `cuda` feature, [`gpu::CudaExec`] runs them on a GPU: the kernels in `src/kernels/*.cu` are CUDA
-//! C compiled once by NVRTC at start-up for the element type of the weights (bf16 or f32), products of many
+//! C compiled once by NVRTC at start-up for the element type of the weights (bf16 or f32), as machine code
+//! kept in [`kernel_cache_dir`], products of many
 //! rows go to cuBLAS, and a sequence of operations that repeats (the decoding step) is captured once as a
 //! CUDA graph and replayed, so that a step costs one launch from the host. Every `unsafe` of the GPU path
 //! is in [`gpu`]; each launch first checks that every buffer it names holds the elements the kernel reads
@@ -26,3 +27,18 @@ pub mod source;
 pub mod gpu;
 
 pub use ops::{Buf, Elem, Exec, ExecError, Op};
+
+/// Where compiled CUDA kernels are kept between processes (the engine's machine code, and cubecl's
+/// kernels where the command line points cubecl there): `$UMGEN_KERNEL_CACHE` (`off` for nowhere), else
+/// `$XDG_CACHE_HOME/umgen/kernels`, else `~/.cache/umgen/kernels`.
+pub fn kernel_cache_dir() -> Option<std::path::PathBuf> {
+    match std::env::var_os("UMGEN_KERNEL_CACHE") {
+        Some(v) if v == "off" => None,
+        Some(v) if !v.is_empty() => Some(v.into()),
+        _ => std::env::var_os("XDG_CACHE_HOME")
+            .filter(|v| !v.is_empty())
+            .map(std::path::PathBuf::from)
+            .or_else(|| std::env::var_os("HOME").map(|h| std::path::Path::new(&h).join(".cache")))
+            .map(|c| c.join("umgen").join("kernels")),
+    }
+}

@@ -22,15 +22,12 @@ pub const FLASH2: &str = concat!(
     include_str!("kernels/flash2/flash2.cu")
 );
 
-/// [`FLASH2`] with only the bf16 forward kernels for head sizes 32 and 64 (the generation engine's window
-/// pass): the backward and f32 kernels would more than double the first start's compilation.
-pub fn flash2_forward_bf16() -> String {
-    let instance =
-        |d: usize| format!("KERNEL umgen_flash2_forward_bf16_{d}(Params p) {{ forward<u16, {d}>(p); }}");
+/// [`FLASH2`] with only the bf16 forward kernel for head size `dh` (the generation engine's window pass
+/// takes 32 or 64), `umgen_flash2_forward_bf16_{dh}`: the backward and f32 kernels would more than double
+/// the first start's compilation, and each head size is its own program so that they compile side by side.
+pub fn flash2_forward_bf16(dh: usize) -> String {
     format!(
-        "#define UMGEN_INSTANCE {} {}\n{FLASH2}",
-        instance(32),
-        instance(64)
+        "#define UMGEN_INSTANCE KERNEL umgen_flash2_forward_bf16_{dh}(Params p) {{ forward<u16, {dh}>(p); }}\n{FLASH2}"
     )
 }
 

@@ -1,12 +1,13 @@
 //! The engine's kernels compiled at start-up: each kernel file of [`crate::source::ENGINE_PARTS`] and
-//! flash2's forward kernels as their own NVRTC program, compiled and loaded (the driver's translation to
-//! machine code) on a thread each, so that the first start on a machine waits for the slowest file rather
-//! than for all of them.
+//! each of flash2's forward kernels as its own NVRTC program, compiled to machine code (`cubin.rs`, with
+//! its cache) and loaded on a thread each, so that the first start on a machine waits for the slowest
+//! program rather than for all of them. A GPU whose architecture this build does not name gets PTX, which
+//! its driver translates.
 
 use super::{arch, device};
 use crate::ops::ExecError;
 use cudarc::driver::{CudaContext, CudaFunction};
-use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
+use cudarc::nvrtc::{CompileOptions, Ptx, compile_ptx_with_opts};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;
@@ -19,13 +20,18 @@ struct Program {
     what: &'static str,
     source: String,
     options: CompileOptions,
+    /// NVRTC's options for machine code (a real architecture, `sm_XY`), where the device's is known.
+    machine: Option<Vec<String>>,
     kernels: &'static [&'static str],
     /// Whether its kernels are flash2's.
     flash2: bool,
 }
 
-/// flash2's forward kernels the window pass launches (bf16, head sizes 32 and 64).
-const FLASH2_FORWARD: [&str; 2] = ["umgen_flash2_forward_bf16_32", "umgen_flash2_forward_bf16_64"];
+/// flash2's forward kernels the window pass launches (bf16, head sizes 32 and 64), each its own program.
+const FLASH2_FORWARD: [(usize, &[&str]); 2] = [
+    (32, &["umgen_flash2_forward_bf16_32"]),
+    (64, &["umgen_flash2_forward_bf16_64"]),
+];
 
 /// Compiles and loads the engine's kernels for the device of `ctx` (compute capability `major.minor`) with
 /// bf16 (`bf16`) or f32 weights: the engine's kernels, and flash2's forward kernels when `bf16` and the
@@ -44,13 +50,16 @@ pub(super) fn kernels(
             None => crate::source::engine_part(bf16, file),
         }
         .ok_or_else(|| ExecError::Invalid(format!("no engine source {file}")))?;
+        let virtual_arch = arch(major, minor);
         programs.push(Program {
             what: file,
             source,
             options: CompileOptions {
-                arch: arch(major, minor),
+                arch: virtual_arch,
                 ..Default::default()
             },
+            machine: virtual_arch
+                .map(|a| vec![format!("--gpu-architecture={}", a.replace("compute_", "sm_"))]),
             kernels,
             flash2: false,
         });
@@ -58,17 +67,26 @@ pub(super) fn kernels(
     let flash = bf16 && major >= 8;
     if flash {
         // As the training compiles them: Hopper's `wgmma` for head size 64 on sm_90a.
-        programs.push(Program {
-            what: "flash2",
-            source: crate::source::flash2_forward_bf16(),
-            options: CompileOptions {
-                arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
-                use_fast_math: Some(true),
-                ..Default::default()
-            },
-            kernels: &FLASH2_FORWARD,
-            flash2: true,
-        });
+        for (dh, kernels) in FLASH2_FORWARD {
+            programs.push(Program {
+                what: if dh == 32 { "flash2 (32)" } else { "flash2 (64)" },
+                source: crate::source::flash2_forward_bf16(dh),
+                options: CompileOptions {
+                    arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
+                    use_fast_math: Some(true),
+                    ..Default::default()
+                },
+                // Other architectures keep compute_80's code, which only PTX can carry to them.
+                machine: (major == 9).then(|| {
+                    vec![
+                        "--gpu-architecture=sm_90a".to_string(),
+                        "--use_fast_math".to_string(),
+                    ]
+                }),
+                kernels,
+                flash2: true,
+            });
+        }
     }
     let loaded: Vec<(bool, Result<Kernels, ExecError>)> = std::thread::scope(|s| {
         let handles: Vec<_> = programs
@@ -98,13 +116,34 @@ pub(super) fn kernels(
     Ok((engine, flash.then_some(flash2)))
 }
 
-/// Compiles `p` with NVRTC, loads it into `ctx` and takes its kernels.
+/// Compiles `p` with NVRTC (or reads its machine code from the cache), loads it into `ctx` and takes its
+/// kernels.
 fn load(ctx: &Arc<CudaContext>, p: Program) -> Result<Kernels, ExecError> {
-    let ptx = compile_ptx_with_opts(&p.source, p.options)
-        .map_err(|e| device("NVRTC")(format!("{}: {e:?}", p.what)))?;
+    let started = Instant::now();
+    let (code, from) = match &p.machine {
+        Some(options) => {
+            let (cubin, from) = super::cubin::cubin(p.what, &p.source, options)?;
+            let from = match from {
+                super::cubin::Source::Cache(path) => format!("machine code from {}", path.display()),
+                super::cubin::Source::Compiled => "machine code by NVRTC".to_string(),
+            };
+            (Ptx::from_binary(cubin), from)
+        }
+        None => (
+            compile_ptx_with_opts(&p.source, p.options)
+                .map_err(|e| device("NVRTC")(format!("{}: {e:?}", p.what)))?,
+            "PTX by NVRTC".to_string(),
+        ),
+    };
+    let made = started.elapsed().as_secs_f64();
     let module = ctx
-        .load_module(ptx)
+        .load_module(code)
         .map_err(|e| device("loading the kernels")(format!("{}: {e:?}", p.what)))?;
+    tracing::debug!(
+        "{}: {from} in {made:.1} s, loaded in {:.1} s",
+        p.what,
+        started.elapsed().as_secs_f64() - made
+    );
     let mut found = HashMap::new();
     for &name in p.kernels {
         let f = module

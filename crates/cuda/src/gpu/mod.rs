@@ -1,12 +1,14 @@
 //! [`CudaExec`]: the engine's operations on one GPU, on one stream of the device's primary context.
 //!
 //! Buffers are plain `cuMemAlloc` allocations, freed when the executor is dropped. The kernels are compiled
-//! by NVRTC once, for the device's architecture and the weights' element type (`compile.rs`). Event tracking (cudarc's
-//! ordering of its own buffers across streams) is off: everything runs on one stream, and a sequence
-//! captured as a graph must contain only kernel launches and cuBLAS calls.
+//! by NVRTC once, for the device's architecture and the weights' element type, as machine code kept in a
+//! cache (`compile.rs`, `cubin.rs`). Event tracking (cudarc's ordering of its own buffers across streams) is
+//! off: everything runs on one stream, and a sequence captured as a graph must contain only kernel launches
+//! and cuBLAS calls.
 #![allow(unsafe_code)]
 
 mod compile;
+mod cubin;
 mod launch;
 mod params;
 
