@@ -95,52 +95,42 @@ DEV const float* rows_source(const Rows& P, long long r, float* mean, float* rst
     return s;
 }
 
-KERNEL umgen_rows_f(const Rows P) {
-    griddep_launch();
-    griddep_wait();
-    const long long stride = blocks() * warps_per_block();
-    for (long long r = warp_index(); r < P.rows; r += stride) {
-        float* d = (float*)P.dst + (r / P.inner) * P.d_s1 + (r % P.inner) * P.d_s2;
-        if (P.d <= 32 * ROWS_HELD) {
-            float v[ROWS_HELD];
-            rows_held(P, r, v);
-#pragma unroll
-            for (int i = 0; i < ROWS_HELD; i++) {
-                const int c = lane_id() + 32 * i;
-                if (c < P.d) d[c] = P.add ? d[c] + v[i] : v[i];
-            }
-            continue;
-        }
-        float mean, rstd;
-        const float* s = rows_source(P, r, &mean, &rstd);
-        for (int c = lane_id(); c < P.d; c += 32) {
-            const float v = rows_value(P, s, mean, rstd, c);
-            d[c] = P.add ? d[c] + v : v;
-        }
+// Column c of row r's destination takes `v`: added to it (`add`) or stored, in f32 (`F32`) or `WT`.
+template <bool F32>
+DEV void rows_put(const Rows& P, long long r, int c, float v) {
+    const long long at = (r / P.inner) * P.d_s1 + (r % P.inner) * P.d_s2 + c;
+    if (F32) {
+        float* d = (float*)P.dst + at;
+        *d = P.add ? *d + v : v;
+    } else {
+        store((WT*)P.dst + at, v);
     }
 }
 
-KERNEL umgen_rows_t(const Rows P) {
+// A warp per row (grid-strided).
+template <bool F32>
+DEV void rows_kernel(const Rows& P) {
     griddep_launch();
     griddep_wait();
     const long long stride = blocks() * warps_per_block();
     for (long long r = warp_index(); r < P.rows; r += stride) {
-        WT* d = (WT*)P.dst + (r / P.inner) * P.d_s1 + (r % P.inner) * P.d_s2;
         if (P.d <= 32 * ROWS_HELD) {
             float v[ROWS_HELD];
             rows_held(P, r, v);
 #pragma unroll
-            for (int i = 0; i < ROWS_HELD; i++) {
-                const int c = lane_id() + 32 * i;
-                if (c < P.d) store(d + c, v[i]);
-            }
+            for (int i = 0; i < ROWS_HELD; i++)
+                if (lane_id() + 32 * i < P.d) rows_put<F32>(P, r, lane_id() + 32 * i, v[i]);
             continue;
         }
         float mean, rstd;
         const float* s = rows_source(P, r, &mean, &rstd);
-        for (int c = lane_id(); c < P.d; c += 32) store(d + c, rows_value(P, s, mean, rstd, c));
+        for (int c = lane_id(); c < P.d; c += 32) rows_put<F32>(P, r, c, rows_value(P, s, mean, rstd, c));
     }
 }
+
+KERNEL umgen_rows_f(const Rows P) { rows_kernel<true>(P); }
+
+KERNEL umgen_rows_t(const Rows P) { rows_kernel<false>(P); }
 
 struct BiasT {
     WT* x;
