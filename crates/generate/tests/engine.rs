@@ -13,6 +13,9 @@ use umgen_backbone::{
 use umgen_generate::engine::{Engine, EngineSettings, HostExec};
 use umgen_generate::{FrameControl, Generator, GroupBoxes, Sampling, TokenGroups};
 
+/// Held while a test seeds burn and makes its model.
+static SEEDED: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 type F = burn::backend::Flex;
 
 /// Agent slots: 2 of 6 tokens (x, y, vx, vy, heading in 8 bins; then the category 8 or 9); pad 10.
@@ -84,6 +87,9 @@ fn model() -> Backbone<F> {
         precision: Default::default(),
         ordinal_init: true,
     };
+    // burn's seed is one generator for the process: tests on parallel threads would make their models
+    // from it in whatever order the threads take. One at a time, each model is the seed's.
+    let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     F::seed(&Default::default(), 11);
     Backbone::new(&cfg, &spec, &Default::default()).unwrap()
 }

@@ -8,6 +8,9 @@ use burn::tensor::{Int, Tensor, TensorData};
 use umgen_backbone::{ActionSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec, Slot, TrackSpec};
 use umgen_generate::{FrameControl, Generator, Sampling};
 
+/// Held while a test seeds burn and makes its model.
+static SEEDED: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 type F = burn::backend::Flex;
 
 fn seg(label: &str, start: usize, tokens: usize, vocab: usize) -> SegmentSpec {
@@ -73,6 +76,9 @@ fn model() -> Backbone<F> {
         precision: Default::default(),
         ordinal_init: true,
     };
+    // burn's seed is one generator for the process: tests on parallel threads would make their models
+    // from it in whatever order the threads take. One at a time, each model is the seed's.
+    let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     F::seed(&Default::default(), 9);
     Backbone::new(&cfg, &spec, &Default::default()).unwrap()
 }

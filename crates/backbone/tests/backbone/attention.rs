@@ -10,6 +10,9 @@ use umgen_backbone::Precision;
 use umgen_backbone::attention::{tiled_autodiff, tiled_backward, tiled_for, tiled_forward};
 
 fn random<B: Backend>(shape: [usize; 4], seed: u64) -> Tensor<B, 4> {
+    let _one = super::SEEDED
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     B::seed(&Default::default(), seed);
     Tensor::random(shape, Distribution::Normal(0.0, 1.0), &Default::default())
 }

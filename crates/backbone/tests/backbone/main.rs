@@ -25,6 +25,9 @@ use umgen_backbone::{
     ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, Precision, SegmentSpec, TrackSpec,
 };
 
+/// Held while a test seeds burn and draws from it (its model, random inputs).
+static SEEDED: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 pub type F = burn::backend::Flex;
 pub type A = burn::backend::Autodiff<F>;
 
@@ -150,6 +153,9 @@ pub fn model<B: Backend>() -> Backbone<B> {
 
 /// The test model with its products in `precision` (the same parameters whatever the precision).
 pub fn model_in<B: Backend>(precision: Precision) -> Backbone<B> {
+    // burn's seed is one generator for the process: tests on parallel threads would make their models
+    // from it in whatever order the threads take. One at a time, each model is the seed's.
+    let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     B::seed(&Default::default(), 3);
     let cfg = BackboneConfig {
         precision,
