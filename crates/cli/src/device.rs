@@ -161,17 +161,11 @@ pub fn memory_in_use(device: Device) -> u64 {
     memory(device).reserved
 }
 
-/// Where compiled CUDA kernels are kept between processes ([`umgen_cuda::kernel_cache_dir`]).
-#[cfg(feature = "cuda")]
-pub fn kernel_cache_dir() -> Option<std::path::PathBuf> {
-    umgen_cuda::kernel_cache_dir()
-}
-
 /// Keeps compiled CUDA kernels between processes. cubecl compiles every kernel with NVRTC at run time and,
 /// unless a config names a cache, forgets them when the process ends, so every run and every rank of a
 /// data-parallel run paid minutes of compilation again. A `cubecl.toml` (or a `burn.toml` with a `cubecl`
 /// section) found from the working directory up still decides; without one that sets a compilation cache,
-/// [`kernel_cache_dir`] is used. `CUBECL_*` variables apply on top, as they do for cubecl's own loading.
+/// [`umgen_cuda::kernel_cache_dir`] is used. `CUBECL_*` variables apply on top, as they do for cubecl's own loading.
 /// Call before any CUDA work; returns the cache directory chosen here, if any.
 #[cfg(feature = "cuda")]
 pub fn init_kernel_cache() -> Option<std::path::PathBuf> {
@@ -180,7 +174,7 @@ pub fn init_kernel_cache() -> Option<std::path::PathBuf> {
     let mut cfg = CubeClRuntimeConfig::from_current_dir();
     let chosen = match cfg.compilation.cache {
         Some(_) => None,
-        None => kernel_cache_dir(),
+        None => umgen_cuda::kernel_cache_dir(),
     };
     if let Some(dir) = &chosen {
         cfg.compilation.cache = Some(CacheConfig::File(dir.clone()));

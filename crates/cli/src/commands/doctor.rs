@@ -110,7 +110,7 @@ mod gpu {
                  LD_LIBRARY_PATH (launchers/gpu-env.sh does this)"
             )?;
         }
-        match crate::device::kernel_cache_dir() {
+        match umgen_cuda::kernel_cache_dir() {
             Some(dir) => writeln!(
                 out,
                 "kernels  compiled CUDA kernels kept in {} (UMGEN_KERNEL_CACHE=DIR moves it, =off disables; a \

@@ -19,9 +19,12 @@ pub(super) type Kernels = HashMap<&'static str, CudaFunction>;
 struct Program {
     what: &'static str,
     source: String,
-    options: CompileOptions,
-    /// NVRTC's options for machine code (a real architecture, `sm_XY`), where the device's is known.
-    machine: Option<Vec<String>>,
+    /// NVRTC's virtual architecture (`compute_XY`), or its default where the device's is not known.
+    arch: Option<&'static str>,
+    fast_math: bool,
+    /// Whether NVRTC makes machine code for the device (`arch` with `sm_` for `compute_`: it must be the
+    /// device's own), rather than PTX for the driver to translate.
+    machine: bool,
     kernels: &'static [&'static str],
     /// Whether its kernels are flash2's.
     flash2: bool,
@@ -50,16 +53,13 @@ pub(super) fn kernels(
             None => crate::source::engine_part(bf16, file),
         }
         .ok_or_else(|| ExecError::Invalid(format!("no engine source {file}")))?;
-        let virtual_arch = arch(major, minor);
+        let arch = arch(major, minor);
         programs.push(Program {
             what: file,
             source,
-            options: CompileOptions {
-                arch: virtual_arch,
-                ..Default::default()
-            },
-            machine: virtual_arch
-                .map(|a| vec![format!("--gpu-architecture={}", a.replace("compute_", "sm_"))]),
+            arch,
+            fast_math: false,
+            machine: arch.is_some(),
             kernels,
             flash2: false,
         });
@@ -71,18 +71,10 @@ pub(super) fn kernels(
             programs.push(Program {
                 what: if dh == 32 { "flash2 (32)" } else { "flash2 (64)" },
                 source: crate::source::flash2_forward_bf16(dh),
-                options: CompileOptions {
-                    arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
-                    use_fast_math: Some(true),
-                    ..Default::default()
-                },
+                arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
+                fast_math: true,
                 // Other architectures keep compute_80's code, which only PTX can carry to them.
-                machine: (major == 9).then(|| {
-                    vec![
-                        "--gpu-architecture=sm_90a".to_string(),
-                        "--use_fast_math".to_string(),
-                    ]
-                }),
+                machine: major == 9,
                 kernels,
                 flash2: true,
             });
@@ -120,18 +112,29 @@ pub(super) fn kernels(
 /// kernels.
 fn load(ctx: &Arc<CudaContext>, p: Program) -> Result<Kernels, ExecError> {
     let started = Instant::now();
-    let (code, from) = match &p.machine {
-        Some(options) => {
-            let (cubin, from) = super::cubin::cubin(p.what, &p.source, options)?;
+    let (code, from) = match (p.machine, p.arch) {
+        (true, Some(arch)) => {
+            let mut options = vec![format!("--gpu-architecture={}", arch.replace("compute_", "sm_"))];
+            if p.fast_math {
+                options.push("--use_fast_math".into());
+            }
+            let (cubin, from) = super::cubin::cubin(p.what, &p.source, &options)?;
             let from = match from {
                 super::cubin::Source::Cache(path) => format!("machine code from {}", path.display()),
                 super::cubin::Source::Compiled => "machine code by NVRTC".to_string(),
             };
             (Ptx::from_binary(cubin), from)
         }
-        None => (
-            compile_ptx_with_opts(&p.source, p.options)
-                .map_err(|e| device("NVRTC")(format!("{}: {e:?}", p.what)))?,
+        _ => (
+            compile_ptx_with_opts(
+                &p.source,
+                CompileOptions {
+                    arch: p.arch,
+                    use_fast_math: p.fast_math.then_some(true),
+                    ..Default::default()
+                },
+            )
+            .map_err(|e| device("NVRTC")(format!("{}: {e:?}", p.what)))?,
             "PTX by NVRTC".to_string(),
         ),
     };
