@@ -321,7 +321,7 @@ DEV void attend_tiles(const AttendTiles& P, float (*ks)[ATT_DH], float (*vs)[ATT
             s += from_xor(s, 1);
             s += from_xor(s, 2);
             const int j = k0 + kk;
-            if (j >= P.lk || (P.causal && j > row + P.off)) continue;
+            if (P.causal && j > row + P.off) continue;
             const float mnew = fmaxf(mrun, s);
             const float alpha = expf(mrun - mnew), p = expf(s - mnew);
             srun = fmaf(srun, alpha, p);

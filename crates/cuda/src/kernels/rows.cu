@@ -22,9 +22,8 @@ struct Rows {
     int rows, inner, period, d, add, gelu;
 };
 
-// Row r's value at column c, given the row's pointer and statistics.
-DEV float rows_value(const Rows& P, const float* s, float mean, float rstd, int c) {
-    float v = s[c];
+// Column c's result from its source value `v` and the row's statistics.
+DEV float rows_value(const Rows& P, float v, float mean, float rstd, int c) {
     if (P.g) v = (v - mean) * rstd * P.g[c] + P.b[c];
     if (P.bias) v += P.bias[c];
     if (P.gelu) v = gelu(v);
@@ -61,15 +60,8 @@ DEV void rows_held(const Rows& P, long long r, float* v) {
         rstd = rsqrtf(warp_sum(sq) / P.d + 1e-5f);
     }
 #pragma unroll
-    for (int i = 0; i < ROWS_HELD; i++) {
-        const int c = lane + 32 * i;
-        if (c >= P.d) continue;
-        float x = v[i];
-        if (P.g) x = (x - mean) * rstd * P.g[c] + P.b[c];
-        if (P.bias) x += P.bias[c];
-        if (P.gelu) x = gelu(x);
-        v[i] = x;
-    }
+    for (int i = 0; i < ROWS_HELD; i++)
+        if (lane + 32 * i < P.d) v[i] = rows_value(P, v[i], mean, rstd, lane + 32 * i);
 }
 
 // Row r's source row and its statistics (mean, 1/σ; zeros without a norm).
@@ -124,7 +116,7 @@ DEV void rows_kernel(const Rows& P) {
         }
         float mean, rstd;
         const float* s = rows_source(P, r, &mean, &rstd);
-        for (int c = lane_id(); c < P.d; c += 32) rows_put<F32>(P, r, c, rows_value(P, s, mean, rstd, c));
+        for (int c = lane_id(); c < P.d; c += 32) rows_put<F32>(P, r, c, rows_value(P, s[c], mean, rstd, c));
     }
 }
 
