@@ -47,6 +47,7 @@ pub mod gelu;
 mod heads;
 pub mod kernel_stream;
 mod layers;
+mod logits;
 pub mod lookup;
 mod losses;
 pub mod matmul;
@@ -73,6 +74,7 @@ pub use embed::FrameEmbedding;
 pub use error::{BackboneError, Result};
 pub use heads::Heads;
 pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
+pub use logits::ForcedLogits;
 pub use losses::{LossOptions, Losses};
 pub use model::{Backbone, TarBlock};
 pub use plain::{

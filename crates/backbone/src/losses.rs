@@ -1,8 +1,10 @@
 //! What [`Backbone::loss_with`](crate::Backbone::loss_with) takes besides the tokens, and what it
 //! returns.
 
-use burn::tensor::Tensor;
+use crate::error::{BackboneError, Result};
+use crate::model::Backbone;
 use burn::tensor::backend::Backend;
+use burn::tensor::{Int, Tensor};
 
 /// Per-modality losses of one batch, each a mean over that modality's tokens, and their total.
 #[derive(Debug, Clone)]
@@ -43,5 +45,77 @@ impl LossOptions {
             ));
         }
         None
+    }
+}
+
+impl<B: Backend> Backbone<B> {
+    /// The teacher-forced training loss of windows `[b, t + 1, N]`: frames `0..t` condition, frame
+    /// `i + 1` is the target of frame `i`, all `t` predictions at once.
+    pub fn loss(&self, tokens: Tensor<B, 3, Int>, ego_weight: f64) -> Result<Losses<B>> {
+        self.loss_with(
+            tokens,
+            LossOptions {
+                ego_weight,
+                prior_drop: 0.0,
+                ordinal_sigma: 0.0,
+            },
+        )
+    }
+
+    /// [`Backbone::loss`] with every option: with `prior_drop` > 0, each predicted frame's OAR input
+    /// goes without its TAR prior (zeros, as in initial-scene generation) with that probability, drawn on
+    /// the device from the backend's seed. The TAR's own loss always sees its output.
+    pub fn loss_with(&self, tokens: Tensor<B, 3, Int>, opts: LossOptions) -> Result<Losses<B>> {
+        if let Some(problem) = opts.problem() {
+            return Err(BackboneError::Input(problem));
+        }
+        let spec = self.spec();
+        let ordinal: Vec<usize> = spec.segments.iter().map(|s| s.ordinal).collect();
+        let sigma = opts.ordinal_sigma;
+        let f = self.teacher_forced(tokens, opts.prior_drop)?;
+        let mut parts = Vec::new();
+        let mut mean = |name: &str, sums: Vec<(Tensor<B, 1>, usize)>| {
+            let count: usize = sums.iter().map(|(_, c)| c).sum();
+            let mut total: Option<Tensor<B, 1>> = None;
+            for ((sum, c), seg) in sums.into_iter().zip(&spec.segments) {
+                parts.push((format!("{name}/{}", seg.label), sum.clone().div_scalar(c as f64)));
+                total = Some(match total {
+                    Some(t) => t + sum,
+                    None => sum,
+                });
+            }
+            let total = total.map(|t| t.div_scalar(count.max(1) as f64));
+            if let Some(t) = &total {
+                parts.push((name.to_string(), t.clone()));
+            }
+            total
+        };
+        let oar = mean(
+            "oar",
+            self.oar_heads
+                .cross_entropy(f.o, f.target.clone(), &ordinal, sigma),
+        );
+        let tar = mean(
+            "tar",
+            self.tar_heads.cross_entropy(f.h, f.target, &ordinal, sigma),
+        );
+        let mut total = match (oar, tar) {
+            (Some(o), Some(t)) => o + t,
+            _ => return Err(BackboneError::Spec("no segments".into())),
+        };
+        if let (Some(logits), Some(ids)) = (self.ego_logits(f.e, false), f.next_action) {
+            let [b, t, q, v] = logits.dims();
+            let bins = spec.action.as_ref().map_or(0, |a| ordinal[a.segment]);
+            let ego = crate::xent::sum(
+                logits.reshape([b * t * q, v]),
+                ids.reshape([b * t * q, 1]),
+                bins,
+                sigma,
+            )
+            .div_scalar((b * t * q) as f64);
+            parts.push(("ego".into(), ego.clone()));
+            total = total + ego.mul_scalar(opts.ego_weight);
+        }
+        Ok(Losses { total, parts })
     }
 }

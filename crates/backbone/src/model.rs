@@ -7,7 +7,6 @@ use crate::embed::FrameEmbedding;
 use crate::error::{BackboneError, Result};
 use crate::heads::Heads;
 use crate::layers::{LayerSizes, SelfBlock};
-use crate::losses::{LossOptions, Losses};
 use crate::spec::BackboneSpec;
 use crate::track::TrackProjection;
 use burn::module::{Module, Param};
@@ -278,29 +277,10 @@ impl<B: Backend> Backbone<B> {
         crate::norm::layer_norm(&self.ln_oar, x)
     }
 
-    /// The teacher-forced training loss of windows `[b, t + 1, N]`: frames `0..t` condition, frame
-    /// `i + 1` is the target of frame `i`, all `t` predictions at once.
-    pub fn loss(&self, tokens: Tensor<B, 3, Int>, ego_weight: f64) -> Result<Losses<B>> {
-        self.loss_with(
-            tokens,
-            LossOptions {
-                ego_weight,
-                prior_drop: 0.0,
-                ordinal_sigma: 0.0,
-            },
-        )
-    }
-
-    /// [`Backbone::loss`] with every option: with `prior_drop` > 0, each predicted frame's OAR input
-    /// goes without its TAR prior (zeros, as in initial-scene generation) with that probability, drawn on
-    /// the device from the backend's seed. The TAR's own loss always sees its output.
-    pub fn loss_with(&self, tokens: Tensor<B, 3, Int>, opts: LossOptions) -> Result<Losses<B>> {
-        let ego_weight = opts.ego_weight;
-        if let Some(problem) = opts.problem() {
-            return Err(BackboneError::Input(problem));
-        }
-        let ordinal: Vec<usize> = self.spec.segments.iter().map(|s| s.ordinal).collect();
-        let sigma = opts.ordinal_sigma;
+    /// The teacher-forced pass over windows `[b, t + 1, N]`: frames `0..t` condition, frame `i + 1` is
+    /// the target of frame `i`. With `prior_drop` > 0, each predicted frame's OAR input goes without its
+    /// TAR prior with that probability, drawn on the device from the backend's seed.
+    pub(crate) fn teacher_forced(&self, tokens: Tensor<B, 3, Int>, prior_drop: f64) -> Result<Forward<B>> {
         let [b, f, n] = tokens.dims();
         if f < 2 || n != self.spec.n {
             return Err(BackboneError::Input(format!(
@@ -324,10 +304,10 @@ impl<B: Backend> Backbone<B> {
         );
         let d = h.dims()[3];
         let prior = h.clone().reshape([b * t, n, d]);
-        let prior = if opts.prior_drop > 0.0 {
+        let prior = if prior_drop > 0.0 {
             let keep = Tensor::<B, 3>::random(
                 [b * t, 1, 1],
-                Distribution::Bernoulli(1.0 - opts.prior_drop),
+                Distribution::Bernoulli(1.0 - prior_drop),
                 &prior.device(),
             );
             prior * keep
@@ -335,53 +315,28 @@ impl<B: Backend> Backbone<B> {
             prior
         };
         let o = self.oar(self.oar_input(e_next.reshape([b * t, n, d]), prior));
-        let flat_target = target.reshape([b * t, n]);
-        let mut parts = Vec::new();
-        let mut mean = |name: &str, sums: Vec<(Tensor<B, 1>, usize)>| {
-            let count: usize = sums.iter().map(|(_, c)| c).sum();
-            let mut total: Option<Tensor<B, 1>> = None;
-            for ((sum, c), seg) in sums.into_iter().zip(&self.spec.segments) {
-                parts.push((format!("{name}/{}", seg.label), sum.clone().div_scalar(c as f64)));
-                total = Some(match total {
-                    Some(t) => t + sum,
-                    None => sum,
-                });
-            }
-            let total = total.map(|t| t.div_scalar(count.max(1) as f64));
-            if let Some(t) = &total {
-                parts.push((name.to_string(), t.clone()));
-            }
-            total
-        };
-        let oar = mean(
-            "oar",
-            self.oar_heads
-                .cross_entropy(o, flat_target.clone(), &ordinal, sigma),
-        );
-        let tar = mean(
-            "tar",
-            self.tar_heads
-                .cross_entropy(h.reshape([b * t, n, d]), flat_target, &ordinal, sigma),
-        );
-        let mut total = match (oar, tar) {
-            (Some(o), Some(t)) => o + t,
-            _ => return Err(BackboneError::Spec("no segments".into())),
-        };
-        if let (Some(logits), Some(ids)) = (self.ego_logits(e, false), next_action) {
-            let [_, _, q, v] = logits.dims();
-            let bins = self.spec.action.as_ref().map_or(0, |a| ordinal[a.segment]);
-            let ego = crate::xent::sum(
-                logits.reshape([b * t * q, v]),
-                ids.reshape([b * t * q, 1]),
-                bins,
-                sigma,
-            )
-            .div_scalar((b * t * q) as f64);
-            parts.push(("ego".into(), ego.clone()));
-            total = total + ego.mul_scalar(ego_weight);
-        }
-        Ok(Losses { total, parts })
+        Ok(Forward {
+            e,
+            h: h.reshape([b * t, n, d]),
+            o,
+            target: target.reshape([b * t, n]),
+            next_action,
+        })
     }
+}
+
+/// What [`Backbone::teacher_forced`] computes for windows of `b` × (`t` + 1) frames of N tokens.
+pub(crate) struct Forward<B: Backend> {
+    /// Embeddings of the conditioning frames `[b, t, N, d]`.
+    pub e: Tensor<B, 4>,
+    /// The TAR output `[b·t, N, d]`.
+    pub h: Tensor<B, 3>,
+    /// The OAR output `[b·t, N, d]`.
+    pub o: Tensor<B, 3>,
+    /// The target frames `[b·t, N]`.
+    pub target: Tensor<B, 2, Int>,
+    /// The target frames' action tokens `[b, t, q]`, when the model has an ego action.
+    pub next_action: Option<Tensor<B, 3, Int>>,
 }
 
 /// `x` `[b, t, N, d]` with `y` `[b·t, L, d]` added at positions `at..at + L`.

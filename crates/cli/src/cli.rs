@@ -70,6 +70,13 @@ pub struct ExportArgs {
     /// Element type of the exported weights: `f32` or `bf16`.
     #[arg(long, default_value = "f32")]
     pub dtype: String,
+    /// Also write `golden.safetensors`: N windows of random well-formed tokens and the logits this model
+    /// computes for them on the CPU, which `python -m umgen_torch.check BUNDLE` compares with its own.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub golden: usize,
+    /// Seed of the golden file's tokens.
+    #[arg(long, value_name = "SEED", default_value_t = 0, requires = "golden")]
+    pub golden_seed: u64,
 }
 
 /// Arguments of `umgen launch`.

@@ -59,6 +59,10 @@ pub struct BundleManifest {
     pub layout: serde_json::Value,
     /// The backbone's frame spec: segments, action bins, AMA grid.
     pub backbone: serde_json::Value,
+    /// How generation decodes beyond the logits: default history `window`, default `sampling` per
+    /// modality, token `groups` (agent slots). Absent in bundles of umgen before 0.1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub generation: Option<serde_json::Value>,
     /// Every other file of the bundle, by relative path.
     pub files: BTreeMap<String, BundleFile>,
 }
@@ -209,12 +213,24 @@ pub fn export_bundle(checkpoint: &Path, out: &Path, dtype: WeightDtype) -> Resul
         config: config.to_json(),
         layout: serde_json::json!({"n": layout.len(), "segments": layout.segments()}),
         backbone: serde_json::to_value(&spec).unwrap_or_default(),
+        generation: Some(crate::generation_manifest(&registry, &config)?),
         files,
     };
     let text = serde_json::to_vec_pretty(&manifest).map_err(|e| bundle_err(out, e.to_string()))?;
     let path = out.join(BUNDLE_MANIFEST);
     std::fs::write(&path, text).map_err(|e| bundle_err(&path, e.to_string()))?;
     Ok(manifest)
+}
+
+/// Writes `data` as `rel` into the bundle `dir` and lists it in the manifest with its size and checksum.
+pub(crate) fn add_file(dir: &Path, rel: &str, data: &[u8]) -> Result<()> {
+    let path = dir.join(BUNDLE_MANIFEST);
+    let text = std::fs::read(&path).map_err(|e| bundle_err(&path, e.to_string()))?;
+    let mut manifest: BundleManifest =
+        serde_json::from_slice(&text).map_err(|e| bundle_err(&path, e.to_string()))?;
+    write(&dir.join(rel), data, &mut manifest.files, rel)?;
+    let text = serde_json::to_vec_pretty(&manifest).map_err(|e| bundle_err(&path, e.to_string()))?;
+    std::fs::write(&path, text).map_err(|e| bundle_err(&path, e.to_string()))
 }
 
 /// An opened, verified bundle.

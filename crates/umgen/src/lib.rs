@@ -21,7 +21,9 @@
 mod bundle;
 mod config;
 mod error;
+mod golden;
 mod model;
+mod rules;
 mod tokenize;
 mod vq;
 
@@ -30,7 +32,9 @@ pub use bundle::{
 };
 pub use config::UmgenConfig;
 pub use error::{Result, UmgenError};
+pub use golden::{GOLDEN_FILE, write_golden};
 pub use model::backbone_spec;
+pub use rules::{agent_groups, agent_segment, generation_manifest, history_window};
 pub use tokenize::{TokenizeReport, tokenize_dataset, tokens_missing};
 pub use umgen_backbone as backbone;
 pub use umgen_checkpoint as checkpoint;

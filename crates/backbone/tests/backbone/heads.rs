@@ -186,3 +186,52 @@ fn ordinal_smoothing_touches_only_ordered_bins() {
     let err = m.loss_with(tensor::<F>(&ids, b, f, n), bad).err().unwrap();
     assert!(err.to_string().contains("ordinal_sigma = -1"), "{err}");
 }
+
+/// Mean cross-entropy in f64 of logits `[b, t, tokens, vocab]` against the ids of frames `1..=t` at
+/// content positions `offset..offset + tokens` of windows `ids` `[b, t + 1, n]`.
+fn mean_xent(logits: &Tensor<F, 4>, ids: &[i64], n: usize, offset: usize) -> f64 {
+    let [b, t, tokens, v] = logits.dims();
+    let values: Vec<f32> = logits.clone().into_data().iter::<f32>().collect();
+    let mut sum = 0.0;
+    for (r, row) in values.chunks(v).enumerate() {
+        let (bi, ti, k) = (r / (t * tokens), (r / tokens) % t, r % tokens);
+        let max = row.iter().fold(f64::NEG_INFINITY, |a, &x| a.max(f64::from(x)));
+        let lse = max + row.iter().map(|&x| (f64::from(x) - max).exp()).sum::<f64>().ln();
+        let target = ids[(bi * (t + 1) + ti + 1) * n + offset + k] as usize;
+        sum += lse - f64::from(row[target]);
+    }
+    sum / (b * t * tokens) as f64
+}
+
+/// The logits `forced_logits` returns (what `umgen export --golden` writes) are the ones the loss scores:
+/// every head's cross-entropy computed from them equals the loss's part.
+#[test]
+fn forced_logits_are_what_the_loss_scores() {
+    let m = model::<F>();
+    let (b, f, n) = (2, 3, spec().n);
+    let ids = tokens(&spec(), b, f, 13);
+    let losses = m.loss(tensor::<F>(&ids, b, f, n), 1.0).unwrap();
+    let part = |name: &str| -> f64 {
+        let (_, v) = losses.parts.iter().find(|(k, _)| k == name).unwrap();
+        f64::from(v.clone().into_scalar())
+    };
+    let logits = m.forced_logits(tensor::<F>(&ids, b, f, n)).unwrap();
+    for (s, seg) in spec().segments.iter().enumerate() {
+        for (head, x) in [("tar", &logits.tar[s]), ("oar", &logits.oar[s])] {
+            assert_eq!(x.dims(), [b, f - 1, seg.tokens, seg.vocab]);
+            let name = format!("{head}/{}", seg.label);
+            let mine = mean_xent(x, &ids, n, seg.offset);
+            assert!(
+                (part(&name) - mine).abs() < 1e-4,
+                "{name}: {} vs {mine}",
+                part(&name)
+            );
+        }
+    }
+    let ego = logits.ego.expect("the spec has an ego action");
+    let action = &spec().segments[0];
+    assert_eq!(ego.dims(), [b, f - 1, action.tokens, action.vocab]);
+    assert!((part("ego") - mean_xent(&ego, &ids, n, action.offset)).abs() < 1e-4);
+    let err = m.forced_logits(tensor::<F>(&ids[..n], 1, 1, n)).err().unwrap();
+    assert!(err.to_string().contains("need ≥ 2 frames"), "{err}");
+}

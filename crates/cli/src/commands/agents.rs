@@ -3,7 +3,7 @@
 
 use anyhow::Context;
 use umgen::Bundle;
-use umgen::generate::{Control, GroupBoxes, TokenGroups};
+use umgen::generate::{Control, TokenGroups};
 use umgen::modality::{Modality, ModalityRegistry, ScalarBins, Segment};
 use umgen::modality_agent::{ATTRIBUTES, AgentConfig, VALUE_FIELDS};
 use umgen::scene::AgentCategory;
@@ -124,31 +124,9 @@ impl AgentSlots {
         Ok((out, below))
     }
 
-    /// The slots as token groups: each comes out either empty (all pad) or as values and a category,
-    /// never a mix that decodes to nothing; new agents follow the official rule (the ego box, l 5.176 m
-    /// × w 2.297 m, first; no overlaps; at most 30 other boxes).
+    /// The slots as token groups ([`umgen::agent_groups`]).
     pub fn groups(&self) -> TokenGroups {
-        let ids: Vec<u32> = AgentCategory::ALL
-            .iter()
-            .map(|c| self.cfg.category_id(*c))
-            .collect();
-        let (lo, hi) = (
-            ids.iter().min().copied().unwrap_or(0),
-            ids.iter().max().copied().unwrap_or(0),
-        );
-        TokenGroups {
-            first: self.offset,
-            size: ATTRIBUTES,
-            count: self.slots,
-            pad: self.cfg.pad_id(),
-            values: self.cfg.bins,
-            last: lo..hi + 1,
-            boxes: Some(GroupBoxes {
-                fields: [0, 1, 6, 7, 8].map(|i| (i, self.bins[i].lo, self.bins[i].hi, self.cfg.bins)),
-                ego: [5.176, 2.297],
-                max_boxes: 31,
-            }),
-        }
+        umgen::agent_groups(self.offset, self.slots, &self.cfg)
     }
 
     /// Every slot position whose token was not pad in a scene's newest frame: a pad drawn there is redrawn

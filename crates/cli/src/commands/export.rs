@@ -1,7 +1,7 @@
 //! `umgen export`: a bundle for `umgen generate` and outside runners (docs/export-format.md).
 
 use crate::cli::ExportArgs;
-use umgen::{WeightDtype, export_bundle};
+use umgen::{GOLDEN_FILE, WeightDtype, export_bundle, write_golden};
 
 /// Exports.
 pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
@@ -21,5 +21,14 @@ pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
         m.files.len() + 1,
         bytes as f64 / 1e6
     );
+    if a.golden > 0 {
+        let size = write_golden(&a.out, a.golden, a.golden_seed)?;
+        tracing::info!(
+            "{}: {} window(s) and their logits ({:.1} MB)",
+            a.out.join(GOLDEN_FILE).display(),
+            a.golden,
+            size as f64 / 1e6
+        );
+    }
     Ok(())
 }

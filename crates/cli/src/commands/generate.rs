@@ -359,7 +359,7 @@ fn read_control(p: &Path) -> anyhow::Result<Control> {
 /// `backbone.max_frames`.
 fn history_window(asked: Option<usize>, config: &umgen::UmgenConfig) -> usize {
     asked.unwrap_or_else(|| {
-        let w = 20.min(config.backbone.max_frames).min(config.train.frames.max(1));
+        let w = umgen::history_window(config);
         if w < 20 {
             tracing::info!(
                 "conditioning on at most {w} frames (the history the model was trained on; --window to change)"

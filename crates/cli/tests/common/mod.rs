@@ -52,16 +52,20 @@ pub fn launch_args(world: usize) -> Vec<String> {
     .to_vec()
 }
 
-/// Runs `tests/python/<script>` with `args` in the Python of `UMGEN_TB_PYTHON` (CI's venv with tensorboard
-/// and safetensors) and asserts success; skipped without that variable.
+/// Runs `tests/python/<script>` with `args` in the Python of `UMGEN_TB_PYTHON` (CI's venv with tensorboard,
+/// safetensors and PyTorch), the PyTorch runner (`runners/python`) on its path, and asserts success;
+/// skipped without that variable.
 pub fn python_check(script: &str, args: &[&std::ffi::OsStr]) {
     let Ok(python) = std::env::var("UMGEN_TB_PYTHON") else {
         return;
     };
-    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../tests/python")
-        .join(script);
-    let out = Command::new(python).arg(path).args(args).output().unwrap();
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let out = Command::new(python)
+        .arg(root.join("tests/python").join(script))
+        .args(args)
+        .env("PYTHONPATH", root.join("runners/python"))
+        .output()
+        .unwrap();
     assert!(
         out.status.success(),
         "{script}: {}{}",
