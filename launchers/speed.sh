@@ -6,8 +6,8 @@
 # Runs, each under its own time limit so that one slow case cannot eat the others: the reference for the
 # `small` and `paper` presets, `umgen bench train` for both presets in their `bf16-linear`, in f32 and in
 # bf16 (`--set backbone.precision=…`), `small` once more on the named and on burn's matmul kernel (`--set
-# train.matmul=named|burn`; the default is cuBLAS), `umgen bench linear`, `umgen bench attention` in
-# both precisions, and 30 training steps of the `small` map and image VQ tokenizers on the bundled sample
+# train.matmul=named|burn`; the default is cuBLAS), `umgen-kernel-bench linear` and `attention` in
+# both precisions (when KERNEL_BENCH names that binary or it is on the PATH), and 30 training steps of the `small` map and image VQ tokenizers on the bundled sample
 # (their rasters/s). Prints the lines that
 # matter at the end; full outputs go to $OUT (default ./speed-out). UMGEN names the binary (default:
 # umgen); run from the repository root.
@@ -15,6 +15,7 @@ set -uo pipefail
 gpu=${1:-0}
 torch_py=${2:-}
 umgen=${UMGEN:-umgen}
+kernel_bench=${KERNEL_BENCH:-umgen-kernel-bench}
 out=${OUT:-speed-out}
 limit=${LIMIT:-240}
 here=$(cd "$(dirname "$0")" && pwd)
@@ -44,10 +45,14 @@ for mm in named burn; do
     run "umgen-small-${mm}mm" "$umgen" bench train --preset small --device "cuda:$gpu" --steps 10 \
         --warmup 2 --set "train.matmul=$mm"
 done
-run linear "$umgen" bench linear --device "cuda:$gpu"
-for prec in f32 bf16; do
-    run "attention-$prec" "$umgen" bench attention --device "cuda:$gpu" --precision "$prec"
-done
+if command -v "$kernel_bench" >/dev/null; then
+    run linear "$kernel_bench" linear --device "cuda:$gpu"
+    for prec in f32 bf16; do
+        run "attention-$prec" "$kernel_bench" attention --device "cuda:$gpu" --precision "$prec"
+    done
+else
+    echo "== $kernel_bench not found: no kernel benches (cargo build --release -p umgen-kernel-bench --features cuda)"
+fi
 for m in map image; do
     rm -rf "$out/vq-$m"
     run "vq-$m" "$umgen" tokenizer train --config configs/small.toml --modality "$m" --data data/sumo-sample \

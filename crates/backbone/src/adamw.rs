@@ -58,7 +58,7 @@ pub fn fallbacks() -> usize {
 }
 
 /// The multi-tensor kernels for parameters on `B`, if `B` has them. They read [`selected`] at every step
-/// (declining with `train.adamw = "burn"`), so that `bench train --alternate` can switch them.
+/// (declining with `train.adamw = "burn"`), so that `umgen-kernel-bench train --alternate` can switch them.
 pub fn kernels<B: Backend>() -> Option<MultiTensor<B>> {
     #[cfg(feature = "cuda")]
     {

@@ -35,7 +35,7 @@ mod masked;
 pub(crate) use kv::split_kv;
 
 /// Shorter key sequences take the decomposed path: their score matrices are no larger than a few copies of
-/// the keys, and the block loop only adds launches (H200, `umgen bench attention`: 70,352 sequences of 8
+/// the keys, and the block loop only adds launches (H200, `umgen-kernel-bench attention`: 70,352 sequences of 8
 /// tokens took 15.8 ms tiled against 8.1 ms decomposed; 32 × 6 heads × 2,199 causal tokens 34 ms against
 /// 101 ms, in 3.4 GiB instead of 29.6).
 pub(crate) const MIN_TILED_KEYS: usize = 256;
@@ -49,7 +49,7 @@ static BLOCK_BYTES_SET: AtomicUsize = AtomicUsize::new(0);
 
 /// Sets the bytes one query block's scores may take in training, process-wide (`None`: the default,
 /// 1 GiB). Smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels;
-/// `umgen bench attention --block-mib` compares sizes.
+/// `umgen-kernel-bench attention --block-mib` compares sizes.
 pub fn set_block_bytes(bytes: Option<usize>) {
     BLOCK_BYTES_SET.store(bytes.unwrap_or(0), Ordering::Relaxed);
 }

@@ -1,14 +1,14 @@
 //! The products of the linear layers and output heads on a named matmul kernel.
 //!
 //! Without burn's `autotune` build every product runs one default kernel (cubek's simple cyclic CMMA).
-//! `umgen bench matmul` timed the kernels cubek offers on the `small` training step's shapes (H200):
+//! `umgen-kernel-bench matmul` timed the kernels cubek offers on the `small` training step's shapes (H200):
 //! `specialized_tma_mma` ran the projections, heads and weight gradients 1.7–2.8× faster than the default
 //! in f32 and 2.3–3.7× in bf16, while two other kernels gave wrong results on the weight-gradient shape,
 //! so letting autotuning pick by time alone is not safe either. Training on CUDA therefore routes each
 //! linear layer's product through [`named_autodiff`], a custom autodiff operation whose forward product
 //! and both gradient products go to [`NamedMatmul::named_matmul`]; on CUDA that launches the one kernel
 //! named here and falls back to burn's default kernel, counted and logged, on any shape or format it does
-//! not take (`matmul/cuda.rs`). `umgen bench linear` checks the operation against burn's own path on the
+//! not take (`matmul/cuda.rs`). `umgen-kernel-bench linear` checks the operation against burn's own path on the
 //! GPU, forward and gradients.
 //!
 //! With [`Precision::Bf16`] the operation casts its operands itself: it saves them in bf16 (half the

@@ -80,7 +80,7 @@ fn load_rows<E: Float, C: Float>(
 ) {
     let (s2, s3) = (src.stride(2), src.stride(3));
     // A loop, not unrolled: unrolling this and the element-wise loops made the kernels 1.2–1.4× slower on
-    // an H200 (`umgen bench attention`, docs/decisions/005-training-attention-flash2.md).
+    // an H200 (`umgen-kernel-bench attention`, docs/decisions/005-training-attention-flash2.md).
     let mut i = (UNIT_POS_Y * 32 + UNIT_POS_X) as usize;
     while i < comptime!(rows * dh) {
         let r = i / dh;

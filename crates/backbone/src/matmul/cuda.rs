@@ -5,7 +5,7 @@
 //!
 //! The fusion stream cannot fuse a custom operation, so element-wise work around a product (a bias, a
 //! cast) runs as its own kernels instead of inside burn's fused matmul; the kernel's speed pays for that
-//! many times over on the training step's shapes (`umgen bench matmul`, `docs/decisions/006-products-on-cublas-in-bf16.md`).
+//! many times over on the training step's shapes (`umgen-kernel-bench matmul`, `docs/decisions/006-products-on-cublas-in-bf16.md`).
 
 use super::NamedMatmul;
 use crate::precision::float_format;
@@ -93,7 +93,7 @@ fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), Strin
 }
 
 /// Launches cubek's matmul kernel `strategy` once on `lhs × rhs` into `out` (formats as the tensors have
-/// them); a kernel that cannot take the shape or format says why. `umgen bench matmul` times every
+/// them); a kernel that cannot take the shape or format says why. `umgen-kernel-bench matmul` times every
 /// strategy through this.
 pub fn launch_kernel(
     strategy: &Strategy,

@@ -1,5 +1,5 @@
 //! Where the host waits around side-stream work, and a check that the work meets one cubecl stream only:
-//! the two ways the ordering of [`super::Side`]'s protocol is examined (`umgen bench repro`).
+//! the two ways the ordering of [`super::Side`]'s protocol is examined (`umgen-kernel-bench repro`).
 
 /// The kernel family whose launches the host waits for by default on the `train.kernel_stream = "side"`
 /// path (docs/decisions/004-cuda-kernels-on-cubecl-stream.md): without the wait, one-step runs from one
@@ -22,7 +22,7 @@ const FAMILIES: [&str; 5] = [
 /// cubecl's stream queues more. By default only [`WAITED_FOR`] waits, after. `UMGEN_SIDE_SYNC=MODE[:FAMILY]`
 /// (`MODE` one of `before`, `after`, `both`, `none`; `FAMILY` one of `cross-entropy`, `layer norm`,
 /// `attention over time`, `attention`, `cuBLAS`) replaces that: every family, or only `FAMILY`, waits as
-/// `MODE` says, for finding ordering faults (`umgen bench repro`).
+/// `MODE` says, for finding ordering faults (`umgen-kernel-bench repro`).
 pub(super) fn host_sync(family: &str) -> (bool, bool) {
     type Mode = (bool, bool, Option<String>);
     static MODE: std::sync::OnceLock<Mode> = std::sync::OnceLock::new();

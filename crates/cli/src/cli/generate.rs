@@ -198,7 +198,7 @@ pub enum DrawArg {
 }
 
 impl DrawArg {
-    /// Largest batch drawn on the host by `auto`. In `bench generate --breakdown` (`small`, H200,
+    /// Largest batch drawn on the host by `auto`. In `umgen-kernel-bench decode` (`small`, H200,
     /// batch 1) reading back 8,192 logits and drawing on the host took 0.085 ms a step, the device
     /// draw 2.9 ms (`reduce`) to 5.4 ms (`rounds`); the read-back grows with the batch, the device
     /// draw's kernel count does not.

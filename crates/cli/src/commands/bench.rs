@@ -15,11 +15,6 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Train(args) => super::bench_train::run(&args),
         BenchCommand::Allreduce(args) => super::bench_allreduce::allreduce(&args),
         BenchCommand::Generate(args) => super::bench_generate::run(&args),
-        BenchCommand::Attention(args) => super::bench_attention::run(&args),
-        BenchCommand::Matmul(args) => super::bench_matmul::run(&args),
-        BenchCommand::Linear(args) => super::bench_linear::run(&args),
-        BenchCommand::Layers(args) => super::bench_layers::run(&args),
-        BenchCommand::Repro(args) => super::bench_repro::run(&args),
     }
 }
 

@@ -71,7 +71,7 @@ pub fn run(a: &BenchGenerateArgs, batch: usize) -> anyhow::Result<()> {
             cfg.max_frames
         );
     }
-    let (rows, parts) = crate::with_inference!(device, |I, dev| {
+    let rows = crate::with_inference!(device, |I, dev| {
         let sync = || <I as Backend>::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         <I as Backend>::seed(&dev, 0);
         let model = Backbone::<I>::new(cfg, &spec, &dev)?;
@@ -87,7 +87,6 @@ pub fn run(a: &BenchGenerateArgs, batch: usize) -> anyhow::Result<()> {
         let slots = model.slots();
         let sampling = vec![Sampling::default(); spec.segments.len()];
         let mut rows = Vec::new();
-        let mut parts = None;
         for &t in &a.history {
             let h = history(&spec, &slots, batch, t);
             let mut g = Generator::new(&model, sampling.clone(), t, 0)?
@@ -115,15 +114,6 @@ pub fn run(a: &BenchGenerateArgs, batch: usize) -> anyhow::Result<()> {
             let ours_peak = memory_in_use(device);
             // Logged as measured, so that a run cut short still tells what it got.
             tracing::info!("T = {t}: TAR/OAR {ours_ms:.3} ms/token");
-            if a.breakdown && parts.is_none() {
-                parts = Some(super::bench_decode::breakdown(
-                    &model,
-                    batch,
-                    Sampling::default(),
-                    on_gpu,
-                    &dev,
-                )?);
-            }
             // The vanilla model decodes frame t + 1 after t·N cached tokens.
             let mut rng = StdRng::seed_from_u64(3);
             let step = |cache: &mut _, rng: &mut StdRng| -> anyhow::Result<()> {
@@ -167,7 +157,7 @@ pub fn run(a: &BenchGenerateArgs, batch: usize) -> anyhow::Result<()> {
             });
             drop(cache);
         }
-        (rows, parts)
+        rows
     });
     let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
     let mut out = std::io::stdout().lock();
@@ -217,23 +207,5 @@ pub fn run(a: &BenchGenerateArgs, batch: usize) -> anyhow::Result<()> {
         out,
         "ms/tok: median of --frames new frames of N tokens (ego action, TAR over T frames, N OAR steps with sampling) / N; vanilla: median of 5 runs of --tokens decode steps after T·N cached tokens, with sampling. mem: device pool after the measurement (CUDA only). frames/s: new frames of the whole batch per second."
     )?;
-    if let Some((parts, agree)) = parts {
-        writeln!(
-            out,
-            "\nparts of one decoding step (batch {}, T = {}; median of 3 runs, ms/step):",
-            batch,
-            a.history.first().copied().unwrap_or(0)
-        )?;
-        for p in parts {
-            writeln!(out, "  {:<48} {:>9.3}", p.name, p.ms)?;
-        }
-        if let Some(agree) = agree {
-            writeln!(
-                out,
-                "  top-k by reduce and by rounds: {}",
-                if agree { "same ids" } else { "DIFFERENT ids" }
-            )?;
-        }
-    }
     Ok(())
 }

@@ -16,7 +16,7 @@ use umgen::optim::FusedAdamW;
 use umgen::{backbone_spec, builtin_catalog};
 
 /// The median of `times` (the upper one of an even count), `None` for none.
-pub(super) fn median(mut times: Vec<f64>) -> Option<f64> {
+pub fn median(mut times: Vec<f64>) -> Option<f64> {
     times.sort_by(f64::total_cmp);
     times.get(times.len() / 2).copied()
 }
@@ -49,7 +49,44 @@ fn random_tokens<B: AutodiffBackend>(
 
 /// Measures.
 pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
-    let (config, path, sets) = super::bench::bench_config(a.config.as_deref(), a.preset, &a.set)?;
+    run_with(a, &mut NoHooks)
+}
+
+/// What a developer tool adds to the timed steps (`umgen-kernel-bench train`: kernel settings taking turns,
+/// a profile of the host); the defaults add nothing.
+pub trait StepHooks {
+    /// Values the steps take turns between (1: one).
+    fn turns(&self) -> usize {
+        1
+    }
+
+    /// Before step `i` (warm-up steps included): the turn it runs under.
+    fn before_step(&mut self, i: usize) -> anyhow::Result<usize> {
+        let _ = i;
+        Ok(0)
+    }
+
+    /// When the timed steps start (`true`) and when they end.
+    fn timed(&mut self, start: bool) -> anyhow::Result<()> {
+        let _ = start;
+        Ok(())
+    }
+
+    /// After the report's step line: what the turns measured, from each turn's step times in seconds.
+    fn report(&self, out: &mut dyn Write, by_turn: &[Vec<f64>]) -> anyhow::Result<()> {
+        let _ = (out, by_turn);
+        Ok(())
+    }
+}
+
+/// No hooks: `umgen bench train` itself.
+pub struct NoHooks;
+
+impl StepHooks for NoHooks {}
+
+/// [`run`] with `hooks` around its steps.
+pub fn run_with(a: &BenchTrainArgs, hooks: &mut dyn StepHooks) -> anyhow::Result<()> {
+    let (config, path, _) = super::bench::bench_config(a.config.as_deref(), a.preset, &a.set)?;
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let (cfg, tc) = (&config.backbone, &config.train);
@@ -61,17 +98,11 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
     let flops = spec.train_flops(cfg, b, tc.frames) * world as f64;
     let bucket = (tc.bucket_mib * 1048576.0) as usize;
     tc.select_kernels()?;
-    let alternation = match &a.alternate {
-        Some(spec) => Some(super::bench_alternate::Alternation::parse(
-            spec, &path, &sets, &config,
-        )?),
-        None => None,
-    };
     anyhow::ensure!(a.steps >= 1, "--steps 0: give one timed step or more");
-    let turns = alternation.as_ref().map_or(1, |alt| alt.len());
+    let turns = hooks.turns();
     anyhow::ensure!(
         a.warmup >= turns || turns == 1,
-        "--alternate takes turns between {turns} values: give --warmup {turns} or more, so that each \
+        "the steps take turns between {turns} values: give --warmup {turns} or more, so that each \
          compiles its kernels before the timed steps"
     );
     let loss_options = tc.loss_options()?;
@@ -104,8 +135,6 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         // The first step compiles (and autotunes) every kernel on CUDA: it is synced after each phase too,
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
-        // The host's stacks over the timed steps (`UMGEN_HOST_PROFILE`).
-        let mut profile = None;
         let (mut peak, mut live) = (0u64, 0u64);
         let sync = || B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         // Timed steps first, then (with --phases) as many steps with a sync after every phase.
@@ -113,13 +142,10 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         for i in 0..a.warmup + a.steps + phase_steps {
             let split = i >= a.warmup + a.steps;
             let synced = split || i == 0;
-            let turn = match &alternation {
-                Some(alt) => alt.select(i)?,
-                None => 0,
-            };
+            let turn = hooks.before_step(i)?;
             if i == a.warmup {
                 counts[0] = crate::device::device_thread(device);
-                profile = Some(super::host_profile::HostProfile::start()?);
+                hooks.timed(true)?;
             }
             let mut mark = Instant::now();
             let t0 = mark;
@@ -178,9 +204,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
             }
             if i + 1 == a.warmup + a.steps {
                 counts[1] = crate::device::device_thread(device);
-                if let Some(p) = profile.take() {
-                    p.finish()?;
-                }
+                hooks.timed(false)?;
             }
             if i >= a.warmup && !split {
                 times.push(took);
@@ -333,9 +357,7 @@ pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
         1e3 * median,
         a.steps
     )?;
-    if let Some(alt) = &alternation {
-        alt.report(&mut out, &by_turn)?;
-    }
+    hooks.report(&mut out, &by_turn)?;
     let (phases, host, calls) = phases;
     if let [Some(f), Some(b), Some(r), Some(o), Some(w)] = host {
         // On CUDA, how much of that the host spent in calls on cubecl's device thread.

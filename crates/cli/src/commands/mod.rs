@@ -1,19 +1,12 @@
-//! One module per subcommand.
+//! One module per subcommand. `bench`, `bench_train` and `train` are public for the developer tools
+//! (`dev/kernel-bench`), which run the same steps.
 
 mod agents;
-mod bench;
+pub mod bench;
 mod bench_allreduce;
-mod bench_alternate;
-mod bench_attention;
-mod bench_decode;
-mod bench_flash;
 mod bench_generate;
 mod bench_generate_burn;
-mod bench_layers;
-mod bench_linear;
-mod bench_matmul;
-mod bench_repro;
-mod bench_train;
+pub mod bench_train;
 mod contexts;
 mod data;
 mod doctor;
@@ -26,14 +19,13 @@ mod eval_report;
 mod eval_truth;
 mod export;
 mod generate;
-mod host_profile;
 mod launch;
 mod layout;
 mod recorded;
 mod scenes;
 mod tokenize;
 mod tokenizer;
-mod train;
+pub mod train;
 mod viz;
 
 use crate::cli::Command;

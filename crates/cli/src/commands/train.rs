@@ -81,11 +81,7 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
 
 /// The run `config` describes and its token cache, tokenizing on rank 0 (of `env`) what the cache lacks of
 /// `train.data`, the other ranks waiting for it.
-pub(super) fn prepare(
-    config: &UmgenConfig,
-    device: Device,
-    env: &DistEnv,
-) -> anyhow::Result<(RunSpec, TokenSet)> {
+pub fn prepare(config: &UmgenConfig, device: Device, env: &DistEnv) -> anyhow::Result<(RunSpec, TokenSet)> {
     let lead = env.rank == 0;
     let registry = config.registry(&builtin_catalog_with(device.codec_loader())?)?;
     let layout = registry.layout()?;

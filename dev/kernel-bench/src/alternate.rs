@@ -93,7 +93,7 @@ impl Alternation {
     pub(super) fn report(&self, out: &mut impl Write, times: &[Vec<f64>]) -> std::io::Result<()> {
         let medians: Vec<Option<f64>> = times
             .iter()
-            .map(|t| super::bench_train::median(t.clone()))
+            .map(|t| umgen_cli::commands::bench_train::median(t.clone()))
             .collect();
         for ((value, median), t) in self.values.iter().zip(&medians).zip(times) {
             match (median, medians[0]) {

@@ -1,4 +1,4 @@
-//! `UMGEN_HOST_PROFILE=FILE umgen bench train …`: where the host's threads spend their time over the timed
+//! `umgen-kernel-bench train --host-profile FILE …`: where the host's threads spend their time over the timed
 //! steps (the training thread, burn-fusion's and cubecl's device threads), for machines without `perf`.
 //! Builds with the `host-profile` feature sample every thread's stack about 1,000 times a second of CPU time
 //! (SIGPROF, `pprof`) and write the samples as collapsed stacks (`thread;outer;…;inner count`, one line a
@@ -7,17 +7,16 @@
 
 use std::path::PathBuf;
 
-/// The profile being taken, if `UMGEN_HOST_PROFILE` names a file.
+/// The profile being taken, if a file was given.
 pub(super) struct HostProfile {
     #[cfg(feature = "host-profile")]
     taking: Option<(pprof::ProfilerGuard<'static>, PathBuf)>,
 }
 
 impl HostProfile {
-    /// Starts sampling when `UMGEN_HOST_PROFILE` is set (a build without `host-profile` says so and
-    /// samples nothing).
-    pub(super) fn start() -> anyhow::Result<Self> {
-        let path = std::env::var_os("UMGEN_HOST_PROFILE").map(PathBuf::from);
+    /// Starts sampling into `path` when given (a build without `host-profile` says so and samples
+    /// nothing).
+    pub(super) fn start(path: Option<PathBuf>) -> anyhow::Result<Self> {
         #[cfg(feature = "host-profile")]
         {
             let taking = match path {
@@ -27,7 +26,7 @@ impl HostProfile {
                         .frequency(997)
                         .blocklist(&["libc", "libgcc", "pthread", "vdso"])
                         .build()
-                        .map_err(|e| anyhow::anyhow!("UMGEN_HOST_PROFILE: starting the sampler: {e}"))?;
+                        .map_err(|e| anyhow::anyhow!("--host-profile: starting the sampler: {e}"))?;
                     Some((guard, path))
                 }
                 None => None,
@@ -38,7 +37,7 @@ impl HostProfile {
         {
             if let Some(path) = path {
                 tracing::warn!(
-                    "UMGEN_HOST_PROFILE={} is ignored: this build lacks the host-profile feature",
+                    "--host-profile {} is ignored: this build lacks the host-profile feature",
                     path.display()
                 );
             }
@@ -54,7 +53,7 @@ impl HostProfile {
             let report = guard
                 .report()
                 .build()
-                .map_err(|e| anyhow::anyhow!("UMGEN_HOST_PROFILE: building the report: {e}"))?;
+                .map_err(|e| anyhow::anyhow!("--host-profile: building the report: {e}"))?;
             let mut out = String::new();
             for (frames, count) in &report.data {
                 let mut line = frames.thread_name_or_id();
@@ -66,7 +65,7 @@ impl HostProfile {
                 let _ = writeln!(out, "{line} {count}");
             }
             std::fs::write(&path, out)
-                .map_err(|e| anyhow::anyhow!("UMGEN_HOST_PROFILE: writing {}: {e}", path.display()))?;
+                .map_err(|e| anyhow::anyhow!("--host-profile: writing {}: {e}", path.display()))?;
             tracing::info!("host profile: {} stacks in {}", report.data.len(), path.display());
         }
         Ok(())

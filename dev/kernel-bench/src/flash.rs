@@ -3,9 +3,9 @@
 //! build; the tiled attention's forward pass could call one directly if it is fast and agrees, and this says
 //! whether it is.
 
-use super::bench_attention::Case;
-use crate::cli::BenchAttentionArgs;
-use crate::device::Device;
+use crate::args::BenchAttentionArgs;
+use crate::attention::Case;
+use umgen_cli::device::Device;
 
 /// Measures (CUDA builds only).
 pub(super) fn run(a: &BenchAttentionArgs, cases: &[Case], device: Device) -> anyhow::Result<()> {
@@ -24,8 +24,8 @@ pub(super) fn run(a: &BenchAttentionArgs, cases: &[Case], device: Device) -> any
 #[cfg(feature = "cuda")]
 mod cuda {
     use super::{BenchAttentionArgs, Case};
-    use crate::cli::PrecisionArg;
-    use crate::commands::bench_attention::rel_err;
+    use crate::args::PrecisionArg;
+    use crate::attention::rel_err;
     use burn::backend::cuda::CudaDevice;
     use burn::cubecl::cuda::CudaRuntime;
     use burn::tensor::backend::Backend;
@@ -137,7 +137,7 @@ mod cuda {
                         format!("{:.3}", 1e3 * s),
                         format!("{:.1e}", rel_err(o.cast(FloatDType::F32), reference.clone())),
                     ),
-                    Err(e) => ("-".into(), crate::commands::bench_matmul::one_line(&e, 90)),
+                    Err(e) => ("-".into(), crate::matmul::one_line(&e, 90)),
                 };
                 writeln!(out, "{name:<22} {kname:<34} {ms:>10} {err:>9}")?;
                 out.flush()?;
@@ -149,7 +149,7 @@ mod cuda {
 
 #[cfg(test)]
 mod tests {
-    use crate::cli::{BenchAttentionArgs, PrecisionArg};
+    use crate::args::{BenchAttentionArgs, PrecisionArg};
 
     #[test]
     fn flash_needs_cuda_and_says_so() {
@@ -163,7 +163,7 @@ mod tests {
             kernels: vec![],
             step: vec![],
         };
-        let e = crate::commands::bench_attention::run(&a).unwrap_err().to_string();
+        let e = crate::attention::run(&a).unwrap_err().to_string();
         assert!(
             e.contains("--flash") && e.contains("`cpu`") && e.contains("1 case"),
             "{e}"

@@ -4,9 +4,8 @@
 //! `umgen_backbone::lookup` and `umgen_backbone::adamw`) against burn's own operations on the same device:
 //! agreement of outputs and gradients, and time.
 
-use super::bench_attention::rel_err;
-use crate::cli::BenchLayersArgs;
-use crate::device::Device;
+use crate::args::BenchLayersArgs;
+use crate::attention::rel_err;
 use anyhow::Context;
 use burn::nn::{LayerNorm, LayerNormConfig};
 use burn::tensor::backend::AutodiffBackend;
@@ -18,6 +17,7 @@ use std::time::Instant;
 use umgen::backbone::Precision;
 use umgen::backbone::norm::layer_norm;
 use umgen::backbone::temporal::{from_heads, over_time_for, to_heads};
+use umgen_cli::device::Device;
 
 /// Measures.
 pub fn run(a: &BenchLayersArgs) -> anyhow::Result<()> {
@@ -33,7 +33,7 @@ pub fn run(a: &BenchLayersArgs) -> anyhow::Result<()> {
         a.heads
     );
     let device = Device::parse(&a.device)?;
-    crate::with_autodiff!(device, |B, dev| { measure::<B>(a, [b, t, n, d], &dev) })
+    umgen_cli::with_autodiff!(device, |B, dev| { measure::<B>(a, [b, t, n, d], &dev) })
 }
 
 /// The median seconds of `pass` over `iters` runs (after one untimed), each waited for on the device, and
@@ -54,7 +54,7 @@ fn timed<B: AutodiffBackend, T>(
         }
         last = Some(result);
     }
-    let median = super::bench_train::median(times).context("no timed pass (--iters 0)")?;
+    let median = umgen_cli::commands::bench_train::median(times).context("no timed pass (--iters 0)")?;
     Ok((median, last.context("no pass ran")?))
 }
 

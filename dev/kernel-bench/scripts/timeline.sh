@@ -2,14 +2,14 @@
 # A training step's GPU timeline without Nsight Systems (docs/performance.md): when each kernel ran, how much
 # of each step the GPU was busy and where it idled, and what the host did meanwhile (driver calls, waits).
 #
-#   launchers/timeline.sh build DIR                  # on a machine with gcc: DIR/libtimeline.so + libcupti.so.13
-#   launchers/timeline.sh run DIR [bench train args] # on the GPU machine: runs `umgen bench train` under it
+#   dev/kernel-bench/scripts/timeline.sh build DIR                  # on a machine with gcc: DIR/libtimeline.so + libcupti.so.13
+#   dev/kernel-bench/scripts/timeline.sh run DIR [bench train args] # on the GPU machine: runs `umgen bench train` under it
 #
-# `build` compiles launchers/timeline/timeline.c, a CUDA injection library on CUPTI's activity API, against
+# `build` compiles dev/kernel-bench/scripts/timeline/timeline.c, a CUDA injection library on CUPTI's activity API, against
 # CUPTI 13.0 from NVIDIA's PyPI wheels (fetched once into $TOOLS, default ~/.cache/umgen/cuda-tools) and puts
 # the matching libcupti beside it, so the GPU machine needs neither a compiler nor CUPTI. `run` loads it
 # through CUDA_INJECTION64_PATH, writes the CSV to $OUT (default ./timeline.csv) and prints
-# launchers/timeline/timeline.py's summary; default arguments: --preset small --steps 6 --warmup 2.
+# dev/kernel-bench/scripts/timeline/timeline.py's summary; default arguments: --preset small --steps 6 --warmup 2.
 # UMGEN names the binary (default: umgen on the PATH). Run from the repository root.
 set -euo pipefail
 mode=${1:-}
@@ -40,7 +40,7 @@ run)
     dir=$(cd "$dir" && pwd)
     out=${OUT:-timeline.csv}
     # shellcheck source=/dev/null
-    [ -f "$here/gpu-env.sh" ] && source "$here/gpu-env.sh" >/dev/null
+    [ -f "$here/../../../launchers/gpu-env.sh" ] && source "$here/../../../launchers/gpu-env.sh" >/dev/null
     [ $# -gt 0 ] || set -- --preset small --steps 6 --warmup 2
     CUDA_INJECTION64_PATH="$dir/libtimeline.so" UMGEN_TIMELINE="$out" \
         "${UMGEN:-umgen}" bench train --device cuda:0 "$@" 2>&1 | grep -E "^(step|host|error)" || true

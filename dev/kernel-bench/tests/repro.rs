@@ -1,10 +1,10 @@
-//! `umgen bench repro` on the CPU: repeated runs of the tiny fixture agree bit for bit (the CPU backend
+//! `umgen-kernel-bench repro` on the CPU: repeated runs of the tiny fixture agree bit for bit (the CPU backend
 //! sums in a fixed order, so any difference would be a bug in the training loop's seeding), and bad
 //! arguments are refused by name.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{ok, text, umgen};
+use common::{kernel_bench, ok, text};
 use umgen_tests::run_fixture::Fixture;
 
 #[test]
@@ -12,8 +12,7 @@ fn runs_from_one_seed_agree_bit_for_bit() {
     let fx = Fixture::new().unwrap();
     let cfg = fx.config("repro", 30).unwrap();
     let cfg = cfg.to_str().unwrap();
-    let done = umgen(&[
-        "bench",
+    let done = kernel_bench(&[
         "repro",
         "--config",
         cfg,
@@ -48,9 +47,9 @@ fn bad_arguments_are_refused_by_name() {
         (&["--log-every", "0"][..], "--log-every 0"),
         (&["--tolerance=-1"][..], "--tolerance -1"),
     ] {
-        let mut all = vec!["bench", "repro", "--config", cfg];
+        let mut all = vec!["repro", "--config", cfg];
         all.extend(args);
-        let out = umgen(&all);
+        let out = kernel_bench(&all);
         assert!(!out.status.success(), "{args:?} was accepted");
         let err = text(&out.stderr);
         assert!(err.contains(words), "{args:?}: {err}");

@@ -1,8 +1,7 @@
 //! `umgen bench attention`: the training attention's kernels (fused, tiled) against burn's decomposed
 //! attention on the device, for correctness (outputs and gradients) and for time and memory.
 
-use crate::cli::BenchAttentionArgs;
-use crate::device::{Device, memory_in_use};
+use crate::args::BenchAttentionArgs;
 use anyhow::Context;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::module::attention_fallback;
@@ -13,6 +12,7 @@ use std::time::Instant;
 use umgen::backbone::Precision;
 use umgen::backbone::attention::tiled_for;
 use umgen::backbone::flash::{self, AttentionKernel};
+use umgen_cli::device::{Device, memory_in_use};
 
 /// One measured shape.
 #[derive(Debug, Clone, Copy)]
@@ -171,7 +171,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     let cases: Vec<Case> = a.cases.iter().map(|s| Case::parse(s)).collect::<Result<_, _>>()?;
     let device = Device::parse(&a.device)?;
     if a.flash {
-        return super::bench_flash::run(a, &cases, device);
+        return crate::flash::run(a, &cases, device);
     }
     let variants = variants(a, device)?;
     let mut out = std::io::stdout().lock();
@@ -200,7 +200,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
     )?;
     let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
     for (c, name) in cases.iter().zip(&a.cases) {
-        let rows = crate::with_autodiff!(device, |B, dev| {
+        let rows = umgen_cli::with_autodiff!(device, |B, dev| {
             // Training kernels first: the pool only grows, so the decomposed path's figure includes what
             // they added.
             let mut runs = Vec::new();

@@ -3,10 +3,9 @@
 //! backend. Each path's output and gradients are compared with burn's f32 path, and each forward+backward
 //! pass is timed.
 
-use crate::cli::{BenchLinearArgs, PrecisionArg};
-use crate::commands::bench_attention::rel_err;
-use crate::commands::bench_matmul::Shape;
-use crate::device::Device;
+use crate::args::{BenchLinearArgs, PrecisionArg};
+use crate::attention::rel_err;
+use crate::matmul::Shape;
 use anyhow::Context;
 use burn::tensor::backend::AutodiffBackend;
 use burn::tensor::{Distribution, FloatDType, Tensor};
@@ -14,6 +13,7 @@ use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
 use umgen::backbone::matmul::{MatmulKernel, Written, named_for, select};
+use umgen_cli::device::Device;
 
 /// A product under test: `x · w` on the autodiff backend `B`.
 type Path<'a, B> = &'a dyn Fn(Tensor<B, 2>, Tensor<B, 2>) -> Tensor<B, 2>;
@@ -33,7 +33,7 @@ pub fn run(a: &BenchLinearArgs) -> anyhow::Result<()> {
     }
     anyhow::ensure!(a.iters > 0, "--iters must be at least 1");
     let device = Device::parse(&a.device)?;
-    crate::with_autodiff!(device, |B, dev| { measure::<B>(a, &shapes, &dev) })
+    umgen_cli::with_autodiff!(device, |B, dev| { measure::<B>(a, &shapes, &dev) })
 }
 
 fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::Device) -> anyhow::Result<()> {
@@ -145,7 +145,7 @@ fn pass<B: AutodiffBackend>(
 
 #[cfg(test)]
 mod tests {
-    use crate::cli::{BenchLinearArgs, PrecisionArg};
+    use crate::args::{BenchLinearArgs, PrecisionArg};
 
     fn args(shapes: &[&str]) -> BenchLinearArgs {
         BenchLinearArgs {

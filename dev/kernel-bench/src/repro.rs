@@ -5,8 +5,7 @@
 //! before it is written (a race between streams). Repeating the run inside one process compiles the
 //! kernels once (27 s of a `small-bundled` run's first step on an H100) and keeps everything else equal.
 
-use crate::cli::BenchReproArgs;
-use crate::device::Device;
+use crate::args::BenchReproArgs;
 use anyhow::{Context, bail, ensure};
 use burn::tensor::backend::AutodiffBackend;
 use safetensors::{Dtype, SafeTensors};
@@ -16,6 +15,7 @@ use umgen::UmgenConfig;
 use umgen::checkpoint::load;
 use umgen::dist::DistEnv;
 use umgen::train::{RunSpec, train};
+use umgen_cli::device::Device;
 
 /// What one run read out: each logged step's values, and the final weights.
 struct Trace {
@@ -53,7 +53,7 @@ pub fn run(a: &BenchReproArgs) -> anyhow::Result<()> {
     ]);
     let config = UmgenConfig::load(&a.config.config, &sets)?;
     let device = Device::parse(&a.device)?;
-    let (mut run, tokens) = super::train::prepare(&config, device, &env)?;
+    let (mut run, tokens) = umgen_cli::commands::train::prepare(&config, device, &env)?;
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
@@ -65,7 +65,7 @@ pub fn run(a: &BenchReproArgs) -> anyhow::Result<()> {
     let mut differing = 0;
     for i in 0..a.runs {
         run.train.out_dir = scratch.path().join(format!("run-{i}"));
-        let trace = crate::with_autodiff!(device, |B, dev| { once::<B>(&run, &tokens, &dev) })
+        let trace = umgen_cli::with_autodiff!(device, |B, dev| { once::<B>(&run, &tokens, &dev) })
             .with_context(|| format!("run {i}"))?;
         let last = trace.steps.last().map_or(f64::NAN, |(_, v)| v[0].1);
         let verdict = match &first {

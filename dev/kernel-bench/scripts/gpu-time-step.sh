@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A steady training step's GPU time by kernel, from Nsight Compute (docs/performance.md).
 #
-#   launchers/gpu-time-step.sh [GPU] [PRESET] [bench train arguments...]   # default GPU 0, preset small
+#   dev/kernel-bench/scripts/gpu-time-step.sh [GPU] [PRESET] [bench train arguments...]   # default GPU 0, preset small
 #
 # `profile-step.sh` times kernels through cubecl's profiling mode, which syncs around every kernel and
 # overstated burn-fusion's element-wise kernels (a kernel that took 25 ms off its sum left the step as it
@@ -21,7 +21,7 @@ out=${OUT:-gpu-time-out}
 ncu=${NCU:-$(command -v ncu || echo /usr/local/cuda/bin/ncu)}
 here=$(cd "$(dirname "$0")" && pwd)
 # shellcheck source=/dev/null
-[ -f "$here/gpu-env.sh" ] && source "$here/gpu-env.sh" >/dev/null
+[ -f "$here/../../../launchers/gpu-env.sh" ] && source "$here/../../../launchers/gpu-env.sh" >/dev/null
 [ -x "$ncu" ] || { echo "no Nsight Compute at $ncu (set NCU)" >&2; exit 1; }
 mkdir -p "$out"
 # Compile every kernel once, so that the profiled runs time kernels, not NVRTC.

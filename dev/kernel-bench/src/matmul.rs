@@ -2,7 +2,7 @@
 //! a training step. Without the `autotune` build every product runs burn's default kernel; this says how
 //! much a better choice would gain per shape and number format before anything is wired to pick it.
 
-use crate::cli::BenchMatmulArgs;
+use crate::args::BenchMatmulArgs;
 use anyhow::Context;
 
 /// One product: `batch` independent `[m, k] × [k, n]`.
@@ -56,10 +56,10 @@ pub fn run(a: &BenchMatmulArgs) -> anyhow::Result<()> {
         .map(|s| Shape::parse(s))
         .collect::<Result<_, _>>()?;
     anyhow::ensure!(a.iters > 0, "--iters must be at least 1");
-    let device = crate::device::Device::parse(&a.device)?;
+    let device = umgen_cli::device::Device::parse(&a.device)?;
     match device {
         #[cfg(feature = "cuda")]
-        crate::device::Device::Cuda(i) => cuda::run(a, &shapes, i),
+        umgen_cli::device::Device::Cuda(i) => cuda::run(a, &shapes, i),
         _ => anyhow::bail!(
             "`bench matmul` times cubecl's CUDA kernels: it needs --device cuda:N (got `{}`; {} shape(s) \
              parsed)",
@@ -72,7 +72,7 @@ pub fn run(a: &BenchMatmulArgs) -> anyhow::Result<()> {
 #[cfg(feature = "cuda")]
 mod cuda {
     use super::{BenchMatmulArgs, Shape};
-    use crate::cli::PrecisionArg;
+    use crate::args::PrecisionArg;
     use burn::backend::cuda::CudaDevice;
     use burn::cubecl::cuda::CudaRuntime;
     use burn::tensor::backend::Backend;
@@ -145,7 +145,7 @@ mod cuda {
     /// Largest |difference| / largest |reference|, in f32.
     fn rel_err(x: &Primitive, reference: &Primitive) -> f64 {
         let f32_of = |t: &Primitive| float(t.clone()).cast(FloatDType::F32);
-        crate::commands::bench_attention::rel_err(f32_of(x), f32_of(reference))
+        crate::attention::rel_err(f32_of(x), f32_of(reference))
     }
 
     pub(super) fn run(a: &BenchMatmulArgs, shapes: &[Shape], gpu: usize) -> anyhow::Result<()> {
@@ -244,7 +244,7 @@ mod cuda {
 #[cfg(test)]
 mod tests {
     use super::Shape;
-    use crate::cli::{BenchMatmulArgs, PrecisionArg};
+    use crate::args::{BenchMatmulArgs, PrecisionArg};
 
     fn args(device: &str, shapes: &[&str]) -> BenchMatmulArgs {
         BenchMatmulArgs {

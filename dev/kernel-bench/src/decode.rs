@@ -1,13 +1,18 @@
-//! `umgen bench generate --breakdown`: the parts of one decoding step timed one by one, so that a slow
+//! `umgen-kernel-bench decode`: the parts of one decoding step timed one by one, so that a slow
 //! step can be traced to its part (the OAR layers, the head over a large vocabulary, the device draw and
 //! its top-k, or a read-back to the host) without a profiler on the GPU machine.
 
+use crate::args::DecodeArgs;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Int, Tensor};
 use rand::{SeedableRng, rngs::StdRng};
+use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Backbone;
 use umgen::generate::{DeviceTopK, Sampling};
+use umgen::{backbone_spec, builtin_catalog};
+use umgen_cli::commands::bench::bench_config;
+use umgen_cli::device::Device;
 
 /// One timed part: its name and milliseconds per step.
 pub struct Part {
@@ -137,4 +142,40 @@ pub fn breakdown<I: Backend>(
         None
     };
     Ok((parts, agree))
+}
+
+/// Builds the config's model with random weights on `--device` and prints the parts of its decoding step.
+pub fn run(a: &DecodeArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(a.batch >= 1, "--batch must be at least 1");
+    let (config, path, _) = bench_config(a.config.as_deref(), a.preset, &a.set)?;
+    let registry = config.registry(&builtin_catalog()?)?;
+    let cfg = config.backbone.for_inference();
+    let spec = backbone_spec(&registry, &cfg)?;
+    let device = Device::parse(&a.device)?;
+    let on_gpu = matches!(device, Device::Cuda(_));
+    let (parts, agree) = umgen_cli::with_inference!(device, |I, dev| {
+        <I as Backend>::seed(&dev, 0);
+        let model = Backbone::<I>::new(&cfg, &spec, &dev)?;
+        breakdown(&model, a.batch, Sampling::default(), on_gpu, &dev)?
+    });
+    let mut out = std::io::stdout().lock();
+    writeln!(
+        out,
+        "parts of one decoding step ({}, N = {}, batch {}, {}; median of 3 runs, ms/step):",
+        path.display(),
+        spec.n,
+        a.batch,
+        a.device
+    )?;
+    for p in parts {
+        writeln!(out, "  {:<48} {:>9.3}", p.name, p.ms)?;
+    }
+    if let Some(agree) = agree {
+        writeln!(
+            out,
+            "  top-k by reduce and by rounds: {}",
+            if agree { "same ids" } else { "DIFFERENT ids" }
+        )?;
+    }
+    Ok(())
 }

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Where one training step's kernel time goes, by kind of kernel (docs/performance.md).
 #
-#   launchers/profile-step.sh [GPU] [PRESET] [bench train arguments...]   # default GPU 0, preset small
+#   dev/kernel-bench/scripts/profile-step.sh [GPU] [PRESET] [bench train arguments...]   # default GPU 0, preset small
 #
 # Runs `umgen bench train` once for 3 steps, so that every kernel of a steady step is compiled (and kept in
 # the kernel cache), then twice with cubecl's per-kernel profiling log (CUBECL_DEBUG_LOG=FILE
@@ -23,7 +23,7 @@ umgen=${UMGEN:-umgen}
 out=${OUT:-profile-out}
 here=$(cd "$(dirname "$0")" && pwd)
 # shellcheck source=/dev/null
-[ -f "$here/gpu-env.sh" ] && source "$here/gpu-env.sh" >/dev/null
+[ -f "$here/../../../launchers/gpu-env.sh" ] && source "$here/../../../launchers/gpu-env.sh" >/dev/null
 mkdir -p "$out"
 "$umgen" bench train --preset "$preset" --device "cuda:$gpu" --steps 2 --warmup 1 "$@" >"$out/warm.txt" 2>&1 ||
     { echo "warm-up run failed; see $out/warm.txt" >&2; exit 1; }

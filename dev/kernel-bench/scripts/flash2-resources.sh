@@ -4,7 +4,7 @@
 # then assembles the PTX for sm_90 with ptxas and prints each kernel's registers and spill bytes. With
 # ARCH=90a, NVRTC targets compute_90a as on an H100 (the head size 64 kernels on `wgmma`) and ptxas sm_90a.
 #
-#   launchers/flash2-resources.sh [SOURCE]     # SOURCE: one joined file (as UMGEN_FLASH2_SOURCE takes;
+#   dev/kernel-bench/scripts/flash2-resources.sh [SOURCE]     # SOURCE: one joined file (as UMGEN_FLASH2_SOURCE takes;
 #                                              # for norm.cu, temporal.cu or xent.cu: warp_device.cuh, then it)
 #
 # NVRTC and ptxas come from NVIDIA's PyPI wheels (nvidia-cuda-nvrtc-cu12, nvidia-cuda-nvcc-cu12), fetched

@@ -1,0 +1,11 @@
+//! The `umgen` command line as a library: its argument types ([`cli`]), one module per command
+//! ([`commands`]), the device and backend choice ([`device`], [`with_autodiff!`], [`with_inference!`]),
+//! the data-parallel process setup ([`dist`]), logging and progress bars. The `umgen` binary is its
+//! `main`; developer tools (`dev/kernel-bench`) build on the same pieces.
+
+pub mod cli;
+pub mod commands;
+pub mod device;
+pub mod dist;
+pub mod logging;
+pub mod progress;
