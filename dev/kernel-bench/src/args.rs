@@ -2,7 +2,7 @@
 
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
-use umgen_cli::cli::{BenchPreset, BenchTrainArgs, ConfigArgs};
+use umgen_cli::cli::{BenchModelArgs, BenchTrainArgs, ConfigArgs};
 
 /// umgen's kernel developers' tools: the training kernels against burn's operations (agreement and time),
 /// reproducibility, kernel settings compared within one process, host profiles, the parts of a decoding
@@ -72,16 +72,9 @@ pub struct TrainArgs {
 /// Arguments of `umgen-kernel-bench decode`.
 #[derive(Debug, Args)]
 pub struct DecodeArgs {
-    /// The config whose layout and backbone are measured (tokenizers are not needed); default with
-    /// `--preset`: `configs/<preset>.toml`.
-    #[arg(short, long, value_name = "FILE", required_unless_present = "preset")]
-    pub config: Option<PathBuf>,
-    /// Override a config key (applied after the preset's).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub set: Vec<String>,
-    /// The sizes of `torch_umgen.py`'s preset of this name.
-    #[arg(long, value_enum)]
-    pub preset: Option<BenchPreset>,
+    /// The config measured, with random weights.
+    #[command(flatten)]
+    pub model: BenchModelArgs,
     /// `cpu`, or `cuda:N`.
     #[arg(long, default_value = "cpu")]
     pub device: String,

@@ -147,7 +147,7 @@ pub fn breakdown<I: Backend>(
 /// Builds the config's model with random weights on `--device` and prints the parts of its decoding step.
 pub fn run(a: &DecodeArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.batch >= 1, "--batch must be at least 1");
-    let (config, path, _) = bench_config(a.config.as_deref(), a.preset, &a.set)?;
+    let (config, path, _) = bench_config(&a.model)?;
     let registry = config.registry(&builtin_catalog()?)?;
     let cfg = config.backbone.for_inference();
     let spec = backbone_spec(&registry, &cfg)?;

@@ -46,7 +46,7 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
     let b = &a.bench;
     let alternation = match &a.alternate {
         Some(spec) => {
-            let (config, path, sets) = bench_config(b.config.as_deref(), b.preset, &b.set)?;
+            let (config, path, sets) = bench_config(&b.model)?;
             Some(Alternation::parse(spec, &path, &sets, &config)?)
         }
         None => None,

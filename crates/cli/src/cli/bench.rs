@@ -22,17 +22,9 @@ pub enum BenchCommand {
 /// Arguments of `umgen bench generate`.
 #[derive(Debug, Args)]
 pub struct BenchGenerateArgs {
-    /// The config whose layout and backbone are measured (random weights; tokenizers are not needed);
-    /// default with `--preset`: `configs/<preset>.toml`.
-    #[arg(short, long, value_name = "FILE", required_unless_present = "preset")]
-    pub config: Option<PathBuf>,
-    /// Override a config key (applied after the preset's).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub set: Vec<String>,
-    /// The sizes of `torch_umgen.py`'s preset of this name (N = 2199: 60 agents, no boundary tokens), for
-    /// side-by-side timing with its `infer-scaling` and `infer-graph`.
-    #[arg(long, value_enum)]
-    pub preset: Option<BenchPreset>,
+    /// The config measured, with random weights.
+    #[command(flatten)]
+    pub model: BenchModelArgs,
     /// `cpu`, or `cuda:N`.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -100,17 +92,9 @@ pub struct BenchAllreduceArgs {
 /// Arguments of `umgen bench train`.
 #[derive(Debug, Args)]
 pub struct BenchTrainArgs {
-    /// The config whose layout and backbone are measured (tokenizers are not needed); default with
-    /// `--preset`: `configs/<preset>.toml`.
-    #[arg(short, long, value_name = "FILE", required_unless_present = "preset")]
-    pub config: Option<PathBuf>,
-    /// Override a config key (applied after the preset's).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub set: Vec<String>,
-    /// The sizes of `torch_umgen.py`'s preset of this name, for side-by-side timing (docs/performance.md):
-    /// N = 2199 (60 agents, no boundary tokens), no dropout; `small` batch 4 × T 8, `paper` batch 1 × T 20.
-    #[arg(long, value_enum)]
-    pub preset: Option<BenchPreset>,
+    /// The config measured, on random tokens.
+    #[command(flatten)]
+    pub model: BenchModelArgs,
     /// `cpu`, or `cuda:N`.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -130,6 +114,23 @@ pub struct BenchTrainArgs {
     /// Data-parallel settings.
     #[command(flatten)]
     pub dist: DistArgs,
+}
+
+/// The config a benchmark measures: a file or a preset, and overrides (tokenizers are not needed: speed
+/// does not depend on them).
+#[derive(Debug, Args)]
+pub struct BenchModelArgs {
+    /// The config whose layout and backbone are measured; default with `--preset`:
+    /// `configs/<preset>.toml`.
+    #[arg(short, long, value_name = "FILE", required_unless_present = "preset")]
+    pub config: Option<PathBuf>,
+    /// Override a config key (applied after the preset's).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// The sizes of `torch_umgen.py`'s preset of this name, for side-by-side timing (docs/performance.md):
+    /// N = 2199 (60 agents, no boundary tokens), no dropout; `small` batch 4 × T 8, `paper` batch 1 × T 20.
+    #[arg(long, value_enum)]
+    pub preset: Option<BenchPreset>,
 }
 
 /// The reference sizes `umgen bench train --preset` knows.

@@ -1,9 +1,9 @@
 //! `umgen bench …`: speed measurements.
 
-use crate::cli::{BenchCommand, BenchDataArgs, BenchPreset};
+use crate::cli::{BenchCommand, BenchDataArgs, BenchModelArgs};
 use anyhow::Context;
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 use umgen_data::Dataset;
 use umgen_render::{Camera, MapView};
@@ -21,11 +21,8 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
 /// The config a benchmark measures: `config`, or `configs/<preset>.toml`, with the preset's overrides and
 /// then `set`; tokenizers need not exist (speed does not depend on them). Also the file read and every
 /// override applied.
-pub fn bench_config(
-    config: Option<&Path>,
-    preset: Option<BenchPreset>,
-    set: &[String],
-) -> anyhow::Result<(umgen::UmgenConfig, PathBuf, Vec<String>)> {
+pub fn bench_config(model: &BenchModelArgs) -> anyhow::Result<(umgen::UmgenConfig, PathBuf, Vec<String>)> {
+    let (config, preset, set) = (model.config.as_deref(), model.preset, &model.set);
     let path = match (config, preset) {
         (Some(p), _) => p.to_path_buf(),
         (None, Some(p)) => PathBuf::from(format!("configs/{}.toml", p.name())),

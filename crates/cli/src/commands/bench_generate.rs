@@ -34,7 +34,7 @@ pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let (config, path, _) = super::bench::bench_config(a.config.as_deref(), a.preset, &a.set)?;
+    let (config, path, _) = super::bench::bench_config(&a.model)?;
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let cfg = config.backbone.for_inference();

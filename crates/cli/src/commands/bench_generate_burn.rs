@@ -51,7 +51,7 @@ struct Row {
 
 /// Measures at `batch` scenes.
 pub fn run(a: &BenchGenerateArgs, batch: usize) -> anyhow::Result<()> {
-    let (config, path, _) = super::bench::bench_config(a.config.as_deref(), a.preset, &a.set)?;
+    let (config, path, _) = super::bench::bench_config(&a.model)?;
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let cfg = &config.backbone.for_inference();

@@ -86,7 +86,7 @@ impl StepHooks for NoHooks {}
 
 /// [`run`] with `hooks` around its steps.
 pub fn run_with(a: &BenchTrainArgs, hooks: &mut dyn StepHooks) -> anyhow::Result<()> {
-    let (config, path, _) = super::bench::bench_config(a.config.as_deref(), a.preset, &a.set)?;
+    let (config, path, _) = super::bench::bench_config(&a.model)?;
     let registry = config.registry(&builtin_catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let (cfg, tc) = (&config.backbone, &config.train);
@@ -235,7 +235,7 @@ pub fn run_with(a: &BenchTrainArgs, hooks: &mut dyn StepHooks) -> anyhow::Result
     }
     let median = median.context("no timed step ran")?;
     let mut out = std::io::stdout().lock();
-    match a.preset {
+    match a.model.preset {
         Some(p) => writeln!(out, "preset        {} ({})", p.name(), path.display())?,
         None => writeln!(out, "config        {}", path.display())?,
     }
