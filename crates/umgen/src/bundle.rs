@@ -146,8 +146,14 @@ fn write(path: &Path, data: &[u8], files: &mut BTreeMap<String, BundleFile>, rel
 
 /// Writes the bundle of the checkpoint `checkpoint` (a run directory: its newest good checkpoint) into
 /// `out`, which must not exist. Refuses a checkpoint whose tokenizers changed since training (the layout
-/// fingerprint would differ).
-pub fn export_bundle(checkpoint: &Path, out: &Path, dtype: WeightDtype) -> Result<BundleManifest> {
+/// fingerprint would differ). `catalog` builds the config's modalities (`builtin_catalog()` and the
+/// user's kinds).
+pub fn export_bundle(
+    checkpoint: &Path,
+    out: &Path,
+    dtype: WeightDtype,
+    catalog: &ModalityCatalog,
+) -> Result<BundleManifest> {
     let loaded = load_checkpoint(checkpoint)?;
     if loaded.manifest.kind != umgen_train::KIND {
         return Err(bundle_err(
@@ -162,7 +168,7 @@ pub fn export_bundle(checkpoint: &Path, out: &Path, dtype: WeightDtype) -> Resul
         .as_str()
         .unwrap_or_default()
         .to_string();
-    let registry = config.registry(&builtin_catalog()?)?;
+    let registry = config.registry(catalog)?;
     let layout = registry.layout()?;
     if layout.fingerprint() != trained {
         return Err(bundle_err(

@@ -11,6 +11,7 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use safetensors::Dtype;
 use std::path::Path;
 use umgen_backbone::{Backbone, BackboneSpec};
+use umgen_modality::ModalityCatalog;
 
 /// The golden file's name in the bundle.
 pub const GOLDEN_FILE: &str = "golden.safetensors";
@@ -22,8 +23,8 @@ pub const GOLDEN_FILE: &str = "golden.safetensors";
 /// (`tar.<modality>`, `oar.<modality>`, `[windows, tokens, vocab]`; it attends to every earlier frame)
 /// and the ego module's on every frame (`ego`, `[windows, frames − 1, q, vocab]`). Random tokens reach
 /// every branch that real ones do (slots moved out of range, empty slots, large turns). Returns the
-/// file's size in bytes.
-pub fn write_golden(dir: &Path, windows: usize, seed: u64) -> Result<u64> {
+/// file's size in bytes. `catalog` builds the bundle's modalities.
+pub fn write_golden(dir: &Path, windows: usize, seed: u64, catalog: &ModalityCatalog) -> Result<u64> {
     let fail = |message: String| UmgenError::Bundle {
         path: dir.join(GOLDEN_FILE),
         message,
@@ -31,7 +32,7 @@ pub fn write_golden(dir: &Path, windows: usize, seed: u64) -> Result<u64> {
     if windows == 0 {
         return Err(fail("--golden needs at least one window".into()));
     }
-    let (bundle, registry) = Bundle::open_with(dir, &crate::builtin_catalog()?)?;
+    let (bundle, registry) = Bundle::open_with(dir, catalog)?;
     let cfg = bundle.config.backbone.for_inference();
     let spec = backbone_spec(&registry, &cfg)?;
     let dev = Default::default();

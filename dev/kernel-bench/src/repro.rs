@@ -53,7 +53,8 @@ pub fn run(a: &BenchReproArgs) -> anyhow::Result<()> {
     ]);
     let config = UmgenConfig::load(&a.config.config, &sets)?;
     let device = Device::parse(&a.device)?;
-    let (mut run, tokens) = umgen_cli::commands::train::prepare(&config, device, &env)?;
+    let (mut run, tokens) =
+        umgen_cli::commands::train::prepare(&config, device, &env, &umgen_cli::Kinds::default())?;
     let mut out = std::io::stdout().lock();
     writeln!(
         out,

@@ -56,5 +56,5 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
         profile: a.host_profile.clone(),
         taking: None,
     };
-    run_with(b, &mut hooks)
+    run_with(b, &umgen_cli::Kinds::default(), &mut hooks)
 }

@@ -9,12 +9,12 @@ use umgen_data::Dataset;
 use umgen_render::{Camera, MapView};
 
 /// Runs a benchmark.
-pub fn run(command: BenchCommand) -> anyhow::Result<()> {
+pub fn run(command: BenchCommand, kinds: &crate::Kinds) -> anyhow::Result<()> {
     match command {
         BenchCommand::Data(args) => data(&args),
-        BenchCommand::Train(args) => super::bench_train::run(&args),
+        BenchCommand::Train(args) => super::bench_train::run(&args, kinds),
         BenchCommand::Allreduce(args) => super::bench_allreduce::allreduce(&args),
-        BenchCommand::Generate(args) => super::bench_generate::run(&args),
+        BenchCommand::Generate(args) => super::bench_generate::run(&args, kinds),
     }
 }
 

@@ -12,9 +12,9 @@ use burn::tensor::backend::Backend;
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Backbone;
+use umgen::backbone_spec;
 use umgen::generate::engine::EngineSettings;
 use umgen::generate::{DEFAULT_PASS_FRAMES, FrameControl, Generator, NextFrame, Sampling};
-use umgen::{backbone_spec, builtin_catalog};
 
 /// One measurement.
 struct Row {
@@ -27,15 +27,15 @@ struct Row {
 }
 
 /// Measures.
-pub fn run(a: &BenchGenerateArgs) -> anyhow::Result<()> {
+pub fn run(a: &BenchGenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     if a.decoder == DecoderArg::Burn {
         for &batch in &a.batch {
-            super::bench_generate_burn::run(a, batch)?;
+            super::bench_generate_burn::run(a, batch, kinds)?;
         }
         return Ok(());
     }
     let (config, path, _) = super::bench::bench_config(&a.model)?;
-    let registry = config.registry(&builtin_catalog()?)?;
+    let registry = config.registry(&kinds.catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let cfg = config.backbone.for_inference();
     let device = Device::parse(&a.device)?;

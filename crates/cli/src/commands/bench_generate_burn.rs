@@ -10,8 +10,8 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec, Slot, VanillaAr};
+use umgen::backbone_spec;
 use umgen::generate::{FrameControl, Generator, Sampling};
-use umgen::{backbone_spec, builtin_catalog};
 
 /// Random valid frames `[batch][t][N]`.
 pub(super) fn history(
@@ -50,9 +50,9 @@ struct Row {
 }
 
 /// Measures at `batch` scenes.
-pub fn run(a: &BenchGenerateArgs, batch: usize) -> anyhow::Result<()> {
+pub fn run(a: &BenchGenerateArgs, batch: usize, kinds: &crate::Kinds) -> anyhow::Result<()> {
     let (config, path, _) = super::bench::bench_config(&a.model)?;
-    let registry = config.registry(&builtin_catalog()?)?;
+    let registry = config.registry(&kinds.catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let cfg = &config.backbone.for_inference();
     let device = Device::parse(&a.device)?;

@@ -11,9 +11,9 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec};
+use umgen::backbone_spec;
 use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
 use umgen::optim::FusedAdamW;
-use umgen::{backbone_spec, builtin_catalog};
 
 /// The median of `times` (the upper one of an even count), `None` for none.
 pub fn median(mut times: Vec<f64>) -> Option<f64> {
@@ -48,8 +48,8 @@ fn random_tokens<B: AutodiffBackend>(
 }
 
 /// Measures.
-pub fn run(a: &BenchTrainArgs) -> anyhow::Result<()> {
-    run_with(a, &mut NoHooks)
+pub fn run(a: &BenchTrainArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
+    run_with(a, kinds, &mut NoHooks)
 }
 
 /// What a developer tool adds to the timed steps (`umgen-kernel-bench train`: kernel settings taking turns,
@@ -85,9 +85,9 @@ pub struct NoHooks;
 impl StepHooks for NoHooks {}
 
 /// [`run`] with `hooks` around its steps.
-pub fn run_with(a: &BenchTrainArgs, hooks: &mut dyn StepHooks) -> anyhow::Result<()> {
+pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHooks) -> anyhow::Result<()> {
     let (config, path, _) = super::bench::bench_config(&a.model)?;
-    let registry = config.registry(&builtin_catalog()?)?;
+    let registry = config.registry(&kinds.catalog()?)?;
     let spec = backbone_spec(&registry, &config.backbone)?;
     let (cfg, tc) = (&config.backbone, &config.train);
     let env = DistEnv::from_env()?;

@@ -67,8 +67,8 @@ fn model_agent_errors(
 }
 
 /// Evaluates.
-pub fn run(a: &EvalArgs) -> anyhow::Result<()> {
-    let (meta, bundle, registry) = super::scenes::open_output(&a.generated)?;
+pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
+    let (meta, bundle, registry) = super::scenes::open_output(&a.generated, kinds)?;
     // The agents' bins, for the baseline a token model could reach.
     let grid = AgentSlots::of(&bundle, &registry)?;
     let mut off_grid = 0usize;

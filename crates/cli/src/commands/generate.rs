@@ -11,13 +11,13 @@ use umgen::checkpoint::burn_io::weights_from_bytes;
 use umgen::generate::engine::EngineSettings;
 use umgen::generate::{Control, FrameControl, Generator, NextFrame, Sampling};
 use umgen::scene::SceneClip;
-use umgen::{Bundle, backbone_spec, builtin_catalog_with};
+use umgen::{Bundle, backbone_spec};
 
 /// Generates.
-pub fn run(a: &GenerateArgs) -> anyhow::Result<()> {
+pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     anyhow::ensure!(a.scenes >= 1, "--scenes must be at least 1");
     let device = Device::parse(&a.device)?;
-    let (bundle, registry) = Bundle::open_with(&a.bundle, &builtin_catalog_with(device.codec_loader())?)?;
+    let (bundle, registry) = Bundle::open_with(&a.bundle, &kinds.catalog_with(device.codec_loader())?)?;
     let spec = backbone_spec(&registry, &bundle.config.backbone)?;
     let control = match &a.control {
         Some(p) => read_control(p)?,

@@ -7,7 +7,7 @@ use umgen::UmgenConfig;
 use umgen::modality::FrameLayout;
 
 /// Loads the config, builds its registry and prints the layout.
-pub fn run(args: &LayoutArgs) -> anyhow::Result<()> {
+pub fn run(args: &LayoutArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     let path = &args.config.config;
     let (config, missing) = UmgenConfig::load(path, &args.config.set)?.without_missing_tokenizers();
     for m in missing {
@@ -15,7 +15,7 @@ pub fn run(args: &LayoutArgs) -> anyhow::Result<()> {
             "modality `{m}`: its tokenizer does not exist yet; the fingerprint below does not include it"
         );
     }
-    let registry = config.registry(&umgen::builtin_catalog()?)?;
+    let registry = config.registry(&kinds.catalog()?)?;
     let layout = registry.layout()?;
     let params = umgen::backbone_spec(&registry, &config.backbone)?.param_count(&config.backbone);
     let mut out = std::io::stdout().lock();

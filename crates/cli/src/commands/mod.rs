@@ -28,23 +28,24 @@ mod tokenizer;
 pub mod train;
 mod viz;
 
+use crate::Kinds;
 use crate::cli::Command;
 pub use launch::guard_parent;
 
 /// Runs a subcommand.
-pub fn run(command: Command) -> anyhow::Result<()> {
+pub fn run(command: Command, kinds: &Kinds) -> anyhow::Result<()> {
     match command {
-        Command::Layout(args) => layout::run(&args),
+        Command::Layout(args) => layout::run(&args, kinds),
         Command::Doctor => doctor::run(),
         Command::Data(c) => data::run(c),
-        Command::Viz(args) => viz::run(&args),
-        Command::Bench(c) => bench::run(c),
+        Command::Viz(args) => viz::run(&args, kinds),
+        Command::Bench(c) => bench::run(c, kinds),
         Command::Tokenizer(c) => tokenizer::run(c),
-        Command::Tokenize(args) => tokenize::run(&args),
-        Command::Train(args) => train::run(&args),
+        Command::Tokenize(args) => tokenize::run(&args, kinds),
+        Command::Train(args) => train::run(&args, kinds),
         Command::Launch(args) => launch::run(&args),
-        Command::Export(args) => export::run(&args),
-        Command::Eval(args) => eval::run(&args),
-        Command::Generate(args) => generate::run(&args),
+        Command::Export(args) => export::run(&args, kinds),
+        Command::Eval(args) => eval::run(&args, kinds),
+        Command::Generate(args) => generate::run(&args, kinds),
     }
 }

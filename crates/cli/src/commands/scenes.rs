@@ -3,9 +3,9 @@
 
 use anyhow::Context;
 use std::path::Path;
+use umgen::Bundle;
 use umgen::modality::ModalityRegistry;
 use umgen::scene::{Frame, SceneClip};
-use umgen::{Bundle, builtin_catalog};
 
 /// A JSON file of a `umgen generate` output directory.
 pub fn read_json(dir: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
@@ -15,10 +15,13 @@ pub fn read_json(dir: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
 }
 
 /// A `umgen generate` output directory: its `meta.json`, the bundle it names and that bundle's modalities.
-pub fn open_output(dir: &Path) -> anyhow::Result<(serde_json::Value, Bundle, ModalityRegistry)> {
+pub fn open_output(
+    dir: &Path,
+    kinds: &crate::Kinds,
+) -> anyhow::Result<(serde_json::Value, Bundle, ModalityRegistry)> {
     let meta = read_json(dir, "meta.json")?;
     let bundle_dir = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
-    let (bundle, registry) = Bundle::open_with(Path::new(bundle_dir), &builtin_catalog()?)?;
+    let (bundle, registry) = Bundle::open_with(Path::new(bundle_dir), &kinds.catalog()?)?;
     Ok((meta, bundle, registry))
 }
 

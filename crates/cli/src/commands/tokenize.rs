@@ -3,10 +3,10 @@
 use crate::cli::TokenizeArgs;
 use crate::device::Device;
 use umgen::data::Dataset;
-use umgen::{UmgenConfig, builtin_catalog_with, tokenize_dataset};
+use umgen::{UmgenConfig, tokenize_dataset};
 
 /// Tokenizes the dataset.
-pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
+pub fn run(a: &TokenizeArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
     let devices = a
         .device
@@ -14,7 +14,7 @@ pub fn run(a: &TokenizeArgs) -> anyhow::Result<()> {
         .map(|d| Device::parse(d.trim()))
         .collect::<anyhow::Result<Vec<_>>>()?;
     let threads = a.threads.unwrap_or_else(|| default_threads(&devices));
-    let registries = registries(&config, &devices, threads)?;
+    let registries = registries(&config, &devices, threads, kinds)?;
     let registry = &registries[0];
     let data = Dataset::open(&a.data)?;
     let started = std::time::Instant::now();
@@ -40,6 +40,7 @@ pub fn registries(
     config: &UmgenConfig,
     devices: &[Device],
     threads: usize,
+    kinds: &crate::Kinds,
 ) -> anyhow::Result<Vec<umgen::modality::ModalityRegistry>> {
     let cpu_only = devices.iter().all(|d| !matches!(d, Device::Cuda(_)));
     let copies = if cpu_only { threads.max(1) } else { devices.len() };
@@ -47,7 +48,7 @@ pub fn registries(
         .iter()
         .cycle()
         .take(copies)
-        .map(|d| Ok(config.registry(&builtin_catalog_with(d.codec_loader())?)?))
+        .map(|d| Ok(config.registry(&kinds.catalog_with(d.codec_loader())?)?))
         .collect()
 }
 
@@ -93,7 +94,7 @@ mod tests {
             )
         });
         let config = UmgenConfig::load(&root.join("configs/tiny.toml"), &set).unwrap();
-        let regs = registries(&config, &[Device::Cpu], 3).unwrap();
+        let regs = registries(&config, &[Device::Cpu], 3, &Default::default()).unwrap();
         assert_eq!(regs.len(), 3);
         // No two threads share a modality (and with it a tokenizer's lock).
         for (i, a) in regs.iter().enumerate() {
@@ -107,6 +108,11 @@ mod tests {
             regs[0].layout().unwrap().fingerprint(),
             regs[2].layout().unwrap().fingerprint()
         );
-        assert_eq!(registries(&config, &[Device::Cpu], 0).unwrap().len(), 1);
+        assert_eq!(
+            registries(&config, &[Device::Cpu], 0, &Default::default())
+                .unwrap()
+                .len(),
+            1
+        );
     }
 }

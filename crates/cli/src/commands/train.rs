@@ -10,15 +10,15 @@ use std::time::Duration;
 use umgen::data::{Dataset, TokenSet};
 use umgen::dist::DistEnv;
 use umgen::train::{RunSpec, train};
-use umgen::{UmgenConfig, backbone_spec, builtin_catalog_with, tokens_missing};
+use umgen::{UmgenConfig, backbone_spec, tokens_missing};
 
 /// Trains, alone or as one rank of a data-parallel job.
-pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
+pub fn run(a: &TrainArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     let env = DistEnv::from_env()?;
     let lead = env.rank == 0;
     let config = UmgenConfig::load(&a.config.config, &a.config.set)?;
     let device = Device::parse(&rank_device(&a.device, &env))?;
-    let (run, tokens) = prepare(&config, device, &env)?;
+    let (run, tokens) = prepare(&config, device, &env, kinds)?;
     // `train` writes `out_dir/config.json` once the run has passed its checks.
     let tc = &config.train;
     tracing::info!(
@@ -81,9 +81,14 @@ pub fn run(a: &TrainArgs) -> anyhow::Result<()> {
 
 /// The run `config` describes and its token cache, tokenizing on rank 0 (of `env`) what the cache lacks of
 /// `train.data`, the other ranks waiting for it.
-pub fn prepare(config: &UmgenConfig, device: Device, env: &DistEnv) -> anyhow::Result<(RunSpec, TokenSet)> {
+pub fn prepare(
+    config: &UmgenConfig,
+    device: Device,
+    env: &DistEnv,
+    kinds: &crate::Kinds,
+) -> anyhow::Result<(RunSpec, TokenSet)> {
     let lead = env.rank == 0;
-    let registry = config.registry(&builtin_catalog_with(device.codec_loader())?)?;
+    let registry = config.registry(&kinds.catalog_with(device.codec_loader())?)?;
     let layout = registry.layout()?;
     let tc = &config.train;
     if let (Some(data_dir), false) = (&tc.data, lead) {
@@ -107,7 +112,7 @@ pub fn prepare(config: &UmgenConfig, device: Device, env: &DistEnv) -> anyhow::R
         let data = Dataset::open(data_dir)?;
         let threads = super::tokenize::default_threads(&[device]);
         let registries = if tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
-            super::tokenize::registries(config, &[device], threads)?
+            super::tokenize::registries(config, &[device], threads, kinds)?
         } else {
             vec![registry.clone()]
         };

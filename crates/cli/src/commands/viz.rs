@@ -6,9 +6,9 @@ use umgen_data::Dataset;
 use umgen_render::{Camera, MapView};
 
 /// Draws the requested frames of a clip, or a generated scene, into a GIF (and PNGs).
-pub fn run(a: &VizArgs) -> anyhow::Result<()> {
+pub fn run(a: &VizArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     if let Some(dir) = &a.generated {
-        return generated(a, dir);
+        return generated(a, dir, kinds);
     }
     let data = a.data.as_ref().context("--data or --generated")?;
     let ds = Dataset::open(data)?;
@@ -60,8 +60,8 @@ pub fn run(a: &VizArgs) -> anyhow::Result<()> {
 }
 
 /// A scene of `umgen generate`'s output: its token rows decoded with the bundle it names.
-fn generated(a: &VizArgs, dir: &std::path::Path) -> anyhow::Result<()> {
-    let (meta, bundle, registry) = super::scenes::open_output(dir)?;
+fn generated(a: &VizArgs, dir: &std::path::Path, kinds: &crate::Kinds) -> anyhow::Result<()> {
+    let (meta, bundle, registry) = super::scenes::open_output(dir, kinds)?;
     let tokens = super::scenes::read_json(dir, "tokens.json")?;
     let scenes = tokens["scenes"].as_array().context("tokens.json: no `scenes`")?;
     let scene = scenes.get(a.scene).with_context(|| {
