@@ -1,4 +1,4 @@
-//! `umgen bench train --alternate KEY=V1,V2`: steps that take turns between the values of one kernel setting
+//! `umgen-kernel-bench train --alternate KEY=V1,V2`: steps that take turns between the values of one kernel setting
 //! in one process, each value's steps timed apart.
 //!
 //! On an H100 the median step of one binary moved by about 20 ms between processes on one machine (226–246

@@ -1,4 +1,4 @@
-//! `umgen bench attention`: the training attention's kernels (fused, tiled) against burn's decomposed
+//! `umgen-kernel-bench attention`: the training attention's kernels (fused, tiled) against burn's decomposed
 //! attention on the device, for correctness (outputs and gradients) and for time and memory.
 
 use crate::args::BenchAttentionArgs;

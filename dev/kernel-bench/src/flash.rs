@@ -1,4 +1,4 @@
-//! `umgen bench attention --flash`: cubecl's fused flash-attention forward kernels (cubek) against burn's
+//! `umgen-kernel-bench attention --flash`: cubecl's fused flash-attention forward kernels (cubek) against burn's
 //! decomposed forward pass, on the cases of `bench attention`. burn launches them only in its `autotune`
 //! build; the tiled attention's forward pass could call one directly if it is fast and agrees, and this says
 //! whether it is.

@@ -1,4 +1,4 @@
-//! `umgen bench layers`: the layer norm, the attention over time, an MLP's bias + GELU, the cross-entropy,
+//! `umgen-kernel-bench layers`: the layer norm, the attention over time, an MLP's bias + GELU, the cross-entropy,
 //! an embedding table's gradient and an AdamW step as training runs them (on CUDA, the kernels of
 //! `umgen_backbone::norm`, `umgen_backbone::temporal`, `umgen_backbone::gelu`, `umgen_backbone::xent`,
 //! `umgen_backbone::lookup` and `umgen_backbone::adamw`) against burn's own operations on the same device:

@@ -1,4 +1,4 @@
-//! `umgen bench linear`: a linear layer's product, forward and both gradients, on the kernels training can
+//! `umgen-kernel-bench linear`: a linear layer's product, forward and both gradients, on the kernels training can
 //! use (`umgen_backbone::matmul`: the named kernel, and cuBLAS on CUDA) against burn's own path on the same
 //! backend. Each path's output and gradients are compared with burn's f32 path, and each forward+backward
 //! pass is timed.

@@ -1,4 +1,4 @@
-//! `umgen bench matmul`: the matrix-product kernels that cubecl offers, timed one by one on the shapes of
+//! `umgen-kernel-bench matmul`: the matrix-product kernels that cubecl offers, timed one by one on the shapes of
 //! a training step. Without the `autotune` build every product runs burn's default kernel; this says how
 //! much a better choice would gain per shape and number format before anything is wired to pick it.
 

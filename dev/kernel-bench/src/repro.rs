@@ -1,4 +1,4 @@
-//! `umgen bench repro`: one training run repeated in one process, its read-outs compared step by step.
+//! `umgen-kernel-bench repro`: one training run repeated in one process, its read-outs compared step by step.
 //!
 //! Every step of a run is a function of the seed (`umgen_train::train`), so runs of one binary on one
 //! device should agree bit for bit unless a kernel sums in a varying order (atomics) or reads memory
@@ -39,7 +39,7 @@ pub fn run(a: &BenchReproArgs) -> anyhow::Result<()> {
     let env = DistEnv::from_env()?;
     ensure!(
         env.world_size == 1,
-        "umgen bench repro compares runs of one process, but this is rank {} of {}: start it without `umgen launch`",
+        "umgen-kernel-bench repro compares runs of one process, but this is rank {} of {}: start it without `umgen launch`",
         env.rank,
         env.world_size
     );

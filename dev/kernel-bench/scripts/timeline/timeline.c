@@ -13,7 +13,7 @@
 //   Z,start,end,stream,correlation,bytes     memset
 //   A,start,end,thread,correlation,name      driver API call
 //   S,start,end,stream,correlation,type      synchronization (event, stream wait, stream, context)
-// launchers/timeline.sh builds it and reads the result (timeline.py).
+// dev/kernel-bench/scripts/timeline.sh builds it and reads the result (timeline.py).
 #include <cupti.h>
 #include <stdio.h>
 #include <stdlib.h>
