@@ -11,10 +11,10 @@ from safetensors import safe_open
 from .bundle import Bundle, BundleError, load
 
 
-def compare(bundle):
+def compare(bundle, device="cpu"):
     """``[(head, largest |difference|, relative to the largest |logit|, shape)]`` for every head of the
-    golden file of ``bundle`` (a :class:`umgen_torch.Bundle` or its path)."""
-    bundle = bundle if isinstance(bundle, Bundle) else load(bundle)
+    golden file of ``bundle`` (a :class:`umgen_torch.Bundle`, or its path: opened on ``device``)."""
+    bundle = bundle if isinstance(bundle, Bundle) else load(bundle, device)
     golden = bundle.path / "golden.safetensors"
     if not golden.exists():
         raise BundleError(f"{golden}: not there; export with `umgen export … --golden N`")
@@ -25,7 +25,7 @@ def compare(bundle):
     for head, expected in want.items():
         if head not in got:
             raise BundleError(f"{golden}: head `{head}` is not one this model has ({', '.join(sorted(got))})")
-        mine = got[head]
+        mine = got[head].cpu()
         if head != "ego":
             mine = mine[:, -1]  # the golden file holds the last predicted frame of each window
         if mine.shape != expected.shape:
@@ -40,10 +40,12 @@ def main(argv=None):
     ap.add_argument("bundle")
     ap.add_argument("--atol", type=float, default=1e-4, help="largest absolute difference allowed")
     ap.add_argument("--rtol", type=float, default=1e-5, help="largest relative difference allowed")
+    ap.add_argument("--device", default="cpu", help="where the model runs (e.g. cuda; f32, no TF32)")
     a = ap.parse_args(argv)
-    torch.set_num_threads(max(1, torch.get_num_threads()))
+    # f32 products stay f32 on a GPU (TF32 would round them to 10-bit mantissas).
+    torch.backends.cuda.matmul.allow_tf32 = False
     try:
-        rows = compare(a.bundle)
+        rows = compare(a.bundle, a.device)
     except BundleError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

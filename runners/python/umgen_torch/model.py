@@ -162,8 +162,8 @@ class UMGen(nn.Module):
     def action_values(self, ids):
         """(dx, dy, dθ) at bin centres ``[b, t, 3]`` of action tokens ``[b, t, q]``."""
         bins = self.spec["action"]["bins"]
-        lo = torch.tensor([b[0] for b in bins], dtype=torch.float32)
-        width = torch.tensor([(b[1] - b[0]) / b[2] for b in bins], dtype=torch.float32)
+        lo = torch.tensor([b[0] for b in bins], dtype=torch.float32, device=ids.device)
+        width = torch.tensor([(b[1] - b[0]) / b[2] for b in bins], dtype=torch.float32, device=ids.device)
         return (ids[..., :3].float() + 0.5) * width + lo
 
     def tar_prior(self, tokens, e, e_next, next_action):
