@@ -86,19 +86,27 @@ impl App {
         T: Into<OsString> + Clone,
     {
         let args = Cli::parse_from(args);
-        crate::logging::init(args.verbose);
-        #[cfg(feature = "cuda")]
-        if let Some(dir) = crate::device::init_kernel_cache() {
-            tracing::debug!("compiled CUDA kernels are kept in {}", dir.display());
-        }
-        crate::commands::guard_parent();
-        match crate::commands::run(args.command, &self.kinds) {
-            Ok(()) => ExitCode::SUCCESS,
-            Err(err) => {
-                // The whole cause chain on one line; nothing else to do if stderr is gone.
-                let _ = writeln!(std::io::stderr(), "error: {err:#}");
-                ExitCode::FAILURE
-            }
+        run_main(args.verbose, || {
+            crate::commands::guard_parent();
+            crate::commands::run(args.command, &self.kinds)
+        })
+    }
+}
+
+/// The `main` of `umgen` and of the developer tools built on it: sets up logging (`verbose`) and the CUDA
+/// kernel cache, runs `command`, and turns its error into one line on stderr and a failing exit code.
+pub fn run_main(verbose: u8, command: impl FnOnce() -> anyhow::Result<()>) -> ExitCode {
+    crate::logging::init(verbose);
+    #[cfg(feature = "cuda")]
+    if let Some(dir) = crate::device::init_kernel_cache() {
+        tracing::debug!("compiled CUDA kernels are kept in {}", dir.display());
+    }
+    match command() {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            // The whole cause chain on one line; nothing else to do if stderr is gone.
+            let _ = writeln!(std::io::stderr(), "error: {err:#}");
+            ExitCode::FAILURE
         }
     }
 }

@@ -12,4 +12,4 @@ pub mod dist;
 pub mod logging;
 pub mod progress;
 
-pub use app::{App, Kinds};
+pub use app::{App, Kinds, run_main};

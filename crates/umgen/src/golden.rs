@@ -2,9 +2,9 @@
 //! umgen's model computes for them, so that a runner outside umgen can check that it computes the same
 //! function (docs/export-format.md, `runners/python`).
 
-use crate::bundle::{BUNDLE_MANIFEST, Bundle, add_file};
+use crate::bundle::{Bundle, add_file};
 use crate::error::{Result, UmgenError};
-use crate::{agent_segment, backbone_spec, history_window};
+use crate::{agent_slot_groups, backbone_spec, history_window};
 use burn::backend::Flex;
 use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -40,8 +40,7 @@ pub fn write_golden(dir: &Path, windows: usize, seed: u64, catalog: &ModalityCat
     let model =
         umgen_checkpoint::burn_io::weights_from_bytes(model, bundle.weights_f32()?, "bundle weights")?;
     let frames = history_window(&bundle.config) + 1;
-    let slots = agent_segment(&registry, &bundle.config)?
-        .map(|(_, offset, cfg)| crate::agent_groups(offset, cfg.max_agents, &cfg));
+    let slots = agent_slot_groups(&registry, &bundle.config)?;
     let mut rng = StdRng::seed_from_u64(seed);
     let ids: Vec<i64> = (0..windows * frames)
         .flat_map(|_| random_frame(&spec, slots.as_ref(), &mut rng))
@@ -78,10 +77,6 @@ pub fn write_golden(dir: &Path, windows: usize, seed: u64, catalog: &ModalityCat
     let bytes = safetensors::tensor::serialize(views, None).map_err(|e| fail(e.to_string()))?;
     let size = bytes.len() as u64;
     add_file(dir, GOLDEN_FILE, &bytes)?;
-    tracing::debug!(
-        "{}: {windows} window(s) of {frames} frames",
-        dir.join(BUNDLE_MANIFEST).display()
-    );
     Ok(size)
 }
 

@@ -66,6 +66,12 @@ pub fn agent_segment(
     Ok(Some((seg.modality.clone(), seg.offset, cfg)))
 }
 
+/// The agent slots of `registry`'s layout as token groups ([`agent_groups`]); `None` without an agent
+/// modality.
+pub fn agent_slot_groups(registry: &ModalityRegistry, config: &UmgenConfig) -> Result<Option<TokenGroups>> {
+    Ok(agent_segment(registry, config)?.map(|(_, offset, cfg)| agent_groups(offset, cfg.max_agents, &cfg)))
+}
+
 /// The manifest's `generation` section: `window`, the default `sampling` per modality name, and the
 /// token `groups` (each with `keep`: a slot filled in a scene's newest frame redraws a pad from the TAR
 /// head; and `boxes`: the new-agent rule).
@@ -76,9 +82,8 @@ pub fn generation_manifest(registry: &ModalityRegistry, config: &UmgenConfig) ->
         .iter()
         .map(|s| (s.modality.clone(), sampling_json(&Sampling::default())))
         .collect();
-    let groups: Vec<serde_json::Value> = agent_segment(registry, config)?
-        .map(|(_, offset, cfg)| {
-            let g = agent_groups(offset, cfg.max_agents, &cfg);
+    let groups: Vec<serde_json::Value> = agent_slot_groups(registry, config)?
+        .map(|g| {
             serde_json::json!({
                 "first": g.first, "size": g.size, "count": g.count, "pad": g.pad, "values": g.values,
                 "last": [g.last.start, g.last.end], "keep": true,

@@ -18,17 +18,11 @@ mod train;
 
 use args::{Cli, Command};
 use clap::Parser;
-use std::io::Write;
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
     let args = Cli::parse();
-    umgen_cli::logging::init(args.verbose);
-    #[cfg(feature = "cuda")]
-    if let Some(dir) = umgen_cli::device::init_kernel_cache() {
-        tracing::debug!("compiled CUDA kernels are kept in {}", dir.display());
-    }
-    let result = match args.command {
+    umgen_cli::run_main(args.verbose, || match args.command {
         Command::Attention(a) => attention::run(&a),
         Command::Matmul(a) => matmul::run(&a),
         Command::Linear(a) => linear::run(&a),
@@ -36,12 +30,5 @@ fn main() -> ExitCode {
         Command::Repro(a) => repro::run(&a),
         Command::Train(a) => train::run(&a),
         Command::Decode(a) => decode::run(&a),
-    };
-    match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(err) => {
-            let _ = writeln!(std::io::stderr(), "error: {err:#}");
-            ExitCode::FAILURE
-        }
-    }
+    })
 }

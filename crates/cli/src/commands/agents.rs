@@ -43,26 +43,17 @@ pub fn agent_modality(registry: &ModalityRegistry) -> anyhow::Result<Option<(&dy
 impl AgentSlots {
     /// The model's agent modality (`None` without one), from the bundle's config.
     pub fn of(bundle: &Bundle, registry: &ModalityRegistry) -> anyhow::Result<Option<Self>> {
-        let Some((_, seg)) = agent_modality(registry)? else {
+        let Some((name, offset, cfg)) = umgen::agent_segment(registry, &bundle.config)? else {
             return Ok(None);
         };
-        let table = bundle
-            .config
-            .modality
-            .get(&seg.modality)
-            .cloned()
-            .unwrap_or_default();
-        let cfg: AgentConfig = umgen::modality::parse_settings(&seg.modality, &table)?;
         let bins = VALUE_FIELDS
             .iter()
             .zip(cfg.ranges())
-            .map(|(name, [lo, hi])| {
-                ScalarBins::new(&format!("modality.{}.{name}", seg.modality), lo, hi, cfg.bins)
-            })
+            .map(|(field, [lo, hi])| ScalarBins::new(&format!("modality.{name}.{field}"), lo, hi, cfg.bins))
             .collect::<Result<Vec<_>, _>>()?;
         Ok(Some(Self {
-            offset: seg.offset,
-            slots: seg.tokens / ATTRIBUTES,
+            offset,
+            slots: cfg.max_agents,
             cfg,
             bins,
         }))
