@@ -27,6 +27,8 @@ SPEC_KEYS = {
     "align": {"segment", "rows", "cols", "cell_m"},
     "track": {"segment", "slot", "values", "fields", "step_s", "pad", "accel"},
 }
+# burn's layer-norm parameter names, and PyTorch's.
+NORM_NAMES = {"gamma": "weight", "beta": "bias"}
 GENERATION_KEYS = {
     "": {"window", "sampling", "groups"},
     "sampling": {"top_k", "top_p", "temperature"},
@@ -90,7 +92,7 @@ def _state_dict(path, model):
             value = st.get_tensor(key).float()
             owner, _, leaf = key.rpartition(".")
             if owner in norms:
-                key = f"{owner}.{ {'gamma': 'weight', 'beta': 'bias'}.get(leaf, leaf) }"
+                key = f"{owner}.{NORM_NAMES.get(leaf, leaf)}"
             if key in linears:
                 value = value.t().contiguous()
             out[key] = value

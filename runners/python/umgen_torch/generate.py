@@ -80,9 +80,9 @@ class Generator:
             dist = smp.distribution(masked)
         return walk(dist, self.rng.random())
 
-    def _allowed(self, p, row, limited=True):
-        """``("only", id)`` or ``("ids", test)`` for position ``p`` of a frame decoded up to ``row``."""
-        del limited  # umgen's id limits come from control files, which this runner does not take
+    def _allowed(self, p, row):
+        """``("only", id)`` or ``("ids", test)`` for position ``p`` of a frame decoded up to ``row`` (umgen's
+        per-position id limits come from control files, which this runner does not take)."""
         g = self.group[p]
         if g is None:
             return "ids", lambda ids: np.ones(len(ids), dtype=bool)
@@ -186,7 +186,7 @@ class Generator:
             return
         tar = self.model.tar_heads.heads[s](h[:, p]).float().cpu().numpy()
         for b in redraw:
-            kind, what = self._allowed(p, out[b], limited=False)
+            kind, what = self._allowed(p, out[b])
             if kind == "ids":
                 out[b][p] = self._draw(s, tar[b], what, first)
 
