@@ -40,7 +40,7 @@ pub fn align<B: Backend>(
     let ty = dx.mul_scalar(-2.0 / ext_x);
     let sx = c.clone() * gx.clone() + s.clone() * gy.clone() + tx;
     let sy = s.neg() * gx + c * gy + ty;
-    if crate::lookup::has_tracked::<B>() {
+    if umgen_ops::lookup::has_tracked::<B>() {
         bilinear_rows(features, sx, sy, rows, cols)
     } else {
         grid_sampled(features, sx, sy, rows, cols)
@@ -69,7 +69,7 @@ fn grid_sampled<B: Backend>(
 /// `grid_sample_2d`'s bilinear sampling (zeros outside the grid, align_corners = false) of `features` `[b,
 /// rows·cols, d]` at the normalised points `sx`, `sy` `[b, rows·cols, 1]`, with burn's reference
 /// arithmetic in its order, for the training backends: the four corners are row lookups of the features
-/// as one `[b·rows·cols, d]` table ([`crate::lookup::rows`]). burn 0.21 differentiates its reference
+/// as one `[b·rows·cols, d]` table ([`umgen_ops::lookup::rows`]). burn 0.21 differentiates its reference
 /// sampling, four `gather`s whose backward passes are scatters into zeros (0.66 ms each in a `small` step
 /// on an H100); the lookups' backward pass is their table gradient, a counting sort on CUDA.
 fn bilinear_rows<B: Backend>(
@@ -103,7 +103,7 @@ fn bilinear_rows<B: Backend>(
         let xi = x.clamp(0.0, (cols - 1) as f64).int();
         let yi = y.clamp(0.0, (rows - 1) as f64).int();
         let ids = (yi.mul_scalar(cols as i64) + xi + first.clone()).reshape([1, b * m]);
-        let sample = crate::lookup::rows(table.clone(), ids).reshape([b, m, d]);
+        let sample = umgen_ops::lookup::rows(table.clone(), ids).reshape([b, m, d]);
         sample * w.mask_fill(inside.bool_not(), 0.0)
     };
     corner(0.0, 0.0, gx.clone() * gy.clone())

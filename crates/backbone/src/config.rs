@@ -1,6 +1,7 @@
 //! Sizes of the backbone (`[backbone]` in configs).
 
 use serde::{Deserialize, Serialize};
+pub use umgen_ops::Precision;
 
 /// Widths, depths and regularisation of the backbone. Defaults are the paper's (supplementary Table).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -47,7 +48,7 @@ pub struct BackboneConfig {
     /// frame interval): how far `track` moves an object at its velocity. Training and generation refuse
     /// data that steps otherwise.
     pub step_s: f64,
-    /// Number format of the matrix products (`f32`, or `bf16` with f32 master weights; `precision.rs`).
+    /// Number format of the matrix products (`f32`, or `bf16` with f32 master weights; `umgen_ops::format`).
     pub precision: Precision,
     /// Start the embedding and output-head rows of ordered value bins (segments with
     /// [`ordinal`](crate::SegmentSpec::ordinal) ids: the ego action, the agents' values) as a sinusoid
@@ -55,42 +56,6 @@ pub struct BackboneConfig {
     /// over to its neighbours; `false` draws them at random like every other row. Initialisation only:
     /// checkpoints do not depend on it.
     pub ordinal_init: bool,
-}
-
-/// Number format of the backbone's matrix products.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Precision {
-    /// Everything in f32 (TF32 on CUDA tensor cores).
-    #[default]
-    F32,
-    /// Linear layers and attention products in bf16 with f32 accumulation and f32 outputs; parameters,
-    /// gradients, optimizer state, norms, softmax statistics and losses stay f32.
-    Bf16,
-    /// Linear layers and output heads as [`Precision::Bf16`], the attention's products in f32: on CUDA the
-    /// fused attention kernels are faster on f32 operands than on bf16 ones (docs/decisions/006-products-on-cublas-in-bf16.md), the named
-    /// matmul kernel is faster on bf16 ones.
-    #[serde(rename = "bf16-linear")]
-    Bf16Linear,
-}
-
-impl Precision {
-    /// The format of the attention's products (the linear layers around it keep `self`).
-    pub fn attention(self) -> Precision {
-        match self {
-            Precision::Bf16Linear => Precision::F32,
-            p => p,
-        }
-    }
-
-    /// The format the linear layers' operands are cast to (`precision::operand`): bf16 for
-    /// [`Precision::Bf16`] and [`Precision::Bf16Linear`], f32 for [`Precision::F32`].
-    pub fn operand_dtype(self) -> burn::tensor::FloatDType {
-        match self {
-            Precision::F32 => burn::tensor::FloatDType::F32,
-            Precision::Bf16 | Precision::Bf16Linear => burn::tensor::FloatDType::BF16,
-        }
-    }
 }
 
 impl Default for BackboneConfig {

@@ -3,11 +3,11 @@
 
 use crate::config::Precision;
 use crate::layers::{CrossBlock, LayerSizes};
-use crate::precision::linear;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, Distribution, Tensor, TensorData};
+use umgen_ops::linear::linear;
 
 /// The ego module.
 #[derive(Module, Debug)]
@@ -144,7 +144,7 @@ impl<B: Backend> EgoModule<B> {
         }
         let logits = linear(
             &self.head,
-            crate::norm::layer_norm_operand(&self.ln, x, self.precision),
+            umgen_ops::norm::layer_norm_operand(&self.ln, x, self.precision),
             self.precision,
         );
         let v = logits.dims()[2];

@@ -1,13 +1,13 @@
 //! Token embedding (paper eq. 2): `e = MLP(Embed_modality(z) + PE(position))`.
 
 use crate::config::Precision;
-use crate::gelu::gelu_mlp;
-use crate::precision::linear;
 use crate::spec::BackboneSpec;
 use burn::module::{Module, Param};
 use burn::nn::{Dropout, DropoutConfig, Embedding, EmbeddingConfig, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Int, Tensor, TensorData};
+use umgen_ops::gelu::gelu_mlp;
+use umgen_ops::linear::linear;
 
 /// One segment's table: learnable rows (initialised from the modality's codebook when it has one, then
 /// projected to the embedding width).
@@ -138,7 +138,7 @@ impl<B: Backend> FrameEmbedding<B> {
     fn rows(&self, s: usize, p: usize, ids: Tensor<B, 2, Int>) -> Tensor<B, 3> {
         let l = ids.dims()[1];
         let t = &self.tables[s];
-        let x = crate::lookup::embed(&t.table, ids);
+        let x = umgen_ops::lookup::embed(&t.table, ids);
         let x = match &t.proj {
             Some(proj) => linear(proj, x, self.precision),
             None => x,
@@ -156,7 +156,7 @@ impl<B: Backend> FrameEmbedding<B> {
             .iter()
             .zip(&self.blocks)
             .map(|(t, [start, len])| {
-                let x = crate::lookup::embed(&t.table, flat.clone().narrow(1, *start, *len));
+                let x = umgen_ops::lookup::embed(&t.table, flat.clone().narrow(1, *start, *len));
                 match &t.proj {
                     Some(p) => linear(p, x, self.precision),
                     None => x,

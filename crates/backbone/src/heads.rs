@@ -1,12 +1,12 @@
 //! Output heads with per-modality vocabularies, and the cross-entropy over them.
 
 use crate::config::Precision;
-use crate::precision::linear;
 use crate::spec::SegmentSpec;
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
+use umgen_ops::linear::linear;
 
 /// One bias-free linear head per segment, over that segment's content ids only: a position's logits never
 /// cover another modality's ids.
@@ -77,7 +77,7 @@ impl<B: Backend> Heads<B> {
                 let v = logits.dims()[2];
                 let t = targets.clone().narrow(1, offset, tokens).reshape([m * tokens, 1]);
                 let ord = ordinal.get(s).copied().unwrap_or(0);
-                let sum = crate::xent::sum(logits.reshape([m * tokens, v]), t, ord, sigma);
+                let sum = umgen_ops::xent::sum(logits.reshape([m * tokens, v]), t, ord, sigma);
                 (sum, m * tokens)
             })
             .collect()

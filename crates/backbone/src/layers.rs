@@ -1,14 +1,17 @@
 //! Transformer layers: pre-norm self- and cross-attention blocks with GELU MLPs.
 
 use crate::config::Precision;
-use crate::gelu::gelu_mlp;
-use crate::norm::layer_norm_operand;
-use crate::precision::{float_format, linear, linear_in, linear_with};
 use burn::module::Module;
 use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::softmax;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, FloatDType, Tensor};
+use umgen_ops::format::float_format;
+use umgen_ops::gelu::gelu_mlp;
+use umgen_ops::heads::{merge_heads, split_heads};
+use umgen_ops::linear::{linear, linear_in, linear_with};
+use umgen_ops::norm::layer_norm_operand;
+use umgen_ops::recompute::{LayerParts, recomputed_for};
 
 /// `Linear(d → r·d), GELU, Linear(r·d → d)`, dropout on the output.
 #[derive(Module, Debug)]
@@ -35,18 +38,6 @@ impl<B: Backend> Mlp<B> {
         let p = self.precision;
         self.drop.forward(gelu_mlp(&self.fc, &self.proj, x, p))
     }
-}
-
-/// `[b, l, h·dh]` → `[b, h, l, dh]`.
-pub(crate) fn split_heads<B: Backend>(x: Tensor<B, 3>, heads: usize) -> Tensor<B, 4> {
-    let [b, l, d] = x.dims();
-    x.reshape([b, l, heads, d / heads]).swap_dims(1, 2)
-}
-
-/// `[b, h, l, dh]` → `[b, l, h·dh]`.
-pub(crate) fn merge_heads<B: Backend>(x: Tensor<B, 4>) -> Tensor<B, 3> {
-    let [b, h, l, dh] = x.dims();
-    x.swap_dims(1, 2).reshape([b, l, h * dh])
 }
 
 /// Multi-head attention of queries over keys and values (self- or cross-attention), through burn's
@@ -89,21 +80,21 @@ impl<B: Backend> MultiHead<B> {
         // them with views, which burn-fusion copies from a tensor that needs no cast (24 copies, 2.6 ms
         // of a `small` step) but reads strided inside the cast of an f32 one.
         let (lq, lk) = (x.dims()[1], ctx.dims()[1]);
-        let format = if crate::attention::attends_kv_in_one::<B>(mask.is_none(), lq, lk, causal) {
+        let format = if umgen_ops::attention::attends_kv_in_one::<B>(mask.is_none(), lq, lk, causal) {
             p.attention().operand_dtype()
         } else {
             FloatDType::F32
         };
         let q = split_heads(linear_in(&self.q, x, p, format), self.heads);
         let kv = linear(&self.kv, ctx, p);
-        self.output(crate::attention::attend_kv(q, kv, mask, causal, p))
+        self.output(umgen_ops::attention::attend_kv(q, kv, mask, causal, p))
     }
 
     /// Queries of `x` and keys and values of `ctx`, split into heads `[b, heads, l, dh]`.
     fn project(&self, x: Tensor<B, 3>, ctx: Tensor<B, 3>) -> (Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>) {
         let p = self.precision;
         let q = split_heads(linear(&self.q, x, p), self.heads);
-        let (k, v) = crate::attention::split_kv(linear(&self.kv, ctx, p), self.heads);
+        let (k, v) = umgen_ops::heads::split_kv(linear(&self.kv, ctx, p), self.heads);
         (q, k, v)
     }
 
@@ -121,11 +112,11 @@ impl<B: Backend> MultiHead<B> {
 
     /// Attention over time of `x` `[b, t, n, d]` (each position over its own frames, `causal`) by `op`, the
     /// training backends' [`crate::temporal`] operation: the products run on the rows as they lie.
-    fn over_time(&self, x: Tensor<B, 4>, op: crate::temporal::OverTime<B>) -> Tensor<B, 4> {
+    fn over_time(&self, x: Tensor<B, 4>, op: umgen_ops::temporal::OverTime<B>) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
         let p = self.precision;
         // Cast once for both products (each would cast its own copy).
-        let rows = crate::precision::operand(x.reshape([b, t * n, d]), p);
+        let rows = umgen_ops::format::operand(x.reshape([b, t * n, d]), p);
         let q = linear(&self.q, rows.clone(), p).reshape([b, t, n, d]);
         let kv = linear(&self.kv, rows, p).reshape([b, t, n, 2 * d]);
         let y = op(q, kv, self.heads, true, p);
@@ -221,8 +212,10 @@ impl<B: Backend> SelfBlock<B> {
     /// Applies it to `[b, l, d]`; `causal` lets position `i` see positions `≤ i` only. With recomputation on
     /// (`recompute.rs`) a training backend keeps only `x` for the backward pass.
     pub fn forward(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
-        match crate::recompute::recomputed_for::<B>() {
-            Some(layer) => layer(self, x, causal, None),
+        match recomputed_for::<B>() {
+            Some(layer) => {
+                layer(&self.parts(), x, causal, None).unwrap_or_else(|x| self.forward_autodiff(x, causal))
+            }
             None => self.forward_autodiff(x, causal),
         }
     }
@@ -233,8 +226,11 @@ impl<B: Backend> SelfBlock<B> {
     /// transposition each way) for [`Self::forward_autodiff`].
     pub fn forward_over_time(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
-        match crate::recompute::recomputed_for::<B>() {
-            Some(layer) => layer(self, x.reshape([b, t * n, d]), true, Some((t, n))).reshape([b, t, n, d]),
+        match recomputed_for::<B>() {
+            Some(layer) => match layer(&self.parts(), x.reshape([b, t * n, d]), true, Some((t, n))) {
+                Ok(y) => y.reshape([b, t, n, d]),
+                Err(x) => self.over_time_autodiff(x.reshape([b, t, n, d])),
+            },
             None => self.over_time_autodiff(x),
         }
     }
@@ -243,7 +239,7 @@ impl<B: Backend> SelfBlock<B> {
     /// backend has it).
     pub(crate) fn over_time_autodiff(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
-        match crate::temporal::over_time_for::<B>() {
+        match umgen_ops::temporal::over_time_for::<B>() {
             Some(op) => {
                 let n1 = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision);
                 let x = x + self.attn.over_time(n1, op);
@@ -286,24 +282,10 @@ impl<B: Backend> SelfBlock<B> {
     }
 }
 
-/// The parts of a [`SelfBlock`], for the recomputing operation.
-pub(crate) struct Parts<'a, B: Backend> {
-    pub ln1: &'a LayerNorm<B>,
-    pub q: &'a Linear<B>,
-    pub kv: &'a Linear<B>,
-    pub proj: &'a Linear<B>,
-    pub ln2: &'a LayerNorm<B>,
-    pub fc: &'a Linear<B>,
-    pub out: &'a Linear<B>,
-    pub heads: usize,
-    pub precision: Precision,
-    pub attn_dropout: f64,
-    pub mlp_dropout: f64,
-}
-
 impl<B: Backend> SelfBlock<B> {
-    pub(crate) fn parts(&self) -> Parts<'_, B> {
-        Parts {
+    /// The layer's parts, for the recomputing operation.
+    pub(crate) fn parts(&self) -> LayerParts<'_, B> {
+        LayerParts {
             ln1: &self.ln1,
             q: &self.attn.q,
             kv: &self.attn.kv,
@@ -381,3 +363,6 @@ impl<B: Backend> CrossBlock<B> {
                 .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision))
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -18,53 +18,27 @@
 //! 6. scores both with heads whose logits cover only each modality's own vocabulary; the loss is
 //!    CE(OAR) + CE(TAR) + CE(ego), reported per modality.
 //!
-//! Matrix products run in f32 or, with [`Precision::Bf16`], on bf16 operands with f32 master weights
-//! (`precision.rs`); training attention over long sequences runs fused kernels on CUDA ([`flash`]) and tiled
-//! passes elsewhere ([`attention`]), and training on CUDA runs the linear layers' products on a named matmul
-//! kernel ([`matmul`]). With [`recompute`] on, the self-attention layers keep only their inputs for the
-//! backward pass and are recomputed there (activation checkpointing). On the training backends more custom
-//! autodiff operations replace burn's where those run on a handful of GPU units, pass over an activation
-//! many times or copy it: bias adds (`rows.rs`), embedding lookups (`lookup.rs`), the cross-entropy from
-//! logits ([`xent`], with [`smoothing`]'s targets), the layer norm ([`norm`]), the TAR's attention over
-//! time on the rows as they lie ([`temporal`]) and the attention over one kv tensor (`attention/kv.rs`);
-//! the cross-entropy's, the norm's and the temporal attention's passes are CUDA C kernels on CUDA.
+//! The operations it calls (linear products in f32 or bf16, attention, layer norm, bias + GELU, embedding
+//! lookups, cross-entropy) and their kernels are `umgen-ops`'; with recomputation on, the self-attention
+//! layers keep only their inputs for the backward pass (`umgen_ops::recompute`).
 //!
-//! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`]. The
-//! optimizer's multi-tensor kernels for CUDA (AdamW, the gradients' norm) live here too, in [`adamw`],
-//! beside the other CUDA C kernels they share their launch path with.
+//! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 
-pub mod adamw;
 mod ama;
-pub mod attention;
 mod config;
 mod decode;
-mod dispatch;
 mod ego;
 mod embed;
 mod error;
-pub mod flash;
-pub mod gelu;
 mod heads;
-pub mod kernel_stream;
 mod layers;
 mod logits;
-pub mod lookup;
 mod losses;
-pub mod matmul;
 mod model;
-pub mod norm;
 pub mod ordinal;
 mod plain;
-mod precision;
-pub mod recompute;
-pub mod rows;
-#[cfg(feature = "cuda")]
-mod side;
-pub mod smoothing;
 mod spec;
-pub mod temporal;
 pub mod track;
-pub mod xent;
 
 pub use ama::align;
 pub use config::{BackboneConfig, Precision};
@@ -81,6 +55,4 @@ pub use plain::{
     PlainAttention, PlainBackbone, PlainCross, PlainEgo, PlainEmbed, PlainLinear, PlainMlp, PlainNorm,
     PlainSelf, PlainTable,
 };
-#[cfg(feature = "cuda")]
-pub use side::{device_thread_calls, foreign_streams};
 pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec, TrackSpec};

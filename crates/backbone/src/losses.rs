@@ -106,7 +106,7 @@ impl<B: Backend> Backbone<B> {
         if let (Some(logits), Some(ids)) = (self.ego_logits(f.e, false), f.next_action) {
             let [b, t, q, v] = logits.dims();
             let bins = spec.action.as_ref().map_or(0, |a| ordinal[a.segment]);
-            let ego = crate::xent::sum(
+            let ego = umgen_ops::xent::sum(
                 logits.reshape([b * t * q, v]),
                 ids.reshape([b * t * q, 1]),
                 bins,

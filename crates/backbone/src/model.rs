@@ -192,7 +192,7 @@ impl<B: Backend> Backbone<B> {
         for blk in &self.tar {
             x = blk.forward(x);
         }
-        let h = crate::norm::layer_norm(&self.ln_tar, x);
+        let h = umgen_ops::norm::layer_norm(&self.ln_tar, x);
         match track {
             // Also straight into the output, where the heads and the OAR read it.
             Some((proj, (at, moved))) => add_at(h, at, proj.output(moved, self.embed.precision())),
@@ -274,7 +274,7 @@ impl<B: Backend> Backbone<B> {
         for blk in &self.oar {
             x = blk.forward(x, true);
         }
-        crate::norm::layer_norm(&self.ln_oar, x)
+        umgen_ops::norm::layer_norm(&self.ln_oar, x)
     }
 
     /// The teacher-forced pass over windows `[b, t + 1, N]`: frames `0..t` condition, frame `i + 1` is

@@ -47,7 +47,7 @@ impl PlainLinear {
     }
 }
 
-/// A layer norm's scale and shift (ε = [`crate::norm::LN_EPS`]).
+/// A layer norm's scale and shift (ε = [`umgen_ops::norm::LN_EPS`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlainNorm {
     /// Scale.

@@ -12,13 +12,13 @@
 
 use crate::config::Precision;
 use crate::embed::FrameEmbedding;
-use crate::precision::linear;
 use crate::spec::{BackboneSpec, TrackSpec};
 use burn::module::Module;
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
 use std::f64::consts::PI;
+use umgen_ops::linear::linear;
 
 /// The two projections of the moved slots' embeddings: one added to the TAR's input at each slot, one
 /// to its output (what the heads and the OAR read), which starts at zero so that a fresh model begins as

@@ -149,7 +149,7 @@ pub fn device_thread(device: Device) -> [(u64, f64); 2] {
                 let _ = burn::cubecl::cuda::CudaRuntime::client(&dev);
                 (0, 0.0)
             };
-            [umgen::backbone::device_thread_calls(), launches]
+            [umgen::ops::device_thread_calls(), launches]
         }
         #[cfg(not(feature = "cuda"))]
         Device::Cuda(_) => [(0, 0.0); 2],

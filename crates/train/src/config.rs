@@ -4,13 +4,13 @@ use crate::error::{Result, TrainError};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use umgen_backbone::LossOptions;
-use umgen_backbone::adamw::AdamWChoice;
-use umgen_backbone::flash::AttentionKernel;
-use umgen_backbone::gelu::GeluKernel;
-use umgen_backbone::kernel_stream::{KernelStream, LaunchThread};
-use umgen_backbone::matmul::MatmulKernel;
-use umgen_backbone::norm::NormKernel;
-use umgen_backbone::xent::XentKernel;
+use umgen_ops::adamw::AdamWChoice;
+use umgen_ops::flash::AttentionKernel;
+use umgen_ops::gelu::GeluKernel;
+use umgen_ops::kernel_stream::{KernelStream, LaunchThread};
+use umgen_ops::matmul::MatmulKernel;
+use umgen_ops::norm::NormKernel;
+use umgen_ops::xent::XentKernel;
 use umgen_optim::{AdamWSettings, adam_epsilon};
 
 /// How the backbone is trained.
@@ -74,45 +74,45 @@ pub struct TrainConfig {
     pub bucket_mib: f64,
     /// Kernel of the linear layers' products when training on CUDA: `cublas` (the default; cuBLAS, falling
     /// back to `named` where it is missing), `named` (cubek's `specialized_tma_mma`,
-    /// `umgen_backbone::matmul`) or `burn` (burn's default kernel).
+    /// `umgen_ops::matmul`) or `burn` (burn's default kernel).
     pub matmul: MatmulKernel,
     /// MiB one query block's attention scores may take in the tiled attention (`attention::set_block_bytes`):
     /// smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels.
     pub attention_block_mib: usize,
     /// Kernels of the training attention on CUDA: `fused` (one cubecl kernel per pass,
-    /// `umgen_backbone::flash`), `flash2` (FlashAttention-2 in CUDA C through NVRTC, head sizes 32 and 64;
+    /// `umgen_ops::flash`), `flash2` (FlashAttention-2 in CUDA C through NVRTC, head sizes 32 and 64;
     /// others run `fused`) or `tiled` (the tiled passes in burn tensor operations, in blocks of
     /// `attention_block_mib`).
     pub attention: AttentionKernel,
     /// Keys (or queries) per step of the fused attention kernels' loop, 16, 32 or 64
-    /// (`umgen_backbone::flash::set_step`): shorter steps take less shared memory per cube, so more cubes
+    /// (`umgen_ops::flash::set_step`): shorter steps take less shared memory per cube, so more cubes
     /// share an SM, for more loop steps and synchronisations.
     pub attention_step: usize,
     /// Recompute each self-attention layer's activations in the backward pass instead of keeping them
-    /// (activation checkpointing, `umgen_backbone::recompute`): the step keeps one activation per layer
+    /// (activation checkpointing, `umgen_ops::recompute`): the step keeps one activation per layer
     /// instead of about twenty, for one more forward pass of those layers.
     pub recompute: bool,
     /// What computes the layer norms when training on CUDA: `fused` (one CUDA C kernel per pass,
-    /// `umgen_backbone::norm`) or `burn` (burn's decomposition). The CPU runs the decomposition.
+    /// `umgen_ops::norm`) or `burn` (burn's decomposition). The CPU runs the decomposition.
     pub norm: NormKernel,
     /// What computes the MLPs' bias + GELU when training: `fused` (one operation per pass writing the
-    /// activation in the next product's format, on CUDA one CUDA C kernel, `umgen_backbone::gelu`) or
+    /// activation in the next product's format, on CUDA one CUDA C kernel, `umgen_ops::gelu`) or
     /// `burn` (burn's bias add and GELU in f32).
     pub gelu: GeluKernel,
     /// What computes the cross-entropy's passes over the logits when training on CUDA: `fused` (one CUDA
-    /// C kernel per pass, `umgen_backbone::xent`) or `burn` (burn's operations). The CPU runs burn's.
+    /// C kernel per pass, `umgen_ops::xent`) or `burn` (burn's operations). The CPU runs burn's.
     pub xent: XentKernel,
     /// Where the CUDA C kernels (attention, layer norm, attention over time, cross-entropy) run: `cubecl`
     /// (on cubecl's own stream, launched as cubecl kernels) or `side` (a side stream per kernel family,
-    /// ordered with cubecl's through device flags), `umgen_backbone::kernel_stream`.
+    /// ordered with cubecl's through device flags), `umgen_ops::kernel_stream`.
     pub kernel_stream: KernelStream,
     /// What steps AdamW when training on CUDA: `fused` (one CUDA C kernel over all parameter tensors, the
-    /// clipping factor applied as it reads the gradients, `umgen_backbone::adamw`) or `burn` (burn's AdamW,
+    /// clipping factor applied as it reads the gradients, `umgen_ops::adamw`) or `burn` (burn's AdamW,
     /// tensor by tensor). The CPU runs burn's.
     pub adamw: AdamWChoice,
     /// Which thread launches the custom operations' kernels and cuBLAS products on CUDA: `device`
     /// (cubecl's device thread, one blocking call per operation) or `caller` (the training thread, one
-    /// blocking call to cubecl's device thread per device pointer), `umgen_backbone::kernel_stream`.
+    /// blocking call to cubecl's device thread per device pointer), `umgen_ops::kernel_stream`.
     pub launch_thread: LaunchThread,
     /// What a step whose loss or gradient norm is not finite does: `skip` (the default: the step leaves
     /// the weights and AdamW's moments as they were, and the run stops after `max_skipped_steps` such
@@ -164,9 +164,9 @@ impl Default for TrainConfig {
             split: "train".into(),
             bucket_mib: 25.0,
             matmul: MatmulKernel::default(),
-            attention_block_mib: umgen_backbone::attention::BLOCK_BYTES >> 20,
+            attention_block_mib: umgen_ops::tiled::BLOCK_BYTES >> 20,
             attention: AttentionKernel::default(),
-            attention_step: umgen_backbone::flash::DEFAULT_STEP,
+            attention_step: umgen_ops::flash::DEFAULT_STEP,
             recompute: false,
             norm: NormKernel::default(),
             gelu: GeluKernel::default(),
@@ -190,18 +190,18 @@ impl TrainConfig {
                 "train.attention_block_mib = 0: a query block needs at least 1 MiB of scores".into(),
             ));
         }
-        umgen_backbone::flash::set_step(Some(self.attention_step))
+        umgen_ops::flash::set_step(Some(self.attention_step))
             .map_err(|e| TrainError::Setup(format!("train.attention_step = {}: {e}", self.attention_step)))?;
-        umgen_backbone::matmul::select(self.matmul);
-        umgen_backbone::flash::select(self.attention);
-        umgen_backbone::attention::set_block_bytes(Some(self.attention_block_mib << 20));
-        umgen_backbone::recompute::set_enabled(self.recompute);
-        umgen_backbone::norm::select(self.norm);
-        umgen_backbone::gelu::select(self.gelu);
-        umgen_backbone::xent::select(self.xent);
-        umgen_backbone::kernel_stream::select(self.kernel_stream);
-        umgen_backbone::adamw::select(self.adamw);
-        umgen_backbone::kernel_stream::select_thread(self.launch_thread);
+        umgen_ops::matmul::select(self.matmul);
+        umgen_ops::flash::select(self.attention);
+        umgen_ops::tiled::set_block_bytes(Some(self.attention_block_mib << 20));
+        umgen_ops::recompute::set_enabled(self.recompute);
+        umgen_ops::norm::select(self.norm);
+        umgen_ops::gelu::select(self.gelu);
+        umgen_ops::xent::select(self.xent);
+        umgen_ops::kernel_stream::select(self.kernel_stream);
+        umgen_ops::adamw::select(self.adamw);
+        umgen_ops::kernel_stream::select_thread(self.launch_thread);
         Ok(())
     }
 
@@ -282,7 +282,7 @@ impl TrainConfig {
         if self.attention_block_mib == 0 {
             return Some(("attention_block_mib", "0 must be 1 or more".into()));
         }
-        if let Err(e) = umgen_backbone::flash::check_step(self.attention_step) {
+        if let Err(e) = umgen_ops::flash::check_step(self.attention_step) {
             return Some(("attention_step", e));
         }
         if self.max_skipped_steps == 0 {

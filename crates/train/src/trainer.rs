@@ -121,7 +121,7 @@ pub fn train<B: AutodiffBackend>(
     B::seed(device, tc.seed);
     let mut model = stable_param_ids(Backbone::<B>::new(&run.backbone, &run.spec, device)?);
     let mut optim =
-        FusedAdamW::<_, B>::new(settings).with_kernels(umgen_backbone::adamw::kernels::<B::InnerBackend>());
+        FusedAdamW::<_, B>::new(settings).with_kernels(umgen_ops::adamw::kernels::<B::InnerBackend>());
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
     let mut step = 0u64;
     let mut last_ckpt = None;

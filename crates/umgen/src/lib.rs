@@ -45,6 +45,7 @@ pub use umgen_generate as generate;
 pub use umgen_modality as modality;
 pub use umgen_modality_agent as modality_agent;
 pub use umgen_modality_map as modality_map;
+pub use umgen_ops as ops;
 pub use umgen_optim as optim;
 pub use umgen_scene as scene;
 pub use umgen_tokenizer_vq as tokenizer_vq;

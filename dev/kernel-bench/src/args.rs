@@ -228,7 +228,7 @@ pub enum AttentionArg {
     Flash2,
 }
 
-impl From<AttentionArg> for umgen::backbone::flash::AttentionKernel {
+impl From<AttentionArg> for umgen::ops::flash::AttentionKernel {
     fn from(a: AttentionArg) -> Self {
         match a {
             AttentionArg::Fused => Self::Fused,

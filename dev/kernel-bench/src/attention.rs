@@ -10,8 +10,8 @@ use burn::tensor::{Distribution, ElementConversion, FloatDType, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
-use umgen::backbone::attention::tiled_for;
-use umgen::backbone::flash::{self, AttentionKernel};
+use umgen::ops::attention::tiled_for;
+use umgen::ops::flash::{self, AttentionKernel};
 use umgen_cli::device::{Device, memory_in_use};
 
 /// One measured shape.
@@ -208,14 +208,14 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                 flash::select(kernel);
                 match kernel {
                     AttentionKernel::Fused => flash::set_step(size).map_err(anyhow::Error::msg)?,
-                    AttentionKernel::Tiled => umgen::backbone::attention::set_block_bytes(size),
+                    AttentionKernel::Tiled => umgen::ops::tiled::set_block_bytes(size),
                     AttentionKernel::Flash2 => {}
                 }
                 runs.push(measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev));
             }
             flash::select(AttentionKernel::default());
             flash::set_step(None).map_err(anyhow::Error::msg)?;
-            umgen::backbone::attention::set_block_bytes(None);
+            umgen::ops::tiled::set_block_bytes(None);
             let d = measure::<B>(c, None, a.iters, device, &dev)?;
             let mut rows = Vec::new();
             for (t, &(kernel, size)) in runs.into_iter().zip(&variants) {
@@ -232,7 +232,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                     AttentionKernel::Fused => format!("step {}", size.unwrap_or(flash::DEFAULT_STEP)),
                     AttentionKernel::Flash2 => "-".into(),
                     AttentionKernel::Tiled => {
-                        (size.unwrap_or(umgen::backbone::attention::BLOCK_BYTES) >> 20).to_string()
+                        (size.unwrap_or(umgen::ops::tiled::BLOCK_BYTES) >> 20).to_string()
                     }
                 };
                 rows.push((kernel, block, t.seconds, d.seconds, errs, t.reserved, d.reserved));

@@ -1,7 +1,7 @@
 //! `umgen-kernel-bench layers`: the layer norm, the attention over time, an MLP's bias + GELU, the cross-entropy,
 //! an embedding table's gradient and an AdamW step as training runs them (on CUDA, the kernels of
-//! `umgen_backbone::norm`, `umgen_backbone::temporal`, `umgen_backbone::gelu`, `umgen_backbone::xent`,
-//! `umgen_backbone::lookup` and `umgen_backbone::adamw`) against burn's own operations on the same device:
+//! `umgen_ops::norm`, `umgen_ops::temporal`, `umgen_ops::gelu`, `umgen_ops::xent`,
+//! `umgen_ops::lookup` and `umgen_ops::adamw`) against burn's own operations on the same device:
 //! agreement of outputs and gradients, and time.
 
 use crate::args::BenchLayersArgs;
@@ -15,8 +15,8 @@ use burn::tensor::{Distribution, Int, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
-use umgen::backbone::norm::layer_norm;
-use umgen::backbone::temporal::{from_heads, over_time_for, to_heads};
+use umgen::ops::norm::layer_norm;
+use umgen::ops::temporal::{from_heads, over_time_for, to_heads};
 use umgen_cli::device::Device;
 
 /// Measures.
@@ -159,12 +159,12 @@ fn measure<B: AutodiffBackend>(
          moments, and burn ms its arithmetic in burn's operations; err y of the gradient norm: the norm; err dp of the \
          table: its gradient; fallbacks: {} norm pass(es), {} attention pass(es), {} bias + GELU pass(es), {} \
          cross-entropy pass(es), {} table gradient(s), {} AdamW step(s))",
-        umgen::backbone::norm::fallbacks(),
-        umgen::backbone::flash::fallbacks(),
-        umgen::backbone::gelu::fallbacks(),
-        umgen::backbone::xent::fallbacks(),
-        umgen::backbone::lookup::fallbacks(),
-        umgen::backbone::adamw::fallbacks()
+        umgen::ops::norm::fallbacks(),
+        umgen::ops::flash::fallbacks(),
+        umgen::ops::gelu::fallbacks(),
+        umgen::ops::xent::fallbacks(),
+        umgen::ops::lookup::fallbacks(),
+        umgen::ops::adamw::fallbacks()
     )?;
     Ok(())
 }
@@ -180,7 +180,7 @@ fn mlp_activation<B: AutodiffBackend>(
 ) -> anyhow::Result<()> {
     use burn::nn::LinearConfig;
     use burn::tensor::FloatDType;
-    use umgen::backbone::gelu::{self, GeluKernel, linear_gelu};
+    use umgen::ops::gelu::{self, GeluKernel, linear_gelu};
     let layer = LinearConfig::new(d, 4 * d).init::<B>(dev);
     let bias = layer.bias.as_ref().context("an MLP layer has a bias")?.val();
     let x = Tensor::<B::InnerBackend, 2>::random([rows, d], Distribution::Normal(0.0, 1.0), dev);
@@ -222,7 +222,7 @@ fn cross_entropy<B: AutodiffBackend>(
     dev: &B::Device,
     out: &mut impl Write,
 ) -> anyhow::Result<()> {
-    use umgen::backbone::xent::{self, XentKernel};
+    use umgen::ops::xent::{self, XentKernel};
     let v = a.vocab;
     let logits = Tensor::<B::InnerBackend, 2>::random([rows, v], Distribution::Normal(0.0, 2.0), dev);
     let targets = Tensor::<B, 2, Int>::random([rows, 1], Distribution::Uniform(0.0, v as f64), dev);
@@ -273,7 +273,7 @@ fn table_gradient<B: AutodiffBackend>(
     let w = Tensor::<B::InnerBackend, 3>::random([1, rows, d], Distribution::Normal(0.0, 1.0), dev);
     let pass = |ours: bool| {
         let y = if ours {
-            umgen::backbone::lookup::embed(&table, ids.clone())
+            umgen::ops::lookup::embed(&table, ids.clone())
         } else {
             embedding(table.weight.val(), ids.clone())
         };
@@ -308,7 +308,7 @@ fn adamw<B: AutodiffBackend>(
     use burn::tensor::ops::FloatTensorOps;
     use umgen::optim::{AdamWSettings, AdamWSlot, AdamWStep, adamw_reference};
     type Raw<B> = burn::tensor::ops::FloatTensor<<B as AutodiffBackend>::InnerBackend>;
-    let Some(kernels) = umgen::backbone::adamw::kernels::<B::InnerBackend>() else {
+    let Some(kernels) = umgen::ops::adamw::kernels::<B::InnerBackend>() else {
         writeln!(out, "{:<26} no multi-tensor kernel on this backend", "adamw")?;
         return Ok(());
     };

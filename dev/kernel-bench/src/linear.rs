@@ -1,5 +1,5 @@
 //! `umgen-kernel-bench linear`: a linear layer's product, forward and both gradients, on the kernels training can
-//! use (`umgen_backbone::matmul`: the named kernel, and cuBLAS on CUDA) against burn's own path on the same
+//! use (`umgen_ops::matmul`: the named kernel, and cuBLAS on CUDA) against burn's own path on the same
 //! backend. Each path's output and gradients are compared with burn's f32 path, and each forward+backward
 //! pass is timed.
 
@@ -12,7 +12,7 @@ use burn::tensor::{Distribution, FloatDType, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
-use umgen::backbone::matmul::{MatmulKernel, Written, named_for, select};
+use umgen::ops::matmul::{MatmulKernel, Written, named_for, select};
 use umgen_cli::device::Device;
 
 /// A product under test: `x · w` on the autodiff backend `B`.

@@ -85,7 +85,7 @@ mod cuda {
     use cubek::matmul::routines::simple::SimpleArgs;
     use std::io::Write;
     use std::time::Instant;
-    use umgen::backbone::matmul::launch_kernel;
+    use umgen::ops::matmul::launch_kernel;
 
     type Cb = burn_cubecl::CubeBackend<CudaRuntime, f32, i32, u8>;
     type Primitive = burn_cubecl::tensor::CubeTensor<CudaRuntime>;

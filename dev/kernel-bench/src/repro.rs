@@ -83,11 +83,11 @@ pub fn run(a: &BenchReproArgs) -> anyhow::Result<()> {
         writeln!(out, "run {i}: loss {last:.6} at step {}; {verdict}", a.steps)?;
     }
     #[cfg(feature = "cuda")]
-    if umgen::backbone::foreign_streams() > 0 {
+    if umgen::ops::foreign_streams() > 0 {
         writeln!(
             out,
             "side-stream work met another cubecl stream {} time(s)",
-            umgen::backbone::foreign_streams()
+            umgen::ops::foreign_streams()
         )?;
     }
     if differing > 0 {

@@ -2,20 +2,12 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod ama;
-mod attention;
 mod causality;
 mod decode;
-mod emulator;
-mod gelu;
 mod heads;
-mod lookup;
-mod norm;
 mod ordinal;
 mod precision;
 mod recompute;
-mod rows;
-mod temporal;
-mod xent;
 
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};

@@ -3,7 +3,7 @@
 use super::*;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
-use umgen_backbone::recompute::{layers_recomputed, scoped};
+use umgen_ops::recompute::{layers_recomputed, scoped};
 
 /// Every parameter gradient of `m`, flattened, in visiting order; `None` for a parameter without one.
 fn grads(m: &Backbone<A>, g: &GradientsParams) -> Vec<Option<Tensor<F, 1>>> {

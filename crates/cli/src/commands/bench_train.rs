@@ -120,7 +120,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         let model = Backbone::<B>::new(cfg, &spec, &dev)?;
         let mut model = broadcast_module(model, group.as_mut(), bucket)?;
         // The trainer's optimizer and clipping, so that the step is the one a run takes.
-        let kernels = umgen::backbone::adamw::kernels::<<B as AutodiffBackend>::InnerBackend>();
+        let kernels = umgen::ops::adamw::kernels::<<B as AutodiffBackend>::InnerBackend>();
         let mut optim = FusedAdamW::<_, B>::new(tc.adamw_settings()?).with_kernels(kernels);
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
@@ -248,7 +248,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             "matmul        {:?}, {} product(s) fell back (cuBLAS to the named kernel, or it to burn's; \
              the first is logged with its reason)",
             tc.matmul,
-            umgen::backbone::matmul::fallbacks()
+            umgen::ops::matmul::fallbacks()
         )?;
     }
     // Likewise the fused attention and layer-norm kernels.
@@ -258,46 +258,46 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             "attention     {:?}, {} pass(es) fell back (flash2 to the fused kernels, or those to the tiled; \
              the first is logged with its reason)",
             tc.attention,
-            umgen::backbone::flash::fallbacks()
+            umgen::ops::flash::fallbacks()
         )?;
         writeln!(
             out,
             "layer norm    {} pass(es) fell back (the CUDA kernels to burn's decomposition; the first is \
              logged with its reason)",
-            umgen::backbone::norm::fallbacks()
+            umgen::ops::norm::fallbacks()
         )?;
         writeln!(
             out,
             "bias + GELU   {:?}, {} pass(es) fell back (the CUDA kernels to burn's operations; the first is \
              logged with its reason)",
             tc.gelu,
-            umgen::backbone::gelu::fallbacks()
+            umgen::ops::gelu::fallbacks()
         )?;
         writeln!(
             out,
             "cross-entropy {:?}, {} pass(es) fell back (the CUDA kernels to burn's operations; the first is \
              logged with its reason)",
             tc.xent,
-            umgen::backbone::xent::fallbacks()
+            umgen::ops::xent::fallbacks()
         )?;
         writeln!(
             out,
             "embedding     {} table gradient(s) fell back (the CUDA kernels to the scatter; the first is logged \
              with its reason)",
-            umgen::backbone::lookup::fallbacks()
+            umgen::ops::lookup::fallbacks()
         )?;
         writeln!(
             out,
             "row sums      {} sum(s) fell back (the CUDA kernel to burn's reductions; the first is logged with \
              its reason)",
-            umgen::backbone::rows::fallbacks()
+            umgen::ops::rows::fallbacks()
         )?;
         writeln!(
             out,
             "adamw         {:?}, {} step(s) fell back (the CUDA kernel to burn's AdamW or its arithmetic; the \
              first is logged with its reason), gradients clipped at {}",
             tc.adamw,
-            umgen::backbone::adamw::fallbacks(),
+            umgen::ops::adamw::fallbacks(),
             tc.grad_clip
         )?;
         writeln!(
@@ -312,7 +312,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         if tc.recompute {
             format!(
                 "on: {} self-attention layer passes kept only their input",
-                umgen::backbone::recompute::layers_recomputed()
+                umgen::ops::recompute::layers_recomputed()
             )
         } else {
             "off".into()

@@ -1,6 +1,6 @@
 //! Launching a checked operation: its kernel with the grid its source expects, or cuBLAS.
 
-use super::{CudaExec, device};
+use super::exec::{CudaExec, device};
 use crate::ops::{Elem, Gemm, Op};
 use cudarc::cublas::{result as blas, sys as blas_sys};
 use cudarc::driver::{CudaFunction, DeviceRepr, LaunchConfig, PushKernelArg, sys};

@@ -2,7 +2,7 @@
 //! byte layouts of the draw's rule and group-run tables.
 
 use super::{i, l};
-use crate::gpu::CudaExec;
+use crate::gpu::exec::CudaExec;
 use crate::ops::{self, GroupRun, Rule};
 use cudarc::driver::DeviceRepr;
 

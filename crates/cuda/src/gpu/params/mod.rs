@@ -6,7 +6,7 @@ mod frame;
 
 pub(super) use frame::{rule_bytes, run_bytes};
 
-use super::CudaExec;
+use super::exec::CudaExec;
 use crate::ops::{self, GemvIn, GemvOut, Keys};
 use cudarc::driver::DeviceRepr;
 

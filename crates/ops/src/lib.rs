@@ -1,0 +1,48 @@
+//! The operations umgen's backbone calls, each with its CPU path, its CUDA kernels and the policy that
+//! picks between them.
+//!
+//! The model (`umgen-backbone`) is generic over `B: Backend` and calls these functions; on the backends
+//! it trains on (`Autodiff<Flex>` on the CPU, `Autodiff<Cuda>`), most of them are custom autodiff
+//! operations whose passes a trait of the inner backend computes: burn's tensor operations by default,
+//! hand-written kernels on CUDA. Rust has no specialisation, so each operation recognises those backends
+//! by type ([`dispatch`]); any other backend takes burn's own operations, which compute the same function.
+//!
+//! - [`format`]: the products' number format ([`Precision`]: f32, or bf16 operands with f32 master
+//!   weights) and the casts around it; [`linear`]: linear layers in it, on the named kernel ([`matmul`]:
+//!   cuBLAS or cubek) on CUDA, the bias added by [`rows`].
+//! - [`attention`]: the training attention as one operation that keeps only its inputs, output and
+//!   log-sum-exp; its passes are [`flash`]'s kernels on CUDA (FlashAttention-2 in CUDA C, or cubecl
+//!   kernels) and [`tiled`]'s blocks elsewhere. [`temporal`]: the TAR's attention over time on the rows
+//!   as they lie. [`heads`]: the head layout.
+//! - [`norm`] (layer norm), [`gelu`] (bias + GELU), [`lookup`] (embedding lookups and their gradient),
+//!   [`xent`] (cross-entropy from logits, with [`smoothing`]'s targets): one kernel per pass on CUDA.
+//! - [`recompute`]: a self-attention layer as one operation that keeps only its input and recomputes its
+//!   activations in the backward pass (activation checkpointing).
+//! - [`adamw`]: the optimizer's multi-tensor AdamW step and gradient norm on CUDA.
+//! - [`kernel_stream`]: where the CUDA C kernels are launched (cubecl's stream or a side stream) and from
+//!   which thread.
+
+pub mod adamw;
+pub mod attention;
+mod dispatch;
+pub mod flash;
+pub mod format;
+pub mod gelu;
+pub mod heads;
+pub mod kernel_stream;
+pub mod linear;
+pub mod lookup;
+pub mod matmul;
+pub mod norm;
+pub mod recompute;
+pub mod rows;
+#[cfg(feature = "cuda")]
+mod side;
+pub mod smoothing;
+pub mod temporal;
+pub mod tiled;
+pub mod xent;
+
+pub use format::Precision;
+#[cfg(feature = "cuda")]
+pub use side::{device_thread_calls, foreign_streams};

@@ -1,0 +1,89 @@
+//! Linear layers in the products' format ([`crate::format`]): on the training backends the product runs on
+//! the named kernel ([`crate::matmul`]) as one `[m, k] × [k, n]` product over all leading dimensions, the
+//! bias added by [`crate::rows`] in the format the consumer reads.
+
+use crate::format::{Precision, operand, widen};
+use crate::matmul::Written;
+use burn::nn::Linear;
+use burn::tensor::backend::Backend;
+use burn::tensor::{FloatDType, Tensor};
+
+/// `x · w` over the last axis of `x` as one `[m, k] × [k, n]` product by `product` (the named kernel, over
+/// all leading dimensions at once), written in the `written` formats: the `[m, n]` rows, and the
+/// dimensions they take back (`x`'s, the last one `n`).
+pub(crate) fn product_rows<B: Backend, const D: usize>(
+    product: crate::matmul::ProductFn<B>,
+    x: Tensor<B, D>,
+    w: Tensor<B, 2>,
+    p: Precision,
+    written: Written,
+) -> (Tensor<B, 2>, [usize; D]) {
+    let mut dims = x.dims();
+    let k = dims[D - 1];
+    dims[D - 1] = w.dims()[1];
+    (product(x.reshape([-1, k as i32]), w, p, written), dims)
+}
+
+/// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32 ([`crate::rows::add`]). Training on CUDA runs the
+/// product on the named kernel (`matmul.rs`), as one `[m, k] × [k, n]` product over all leading dimensions.
+pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
+    linear_with(layer, x, p, FloatDType::F32)
+}
+
+/// `layer.forward(x)` in `format`, the format its consumer reads (bf16 attention operands): on the named
+/// kernel the product is written in it and the bias added in it, where [`linear`] writes f32 and the
+/// consumer casts (three passes over the result instead of one). The gradient comes back in any format.
+pub fn linear_in<B: Backend, const D: usize>(
+    layer: &Linear<B>,
+    x: Tensor<B, D>,
+    p: Precision,
+    format: FloatDType,
+) -> Tensor<B, D> {
+    let Some(product) = crate::matmul::named_for::<B>().filter(|_| format != FloatDType::F32) else {
+        return linear(layer, x, p).cast(format);
+    };
+    let written = Written {
+        out: format,
+        dx: FloatDType::F32,
+    };
+    let (y, dims) = product_rows(product, x, layer.weight.val(), p, written);
+    let y = y.reshape(dims);
+    match &layer.bias {
+        Some(bias) => crate::rows::add_for(y, bias.val(), Some(p.operand_dtype())),
+        None => y,
+    }
+}
+
+/// [`linear`] whose input's gradient is written in `dx` where the named kernel computes it: the MLP's
+/// second layer (its input's gradient only feeds the bias + GELU kernel's backward pass, which reads bf16)
+/// and the attention's output projection (flash2's backward pass reads the output's gradient in bf16).
+pub fn linear_with<B: Backend, const D: usize>(
+    layer: &Linear<B>,
+    x: Tensor<B, D>,
+    p: Precision,
+    dx: FloatDType,
+) -> Tensor<B, D> {
+    let w = layer.weight.val();
+    let y = match (crate::matmul::named_for::<B>(), p) {
+        (Some(product), _) => {
+            let written = Written {
+                out: FloatDType::F32,
+                dx,
+            };
+            let (y, dims) = product_rows(product, x, w, p, written);
+            y.reshape(dims)
+        }
+        // burn's layer adds the bias inside its product.
+        (None, Precision::F32) => return layer.forward(x),
+        (None, Precision::Bf16 | Precision::Bf16Linear) => widen(
+            burn::tensor::module::linear(operand(x, p), operand(w, p), None),
+            p,
+        ),
+    };
+    // The product's backward pass reads its gradient in the operands' format: the bias's sum writes that
+    // copy in the same pass (`rows::add_for`).
+    match &layer.bias {
+        Some(bias) => crate::rows::add_for(y, bias.val(), Some(p.operand_dtype())),
+        None => y,
+    }
+}

@@ -1,0 +1,161 @@
+//! [`NamedMatmul`] for `Cuda` (burn-fusion over the cubecl backend): a custom operation in the fusion
+//! stream that launches cubek's `specialized_tma_mma` (or cuBLAS, `cublas.rs`, with `train.matmul =
+//! "cublas"`) on the two operands as they lie in memory, row- or column-major, and writes the result in the
+//! format asked for (f32, or bf16 from bf16 operands), accumulating in f32.
+//!
+//! The fusion stream cannot fuse a custom operation, so element-wise work around a product (a bias, a
+//! cast) runs as its own kernels instead of inside burn's fused matmul; the kernel's speed pays for that
+//! many times over on the training step's shapes (`umgen-kernel-bench matmul`, `docs/decisions/006-products-on-cublas-in-bf16.md`).
+
+use super::NamedMatmul;
+use crate::format::float_format;
+use crate::side::{Handles, Inner, Primitive};
+use burn::backend::Cuda;
+use burn::cubecl::cuda::CudaRuntime;
+use burn::tensor::ops::{FloatTensor, FloatTensorOps};
+use burn::tensor::{DType, FloatDType, Shape};
+use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::kernel::matmul::{MatmulStrategy, init_matmul_output, matmul};
+use burn_fusion::stream::{Operation, OperationStreams};
+use burn_ir::{CustomOpIr, OperationIr, OperationOutput, TensorIr};
+use cubek::matmul::definition::{MatmulElems, MatmulGlobalElems};
+use cubek::matmul::launch::Strategy;
+use cubek::matmul::routines::BlueprintStrategy;
+use cubek::std::InputBinding;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Products that fell back: from cuBLAS to the named kernel, or from the named kernel to burn's default.
+static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
+
+/// How many products fell back (cuBLAS to the named kernel, or it to burn's default) in this process; the
+/// first is logged with its reason at `warn`, the rest at `debug`.
+pub fn fallbacks() -> usize {
+    FALLBACKS.load(Ordering::Relaxed)
+}
+
+impl NamedMatmul for Cuda {
+    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>, out: FloatDType) -> FloatTensor<Self> {
+        let client = lhs.client.clone();
+        let shape = Shape::new([lhs.shape[0], rhs.shape[1]]);
+        let out = TensorIr::uninit(client.create_empty_handle(), shape, DType::from(out));
+        let streams = OperationStreams::with_inputs([&lhs, &rhs]);
+        let desc = CustomOpIr::new("umgen_named_matmul", &[lhs.into_ir(), rhs.into_ir()], &[out]);
+        client
+            .register(streams, OperationIr::Custom(desc.clone()), Product { desc })
+            .output()
+    }
+}
+
+/// The operation as the fusion stream runs it.
+#[derive(Debug)]
+struct Product {
+    desc: CustomOpIr,
+}
+
+impl Operation<FusionCubeRuntime<CudaRuntime>> for Product {
+    fn execute(&self, handles: &mut Handles) {
+        let ([l, r], [o]) = self.desc.as_fixed();
+        let lhs = handles.get_float_tensor::<Inner>(l);
+        let rhs = handles.get_float_tensor::<Inner>(r);
+        handles.register_float_tensor::<Inner>(&o.id, run(lhs, rhs, o.dtype));
+    }
+}
+
+/// The kernel.
+fn strategy() -> Strategy {
+    Strategy::SpecializedTmaMma(BlueprintStrategy::Inferred(().into()))
+}
+
+/// Why the tensor-memory-accelerator kernel cannot read `t`, if it cannot: it needs a matrix whose rows or
+/// columns are contiguous and whose other stride is a multiple of 16 bytes.
+fn unfit(t: &Primitive) -> Option<String> {
+    let (shape, strides) = (t.meta.shape(), t.meta.strides());
+    if shape.len() != 2 || strides.len() != 2 {
+        return Some(format!("rank {}", shape.len()));
+    }
+    let lead = match (strides[0], strides[1]) {
+        (s, 1) => s,
+        (1, s) => s,
+        (a, b) => return Some(format!("strides [{a}, {b}]")),
+    };
+    if t.qparams.is_some() {
+        return Some("quantized operand".into());
+    }
+    (!(lead * t.elem_size()).is_multiple_of(16))
+        .then(|| format!("leading stride {lead} × {} bytes", t.elem_size()))
+}
+
+fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), String> {
+    if let Some(why) = unfit(lhs).or_else(|| unfit(rhs)) {
+        return Err(why);
+    }
+    launch_kernel(&strategy(), lhs, rhs, out)
+}
+
+/// Launches cubek's matmul kernel `strategy` once on `lhs × rhs` into `out` (formats as the tensors have
+/// them); a kernel that cannot take the shape or format says why. `umgen-kernel-bench matmul` times every
+/// strategy through this.
+pub fn launch_kernel(
+    strategy: &Strategy,
+    lhs: &Primitive,
+    rhs: &Primitive,
+    out: &Primitive,
+) -> Result<(), String> {
+    let mut elems = MatmulElems::from_globals(&MatmulGlobalElems {
+        lhs: lhs.dtype.into(),
+        rhs: rhs.dtype.into(),
+        out: out.dtype.into(),
+    });
+    let l = InputBinding::new(lhs.clone().binding(), lhs.dtype.into());
+    let r = InputBinding::new(rhs.clone().binding(), rhs.dtype.into());
+    let client = lhs.client.clone();
+    // Some kernels assert on shapes they cannot tile instead of returning an error.
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        cubek::matmul::launch::launch_ref(strategy, &client, l, r, out.clone().binding(), &mut elems)
+    }))
+    .map_err(|_| "the kernel panicked".to_string())?
+    .map_err(|e| format!("{e:?}"))
+}
+
+/// Counts and logs a product that `kernel` refused (the first at `warn`, the rest at `debug`).
+fn fell_back(kernel: &str, instead: &str, lhs: &Primitive, rhs: &Primitive, why: &str) {
+    let n = FALLBACKS.fetch_add(1, Ordering::Relaxed) + 1;
+    let what = format!(
+        "{:?} × {:?} ({:?}): {why}",
+        lhs.meta.shape(),
+        rhs.meta.shape(),
+        lhs.dtype
+    );
+    if n == 1 {
+        tracing::warn!("{kernel} refused {what}; {instead} runs it (counted in fallbacks)");
+    } else {
+        tracing::debug!("matmul fallback #{n} ({kernel}): {what}");
+    }
+}
+
+/// `lhs · rhs` in `dtype` on cuBLAS when selected, else (or when it refuses) on the named kernel, else on
+/// burn's default kernel.
+fn run(lhs: Primitive, rhs: Primitive, dtype: DType) -> Primitive {
+    let out = init_matmul_output(&lhs, &rhs, dtype);
+    if super::selected() == super::MatmulKernel::Cublas {
+        match crate::side::on_device_thread(&lhs, || super::cublas::launch(&lhs, &rhs, &out)) {
+            Ok(()) => return out,
+            Err(why) => fell_back("cuBLAS", "the named kernel", &lhs, &rhs, &why),
+        }
+    }
+    match launch(&lhs, &rhs, &out) {
+        Ok(()) => return out,
+        Err(why) => fell_back(
+            "the named matmul kernel",
+            "burn's default kernel",
+            &lhs,
+            &rhs,
+            &why,
+        ),
+    }
+    match matmul(lhs.clone(), rhs.clone(), None, MatmulStrategy::default(), dtype) {
+        Ok(out) => out,
+        // burn's default kernel writes the operands' own format; cast after it.
+        Err(_) => Inner::float_cast(Inner::float_matmul(lhs, rhs), float_format(dtype)),
+    }
+}

@@ -1,0 +1,271 @@
+//! Layer norm as one operation with a hand-written backward pass ([`layer_norm`]).
+//!
+//! burn's `LayerNorm` is a decomposition (mean, centred variance, normalisation, scale, shift), and its
+//! autodiff keeps the intermediate tensors and runs a backward kernel for each step. In a profiled `small`
+//! step on an H100 (docs/decisions/007-memory-bound-training-kernels.md) one layer norm of a `[70,368, 384]` activation took 8 kernels and
+//! about 0.7 ms forward, where reading the input once and writing the output takes 0.08 ms; the step has
+//! 26 of them. On the training backends [`layer_norm`] is instead a custom autodiff operation whose passes
+//! are [`FusedNorm`]'s: on CUDA, one kernel each (`norm/norm.cu`, one warp a row); on the CPU, the same
+//! decomposition as before ([`forward_decomposed`], [`backward_decomposed`]), which CUDA also runs for
+//! rows over 1,024 wide (counted by [`fallbacks`]). The operation keeps only its
+//! input (which the residual stream keeps anyway), the rows' means and `1/σ`. Where the output feeds
+//! products only, [`layer_norm_operand`] writes it in the products' format (bf16 under mixed precision),
+//! so that no f32 copy is written and cast.
+
+#[cfg(feature = "cuda")]
+mod cuda;
+
+use crate::dispatch::{Choice, same};
+use crate::format::float;
+use burn::backend::Autodiff;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::nn::LayerNorm;
+use burn::tensor::backend::Backend;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{FloatDType, Tensor};
+use serde::{Deserialize, Serialize};
+
+/// What computes the training layer norms on CUDA (`train.norm`); the CPU always runs the decomposition.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum NormKernel {
+    /// One CUDA C kernel per pass (`norm/norm.cu`). The default.
+    #[default]
+    Fused,
+    /// burn's decomposition, as before the kernels (for comparing them).
+    Burn,
+}
+
+/// The process's choice (as the attention's) and its fallbacks.
+static CHOICE: Choice = Choice::new("layer-norm");
+
+/// Chooses what computes the layer norms of every training pass this process runs from now on.
+pub fn select(kernel: NormKernel) {
+    CHOICE.set_burn(kernel == NormKernel::Burn);
+}
+
+/// What [`select`] chose ([`NormKernel::Fused`] unless told otherwise).
+pub fn selected() -> NormKernel {
+    if CHOICE.burn() {
+        NormKernel::Burn
+    } else {
+        NormKernel::Fused
+    }
+}
+
+/// How many layer-norm passes fell back from the CUDA kernels to the decomposition in this process.
+pub fn fallbacks() -> usize {
+    CHOICE.fallbacks()
+}
+
+/// Counts a pass the kernels refused for `why`; logs the first.
+#[cfg_attr(not(feature = "cuda"), allow(dead_code))]
+fn fell_back(why: &str) {
+    CHOICE.fell_back(why);
+}
+
+/// ε of every layer norm the backbone builds (`LayerNormConfig::new`'s default; burn keeps the field
+/// private, and a test checks the two agree).
+pub const LN_EPS: f64 = 1e-5;
+
+/// A backend that computes a layer norm's two passes over the rows of `[rows, d]` matrices (f32). The
+/// passes default to burn's operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides
+/// them.
+pub trait FusedNorm: Backend {
+    /// `(x − mean) / √(var + ε) · γ + β` row by row (centred variance) in `out`'s format, with each
+    /// row's mean and `1/√(var + ε)` (`[rows]`, f32) for the backward pass.
+    fn norm_forward(
+        x: Tensor<Self, 2>,
+        gamma: Tensor<Self, 1>,
+        beta: Tensor<Self, 1>,
+        eps: f64,
+        out: FloatDType,
+    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        forward_decomposed(x, gamma, beta, eps, out)
+    }
+
+    /// The gradients of the input, the scale and the shift from the output's gradient `dy`, given the
+    /// forward pass's input, means and `1/σ`.
+    fn norm_backward(
+        dy: Tensor<Self, 2>,
+        x: Tensor<Self, 2>,
+        mean: Tensor<Self, 1>,
+        rstd: Tensor<Self, 1>,
+        gamma: Tensor<Self, 1>,
+    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        backward_decomposed(dy, x, mean, rstd, gamma)
+    }
+}
+
+/// [`FusedNorm::norm_forward`] as burn operations: the output computed in f32, then cast to `out`'s format.
+pub fn forward_decomposed<B: Backend>(
+    x: Tensor<B, 2>,
+    gamma: Tensor<B, 1>,
+    beta: Tensor<B, 1>,
+    eps: f64,
+    out: FloatDType,
+) -> (Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>) {
+    let rows = x.dims()[0];
+    let mean = x.clone().mean_dim(1);
+    let centered = x - mean.clone();
+    let rstd = centered
+        .clone()
+        .powi_scalar(2)
+        .mean_dim(1)
+        .add_scalar(eps)
+        .sqrt()
+        .recip();
+    let y = centered * rstd.clone() * gamma.unsqueeze::<2>() + beta.unsqueeze::<2>();
+    (y.cast(out), mean.reshape([rows]), rstd.reshape([rows]))
+}
+
+/// [`FusedNorm::norm_backward`] as burn operations.
+pub fn backward_decomposed<B: Backend>(
+    dy: Tensor<B, 2>,
+    x: Tensor<B, 2>,
+    mean: Tensor<B, 1>,
+    rstd: Tensor<B, 1>,
+    gamma: Tensor<B, 1>,
+) -> (Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>) {
+    let rstd = rstd.unsqueeze_dim::<2>(1);
+    let xhat = (x - mean.unsqueeze_dim::<2>(1)) * rstd.clone();
+    let dgamma = crate::rows::sum(dy.clone() * xhat.clone());
+    let dbeta = crate::rows::sum(dy.clone());
+    let g = dy * gamma.unsqueeze::<2>();
+    let dx = (g.clone() - g.clone().mean_dim(1) - xhat.clone() * (g * xhat).mean_dim(1)) * rstd;
+    (dx, dgamma, dbeta)
+}
+
+/// The CPU backend computes the decomposition.
+impl FusedNorm for burn::backend::Flex {}
+
+/// `ln.forward(x)` over the last axis: on the training backends one operation with [`FusedNorm`]'s
+/// passes, elsewhere (inference backends) the decomposition.
+pub fn layer_norm<B: Backend, const D: usize>(ln: &LayerNorm<B>, x: Tensor<B, D>) -> Tensor<B, D> {
+    layer_norm_as(ln, x, FloatDType::F32)
+}
+
+/// [`layer_norm`] for an output that only products read: in their operand format under `p`
+/// (`precision::operand` of the f32 norm, written so by the kernel on CUDA).
+pub fn layer_norm_operand<B: Backend, const D: usize>(
+    ln: &LayerNorm<B>,
+    x: Tensor<B, D>,
+    p: crate::format::Precision,
+) -> Tensor<B, D> {
+    layer_norm_as(ln, x, p.operand_dtype())
+}
+
+/// [`layer_norm`] with its output in `out`'s format.
+fn layer_norm_as<B: Backend, const D: usize>(
+    ln: &LayerNorm<B>,
+    x: Tensor<B, D>,
+    out: FloatDType,
+) -> Tensor<B, D> {
+    let dims = x.dims();
+    let d = dims[D - 1];
+    let flat = x.reshape([-1, d as i32]);
+    let gamma = ln.gamma.val();
+    let beta = match &ln.beta {
+        Some(beta) => beta.val(),
+        None => Tensor::zeros([d], &gamma.device()),
+    };
+    let y = match tracked::<B>() {
+        Some(op) => op(flat, gamma, beta, out),
+        None => forward_decomposed(flat, gamma, beta, LN_EPS, out).0,
+    };
+    y.reshape(dims)
+}
+
+/// The operation on `B`: `[rows, d]`, γ, β in, `[rows, d]` out in the format given.
+type NormOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>, FloatDType) -> Tensor<B, 2>;
+
+/// The custom operation when `B` is a training backend.
+fn tracked<B: Backend>() -> Option<NormOp<B>> {
+    let found = on::<B, burn::backend::Flex>();
+    #[cfg(feature = "cuda")]
+    let found = found.or_else(|| on::<B, burn::backend::Cuda>());
+    found
+}
+
+/// The operation on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+fn on<B: Backend, I: FusedNorm>() -> Option<NormOp<B>> {
+    let plain: NormOp<Autodiff<I>> = apply::<I, NoCheckpointing>;
+    let balanced: NormOp<Autodiff<I, BalancedCheckpointing>> = apply::<I, BalancedCheckpointing>;
+    same(plain).or_else(|| same(balanced))
+}
+
+/// The backward pass of [`layer_norm`].
+#[derive(Debug)]
+struct Norm;
+
+/// What the backward pass reads: the input, the rows' means and `1/σ`, and γ (inner backend).
+type Kept<I> = [FloatTensor<I>; 4];
+
+impl<I: FusedNorm> Backward<I, 3> for Norm {
+    type State = Kept<I>;
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
+        // A product that read a bf16 output may hand back a bf16 gradient (burn's matmul does).
+        let dy = float::<I, 2>(grads.consume::<I>(&ops.node)).cast(FloatDType::F32);
+        let [x, mean, rstd, gamma] = ops.state;
+        let (dx, dgamma, dbeta) = I::norm_backward(dy, float(x), float(mean), float(rstd), float(gamma));
+        let [x_node, gamma_node, beta_node] = ops.parents;
+        // Only for parents that ask (a frozen norm, an untracked input).
+        if let Some(node) = x_node {
+            grads.register::<I>(node.id, dx.into_primitive().tensor());
+        }
+        if let Some(node) = gamma_node {
+            grads.register::<I>(node.id, dgamma.into_primitive().tensor());
+        }
+        if let Some(node) = beta_node {
+            grads.register::<I>(node.id, dbeta.into_primitive().tensor());
+        }
+    }
+}
+
+/// [`layer_norm`] of `[rows, d]` as one operation on `Autodiff<I, C>`.
+fn apply<I: FusedNorm, C: CheckpointStrategy>(
+    x: Tensor<Autodiff<I, C>, 2>,
+    gamma: Tensor<Autodiff<I, C>, 1>,
+    beta: Tensor<Autodiff<I, C>, 1>,
+    out: FloatDType,
+) -> Tensor<Autodiff<I, C>, 2> {
+    let (x, gamma, beta) = (
+        x.into_primitive().tensor(),
+        gamma.into_primitive().tensor(),
+        beta.into_primitive().tensor(),
+    );
+    let (y, mean, rstd) = I::norm_forward(
+        float(x.primitive.clone()),
+        float(gamma.primitive.clone()),
+        float(beta.primitive.clone()),
+        LN_EPS,
+        out,
+    );
+    let y = y.into_primitive().tensor();
+    let out = match Norm
+        .prepare::<C>([x.node.clone(), gamma.node.clone(), beta.node.clone()])
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => {
+            let kept = [
+                x.primitive.clone(),
+                mean.into_primitive().tensor(),
+                rstd.into_primitive().tensor(),
+                gamma.primitive.clone(),
+            ];
+            prep.finish(kept, y)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(y),
+    };
+    float(out)
+}
+
+#[cfg(test)]
+mod tests;

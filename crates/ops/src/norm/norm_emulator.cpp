@@ -1,0 +1,105 @@
+// Runs the layer-norm kernels (norm.cu) on the host, one std::thread per CUDA thread of a block with the
+// warp shuffle emulated, and compares their results with a double-precision reference:
+//
+//   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/norm-emu
+//       crates/ops/src/norm/norm_emulator.cpp && /tmp/norm-emu
+//
+// (`crates/ops/tests/ops/norm.rs` runs it in the test suite.) Exit status 0 when every case
+// agrees within f32 tolerance.
+#include "../../../cuda/src/kernels/warp_emulator.h"
+#include "norm.cu"
+// The bound entry points (which cubecl's stream launches) of the `small` and `paper` widths.
+NORM_BOUND_KERNELS(12)
+NORM_BOUND_KERNELS(24)
+
+struct Case {
+    long long rows;
+    int d, per, grid, warps;
+};
+
+static bool run(const Case& c, std::mt19937& rng) {
+    const long long n = c.rows * c.d;
+    std::normal_distribution<float> normal(0.f, 1.f);
+    std::vector<float> x(n), dy(n), gamma(c.d), beta(c.d);
+    for (long long i = 0; i < n; i++) x[i] = 3.f + 2.f * normal(rng), dy[i] = normal(rng);
+    for (int i = 0; i < c.d; i++) gamma[i] = 1.f + 0.3f * normal(rng), beta[i] = 0.3f * normal(rng);
+    const float eps = 1e-5f;
+    const long long warps = (long long)c.grid * c.warps;
+    std::vector<float> y(n), mean(c.rows), rstd(c.rows), dx(n), dg(warps * c.d, NAN), db(warps * c.d, NAN);
+    NormParams p{x.data(), gamma.data(), beta.data(), dy.data(), mean.data(), rstd.data(), y.data(),
+                 mean.data(), rstd.data(), dx.data(), dg.data(), db.data(), c.rows, c.d, eps};
+    void (*fwd)(NormParams) = nullptr;
+    void (*bwd)(NormParams) = nullptr;
+    switch (c.per) {
+        case 4: fwd = umgen_norm_forward_4, bwd = umgen_norm_backward_4; break;
+        case 8: fwd = umgen_norm_forward_8, bwd = umgen_norm_backward_8; break;
+        case 12: fwd = umgen_norm_forward_12, bwd = umgen_norm_backward_12; break;
+        case 16: fwd = umgen_norm_forward_16, bwd = umgen_norm_backward_16; break;
+        case 24: fwd = umgen_norm_forward_24, bwd = umgen_norm_backward_24; break;
+        case 32: fwd = umgen_norm_forward_32, bwd = umgen_norm_backward_32; break;
+    }
+    launch(fwd, p, c.grid, c.warps);
+    launch(bwd, p, c.grid, c.warps);
+
+    // The reference, in double precision.
+    std::vector<double> ry(n), rmean(c.rows), rrstd(c.rows), rdx(n), rdg(c.d, 0), rdb(c.d, 0);
+    for (long long r = 0; r < c.rows; r++) {
+        const float* xr = &x[r * c.d];
+        const float* g = &dy[r * c.d];
+        double m = 0, v = 0;
+        for (int i = 0; i < c.d; i++) m += xr[i];
+        m /= c.d;
+        for (int i = 0; i < c.d; i++) v += (xr[i] - m) * (xr[i] - m);
+        const double s = 1 / std::sqrt(v / c.d + eps);
+        rmean[r] = m, rrstd[r] = s;
+        double mg = 0, mgx = 0;
+        for (int i = 0; i < c.d; i++) {
+            const double xh = (xr[i] - m) * s;
+            ry[r * c.d + i] = xh * gamma[i] + beta[i];
+            mg += g[i] * gamma[i];
+            mgx += g[i] * gamma[i] * xh;
+            rdg[i] += g[i] * xh;
+            rdb[i] += g[i];
+        }
+        mg /= c.d, mgx /= c.d;
+        for (int i = 0; i < c.d; i++) {
+            const double xh = (xr[i] - m) * s;
+            rdx[r * c.d + i] = s * (g[i] * gamma[i] - mg - xh * mgx);
+        }
+    }
+    // The bf16 output of the bound forward pass (where products read the norm): the f32 output rounded, to
+    // the bit, as the cast it replaces rounded it.
+    double bf16_mismatch = 0;
+    if (c.per == 12 || c.per == 24) {
+        std::vector<u16> yb(n, 0xffff);
+        std::vector<float> m2(c.rows), r2(c.rows);
+        const NormSizes sizes{c.rows, c.d, eps};
+        auto bf16 = c.per == 12 ? umgen_norm_forward_bound_bf16_12 : umgen_norm_forward_bound_bf16_24;
+        run_grid([&] { bf16(x.data(), gamma.data(), beta.data(), yb.data(), m2.data(), r2.data(), sizes); },
+                 c.grid, c.warps);
+        for (long long i = 0; i < n; i++) bf16_mismatch += yb[i] != to_bf16(y[i]);
+    }
+    // The warps' partial column sums, added as the caller adds them.
+    std::vector<float> sdg(c.d, 0), sdb(c.d, 0);
+    for (long long w = 0; w < warps; w++)
+        for (int i = 0; i < c.d; i++) sdg[i] += dg[w * c.d + i], sdb[i] += db[w * c.d + i];
+    const double errs[] = {relative_error(y, ry), relative_error(mean, rmean), relative_error(rstd, rrstd),
+                           relative_error(dx, rdx), relative_error(sdg, rdg), relative_error(sdb, rdb),
+                           bf16_mismatch};
+    const char* const names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta", "bf16 y unlike y rounded"};
+    printf("rows %lld d %d per %d grid %d × %d warps:", c.rows, c.d, c.per, c.grid, c.warps);
+    // f32 sums of up to a few hundred terms.
+    return report(errs, names, 2e-5);
+}
+
+int main() {
+    const Case cases[] = {
+        {37, 48, 4, 2, 4},     // rows looped by 8 warps, a row narrower than a warp's capacity
+        {5, 384, 12, 1, 8},    // more warps than rows: idle warps write zero partial sums
+        {300, 100, 4, 3, 8},   // d not a multiple of 32
+        {64, 384, 16, 2, 8},   // a larger kernel than needed
+        {20, 768, 24, 1, 4},   // the `paper` width
+        {9, 1024, 32, 1, 2},   // the widest kernel, full
+    };
+    return run_cases(cases, run, 7);
+}

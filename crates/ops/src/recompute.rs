@@ -1,0 +1,285 @@
+//! Activation checkpointing of the self-attention layers (`train.recompute`).
+//!
+//! A training step keeps about twenty activations of a layer's width for each layer's backward pass;
+//! `paper` (72 self-attention layers over 20 × 2,199 tokens of width 768) needs more than an H200 holds.
+//! With recomputation on, each self-attention layer ([`LayerParts`]: the OAR layers and both halves of every TAR block) runs as one
+//! custom autodiff operation that keeps only its input (and dropout masks, when dropout is on) and
+//! recomputes its activations in the backward pass, as PyTorch's `torch.utils.checkpoint` does for the
+//! reference. The cost is one more forward pass of those layers per step.
+//!
+//! The backward pass is written out by hand in `recompute/math.rs` (burn 0.21 cannot run autodiff inside
+//! a backward step; `math.rs` says why). Like the other training operations it exists for the autodiff backends this
+//! workspace trains on (CUDA, and the CPU's `Flex`, where the tests compare it with burn's autodiff);
+//! elsewhere, and while recomputation is off (the default), layers take burn's autodiff.
+
+mod math;
+
+use crate::dispatch::same;
+use crate::format::Precision;
+use crate::format::float;
+use burn::backend::Autodiff;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::module::Param;
+use burn::nn::{LayerNorm, Linear};
+use burn::tensor::backend::Backend;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{Distribution, Tensor};
+use math::{LayerBackend, Lin, Mask, Masks, Norm, Setting, Weights};
+use std::cell::Cell;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+/// Recomputation on (process-wide, like the kernel choices: it changes memory and time, not results).
+static ON: AtomicBool = AtomicBool::new(false);
+
+/// Turns recomputation of the self-attention layers on or off for every step this process runs from now on.
+pub fn set_enabled(on: bool) {
+    ON.store(on, Ordering::Relaxed);
+}
+
+/// Layers run by the recomputing operation so far (the bench prints it, tests check the path was taken).
+static RUN: AtomicU64 = AtomicU64::new(0);
+
+/// How many layer passes the recomputing operation has run in this process.
+pub fn layers_recomputed() -> u64 {
+    RUN.load(Ordering::Relaxed)
+}
+
+thread_local! {
+    /// [`scoped`]'s setting for this thread, over the process-wide one.
+    static SCOPED: Cell<Option<bool>> = const { Cell::new(None) };
+}
+
+/// Whether recomputation is on in this thread: [`scoped`]'s setting, else [`set_enabled`]'s.
+pub fn enabled() -> bool {
+    SCOPED
+        .with(Cell::get)
+        .unwrap_or_else(|| ON.load(Ordering::Relaxed))
+}
+
+/// Runs `f` with recomputation `on` or off in this thread whatever the process-wide setting (tests that
+/// compare both paths run side by side in one process).
+pub fn scoped<R>(on: bool, f: impl FnOnce() -> R) -> R {
+    let before = SCOPED.with(|s| s.replace(Some(on)));
+    let out = f();
+    SCOPED.with(|s| s.set(before));
+    out
+}
+
+/// The parts of a pre-norm self-attention layer (`x + proj(attn(ln1(x)))`, then `x + out(gelu(fc(ln2(x))))`),
+/// borrowed from the model that holds them.
+#[derive(Debug)]
+pub struct LayerParts<'a, B: Backend> {
+    /// The attention's layer norm.
+    pub ln1: &'a LayerNorm<B>,
+    /// The queries' projection.
+    pub q: &'a Linear<B>,
+    /// The keys' and values' projection, keys' columns first.
+    pub kv: &'a Linear<B>,
+    /// The attention's output projection.
+    pub proj: &'a Linear<B>,
+    /// The MLP's layer norm.
+    pub ln2: &'a LayerNorm<B>,
+    /// The MLP's first layer (followed by GELU).
+    pub fc: &'a Linear<B>,
+    /// The MLP's second layer.
+    pub out: &'a Linear<B>,
+    /// Attention heads.
+    pub heads: usize,
+    /// The products' format.
+    pub precision: Precision,
+    /// Dropout on the attention's output.
+    pub attn_dropout: f64,
+    /// Dropout on the MLP's output.
+    pub mlp_dropout: f64,
+}
+
+/// A self-attention layer applied to `x` `[b, l, d]` (`causal` or not); with `Some((t, n))` a TAR temporal
+/// layer on `l = t · n` rows, each position attending over its own `t` frames (`math::Setting::over_time`).
+/// `Err(x)` hands the input back for a layer the operation does not take (one without biases), which the
+/// caller runs through burn's autodiff.
+pub type LayerFn<B> = fn(&LayerParts<'_, B>, Tensor<B, 3>, bool, Option<(usize, usize)>) -> Taken<B>;
+
+/// The layer's output, or its input handed back (`Err`) for a layer the operation does not take.
+pub type Taken<B> = Result<Tensor<B, 3>, Tensor<B, 3>>;
+
+/// The recomputing layer as a function on `B`, when recomputation is on and `B` is an autodiff backend this
+/// workspace trains on; `None` otherwise.
+pub fn recomputed_for<B: Backend>() -> Option<LayerFn<B>> {
+    if !enabled() {
+        return None;
+    }
+    let found = on::<B, burn::backend::Flex>();
+    #[cfg(feature = "cuda")]
+    let found = found.or_else(on::<B, burn::backend::Cuda>);
+    found
+}
+
+/// [`recomputed`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+fn on<B: Backend, I: LayerBackend>() -> Option<LayerFn<B>> {
+    let plain: LayerFn<Autodiff<I, NoCheckpointing>> = recomputed::<I, NoCheckpointing>;
+    let balanced: LayerFn<Autodiff<I, BalancedCheckpointing>> = recomputed::<I, BalancedCheckpointing>;
+    same(plain).or_else(|| same(balanced))
+}
+
+/// Parents of the operation: the input, then the parameters in [`Weights`]' order.
+const PARENTS: usize = 15;
+
+#[derive(Debug)]
+struct Recompute;
+
+/// What the operation keeps for its backward pass: the input, the parameters (handles to the tensors the
+/// model holds anyway), the settings and the dropout masks.
+#[derive(Debug, Clone)]
+struct Kept<I: LayerBackend> {
+    x: Tensor<I, 3>,
+    weights: Weights<I>,
+    setting: Setting,
+    masks: Masks<I>,
+}
+
+impl<I: LayerBackend> Backward<I, PARENTS> for Recompute {
+    type State = Kept<I>;
+
+    fn backward(self, ops: Ops<Self::State, PARENTS>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let dy = float::<I, 3>(grads.consume::<I>(&ops.node));
+        let k = ops.state;
+        let (dx, dw) = math::backward(&k.weights, k.setting, &k.masks, k.x, dy);
+        let [input, params @ ..] = ops.parents;
+        if let Some(node) = input {
+            grads.register::<I>(node.id, dx.into_primitive().tensor());
+        }
+        for (node, g) in params.into_iter().zip(dw) {
+            if let Some(node) = node {
+                grads.register::<I>(node.id, g.tensor());
+            }
+        }
+    }
+}
+
+/// A parameter as the autodiff backend holds it (burn does not export its node type; the tensor carries it).
+type Node<I, C> = FloatTensor<Autodiff<I, C>>;
+
+/// A tracked parameter's value on the inner backend, and the parameter.
+fn split<I: LayerBackend, C: CheckpointStrategy, const D: usize>(
+    p: &Param<Tensor<Autodiff<I, C>, D>>,
+) -> (Tensor<I, D>, Node<I, C>) {
+    let t = p.val().into_primitive().tensor();
+    (float(t.primitive.clone()), t)
+}
+
+/// Tracked parameters in [`Weights`]' order.
+type Tracked<I, C> = Vec<Node<I, C>>;
+
+/// A weight and its bias (or scale and shift) as tracked tensors.
+type Two<I, C> = [Node<I, C>; 2];
+
+/// A layer norm's parameters on the inner backend and as tracked tensors; `None` without a shift.
+fn norm<I: LayerBackend, C: CheckpointStrategy>(
+    n: &LayerNorm<Autodiff<I, C>>,
+) -> Option<(Norm<I>, Two<I, C>)> {
+    let (gamma, ng) = split(&n.gamma);
+    let (beta, nb) = split(n.beta.as_ref()?);
+    Some((Norm { gamma, beta }, [ng, nb]))
+}
+
+/// A linear layer's parameters on the inner backend and as tracked tensors; `None` without a bias.
+fn lin<I: LayerBackend, C: CheckpointStrategy>(l: &Linear<Autodiff<I, C>>) -> Option<(Lin<I>, Two<I, C>)> {
+    let (w, nw) = split(&l.weight);
+    let (b, nb) = split(l.bias.as_ref()?);
+    Some((Lin { w, b }, [nw, nb]))
+}
+
+/// The layer's parameters on the inner backend and as tracked tensors, in [`Weights`]' order; `None` for a
+/// layer without biases.
+fn weights<I: LayerBackend, C: CheckpointStrategy>(
+    parts: &LayerParts<'_, Autodiff<I, C>>,
+) -> Option<(Weights<I>, Tracked<I, C>)> {
+    let (ln1, a) = norm(parts.ln1)?;
+    let (q, b) = lin(parts.q)?;
+    let (kv, c) = lin(parts.kv)?;
+    let (proj, d) = lin(parts.proj)?;
+    let (ln2, e) = norm(parts.ln2)?;
+    let (fc, f) = lin(parts.fc)?;
+    let (out, g) = lin(parts.out)?;
+    let tracked = [a, b, c, d, e, f, g].into_iter().flatten().collect();
+    Some((
+        Weights {
+            ln1,
+            q,
+            kv,
+            proj,
+            ln2,
+            fc,
+            out,
+        },
+        tracked,
+    ))
+}
+
+/// The layer on `Autodiff<I, C>` as one operation that keeps only its input; `Err(x)` for a layer without
+/// biases (every layer the backbone builds has them).
+fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
+    parts: &LayerParts<'_, Autodiff<I, C>>,
+    x: Tensor<Autodiff<I, C>, 3>,
+    causal: bool,
+    over_time: Option<(usize, usize)>,
+) -> Taken<Autodiff<I, C>> {
+    let Some((weights, tracked)) = weights(parts) else {
+        return Err(x);
+    };
+    let x = x.into_primitive().tensor();
+    let parents = std::array::from_fn(|i| match i {
+        0 => x.node.clone(),
+        i => tracked[i - 1].node.clone(),
+    });
+    let setting = Setting {
+        heads: parts.heads,
+        causal,
+        precision: parts.precision,
+        eps: crate::norm::LN_EPS,
+        over_time,
+    };
+    RUN.fetch_add(1, Ordering::Relaxed);
+    let xi = float::<I, 3>(x.primitive);
+    let masks = Masks {
+        attn: draw_mask(&xi, parts.attn_dropout),
+        mlp: draw_mask(&xi, parts.mlp_dropout),
+    };
+    let y = math::forward(&weights, setting, &masks, xi.clone())
+        .into_primitive()
+        .tensor();
+    let prep = Recompute.prepare::<C>(parents).compute_bound().stateful();
+    let out = match prep {
+        OpsKind::Tracked(prep) => prep.finish(
+            Kept {
+                x: xi,
+                weights,
+                setting,
+                masks,
+            },
+            y,
+        ),
+        OpsKind::UnTracked(prep) => prep.finish(y),
+    };
+    Ok(float(out))
+}
+
+/// A dropout keep-mask for an output shaped like `x`, drawn as burn's `Dropout` draws it on an autodiff
+/// backend; none when `prob` is 0.
+fn draw_mask<I: LayerBackend>(x: &Tensor<I, 3>, prob: f64) -> Mask<I> {
+    let keep = 1.0 - prob;
+    (prob > 0.0).then(|| {
+        (
+            x.random_like(Distribution::Bernoulli(keep)).greater_elem(0.5),
+            1.0 / keep,
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,363 @@
+//! A self-attention layer's forward and backward passes written out on a backend without autodiff.
+//!
+//! [`super`] keeps only a layer's input for the backward pass and recomputes the rest there. burn 0.21
+//! cannot run that recomputation under autodiff: a backward pass started inside another one deadlocks on
+//! the graph client's locks (`GraphMutexClient::backward` locks every graph when it cleans up, the outer
+//! one included). So the layer's gradients are derived here by hand, with the same kernels as the
+//! autodiff path (the named matmul, the fused or tiled attention, the MLP's bias + GELU) and the same casts for
+//! [`Precision::Bf16`], so that both paths give the same numbers to rounding.
+
+use crate::flash::{FusedAttention, merge_kv};
+use crate::format::Precision;
+use crate::format::{float_format, operand};
+use crate::gelu::{FusedGelu, inner_backward, inner_forward, inner_product_dtype};
+use crate::heads::{merge_heads, split_heads};
+use crate::matmul::{NamedMatmul, product, product_in};
+use crate::norm::FusedNorm;
+use crate::temporal::TemporalAttention;
+use crate::tiled::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
+use burn::tensor::{Bool, FloatDType, Tensor, TensorPrimitive};
+
+/// What both passes need from the inner backend: the attention (over positions and over time), matmul,
+/// layer-norm and bias + GELU kernels.
+pub trait LayerBackend: FusedAttention + TemporalAttention + NamedMatmul + FusedNorm + FusedGelu {}
+impl<B: FusedAttention + TemporalAttention + NamedMatmul + FusedNorm + FusedGelu> LayerBackend for B {}
+
+/// A layer norm's scale and shift.
+#[derive(Debug, Clone)]
+pub struct Norm<I: LayerBackend> {
+    pub gamma: Tensor<I, 1>,
+    pub beta: Tensor<I, 1>,
+}
+
+/// A linear layer's weight `[in, out]` and bias `[out]`.
+#[derive(Debug, Clone)]
+pub struct Lin<I: LayerBackend> {
+    pub w: Tensor<I, 2>,
+    pub b: Tensor<I, 1>,
+}
+
+/// The parameters of `SelfBlock`, in the order of the operation's parents and of [`WeightGrads`].
+#[derive(Debug, Clone)]
+pub struct Weights<I: LayerBackend> {
+    pub ln1: Norm<I>,
+    pub q: Lin<I>,
+    pub kv: Lin<I>,
+    pub proj: Lin<I>,
+    pub ln2: Norm<I>,
+    pub fc: Lin<I>,
+    pub out: Lin<I>,
+}
+
+/// One gradient per parameter, in the same order as the parameters.
+pub type WeightGrads<I> = [TensorPrimitive<I>; 14];
+
+/// Shape-independent settings of the layer.
+#[derive(Debug, Clone, Copy)]
+pub struct Setting {
+    pub heads: usize,
+    pub causal: bool,
+    pub precision: Precision,
+    /// Layer norms' ε (burn's default, which `layers.rs` builds with).
+    pub eps: f64,
+    /// `Some((t, n))` for a TAR temporal layer on the rows as they lie: the input `[b, t · n, d]` is `t`
+    /// frames of `n` positions, and each position attends over its own frames (`crate::temporal`'s
+    /// kernels, as the layer without recomputation runs them) instead of the rows over each other.
+    pub over_time: Option<(usize, usize)>,
+}
+
+/// A dropout keep-mask (true = kept) and the scale of kept values, `1 / (1 − p)`.
+pub type Mask<I> = Option<(Tensor<I, 3, Bool>, f64)>;
+
+/// Dropout masks of the attention and MLP outputs.
+#[derive(Debug, Clone)]
+pub struct Masks<I: LayerBackend> {
+    pub attn: Mask<I>,
+    pub mlp: Mask<I>,
+}
+
+/// `x` through dropout with `mask`.
+fn drop<I: LayerBackend>(mask: &Mask<I>, x: Tensor<I, 3>) -> Tensor<I, 3> {
+    match mask {
+        Some((m, scale)) => x * m.clone().float().mul_scalar(*scale),
+        None => x,
+    }
+}
+
+/// What the backward pass reads of the forward pass.
+struct Saved<I: LayerBackend> {
+    x: Tensor<I, 3>,
+    stats1: Stats<I>,
+    n1: Tensor<I, 3>,
+    attn: Attn<I>,
+    merged: Tensor<I, 3>,
+    x1: Tensor<I, 3>,
+    stats2: Stats<I>,
+    n2: Tensor<I, 3>,
+    /// The MLP's first product, without its bias (what the bias + GELU's backward pass reads).
+    hidden: Tensor<I, 2>,
+    act: Tensor<I, 3>,
+}
+
+/// What the attention's backward pass reads.
+enum Attn<I: LayerBackend> {
+    /// The rows over each other: queries, keys and values split into heads (in the attention's format), the
+    /// output and the log-sum-exp.
+    Rows([Tensor<I, 4>; 5]),
+    /// Each position over its own frames: queries `[b, t, n, d]`, keys and values `[b, t, n, 2d]`, the
+    /// output and the log-sum-exp.
+    OverTime([Tensor<I, 4>; 4]),
+}
+
+/// A layer norm's row means and `1/√(var + ε)`, `[rows]`.
+type Stats<I> = (Tensor<I, 1>, Tensor<I, 1>);
+
+/// `(x − mean) / √(var + ε) · γ + β` over the last axis ([`FusedNorm`]'s kernels) in the products' format
+/// under `p` (it feeds products only), with the rows' statistics.
+fn norm<I: LayerBackend>(x: Tensor<I, 3>, n: &Norm<I>, eps: f64, p: Precision) -> (Tensor<I, 3>, Stats<I>) {
+    let [b, l, d] = x.dims();
+    let out = p.operand_dtype();
+    let (y, mean, rstd) = I::norm_forward(x.reshape([b * l, d]), n.gamma.clone(), n.beta.clone(), eps, out);
+    (y.reshape([b, l, d]), (mean, rstd))
+}
+
+/// Gradients of a layer norm's input, scale and shift from its output's gradient `dy`.
+fn norm_grad<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    (mean, rstd): Stats<I>,
+    n: &Norm<I>,
+    dy: Tensor<I, 3>,
+) -> (Tensor<I, 3>, Tensor<I, 1>, Tensor<I, 1>) {
+    let [b, l, d] = x.dims();
+    let flat = |t: Tensor<I, 3>| t.reshape([b * l, d]);
+    let (dx, dgamma, dbeta) = I::norm_backward(flat(dy), flat(x), mean, rstd, n.gamma.clone());
+    (dx.reshape([b, l, d]), dgamma, dbeta)
+}
+
+/// `x · w` `[b · l, n]` with the product in `p`'s format (as `precision::linear` on the named kernel),
+/// written in `out`.
+fn unbiased<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, out: FloatDType) -> Tensor<I, 2> {
+    let [b, len, k] = x.dims();
+    product_in(operand(x.reshape([b * len, k]), p), operand(l.w.clone(), p), out)
+}
+
+/// `x · w + b` with the product in `p`'s format.
+fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 3> {
+    linear_in(x, l, p, FloatDType::F32)
+}
+
+/// [`linear`] written in `format` (as `precision::linear_in`): the product, then the bias added in it.
+fn linear_in<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, format: FloatDType) -> Tensor<I, 3> {
+    let [b, len, _] = x.dims();
+    let n = l.w.dims()[1];
+    unbiased(x, l, p, format).reshape([b, len, n]) + l.b.clone().cast(format).unsqueeze::<3>()
+}
+
+/// Gradients of a linear layer's input (in `dx`), weight and bias (as `matmul.rs`'s operation computes
+/// them).
+fn linear_grad<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    l: &Lin<I>,
+    dy: Tensor<I, 3>,
+    p: Precision,
+    dx: FloatDType,
+) -> (Tensor<I, 3>, Tensor<I, 2>, Tensor<I, 1>) {
+    let [b, len, _] = x.dims();
+    let n = dy.dims()[2];
+    // The bias's sum and the products' bf16 operand in one pass (as `rows::add_for`), where a cast and
+    // then the sum read `dy` twice.
+    let (dy2, db) = crate::rows::sum_cast(dy.reshape([b * len, n]), p.operand_dtype());
+    let (dx, dw) = product_grad(x, l, dy2, p, dx);
+    (dx, dw, db)
+}
+
+/// Gradients of a product's input (in `dx`) and weight from its output's gradient `dy` `[b · l, n]`.
+fn product_grad<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    l: &Lin<I>,
+    dy: Tensor<I, 2>,
+    p: Precision,
+    dx: FloatDType,
+) -> (Tensor<I, 3>, Tensor<I, 2>) {
+    let [b, len, k] = x.dims();
+    let dy = operand(dy, p);
+    let dx = product_in(dy.clone(), operand(l.w.clone(), p).transpose(), dx).reshape([b, len, k]);
+    let dw = product(operand(x.reshape([b * len, k]), p).transpose(), dy);
+    (dx, dw)
+}
+
+/// Attention of `q` over `k`, `v` (already in the products' format): the output and each query's
+/// log-sum-exp. Short key sequences (the TAR's sequences over time) take one decomposed block, as
+/// `attention::attend` sends them to burn's decomposed attention: the fused kernels would spend a cube of 64
+/// rows on each of their tens of thousands of 8- or 20-token sequences.
+fn attend<I: LayerBackend>(
+    q: Tensor<I, 4>,
+    k: Tensor<I, 4>,
+    v: Tensor<I, 4>,
+    s: Setting,
+) -> (Tensor<I, 4>, Tensor<I, 4>) {
+    let lq = q.dims()[2];
+    if k.dims()[2] >= MIN_TILED_KEYS {
+        I::attention_forward(q, k, v, s.causal, s.precision.attention())
+    } else {
+        tiled_forward(q, k, v, s.causal, lq, s.precision.attention())
+    }
+}
+
+/// [`attend`]'s gradients of `q` and of `k` and `v` as one `[b, lk, 2·h·d]` (the kv product's layout).
+#[allow(clippy::too_many_arguments)]
+fn attend_grad<I: LayerBackend>(
+    q: Tensor<I, 4>,
+    k: Tensor<I, 4>,
+    v: Tensor<I, 4>,
+    out: Tensor<I, 4>,
+    lse: Tensor<I, 4>,
+    dout: Tensor<I, 4>,
+    s: Setting,
+) -> (Tensor<I, 4>, Tensor<I, 3>) {
+    let lq = q.dims()[2];
+    if k.dims()[2] >= MIN_TILED_KEYS {
+        I::attention_backward_kv(q, k, v, out, lse, dout, s.causal, s.precision.attention())
+    } else {
+        let (dq, dk, dv) = tiled_backward(q, k, v, out, lse, dout, s.causal, lq, s.precision.attention());
+        (dq, merge_kv(dk, dv))
+    }
+}
+
+/// The layer for input `x` `[b, l, d]` up to its last product: the residual stream after the attention
+/// half, and what the backward pass reads (the MLP's activation among it). The backward pass needs nothing
+/// of the output product, so only [`forward`] runs it.
+fn run<I: LayerBackend>(
+    w: &Weights<I>,
+    s: Setting,
+    masks: &Masks<I>,
+    x: Tensor<I, 3>,
+) -> (Tensor<I, 3>, Saved<I>) {
+    let p = s.precision;
+    // The normalised inputs and the merged attention output feed products only: in their format once here
+    // (the norms write it), not cast by each product (the forward pass's two, the recomputation's two and
+    // the weight gradients').
+    let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps, p);
+    // Over positions the queries, keys and values are the attention's operands: written in its format
+    // (the attention over time reads f32).
+    let qkv_format = match s.over_time {
+        None => p.attention().operand_dtype(),
+        Some(_) => FloatDType::F32,
+    };
+    let q = linear_in(n1.clone(), &w.q, p, qkv_format);
+    let kv = linear_in(n1.clone(), &w.kv, p, qkv_format);
+    let [b, len, d] = q.dims();
+    let (attn, merged) = match s.over_time {
+        None => {
+            // Already in the attention's format; flash2 reads the heads' strided views.
+            let q = split_heads(q, s.heads);
+            let k = split_heads(kv.clone().narrow(2, 0, d), s.heads);
+            let v = split_heads(kv.narrow(2, d, d), s.heads);
+            let (att, lse) = attend(q.clone(), k.clone(), v.clone(), s);
+            let merged = merge_heads(att.clone());
+            (Attn::Rows([q, k, v, att, lse]), merged)
+        }
+        Some((t, n)) => {
+            let (q, kv) = (q.reshape([b, t, n, d]), kv.reshape([b, t, n, 2 * d]));
+            let (att, lse) = I::temporal_forward(q.clone(), kv.clone(), s.heads, s.causal, p);
+            let merged = att.clone().reshape([b, len, d]);
+            (Attn::OverTime([q, kv, att, lse]), merged)
+        }
+    };
+    let merged = operand(merged, p);
+    let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
+    let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps, p);
+    let hidden = unbiased(n2.clone(), &w.fc, p, inner_product_dtype(p));
+    let [b, len, _] = n2.dims();
+    let act = inner_forward(hidden.clone(), w.fc.b.clone()).reshape([b, len, hidden.dims()[1]]);
+    let saved = Saved {
+        x,
+        stats1,
+        n1,
+        attn,
+        merged,
+        x1: x1.clone(),
+        stats2,
+        n2,
+        hidden,
+        act,
+    };
+    (x1, saved)
+}
+
+/// The layer's output for input `x` `[b, l, d]`.
+pub fn forward<I: LayerBackend>(
+    w: &Weights<I>,
+    s: Setting,
+    masks: &Masks<I>,
+    x: Tensor<I, 3>,
+) -> Tensor<I, 3> {
+    let (x1, f) = run(w, s, masks, x);
+    x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision))
+}
+
+/// The gradients of the input and of every parameter from the output's gradient `dy`, recomputing the
+/// forward pass from `x` with the forward pass's dropout masks.
+pub fn backward<I: LayerBackend>(
+    w: &Weights<I>,
+    s: Setting,
+    masks: &Masks<I>,
+    x: Tensor<I, 3>,
+    dy: Tensor<I, 3>,
+) -> (Tensor<I, 3>, WeightGrads<I>) {
+    let p = s.precision;
+    let (_, f) = run(w, s, masks, x);
+    let d_out = drop(&masks.mlp, dy.clone());
+    // The activation's gradient in its own format (bf16 with the bf16 presets), as `gelu::gelu_mlp` has it.
+    let act_format = float_format(f.act.dtype());
+    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p, act_format);
+    let d_act = d_act.reshape(f.hidden.dims());
+    let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone());
+    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, p, FloatDType::F32);
+    let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2);
+    let dx1 = dy + dx1_norm;
+    let d_proj = drop(&masks.attn, dx1.clone());
+    // The attention's output gradient in the output's own format: bf16 where flash2 wrote it so, which
+    // its backward pass then reads without a cast.
+    let d_merged_format = match &f.attn {
+        Attn::Rows([.., att, _]) => float_format(att.dtype()),
+        Attn::OverTime(_) => FloatDType::F32,
+    };
+    let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p, d_merged_format);
+    let (dq, dkv) = match f.attn {
+        Attn::Rows([q, k, v, att, lse]) => {
+            let (dq, dkv) = attend_grad(q, k, v, att, lse, split_heads(d_merged, s.heads), s);
+            (merge_heads(dq), dkv)
+        }
+        Attn::OverTime([q, kv, att, lse]) => {
+            let [b, t, n, d] = q.dims();
+            let saved = I::KEEPS_FORWARD.then_some((att, lse));
+            let dout = d_merged.reshape([b, t, n, d]);
+            let (dq, dkv) = I::temporal_backward(q, kv, saved, dout, s.heads, s.causal, p);
+            (dq.reshape([b, t * n, d]), dkv.reshape([b, t * n, 2 * d]))
+        }
+    };
+    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p, FloatDType::F32);
+    let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p, FloatDType::F32);
+    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv);
+    let dx = dx1 + dx_norm;
+    let one = |t: Tensor<I, 1>| t.into_primitive();
+    let two = |t: Tensor<I, 2>| t.into_primitive();
+    let grads = [
+        one(d_ln1_g),
+        one(d_ln1_b),
+        two(d_q_w),
+        one(d_q_b),
+        two(d_kv_w),
+        one(d_kv_b),
+        two(d_proj_w),
+        one(d_proj_b),
+        one(d_ln2_g),
+        one(d_ln2_b),
+        two(d_fc_w),
+        one(d_fc_b),
+        two(d_out_w),
+        one(d_out_b),
+    ];
+    (dx, grads)
+}

@@ -1,0 +1,210 @@
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use super::*;
+use crate::format::Precision;
+use burn::backend::Flex;
+use burn::module::{Module, ModuleMapper, ModuleVisitor};
+use burn::nn::{LayerNormConfig, LinearConfig};
+use burn::tensor::module::attention;
+use burn::tensor::ops::{AttentionModuleOptions, FloatTensorOps};
+use burn::tensor::{TensorMetadata, TensorPrimitive};
+
+type A = Autodiff<Flex>;
+
+/// A pre-norm self-attention layer's parameters, in the order the backbone's layer visits them.
+#[derive(Module, Debug)]
+struct TestLayer<B: Backend> {
+    ln1: LayerNorm<B>,
+    q: Linear<B>,
+    kv: Linear<B>,
+    proj: Linear<B>,
+    ln2: LayerNorm<B>,
+    fc: Linear<B>,
+    out: Linear<B>,
+    heads: usize,
+}
+
+impl<B: Backend> TestLayer<B> {
+    fn parts(&self) -> LayerParts<'_, B> {
+        LayerParts {
+            ln1: &self.ln1,
+            q: &self.q,
+            kv: &self.kv,
+            proj: &self.proj,
+            ln2: &self.ln2,
+            fc: &self.fc,
+            out: &self.out,
+            heads: self.heads,
+            precision: Precision::F32,
+            attn_dropout: 0.0,
+            mlp_dropout: 0.0,
+        }
+    }
+}
+
+/// A layer of width `d` (MLP 2d) whose parameters are all perturbed, so that a gradient formula that drops
+/// a scale or shift (norms start at γ = 1, β = 0) cannot pass.
+fn layer(d: usize, heads: usize) -> TestLayer<A> {
+    struct Noise;
+    impl ModuleMapper<A> for Noise {
+        fn map_float<const D: usize>(&mut self, param: Param<Tensor<A, D>>) -> Param<Tensor<A, D>> {
+            param.map(|t| {
+                let noisy = t.clone().inner() + t.inner().random_like(Distribution::Normal(0.0, 0.2));
+                Tensor::from_inner(noisy).require_grad()
+            })
+        }
+    }
+    Flex::seed(&Default::default(), 11);
+    let dev = Default::default();
+    let lin = |i, o| LinearConfig::new(i, o).init(&dev);
+    TestLayer {
+        ln1: LayerNormConfig::new(d).init(&dev),
+        q: lin(d, d),
+        kv: lin(d, 2 * d),
+        proj: lin(d, d),
+        ln2: LayerNormConfig::new(d).init(&dev),
+        fc: lin(d, 2 * d),
+        out: lin(2 * d, d),
+        heads,
+    }
+    .map(&mut Noise)
+}
+
+/// Every parameter gradient of `blk` in `grads`, in visiting order.
+fn param_grads(blk: &TestLayer<A>, grads: &Gradients) -> Vec<Tensor<Flex, 1>> {
+    struct Collect<'a>(&'a Gradients, Vec<Tensor<Flex, 1>>);
+    impl ModuleVisitor<A> for Collect<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<A, D>>) {
+            let g = param.val().grad(self.0).expect("every parameter has a gradient");
+            self.1.push(g.flatten(0, D - 1));
+        }
+    }
+    let mut c = Collect(grads, Vec::new());
+    blk.visit(&mut c);
+    c.1
+}
+
+/// Largest difference relative to the largest magnitude of `b`.
+fn rel<const D: usize>(a: Tensor<Flex, D>, b: Tensor<Flex, D>) -> f32 {
+    let scale = b.clone().abs().max().into_scalar().max(1e-12);
+    (a - b).abs().max().into_scalar() / scale
+}
+
+/// Output and gradients (input, then parameters) of `(f(x) · r).sum()`.
+fn run(
+    blk: &TestLayer<A>,
+    x: &Tensor<Flex, 3>,
+    r: &Tensor<Flex, 3>,
+    f: impl Fn(&TestLayer<A>, Tensor<A, 3>) -> Tensor<A, 3>,
+) -> (Tensor<Flex, 3>, Tensor<Flex, 3>, Vec<Tensor<Flex, 1>>) {
+    let x = Tensor::<A, 3>::from_inner(x.clone()).require_grad();
+    let y = f(blk, x.clone());
+    let grads = (y.clone() * Tensor::from_inner(r.clone())).sum().backward();
+    (y.inner(), x.grad(&grads).unwrap(), param_grads(blk, &grads))
+}
+
+/// The operation against burn's autodiff of the layer written out with burn's attention, without dropout:
+/// outputs and all 14 gradients.
+#[test]
+fn recomputed_layer_matches_burns_operations() {
+    let dev = Default::default();
+    let blk = layer(16, 2);
+    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let reference = |b: &TestLayer<A>, x: Tensor<A, 3>| {
+        let p = b.parts();
+        let n = p.ln1.forward(x.clone());
+        let split = |t| crate::heads::split_heads(t, p.heads);
+        let kv = p.kv.forward(n.clone());
+        let (k, v) = (split(kv.clone().narrow(2, 0, 16)), split(kv.narrow(2, 16, 16)));
+        let opts = AttentionModuleOptions {
+            is_causal: true,
+            ..Default::default()
+        };
+        let att = attention(split(p.q.forward(n)), k, v, None, None, opts);
+        let x1 = x + p.proj.forward(crate::heads::merge_heads(att));
+        let h = burn::tensor::activation::gelu(p.fc.forward(p.ln2.forward(x1.clone())));
+        x1 + p.out.forward(h)
+    };
+    let (y0, dx0, dp0) = run(&blk, &x, &r, reference);
+    let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
+        recomputed::<Flex, NoCheckpointing>(&b.parts(), x, true, None).expect("a layer with biases")
+    });
+    assert!(rel(y1, y0) < 1e-4, "output");
+    assert!(rel(dx1, dx0) < 1e-4, "input gradient");
+    assert_eq!(dp1.len(), 14);
+    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
+        let e = rel(a, b);
+        assert!(e < 1e-4, "parameter {i}: relative error {e}");
+    }
+}
+
+#[test]
+fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
+    // The written-out passes with given masks against burn's autodiff of the same layer with the same
+    // masks applied by hand.
+    let dev = Default::default();
+    let blk = layer(16, 2);
+    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let mask = |seed| {
+        Flex::seed(&dev, seed);
+        let m = x.random_like(Distribution::Bernoulli(0.7)).greater_elem(0.5);
+        Some((m, 1.0 / 0.7))
+    };
+    let masks = Masks {
+        attn: mask(1),
+        mlp: mask(2),
+    };
+    let (attn_mask, mlp_mask) = (masks.attn.clone().unwrap().0, masks.mlp.clone().unwrap().0);
+    let reference = |b: &TestLayer<A>, x: Tensor<A, 3>| {
+        let p = b.parts();
+        let keep = |t: Tensor<A, 3>, m: &Tensor<Flex, 3, burn::tensor::Bool>| {
+            t * Tensor::from_inner(m.clone().float() / 0.7)
+        };
+        let n = p.ln1.forward(x.clone());
+        let split = |t| crate::heads::split_heads(t, p.heads);
+        let kv = p.kv.forward(n.clone());
+        let (k, v) = (split(kv.clone().narrow(2, 0, 16)), split(kv.narrow(2, 16, 16)));
+        let att = attention(
+            split(p.q.forward(n)),
+            k,
+            v,
+            None,
+            None,
+            AttentionModuleOptions::default(),
+        );
+        let x1 = x + keep(p.proj.forward(crate::heads::merge_heads(att)), &attn_mask);
+        let h = burn::tensor::activation::gelu(p.fc.forward(p.ln2.forward(x1.clone())));
+        x1 + keep(p.out.forward(h), &mlp_mask)
+    };
+    let (y0, dx0, dp0) = run(&blk, &x, &r, reference);
+
+    let parts = blk.parts();
+    let (weights, _) = weights(&parts).unwrap();
+    let setting = Setting {
+        heads: 2,
+        causal: false,
+        precision: Precision::F32,
+        eps: crate::norm::LN_EPS,
+        over_time: None,
+    };
+    let y1 = math::forward(&weights, setting, &masks, x.clone());
+    let (dx1, dp1) = math::backward(&weights, setting, &masks, x, r);
+    assert!(rel(y1, y0) < 1e-4);
+    assert!(rel(dx1, dx0) < 1e-4);
+    // Weights' order is the parameters' visiting order (ln1, attn q/kv/proj, ln2, mlp fc/proj).
+    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
+        let a = a.tensor();
+        let n = a.shape().num_elements();
+        let a = Tensor::<Flex, 1>::from_primitive(TensorPrimitive::Float(Flex::float_reshape(a, [n].into())));
+        let e = rel(a, b);
+        assert!(e < 1e-4, "parameter {i}: relative error {e}");
+    }
+}
+
+#[test]
+fn the_operation_is_handed_out_for_training_backends_only() {
+    assert!(on::<A, Flex>().is_some());
+    assert!(on::<Flex, Flex>().is_none());
+}
