@@ -6,7 +6,7 @@
 # Runs, each under its own time limit so that one slow case cannot eat the others: the reference for the
 # `small` and `paper` presets, `umgen bench train` for both presets in their `bf16-linear`, in f32 and in
 # bf16 (`--set backbone.precision=…`), `small` once more on the named and on burn's matmul kernel (`--set
-# train.matmul=named|burn`; the default is cuBLAS), `umgen-kernel-bench linear` and `attention` in
+# train.kernels.matmul=named|burn`; the default is cuBLAS), `umgen-kernel-bench linear` and `attention` in
 # both precisions (when KERNEL_BENCH names that binary or it is on the PATH), and 30 training steps of the `small` map and image VQ tokenizers on the bundled sample
 # (their rasters/s). Prints the lines that
 # matter at the end; full outputs go to $OUT (default ./speed-out). UMGEN names the binary (default:
@@ -43,7 +43,7 @@ done
 # The linear layers on the other kernels too: what cuBLAS (the default) gains over each.
 for mm in named burn; do
     run "umgen-small-${mm}mm" "$umgen" bench train --preset small --device "cuda:$gpu" --steps 10 \
-        --warmup 2 --set "train.matmul=$mm"
+        --warmup 2 --set "train.kernels.matmul=$mm"
 done
 if command -v "$kernel_bench" >/dev/null; then
     run linear "$kernel_bench" linear --device "cuda:$gpu"

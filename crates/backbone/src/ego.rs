@@ -7,6 +7,7 @@ use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, Distribution, Tensor, TensorData};
+use umgen_ops::Kernels;
 use umgen_ops::linear::linear;
 
 /// The ego module.
@@ -97,8 +98,8 @@ impl<B: Backend> EgoModule<B> {
     }
 
     /// Logits `[b, t, q, vocab]` of the action tokens of frame `i + 1` from frames `0..=i` of `e`
-    /// `[b, t, N, d]`; with `last_only`, only for the last frame (`[b, 1, q, vocab]`).
-    pub fn forward(&self, e: Tensor<B, 4>, last_only: bool) -> Tensor<B, 4> {
+    /// `[b, t, N, d]`; with `last_only`, only for the last frame (`[b, 1, q, vocab]`); with the kernels `k`.
+    pub fn forward(&self, e: Tensor<B, 4>, last_only: bool, k: &Kernels) -> Tensor<B, 4> {
         let [b, t, n, d] = e.dims();
         let [start, len] = self.block;
         let q = self.queries.dims()[0];
@@ -126,7 +127,7 @@ impl<B: Backend> EgoModule<B> {
             .reshape([1, 1, tq * q, t * len])
             .expand([b, self.heads, tq * q, t * len]);
         for blk in &self.hist {
-            x = blk.forward(x, hist.clone(), Some(mask.clone()));
+            x = blk.forward(x, hist.clone(), Some(mask.clone()), k);
         }
         // Then each frame's queries see that frame's environment: every block but the action's.
         let mut parts = Vec::new();
@@ -140,12 +141,13 @@ impl<B: Backend> EgoModule<B> {
         let env = env.reshape([b * tq, n - len, d]);
         let mut x = x.reshape([b * tq, q, d]);
         for blk in &self.env {
-            x = blk.forward(x, env.clone(), None);
+            x = blk.forward(x, env.clone(), None, k);
         }
         let logits = linear(
             &self.head,
-            umgen_ops::norm::layer_norm_operand(&self.ln, x, self.precision),
+            umgen_ops::norm::layer_norm_operand(&self.ln, x, self.precision, k),
             self.precision,
+            k,
         );
         let v = logits.dims()[2];
         logits.reshape([b, tq, q, v])

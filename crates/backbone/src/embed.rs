@@ -6,6 +6,7 @@ use burn::module::{Module, Param};
 use burn::nn::{Dropout, DropoutConfig, Embedding, EmbeddingConfig, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Int, Tensor, TensorData};
+use umgen_ops::Kernels;
 use umgen_ops::gelu::gelu_mlp;
 use umgen_ops::linear::linear;
 
@@ -95,7 +96,7 @@ impl<B: Backend> FrameEmbedding<B> {
     pub fn forward_at(&self, p: usize, ids: Tensor<B, 1, Int>) -> Tensor<B, 2> {
         let m = ids.dims()[0];
         let s = self.segment_of(p, 1).unwrap_or(0);
-        let y = self.rows(s, p, ids.reshape([m, 1]));
+        let y = self.rows(s, p, ids.reshape([m, 1]), &Kernels::DEFAULT);
         let d = y.dims()[2];
         y.reshape([m, d])
     }
@@ -104,8 +105,13 @@ impl<B: Backend> FrameEmbedding<B> {
     /// segment's block (for decoding several positions at once; equal to those rows of
     /// [`forward`](Self::forward)). `None` when they do not.
     pub fn forward_block(&self, p: usize, ids: Tensor<B, 2, Int>) -> Option<Tensor<B, 3>> {
+        self.block_with(p, ids, &Kernels::DEFAULT)
+    }
+
+    /// [`Self::forward_block`] with the kernels `k` (the training pass's tracked slots).
+    pub(crate) fn block_with(&self, p: usize, ids: Tensor<B, 2, Int>, k: &Kernels) -> Option<Tensor<B, 3>> {
         let s = self.segment_of(p, ids.dims()[1])?;
-        Some(self.rows(s, p, ids))
+        Some(self.rows(s, p, ids, k))
     }
 
     /// Each segment's table and projection, the position embeddings and the MLP's two layers.
@@ -135,20 +141,20 @@ impl<B: Backend> FrameEmbedding<B> {
     }
 
     /// Embeddings `[m, l, d]` of `ids` `[m, l]` at positions `p..p + l` of segment `s`'s block.
-    fn rows(&self, s: usize, p: usize, ids: Tensor<B, 2, Int>) -> Tensor<B, 3> {
+    fn rows(&self, s: usize, p: usize, ids: Tensor<B, 2, Int>, k: &Kernels) -> Tensor<B, 3> {
         let l = ids.dims()[1];
         let t = &self.tables[s];
         let x = umgen_ops::lookup::embed(&t.table, ids);
         let x = match &t.proj {
-            Some(proj) => linear(proj, x, self.precision),
+            Some(proj) => linear(proj, x, self.precision, k),
             None => x,
         };
         let e = x.dims()[2];
-        self.mlp(x + self.pos.val().narrow(0, p, l).reshape([1, l, e]))
+        self.mlp(x + self.pos.val().narrow(0, p, l).reshape([1, l, e]), k)
     }
 
-    /// Embeddings `[b, f, N, d]` of frames of tokens `[b, f, N]`.
-    pub fn forward(&self, tokens: Tensor<B, 3, Int>) -> Tensor<B, 4> {
+    /// Embeddings `[b, f, N, d]` of frames of tokens `[b, f, N]`, with the kernels `k`.
+    pub fn forward(&self, tokens: Tensor<B, 3, Int>, k: &Kernels) -> Tensor<B, 4> {
         let [b, f, n] = tokens.dims();
         let flat = tokens.reshape([b * f, n]);
         let parts: Vec<Tensor<B, 3>> = self
@@ -158,20 +164,20 @@ impl<B: Backend> FrameEmbedding<B> {
             .map(|(t, [start, len])| {
                 let x = umgen_ops::lookup::embed(&t.table, flat.clone().narrow(1, *start, *len));
                 match &t.proj {
-                    Some(p) => linear(p, x, self.precision),
+                    Some(p) => linear(p, x, self.precision, k),
                     None => x,
                 }
             })
             .collect();
         let x = Tensor::cat(parts, 1) + self.pos.val().unsqueeze_dim::<3>(0);
-        let x = self.mlp(x);
+        let x = self.mlp(x, k);
         let d = x.dims()[2];
         x.reshape([b, f, n, d])
     }
 
     /// The embedding MLP (paper eq. 2) with dropout.
-    fn mlp<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
+    fn mlp<const D: usize>(&self, x: Tensor<B, D>, k: &Kernels) -> Tensor<B, D> {
         let p = self.precision;
-        self.drop.forward(gelu_mlp(&self.fc1, &self.fc2, x, p))
+        self.drop.forward(gelu_mlp(&self.fc1, &self.fc2, x, p, k))
     }
 }

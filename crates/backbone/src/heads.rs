@@ -6,6 +6,7 @@ use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
+use umgen_ops::Kernels;
 use umgen_ops::linear::linear;
 
 /// One bias-free linear head per segment, over that segment's content ids only: a position's logits never
@@ -47,15 +48,15 @@ impl<B: Backend> Heads<B> {
         &self.heads
     }
 
-    /// Logits `[m, tokens, vocab]` of segment `s` from features `[m, N, d]`.
-    pub fn logits(&self, s: usize, x: Tensor<B, 3>) -> Tensor<B, 3> {
+    /// Logits `[m, tokens, vocab]` of segment `s` from features `[m, N, d]`, with the kernels `k`.
+    pub fn logits(&self, s: usize, x: Tensor<B, 3>, k: &Kernels) -> Tensor<B, 3> {
         let [offset, tokens] = self.content[s];
-        linear(&self.heads[s], x.narrow(1, offset, tokens), self.precision)
+        linear(&self.heads[s], x.narrow(1, offset, tokens), self.precision, k)
     }
 
     /// Logits of one position `p` of segment `s` from features `[m, d]`: `[m, vocab]`.
     pub fn logits_at(&self, s: usize, x: Tensor<B, 2>) -> Tensor<B, 2> {
-        linear(&self.heads[s], x, self.precision)
+        linear(&self.heads[s], x, self.precision, &Kernels::DEFAULT)
     }
 
     /// Summed cross-entropy per segment of features `[m, N, d]` against targets `[m, N]`, with the number
@@ -68,16 +69,17 @@ impl<B: Backend> Heads<B> {
         targets: Tensor<B, 2, Int>,
         ordinal: &[usize],
         sigma: f64,
+        k: &Kernels,
     ) -> Vec<(Tensor<B, 1>, usize)> {
         let m = x.dims()[0];
         (0..self.heads.len())
             .map(|s| {
                 let [offset, tokens] = self.content[s];
-                let logits = self.logits(s, x.clone());
+                let logits = self.logits(s, x.clone(), k);
                 let v = logits.dims()[2];
                 let t = targets.clone().narrow(1, offset, tokens).reshape([m * tokens, 1]);
                 let ord = ordinal.get(s).copied().unwrap_or(0);
-                let sum = umgen_ops::xent::sum(logits.reshape([m * tokens, v]), t, ord, sigma);
+                let sum = umgen_ops::xent::sum(logits.reshape([m * tokens, v]), t, ord, sigma, k);
                 (sum, m * tokens)
             })
             .collect()

@@ -6,6 +6,7 @@ use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, Linea
 use burn::tensor::activation::softmax;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, FloatDType, Tensor};
+use umgen_ops::Kernels;
 use umgen_ops::format::float_format;
 use umgen_ops::gelu::gelu_mlp;
 use umgen_ops::heads::{merge_heads, split_heads};
@@ -33,10 +34,10 @@ impl<B: Backend> Mlp<B> {
         }
     }
 
-    /// Applies it.
-    pub fn forward<const D: usize>(&self, x: Tensor<B, D>) -> Tensor<B, D> {
+    /// Applies it with the kernels `k`.
+    pub fn forward<const D: usize>(&self, x: Tensor<B, D>, k: &Kernels) -> Tensor<B, D> {
         let p = self.precision;
-        self.drop.forward(gelu_mlp(&self.fc, &self.proj, x, p))
+        self.drop.forward(gelu_mlp(&self.fc, &self.proj, x, p, k))
     }
 }
 
@@ -73,6 +74,7 @@ impl<B: Backend> MultiHead<B> {
         ctx: Tensor<B, 3>,
         mask: Option<Tensor<B, 4, Bool>>,
         causal: bool,
+        k: &Kernels,
     ) -> Tensor<B, 3> {
         let p = self.precision;
         // The queries straight in the attention's format where one operation takes them (that operation
@@ -85,42 +87,45 @@ impl<B: Backend> MultiHead<B> {
         } else {
             FloatDType::F32
         };
-        let q = split_heads(linear_in(&self.q, x, p, format), self.heads);
-        let kv = linear(&self.kv, ctx, p);
-        self.output(umgen_ops::attention::attend_kv(q, kv, mask, causal, p))
+        let q = split_heads(linear_in(&self.q, x, p, format, k), self.heads);
+        let kv = linear(&self.kv, ctx, p, k);
+        self.output(umgen_ops::attention::attend_kv(q, kv, mask, causal, p, k), k)
     }
 
-    /// Queries of `x` and keys and values of `ctx`, split into heads `[b, heads, l, dh]`.
+    /// Queries of `x` and keys and values of `ctx`, split into heads `[b, heads, l, dh]` (decoding: the
+    /// kernels' choices are the training backends', which decoding does not run on).
     fn project(&self, x: Tensor<B, 3>, ctx: Tensor<B, 3>) -> (Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>) {
-        let p = self.precision;
-        let q = split_heads(linear(&self.q, x, p), self.heads);
-        let (k, v) = umgen_ops::heads::split_kv(linear(&self.kv, ctx, p), self.heads);
-        (q, k, v)
+        let (p, k) = (self.precision, &Kernels::DEFAULT);
+        let q = split_heads(linear(&self.q, x, p, k), self.heads);
+        let (keys, values) = umgen_ops::heads::split_kv(linear(&self.kv, ctx, p, k), self.heads);
+        (q, keys, values)
     }
 
     /// Heads merged, projected back to width d, dropout.
-    fn output(&self, y: Tensor<B, 4>) -> Tensor<B, 3> {
-        self.output_merged(merge_heads(y))
+    fn output(&self, y: Tensor<B, 4>, k: &Kernels) -> Tensor<B, 3> {
+        self.output_merged(merge_heads(y), k)
     }
 
     /// Merged heads `[b, l, d]` projected back to width d, dropout. The heads' gradient comes back in their
     /// own format: bf16 where the flash2 kernels wrote them so, which their backward pass reads as it is.
-    fn output_merged(&self, y: Tensor<B, 3>) -> Tensor<B, 3> {
+    fn output_merged(&self, y: Tensor<B, 3>, k: &Kernels) -> Tensor<B, 3> {
         let dx = float_format(y.dtype());
-        self.drop.forward(linear_with(&self.proj, y, self.precision, dx))
+        self.drop
+            .forward(linear_with(&self.proj, y, self.precision, dx, k))
     }
 
     /// Attention over time of `x` `[b, t, n, d]` (each position over its own frames, `causal`) by `op`, the
     /// training backends' [`crate::temporal`] operation: the products run on the rows as they lie.
-    fn over_time(&self, x: Tensor<B, 4>, op: umgen_ops::temporal::OverTime<B>) -> Tensor<B, 4> {
+    fn over_time(&self, x: Tensor<B, 4>, op: umgen_ops::temporal::OverTime<B>, k: &Kernels) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
         let p = self.precision;
         // Cast once for both products (each would cast its own copy).
         let rows = umgen_ops::format::operand(x.reshape([b, t * n, d]), p);
-        let q = linear(&self.q, rows.clone(), p).reshape([b, t, n, d]);
-        let kv = linear(&self.kv, rows, p).reshape([b, t, n, 2 * d]);
-        let y = op(q, kv, self.heads, true, p);
-        self.output_merged(y.reshape([b, t * n, d])).reshape([b, t, n, d])
+        let q = linear(&self.q, rows.clone(), p, k).reshape([b, t, n, d]);
+        let kv = linear(&self.kv, rows, p, k).reshape([b, t, n, 2 * d]);
+        let y = op(q, kv, self.heads, true, p, k);
+        self.output_merged(y.reshape([b, t * n, d]), k)
+            .reshape([b, t, n, d])
     }
 
     /// Heads.
@@ -160,7 +165,7 @@ impl<B: Backend> MultiHead<B> {
         let (k, v) = (k0.slice_assign(at.clone(), k), v0.slice_assign(at, v));
         *cache = Some((k.clone(), v.clone()));
         let scores = q.matmul(k.swap_dims(2, 3)).mul_scalar((dh as f64).sqrt().recip()) + hidden;
-        self.output(softmax(scores, 3).matmul(v))
+        self.output(softmax(scores, 3).matmul(v), &Kernels::DEFAULT)
     }
 }
 
@@ -210,13 +215,12 @@ impl<B: Backend> SelfBlock<B> {
     }
 
     /// Applies it to `[b, l, d]`; `causal` lets position `i` see positions `≤ i` only. With recomputation on
-    /// (`recompute.rs`) a training backend keeps only `x` for the backward pass.
-    pub fn forward(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
-        match recomputed_for::<B>() {
-            Some(layer) => {
-                layer(&self.parts(), x, causal, None).unwrap_or_else(|x| self.forward_autodiff(x, causal))
-            }
-            None => self.forward_autodiff(x, causal),
+    /// (`k.recompute`, `umgen_ops::recompute`) a training backend keeps only `x` for the backward pass.
+    pub fn forward(&self, x: Tensor<B, 3>, causal: bool, k: &Kernels) -> Tensor<B, 3> {
+        match recomputed_for::<B>(k) {
+            Some(layer) => layer(&self.parts(), x, causal, None, k)
+                .unwrap_or_else(|x| self.forward_autodiff(x, causal, k)),
+            None => self.forward_autodiff(x, causal, k),
         }
     }
 
@@ -224,47 +228,47 @@ impl<B: Backend> SelfBlock<B> {
     /// `t` frames. Training backends run [`crate::temporal`]'s operation on the rows as they lie, recomputed
     /// (`recompute.rs`) or not; the others group the frames of each position (`[b · n, t, d]`, a
     /// transposition each way) for [`Self::forward_autodiff`].
-    pub fn forward_over_time(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    pub fn forward_over_time(&self, x: Tensor<B, 4>, k: &Kernels) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
-        match recomputed_for::<B>() {
-            Some(layer) => match layer(&self.parts(), x.reshape([b, t * n, d]), true, Some((t, n))) {
+        match recomputed_for::<B>(k) {
+            Some(layer) => match layer(&self.parts(), x.reshape([b, t * n, d]), true, Some((t, n)), k) {
                 Ok(y) => y.reshape([b, t, n, d]),
-                Err(x) => self.over_time_autodiff(x.reshape([b, t, n, d])),
+                Err(x) => self.over_time_autodiff(x.reshape([b, t, n, d]), k),
             },
-            None => self.over_time_autodiff(x),
+            None => self.over_time_autodiff(x, k),
         }
     }
 
     /// [`Self::forward_over_time`] through burn's autodiff (and [`crate::temporal`]'s operation where the
     /// backend has it).
-    pub(crate) fn over_time_autodiff(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    pub(crate) fn over_time_autodiff(&self, x: Tensor<B, 4>, k: &Kernels) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
         match umgen_ops::temporal::over_time_for::<B>() {
             Some(op) => {
-                let n1 = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision);
-                let x = x + self.attn.over_time(n1, op);
+                let n1 = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision, k);
+                let x = x + self.attn.over_time(n1, op, k);
                 x.clone()
                     + self
                         .mlp
-                        .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision))
+                        .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision, k), k)
             }
             None => self
-                .forward_autodiff(x.swap_dims(1, 2).reshape([b * n, t, d]), true)
+                .forward_autodiff(x.swap_dims(1, 2).reshape([b * n, t, d]), true, k)
                 .reshape([b, n, t, d])
                 .swap_dims(1, 2),
         }
     }
 
     /// [`Self::forward`] through burn's operations (and their autodiff, on training backends).
-    pub(crate) fn forward_autodiff(&self, x: Tensor<B, 3>, causal: bool) -> Tensor<B, 3> {
+    pub(crate) fn forward_autodiff(&self, x: Tensor<B, 3>, causal: bool, k: &Kernels) -> Tensor<B, 3> {
         // In the products' format once for the queries' and the keys' and values' products (each would
         // cast its own copy).
-        let n = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision);
-        let x = x + self.attn.forward(n.clone(), n, None, causal);
+        let n = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision, k);
+        let x = x + self.attn.forward(n.clone(), n, None, causal, k);
         x.clone()
             + self
                 .mlp
-                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision))
+                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision, k), k)
     }
 
     /// The causal layer on one new position `[m, 1, d]`, with the keys and values of the earlier ones in
@@ -278,7 +282,7 @@ impl<B: Backend> SelfBlock<B> {
     ) -> Tensor<B, 3> {
         // One position at a time: no long gradient sums to shape, and the CPU backend's fused norm.
         let x = x.clone() + self.attn.forward_step(self.ln1.forward(x), cache, pos, hidden);
-        x.clone() + self.mlp.forward(self.ln2.forward(x))
+        x.clone() + self.mlp.forward(self.ln2.forward(x), &Kernels::DEFAULT)
     }
 }
 
@@ -343,24 +347,27 @@ impl<B: Backend> CrossBlock<B> {
         )
     }
 
-    /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]` with an optional mask (true = hidden).
+    /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]` with an optional mask (true = hidden), with the
+    /// kernels `k`.
     pub fn forward(
         &self,
         x: Tensor<B, 3>,
         ctx: Tensor<B, 3>,
         mask: Option<Tensor<B, 4, Bool>>,
+        k: &Kernels,
     ) -> Tensor<B, 3> {
         let x = x.clone()
             + self.attn.forward(
-                layer_norm_operand(&self.ln_q, x, self.attn.precision),
-                layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision),
+                layer_norm_operand(&self.ln_q, x, self.attn.precision, k),
+                layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision, k),
                 mask,
                 false,
+                k,
             );
         x.clone()
             + self
                 .mlp
-                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision))
+                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision, k), k)
     }
 }
 

@@ -56,3 +56,4 @@ pub use plain::{
     PlainSelf, PlainTable,
 };
 pub use spec::{ActionSpec, AlignSpec, BackboneSpec, SegmentSpec, TrackSpec};
+pub use umgen_ops::Kernels;

@@ -5,6 +5,7 @@ use crate::error::Result;
 use crate::model::Backbone;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
+use umgen_ops::Kernels;
 
 /// Every head's logits for windows of `b` × (`t` + 1) frames (frame `i + 1` predicted from frames
 /// `0..=i`), as [`Backbone::loss`] scores them.
@@ -25,11 +26,12 @@ impl<B: Backend> Backbone<B> {
     pub fn forced_logits(&self, tokens: Tensor<B, 3, Int>) -> Result<ForcedLogits<B>> {
         let [b, f, _] = tokens.dims();
         let t = f.saturating_sub(1);
-        let fwd = self.teacher_forced(tokens, 0.0)?;
+        let k = &Kernels::DEFAULT;
+        let fwd = self.teacher_forced(tokens, 0.0, k)?;
         let per_segment = |heads: &crate::Heads<B>, x: &Tensor<B, 3>| {
             (0..self.spec().segments.len())
                 .map(|s| {
-                    let l = heads.logits(s, x.clone());
+                    let l = heads.logits(s, x.clone(), k);
                     let [_, tokens, v] = l.dims();
                     l.reshape([b, t, tokens, v])
                 })

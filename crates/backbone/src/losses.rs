@@ -5,6 +5,7 @@ use crate::error::{BackboneError, Result};
 use crate::model::Backbone;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
+use umgen_ops::Kernels;
 
 /// Per-modality losses of one batch, each a mean over that modality's tokens, and their total.
 #[derive(Debug, Clone)]
@@ -24,8 +25,10 @@ pub struct LossOptions {
     /// `umgen generate --from-scratch` runs it (0 = never).
     pub prior_drop: f64,
     /// Spread in bins of the targets of ordered value bins (agents' values, the ego action); 0 scores
-    /// the target bin alone. See [`crate::smoothing`].
+    /// the target bin alone. See `umgen_ops::smoothing`.
     pub ordinal_sigma: f64,
+    /// The kernels every operation of the pass runs on (`[train.kernels]`).
+    pub kernels: Kernels,
 }
 
 impl LossOptions {
@@ -58,6 +61,7 @@ impl<B: Backend> Backbone<B> {
                 ego_weight,
                 prior_drop: 0.0,
                 ordinal_sigma: 0.0,
+                kernels: Kernels::DEFAULT,
             },
         )
     }
@@ -72,7 +76,8 @@ impl<B: Backend> Backbone<B> {
         let spec = self.spec();
         let ordinal: Vec<usize> = spec.segments.iter().map(|s| s.ordinal).collect();
         let sigma = opts.ordinal_sigma;
-        let f = self.teacher_forced(tokens, opts.prior_drop)?;
+        let k = &opts.kernels;
+        let f = self.teacher_forced(tokens, opts.prior_drop, k)?;
         let mut parts = Vec::new();
         let mut mean = |name: &str, sums: Vec<(Tensor<B, 1>, usize)>| {
             let count: usize = sums.iter().map(|(_, c)| c).sum();
@@ -93,17 +98,17 @@ impl<B: Backend> Backbone<B> {
         let oar = mean(
             "oar",
             self.oar_heads
-                .cross_entropy(f.o, f.target.clone(), &ordinal, sigma),
+                .cross_entropy(f.o, f.target.clone(), &ordinal, sigma, k),
         );
         let tar = mean(
             "tar",
-            self.tar_heads.cross_entropy(f.h, f.target, &ordinal, sigma),
+            self.tar_heads.cross_entropy(f.h, f.target, &ordinal, sigma, k),
         );
         let mut total = match (oar, tar) {
             (Some(o), Some(t)) => o + t,
             _ => return Err(BackboneError::Spec("no segments".into())),
         };
-        if let (Some(logits), Some(ids)) = (self.ego_logits(f.e, false), f.next_action) {
+        if let (Some(logits), Some(ids)) = (self.ego_with(f.e, false, k), f.next_action) {
             let [b, t, q, v] = logits.dims();
             let bins = spec.action.as_ref().map_or(0, |a| ordinal[a.segment]);
             let ego = umgen_ops::xent::sum(
@@ -111,6 +116,7 @@ impl<B: Backend> Backbone<B> {
                 ids.reshape([b * t * q, 1]),
                 bins,
                 sigma,
+                k,
             )
             .div_scalar((b * t * q) as f64);
             parts.push(("ego".into(), ego.clone()));

@@ -13,6 +13,7 @@ use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Int, Tensor, TensorData};
+use umgen_ops::Kernels;
 
 /// One TAR block: causal attention over time at each position, then bidirectional attention within
 /// each frame.
@@ -23,10 +24,10 @@ pub struct TarBlock<B: Backend> {
 }
 
 impl<B: Backend> TarBlock<B> {
-    fn forward(&self, x: Tensor<B, 4>) -> Tensor<B, 4> {
+    fn forward(&self, x: Tensor<B, 4>, k: &Kernels) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
-        let xt = self.temporal.forward_over_time(x);
-        let xs = self.spatial.forward(xt.reshape([b * t, n, d]), false);
+        let xt = self.temporal.forward_over_time(x, k);
+        let xs = self.spatial.forward(xt.reshape([b * t, n, d]), false, k);
         xs.reshape([b, t, n, d])
     }
 }
@@ -127,7 +128,12 @@ impl<B: Backend> Backbone<B> {
 
     /// Ego-module logits `[b, t, q, vocab]` predicting frames `1..=t` from `e` `[b, t, N, d]`.
     pub fn ego_logits(&self, e: Tensor<B, 4>, last_only: bool) -> Option<Tensor<B, 4>> {
-        self.ego.as_ref().map(|m| m.forward(e, last_only))
+        self.ego_with(e, last_only, &Kernels::DEFAULT)
+    }
+
+    /// [`Self::ego_logits`] with the kernels `k`.
+    pub(crate) fn ego_with(&self, e: Tensor<B, 4>, last_only: bool, k: &Kernels) -> Option<Tensor<B, 4>> {
+        self.ego.as_ref().map(|m| m.forward(e, last_only, k))
     }
 
     /// Decoded action values `[b, t, 3]` (dx, dy, dθ at bin centres) of action tokens `[b, t, q]`.
@@ -157,6 +163,18 @@ impl<B: Backend> Backbone<B> {
         e_next: Tensor<B, 4>,
         next_action: Option<Tensor<B, 3, Int>>,
     ) -> Tensor<B, 4> {
+        self.tar_with(tokens, e, e_next, next_action, &Kernels::DEFAULT)
+    }
+
+    /// [`Self::tar`] with the kernels `k`.
+    fn tar_with(
+        &self,
+        tokens: Tensor<B, 3, Int>,
+        e: Tensor<B, 4>,
+        e_next: Tensor<B, 4>,
+        next_action: Option<Tensor<B, 3, Int>>,
+        k: &Kernels,
+    ) -> Tensor<B, 4> {
         let [b, t, _, d] = e.dims();
         let mut x = e;
         if let Some(a) = &self.spec.action {
@@ -171,10 +189,10 @@ impl<B: Backend> Backbone<B> {
         // The tracked slots moved one frame ahead, embedded `[b·t, L, d]`, at content offset `at`.
         let moved = act
             .as_ref()
-            .and_then(|a| crate::track::embed_moved(&self.spec, &self.embed, tokens, a.clone()));
+            .and_then(|a| crate::track::embed_moved(&self.spec, &self.embed, tokens, a.clone(), k));
         let track = self.track.as_ref().zip(moved);
         if let Some((proj, (at, moved))) = &track {
-            x = add_at(x, *at, proj.input(moved.clone(), self.embed.precision()));
+            x = add_at(x, *at, proj.input(moved.clone(), self.embed.precision(), k));
         }
         if let (Some(al), Some(act)) = (&self.spec.align, act) {
             let s = &self.spec.segments[al.segment];
@@ -190,12 +208,12 @@ impl<B: Backend> Backbone<B> {
         }
         let mut x = x + self.time.val().narrow(0, 0, t).reshape([1, t, 1, d]);
         for blk in &self.tar {
-            x = blk.forward(x);
+            x = blk.forward(x, k);
         }
-        let h = umgen_ops::norm::layer_norm(&self.ln_tar, x);
+        let h = umgen_ops::norm::layer_norm(&self.ln_tar, x, k);
         match track {
             // Also straight into the output, where the heads and the OAR read it.
-            Some((proj, (at, moved))) => add_at(h, at, proj.output(moved, self.embed.precision())),
+            Some((proj, (at, moved))) => add_at(h, at, proj.output(moved, self.embed.precision(), k)),
             None => h,
         }
     }
@@ -270,17 +288,28 @@ impl<B: Backend> Backbone<B> {
 
     /// OAR output `[m, L, d]` of inputs `[m, L, d]` (causal).
     pub fn oar(&self, w: Tensor<B, 3>) -> Tensor<B, 3> {
+        self.oar_with(w, &Kernels::DEFAULT)
+    }
+
+    /// [`Self::oar`] with the kernels `k`.
+    fn oar_with(&self, w: Tensor<B, 3>, k: &Kernels) -> Tensor<B, 3> {
         let mut x = w;
         for blk in &self.oar {
-            x = blk.forward(x, true);
+            x = blk.forward(x, true, k);
         }
-        umgen_ops::norm::layer_norm(&self.ln_oar, x)
+        umgen_ops::norm::layer_norm(&self.ln_oar, x, k)
     }
 
     /// The teacher-forced pass over windows `[b, t + 1, N]`: frames `0..t` condition, frame `i + 1` is
     /// the target of frame `i`. With `prior_drop` > 0, each predicted frame's OAR input goes without its
-    /// TAR prior with that probability, drawn on the device from the backend's seed.
-    pub(crate) fn teacher_forced(&self, tokens: Tensor<B, 3, Int>, prior_drop: f64) -> Result<Forward<B>> {
+    /// TAR prior with that probability, drawn on the device from the backend's seed. Every operation runs
+    /// on the kernels `k`.
+    pub(crate) fn teacher_forced(
+        &self,
+        tokens: Tensor<B, 3, Int>,
+        prior_drop: f64,
+        k: &Kernels,
+    ) -> Result<Forward<B>> {
         let [b, f, n] = tokens.dims();
         if f < 2 || n != self.spec.n {
             return Err(BackboneError::Input(format!(
@@ -289,18 +318,19 @@ impl<B: Backend> Backbone<B> {
             )));
         }
         let t = f - 1;
-        let e_all = self.embed.forward(tokens.clone());
+        let e_all = self.embed.forward(tokens.clone(), k);
         let (e, e_next) = (e_all.clone().narrow(1, 0, t), e_all.narrow(1, 1, t));
         let target = tokens.clone().narrow(1, 1, t);
         let next_action = self.spec.action.as_ref().map(|a| {
             let s = &self.spec.segments[a.segment];
             target.clone().narrow(2, s.offset, s.tokens)
         });
-        let h = self.tar(
+        let h = self.tar_with(
             tokens.narrow(1, 0, t),
             e.clone(),
             e_next.clone(),
             next_action.clone(),
+            k,
         );
         let d = h.dims()[3];
         let prior = h.clone().reshape([b * t, n, d]);
@@ -314,7 +344,7 @@ impl<B: Backend> Backbone<B> {
         } else {
             prior
         };
-        let o = self.oar(self.oar_input(e_next.reshape([b * t, n, d]), prior));
+        let o = self.oar_with(self.oar_input(e_next.reshape([b * t, n, d]), prior), k);
         Ok(Forward {
             e,
             h: h.reshape([b * t, n, d]),

@@ -18,6 +18,7 @@ use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
 use std::f64::consts::PI;
+use umgen_ops::Kernels;
 use umgen_ops::linear::linear;
 
 /// The two projections of the moved slots' embeddings: one added to the TAR's input at each slot, one
@@ -46,13 +47,13 @@ impl<B: Backend> TrackProjection<B> {
     }
 
     /// What the TAR's input gets.
-    pub fn input(&self, moved: Tensor<B, 3>, p: Precision) -> Tensor<B, 3> {
-        linear(&self.input, moved, p)
+    pub fn input(&self, moved: Tensor<B, 3>, p: Precision, k: &Kernels) -> Tensor<B, 3> {
+        linear(&self.input, moved, p, k)
     }
 
     /// What the TAR's output gets.
-    pub fn output(&self, moved: Tensor<B, 3>, p: Precision) -> Tensor<B, 3> {
-        linear(&self.output, moved, p)
+    pub fn output(&self, moved: Tensor<B, 3>, p: Precision, k: &Kernels) -> Tensor<B, 3> {
+        linear(&self.output, moved, p, k)
     }
 }
 
@@ -64,13 +65,14 @@ pub(crate) fn embed_moved<B: Backend>(
     embed: &FrameEmbedding<B>,
     tokens: Tensor<B, 3, Int>,
     action: Tensor<B, 3>,
+    kernels: &Kernels,
 ) -> Option<(usize, Tensor<B, 3>)> {
     let k = spec.track.as_ref()?;
     let s = spec.segments.get(k.segment)?;
     let [b, t, _] = tokens.dims();
     let ids = moved(tokens.narrow(2, s.offset, s.tokens), action, k);
     embed
-        .forward_block(s.offset, ids.reshape([b * t, s.tokens]))
+        .block_with(s.offset, ids.reshape([b * t, s.tokens]), kernels)
         .map(|e| (s.offset, e))
 }
 

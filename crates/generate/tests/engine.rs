@@ -6,6 +6,7 @@
 //! rules and repeat with their seed.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+use burn::module::Module;
 use burn::tensor::backend::Backend;
 use umgen_backbone::{
     ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec, Slot, TrackSpec,
@@ -88,10 +89,17 @@ fn model() -> Backbone<F> {
         ordinal_init: true,
     };
     // burn's seed is one generator for the process: tests on parallel threads would make their models
-    // from it in whatever order the threads take. One at a time, each model is the seed's.
+    // from it in whatever order the threads take. One at a time, each model is the seed's. burn draws a
+    // parameter when it is first read, so the record is taken (every parameter drawn) under the lock and
+    // loaded into a second model, whose own draws are never made.
     let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     F::seed(&Default::default(), 11);
-    Backbone::new(&cfg, &spec, &Default::default()).unwrap()
+    let record = Backbone::<F>::new(&cfg, &spec, &Default::default())
+        .unwrap()
+        .into_record();
+    Backbone::new(&cfg, &spec, &Default::default())
+        .unwrap()
+        .load_record(record)
 }
 
 /// A valid frame: boundary ids, content from a pattern, agent slot `k % 2` empty.

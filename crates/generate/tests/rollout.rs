@@ -3,9 +3,12 @@
 //! seeds, forced actions and initial scenes.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
+use burn::module::Module;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
-use umgen_backbone::{ActionSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec, Slot, TrackSpec};
+use umgen_backbone::{
+    ActionSpec, Backbone, BackboneConfig, BackboneSpec, Kernels, SegmentSpec, Slot, TrackSpec,
+};
 use umgen_generate::{FrameControl, Generator, Sampling};
 
 /// Held while a test seeds burn and makes its model.
@@ -77,10 +80,17 @@ fn model() -> Backbone<F> {
         ordinal_init: true,
     };
     // burn's seed is one generator for the process: tests on parallel threads would make their models
-    // from it in whatever order the threads take. One at a time, each model is the seed's.
+    // from it in whatever order the threads take. One at a time, each model is the seed's. burn draws a
+    // parameter when it is first read, so the record is taken (every parameter drawn) under the lock and
+    // loaded into a second model, whose own draws are never made.
     let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     F::seed(&Default::default(), 9);
-    Backbone::new(&cfg, &spec, &Default::default()).unwrap()
+    let record = Backbone::<F>::new(&cfg, &spec, &Default::default())
+        .unwrap()
+        .into_record();
+    Backbone::new(&cfg, &spec, &Default::default())
+        .unwrap()
+        .load_record(record)
 }
 
 /// Valid frames: boundary ids around content ids drawn from a fixed pattern.
@@ -157,13 +167,13 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
     assert_eq!(z, greedy(true), "drawn on the host or on the device");
 
     // The ego module's argmax is the action.
-    let e = m.embed.forward(ids(&history, n));
+    let e = m.embed.forward(ids(&history, n), &Kernels::DEFAULT);
     let ego = m.ego_logits(e.clone(), true).unwrap().reshape([3, 16]);
     assert_eq!(argmax(ego), z[1..4].to_vec());
 
     // TAR and OAR over the window and the generated frame, as in training.
     let all = ids(&[history.clone(), vec![z.clone()]].concat(), n);
-    let e_all = m.embed.forward(all.clone());
+    let e_all = m.embed.forward(all.clone(), &Kernels::DEFAULT);
     let h = m.tar(
         all.clone().narrow(1, 0, 2),
         e_all.clone().narrow(1, 0, 2),
@@ -173,7 +183,10 @@ fn greedy_frames_are_the_argmax_of_the_teacher_forced_pass() {
     let h_last = h.narrow(1, 1, 1).reshape([1, n, 32]);
     let o = m.oar(m.oar_input(e_all.narrow(1, 2, 1).reshape([1, n, 32]), h_last));
     for (s, seg) in m.spec().segments.iter().enumerate().skip(1) {
-        let logits = m.oar_heads.logits(s, o.clone()).reshape([seg.tokens, seg.vocab]);
+        let logits = m
+            .oar_heads
+            .logits(s, o.clone(), &Kernels::DEFAULT)
+            .reshape([seg.tokens, seg.vocab]);
         assert_eq!(
             argmax(logits),
             z[seg.offset..seg.offset + seg.tokens].to_vec(),

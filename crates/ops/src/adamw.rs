@@ -1,8 +1,8 @@
 //! The multi-tensor kernels that [`umgen_optim::FusedAdamW`] steps through on CUDA: AdamW and the
 //! gradients' global norm (for clipping).
 //!
-//! On `Cuda` each is one custom operation in burn-fusion's stream, unless `train.adamw = "burn"`
-//! ([`select`]): the AdamW step launches `adamw/adamw.cu`'s `umgen_adamw` once per 32 parameter tensors
+//! On `Cuda` each is one custom operation in burn-fusion's stream, unless `train.kernels.adamw = "burn"`
+//!: the AdamW step launches `adamw/adamw.cu`'s `umgen_adamw` once per 32 parameter tensors
 //! (every tensor's update, the clipping factor applied to each gradient as it is read), the norm
 //! `umgen_sumsq` once per 128 gradients and `umgen_sumsq_final` once, all on cubecl's stream with the
 //! tensors bound as the launches' buffers, so the host fetches no device address. burn's AdamW took a
@@ -11,31 +11,45 @@
 //! [`umgen_optim::norm_reference`] instead, counted by [`fallbacks`]. Other backends have no kernels:
 //! the optimizer steps tensor by tensor with burn's AdamW.
 
-mod choice;
 #[cfg(feature = "cuda")]
 mod cuda;
+mod fallbacks;
 #[cfg(feature = "cuda")]
 mod norm;
 #[cfg(feature = "cuda")]
 mod slots;
 
-pub use choice::{AdamWChoice, fallbacks, select, selected};
+pub use crate::kernels::AdamWChoice;
+pub use fallbacks::fallbacks;
 
+use crate::kernels::Kernels;
 use burn::tensor::backend::Backend;
 use umgen_optim::MultiTensor;
-#[cfg(feature = "cuda")]
-use umgen_optim::{AdamWKernel, NormKernel};
 
-/// The multi-tensor kernels for parameters on `B`, if `B` has them. They read [`selected`] at every step
-/// (declining with `train.adamw = "burn"`), so that `umgen-kernel-bench train --alternate` can switch them.
-pub fn kernels<B: Backend>() -> Option<MultiTensor<B>> {
+/// The multi-tensor kernels for parameters on `B`, launched as `k` says, if `B` has them and `k` chooses
+/// them (`k.adamw`); `None` steps tensor by tensor with burn's AdamW.
+pub fn kernels<B: Backend>(k: &Kernels) -> Option<MultiTensor<B>> {
+    if k.adamw == AdamWChoice::Burn {
+        return None;
+    }
     #[cfg(feature = "cuda")]
     {
-        let adamw: AdamWKernel<burn::backend::Cuda> = cuda::step;
-        let norm: NormKernel<burn::backend::Cuda> = norm::global_norm;
+        use crate::kernels::LaunchThread;
+        use burn::backend::Cuda;
+        use burn::tensor::ops::FloatTensor;
+        use std::sync::Arc;
+        use umgen_optim::{AdamWSlot, AdamWStep, AdamWStepped, GradNorm};
+        type Step<B> = fn(Vec<AdamWSlot<B>>, &AdamWStep<B>, LaunchThread) -> AdamWStepped<B>;
+        type Norm<B> = fn(&[FloatTensor<B>], LaunchThread) -> Result<GradNorm<B>, String>;
+        let (step, norm): (Step<Cuda>, Norm<Cuda>) = (cuda::step, norm::global_norm);
+        let (step, norm) = (
+            crate::dispatch::same::<_, Step<B>>(step)?,
+            crate::dispatch::same::<_, Norm<B>>(norm)?,
+        );
+        let thread = k.launch_thread;
         Some(MultiTensor {
-            adamw: crate::dispatch::same(adamw)?,
-            norm: crate::dispatch::same(norm)?,
+            adamw: Arc::new(move |slots, s| step(slots, s, thread)),
+            norm: Arc::new(move |grads| norm(grads, thread)),
         })
     }
     #[cfg(not(feature = "cuda"))]
@@ -48,7 +62,8 @@ mod tests {
 
     #[test]
     fn the_cpu_has_no_kernel() {
-        assert!(kernels::<burn::backend::Flex>().is_none());
-        assert!(kernels::<burn::backend::Autodiff<burn::backend::Flex>>().is_none());
+        let k = Kernels::DEFAULT;
+        assert!(kernels::<burn::backend::Flex>(&k).is_none());
+        assert!(kernels::<burn::backend::Autodiff<burn::backend::Flex>>(&k).is_none());
     }
 }

@@ -15,6 +15,7 @@ use crate::dispatch::same;
 use crate::flash::FusedAttention;
 use crate::format::{Precision, float};
 use crate::heads::split_kv;
+use crate::kernels::Kernels;
 use crate::tiled::{MIN_TILED_KEYS, operands};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -41,13 +42,14 @@ pub fn attend<B: Backend>(
     mask: Option<Tensor<B, 4, Bool>>,
     causal: bool,
     precision: Precision,
+    kernels: &Kernels,
 ) -> Tensor<B, 4> {
     let precision = precision.attention();
     let [_, _, lq, _] = q.dims();
     let lk = k.dims()[2];
     match tiled_for::<B>() {
         Some(tiled) if mask.is_none() && lk >= MIN_TILED_KEYS && (!causal || lk >= lq) => {
-            tiled(q, k, v, causal, precision)
+            tiled(q, k, v, causal, precision, kernels)
         }
         // The training backends differentiate burn's decomposition; the shift by each row's maximum
         // needs no gradient (`attention/masked.rs`).
@@ -71,14 +73,17 @@ pub fn attend_kv<B: Backend>(
     mask: Option<Tensor<B, 4, Bool>>,
     causal: bool,
     precision: Precision,
+    kernels: &Kernels,
 ) -> Tensor<B, 4> {
     let [_, heads, lq, _] = q.dims();
     let lk = kv.dims()[1];
     match kv::kv_for::<B>() {
-        Some(f) if one_operation(mask.is_none(), lq, lk, causal) => f(q, kv, causal, precision.attention()),
+        Some(f) if one_operation(mask.is_none(), lq, lk, causal) => {
+            f(q, kv, causal, precision.attention(), kernels)
+        }
         _ => {
             let (k, v) = split_kv(kv, heads);
-            attend(q, k, v, mask, causal, precision)
+            attend(q, k, v, mask, causal, precision, kernels)
         }
     }
 }
@@ -96,7 +101,7 @@ fn one_operation(unmasked: bool, lq: usize, lk: usize, causal: bool) -> bool {
 }
 
 /// The signature of an attention function on backend `B`.
-type AttentionFn<B> = fn(Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>, bool, Precision) -> Tensor<B, 4>;
+type AttentionFn<B> = fn(Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>, bool, Precision, &Kernels) -> Tensor<B, 4>;
 
 /// The tiled operation as a function on `B`, when `B` is one of the autodiff backends named here; `None`
 /// otherwise (inference backends, or a backend this list does not know).
@@ -119,7 +124,7 @@ fn on<B: Backend, I: FusedAttention>() -> Option<AttentionFn<B>> {
 struct TiledAttention;
 
 impl<B: FusedAttention> Backward<B, 3> for TiledAttention {
-    /// q, k, v, output, log-sum-exp, causal, precision of the products.
+    /// q, k, v, output, log-sum-exp, causal, precision of the products, the kernels.
     type State = (
         FloatTensor<B>,
         FloatTensor<B>,
@@ -128,14 +133,15 @@ impl<B: FusedAttention> Backward<B, 3> for TiledAttention {
         FloatTensor<B>,
         bool,
         Precision,
+        Kernels,
     );
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [nq, nk, nv] = ops.parents;
         let dout = float::<B, 4>(grads.consume::<B>(&ops.node));
-        let (q, k, v, out, lse, causal, precision) = ops.state;
+        let (q, k, v, out, lse, causal, precision, kernels) = ops.state;
         let (q, k, v, out, lse) = (float(q), float(k), float(v), float(out), float(lse));
-        let (dq, dk, dv) = B::attention_backward(q, k, v, out, lse, dout, causal, precision);
+        let (dq, dk, dv) = B::attention_backward(q, k, v, out, lse, dout, causal, precision, &kernels);
         for (node, g) in [(nq, dq), (nk, dk), (nv, dv)] {
             if let Some(node) = node {
                 grads.register::<B>(node.id, g.into_primitive().tensor());
@@ -153,6 +159,7 @@ pub fn tiled_autodiff<I: FusedAttention, C: CheckpointStrategy>(
     v: Tensor<Autodiff<I, C>, 4>,
     causal: bool,
     precision: Precision,
+    kernels: &Kernels,
 ) -> Tensor<Autodiff<I, C>, 4> {
     let (q, k, v) = (
         q.into_primitive().tensor(),
@@ -171,7 +178,7 @@ pub fn tiled_autodiff<I: FusedAttention, C: CheckpointStrategy>(
         float::<I, 4>(v.primitive),
         precision,
     );
-    let (out, lse) = I::attention_forward(qi.clone(), ki.clone(), vi.clone(), causal, precision);
+    let (out, lse) = I::attention_forward(qi.clone(), ki.clone(), vi.clone(), causal, precision, kernels);
     let out_p = out.clone().into_primitive().tensor();
     let y = match prep {
         OpsKind::Tracked(prep) => {
@@ -183,6 +190,7 @@ pub fn tiled_autodiff<I: FusedAttention, C: CheckpointStrategy>(
                 lse.into_primitive().tensor(),
                 causal,
                 precision,
+                *kernels,
             );
             prep.finish(state, out_p)
         }

@@ -6,47 +6,36 @@
 //! it out when the caller's `B` is that backend.
 
 use std::any::Any;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
-/// A process-wide choice between a hand-written kernel and burn's decomposition of the same operation
-/// (the kernel unless told otherwise), with a count of the passes the kernel refused or failed to launch.
+/// How many passes a family of kernels refused (or failed to launch) in this process, so that burn's
+/// decomposition ran them instead; the first refusal is logged. A count for the log and the benchmarks,
+/// not a choice: what runs is the caller's [`crate::Kernels`].
 #[derive(Debug)]
-pub(crate) struct Choice {
-    burn: AtomicBool,
-    fallbacks: AtomicUsize,
-    /// What the kernel computes, for the log.
+pub(crate) struct Fallbacks {
+    count: AtomicUsize,
+    /// What the kernels compute, for the log.
     what: &'static str,
 }
 
-impl Choice {
-    /// The kernel chosen, nothing fallen back.
+impl Fallbacks {
+    /// Nothing fallen back.
     pub(crate) const fn new(what: &'static str) -> Self {
         Self {
-            burn: AtomicBool::new(false),
-            fallbacks: AtomicUsize::new(0),
+            count: AtomicUsize::new(0),
             what,
         }
     }
 
-    /// Chooses burn's decomposition (`true`) or the kernel from now on.
-    pub(crate) fn set_burn(&self, burn: bool) {
-        self.burn.store(burn, Ordering::Relaxed);
-    }
-
-    /// Whether burn's decomposition was chosen.
-    pub(crate) fn burn(&self) -> bool {
-        self.burn.load(Ordering::Relaxed)
-    }
-
     /// How many passes fell back to the decomposition in this process.
-    pub(crate) fn fallbacks(&self) -> usize {
-        self.fallbacks.load(Ordering::Relaxed)
+    pub(crate) fn count(&self) -> usize {
+        self.count.load(Ordering::Relaxed)
     }
 
-    /// Counts a pass the kernel refused for `why`; logs the first.
+    /// Counts a pass the kernels refused for `why`; logs the first.
     #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
     pub(crate) fn fell_back(&self, why: &str) {
-        if self.fallbacks.fetch_add(1, Ordering::Relaxed) == 0 {
+        if self.count.fetch_add(1, Ordering::Relaxed) == 0 {
             tracing::warn!(
                 "the {} kernels refused {why}; the decomposition runs it (counted in fallbacks)",
                 self.what
@@ -63,17 +52,15 @@ pub(crate) fn same<F: Copy + 'static, G: Copy + 'static>(f: F) -> Option<G> {
 
 #[cfg(test)]
 mod tests {
-    use super::{Choice, same};
+    use super::{Fallbacks, same};
 
     #[test]
-    fn a_choice_counts_its_fallbacks_and_remembers_burn() {
-        let c = Choice::new("test");
-        assert!(!c.burn());
-        c.set_burn(true);
-        assert!(c.burn());
+    fn fallbacks_are_counted() {
+        let c = Fallbacks::new("test");
+        assert_eq!(c.count(), 0);
         c.fell_back("a shape");
         c.fell_back("another");
-        assert_eq!(c.fallbacks(), 2);
+        assert_eq!(c.count(), 2);
     }
 
     #[test]

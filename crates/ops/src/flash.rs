@@ -15,11 +15,12 @@
 //! passes instead, counted by [`fallbacks`] and logged once.
 
 use crate::format::Precision;
+use crate::kernels::Kernels;
+pub use crate::kernels::{AttentionKernel, DEFAULT_STEP, STEPS, check_step};
 use crate::tiled::{tiled_backward, tiled_forward};
 use burn::tensor::Tensor;
 use burn::tensor::backend::Backend;
-use serde::{Deserialize, Serialize};
-use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 #[cfg(feature = "cuda")]
 mod cuda;
@@ -33,13 +34,6 @@ pub const MAX_HEAD: usize = 128;
 
 /// Rows of a fused kernel's block (queries, or keys for the key/value gradients).
 pub const BLOCK: usize = 64;
-
-/// Keys (or queries, for the key/value gradients) per step of a fused kernel's loop that the kernels
-/// take: multiples of 16 up to [`BLOCK`].
-pub const STEPS: [usize; 3] = [16, 32, 64];
-
-/// The step the kernels use unless told otherwise ([`set_step`], `train.attention_step`).
-pub const DEFAULT_STEP: usize = 16;
 
 /// Row padding (elements) of the buffers the products read, for operands of `elem` bytes: 16 bytes, the
 /// least that keeps every tensor-core load on a 32-byte boundary (16-bit fragments also need a row stride
@@ -70,71 +64,8 @@ pub(crate) const fn acc_stride(head: usize) -> usize {
     head + 4
 }
 
-/// Which kernels run the training attention on CUDA (`train.attention`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum AttentionKernel {
-    /// One fused cubecl kernel per pass (forward; key/value gradients; query gradients).
-    Fused,
-    /// The tiled passes in burn tensor operations (blocks of [`crate::attention::BLOCK_BYTES`]).
-    Tiled,
-    /// FlashAttention-2 in CUDA C (umgen-cuda's `kernels/flash2/flash2.cu`, NVRTC): products and softmax in registers; head
-    /// sizes 32 and 64 (others run [`AttentionKernel::Fused`]). The default: about 2× the fused kernels'
-    /// speed.
-    #[default]
-    Flash2,
-}
-
-/// The kernels chosen (process-wide, as [`crate::matmul::select`]): 0 flash2, 1 tiled, 2 fused.
-static SELECTED: AtomicU8 = AtomicU8::new(0);
 /// Passes that wanted the fused kernels but ran the tiled ones.
 static FALLBACKS: AtomicUsize = AtomicUsize::new(0);
-/// The fused kernels' loop step ([`set_step`]).
-static STEP: AtomicUsize = AtomicUsize::new(DEFAULT_STEP);
-
-/// Chooses the attention kernels for every training pass this process runs from now on.
-pub fn select(kernel: AttentionKernel) {
-    let code = match kernel {
-        AttentionKernel::Flash2 => 0,
-        AttentionKernel::Tiled => 1,
-        AttentionKernel::Fused => 2,
-    };
-    SELECTED.store(code, Ordering::Relaxed);
-}
-
-/// The kernels [`select`] chose ([`AttentionKernel::Flash2`] unless told otherwise).
-pub fn selected() -> AttentionKernel {
-    match SELECTED.load(Ordering::Relaxed) {
-        1 => AttentionKernel::Tiled,
-        2 => AttentionKernel::Fused,
-        _ => AttentionKernel::Flash2,
-    }
-}
-
-/// `step` if the fused kernels take it (one of [`STEPS`]); the error names it and the steps they take.
-pub fn check_step(step: usize) -> Result<usize, String> {
-    if STEPS.contains(&step) {
-        Ok(step)
-    } else {
-        Err(format!(
-            "attention step {step}: the fused kernels take {STEPS:?} rows per step"
-        ))
-    }
-}
-
-/// Sets the fused kernels' loop step for every pass this process runs from now on (`None`: the default).
-/// Errors name a step outside [`STEPS`] and leave the step in use.
-pub fn set_step(step: Option<usize>) -> Result<(), String> {
-    let step = check_step(step.unwrap_or(DEFAULT_STEP))?;
-    STEP.store(step, Ordering::Relaxed);
-    Ok(())
-}
-
-/// The fused kernels' loop step.
-pub fn step() -> usize {
-    STEP.load(Ordering::Relaxed)
-}
-
 /// How many passes fell back from the fused kernels to the tiled ones in this process.
 pub fn fallbacks() -> usize {
     FALLBACKS.load(Ordering::Relaxed)
@@ -190,6 +121,7 @@ pub trait FusedAttention: Backend {
         v: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>);
 
     /// The gradients of `q`, `k` and `v` from the output's gradient `dout`, given the forward pass's output
@@ -204,6 +136,7 @@ pub trait FusedAttention: Backend {
         dout: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>);
 
     /// [`Self::attention_backward`] with the keys' and values' gradients as one `[b, lk, 2·h·d]` (the keys'
@@ -219,8 +152,9 @@ pub trait FusedAttention: Backend {
         dout: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 3>) {
-        let (dq, dk, dv) = Self::attention_backward(q, k, v, out, lse, dout, causal, precision);
+        let (dq, dk, dv) = Self::attention_backward(q, k, v, out, lse, dout, causal, precision, kernels);
         (dq, merge_kv(dk, dv))
     }
 }
@@ -231,20 +165,21 @@ pub(crate) fn merge_kv<B: Backend>(dk: Tensor<B, 4>, dv: Tensor<B, 4>) -> Tensor
     Tensor::stack::<5>(vec![dk.swap_dims(1, 2), dv.swap_dims(1, 2)], 2).reshape([b, lk, 2 * h * d])
 }
 
-/// The tiled forward pass with the process's block size.
+/// The tiled forward pass in blocks of `kernels.attention_block_mib`.
 pub(crate) fn tiled_forward_pass<B: Backend>(
     q: Tensor<B, 4>,
     k: Tensor<B, 4>,
     v: Tensor<B, 4>,
     causal: bool,
     precision: Precision,
+    kernels: &Kernels,
 ) -> (Tensor<B, 4>, Tensor<B, 4>) {
     let [b, h, lq, _] = q.dims();
-    let rows = crate::tiled::block_rows(b, h, lq, k.dims()[2]);
+    let rows = crate::tiled::block_rows(b, h, lq, k.dims()[2], kernels.block_bytes());
     tiled_forward(q, k, v, causal, rows, precision)
 }
 
-/// The tiled backward pass with the process's block size.
+/// The tiled backward pass in blocks of `kernels.attention_block_mib`.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn tiled_backward_pass<B: Backend>(
     q: Tensor<B, 4>,
@@ -255,9 +190,10 @@ pub(crate) fn tiled_backward_pass<B: Backend>(
     dout: Tensor<B, 4>,
     causal: bool,
     precision: Precision,
+    kernels: &Kernels,
 ) -> (Tensor<B, 4>, Tensor<B, 4>, Tensor<B, 4>) {
     let [b, h, lq, _] = q.dims();
-    let rows = crate::tiled::block_rows(b, h, lq, k.dims()[2]);
+    let rows = crate::tiled::block_rows(b, h, lq, k.dims()[2], kernels.block_bytes());
     tiled_backward(q, k, v, out, lse, dout, causal, rows, precision)
 }
 
@@ -269,8 +205,9 @@ impl FusedAttention for burn::backend::Flex {
         v: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
-        tiled_forward_pass(q, k, v, causal, precision)
+        tiled_forward_pass(q, k, v, causal, precision, kernels)
     }
 
     fn attention_backward(
@@ -282,8 +219,9 @@ impl FusedAttention for burn::backend::Flex {
         dout: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>) {
-        tiled_backward_pass(q, k, v, out, lse, dout, causal, precision)
+        tiled_backward_pass(q, k, v, out, lse, dout, causal, precision, kernels)
     }
 }
 
@@ -320,13 +258,5 @@ mod tests {
         // bf16 operands keep 8-element padding (16-bit fragments need strides of multiples of 8).
         assert_eq!(tile_stride(64, 2), 72);
         assert!(shared_bytes(128, 2, 64) <= 232_448);
-    }
-
-    #[test]
-    fn steps_outside_the_kernels_range_are_refused_by_name() {
-        let e = set_step(Some(48)).expect_err("48 is not a step the kernels take");
-        assert!(e.contains("48") && e.contains("[16, 32, 64]"), "{e}");
-        // The refused value did not replace the step in use.
-        assert!(STEPS.contains(&step()));
     }
 }

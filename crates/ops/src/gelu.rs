@@ -16,15 +16,17 @@
 //!
 //! Both passes use GELU's exact form (erf) and its exact derivative, `Φ(x) + x·φ(x)`, as PyTorch's
 //! `nn.GELU()` does; burn's own backward pass uses the tanh approximation's derivative, which
-//! `train.gelu = "burn"` keeps.
+//! `train.kernels.gelu = "burn"` keeps.
 
 #[cfg(feature = "cuda")]
 mod cuda;
 
-use crate::dispatch::{Choice, same};
+use crate::dispatch::{Fallbacks, same};
 use crate::format::Precision;
 use crate::format::float;
 use crate::format::float_format;
+pub use crate::kernels::GeluKernel;
+use crate::kernels::Kernels;
 use crate::linear::{linear, linear_with};
 use crate::matmul::Written;
 use burn::backend::Autodiff;
@@ -39,45 +41,19 @@ use burn::tensor::activation::gelu;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{FloatDType, Tensor, TensorPrimitive};
-use serde::{Deserialize, Serialize};
 
-/// What computes the MLPs' bias + GELU when training (`train.gelu`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum GeluKernel {
-    /// One operation per pass ([`FusedGelu`]: on CUDA one CUDA C kernel, `gelu/gelu.cu`). The default.
-    #[default]
-    Fused,
-    /// burn's bias add and GELU, as before the kernels (for comparing them).
-    Burn,
-}
-
-/// The process's choice and its fallbacks.
-static CHOICE: Choice = Choice::new("bias + GELU");
-
-/// Chooses what computes the MLPs' bias + GELU in every training pass this process runs from now on.
-pub fn select(kernel: GeluKernel) {
-    CHOICE.set_burn(kernel == GeluKernel::Burn);
-}
-
-/// What [`select`] chose ([`GeluKernel::Fused`] unless told otherwise).
-pub fn selected() -> GeluKernel {
-    if CHOICE.burn() {
-        GeluKernel::Burn
-    } else {
-        GeluKernel::Fused
-    }
-}
+/// Passes the kernels refused in this process.
+static FALLBACKS: Fallbacks = Fallbacks::new("bias + GELU");
 
 /// How many bias + GELU passes fell back from the CUDA kernels to burn's operations in this process.
 pub fn fallbacks() -> usize {
-    CHOICE.fallbacks()
+    FALLBACKS.count()
 }
 
 /// Counts a pass the kernels refused for `why`; logs the first.
 #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
 fn fell_back(why: &str) {
-    CHOICE.fell_back(why);
+    FALLBACKS.fell_back(why);
 }
 
 /// A backend that computes an MLP's bias + GELU over the rows of `[rows, n]` products (f32 or bf16; the
@@ -142,18 +118,19 @@ pub fn linear_gelu<B: Backend, const D: usize>(
     layer: &Linear<B>,
     x: Tensor<B, D>,
     p: Precision,
+    k: &Kernels,
 ) -> Tensor<B, D> {
     let (Some(product), Some(op), Some(bias)) =
-        (crate::matmul::named_for::<B>(), tracked::<B>(), &layer.bias)
+        (crate::matmul::named_for::<B>(k), tracked::<B>(k), &layer.bias)
     else {
-        return gelu(linear(layer, x, p));
+        return gelu(linear(layer, x, p, k));
     };
     let format = p.operand_dtype();
     let written = Written {
         out: format,
         dx: FloatDType::F32,
     };
-    let (y, dims) = crate::linear::product_rows(product, x, layer.weight.val(), p, written);
+    let (y, dims) = crate::linear::product_rows(product, x, layer.weight.val(), p, written, k);
     op(y, bias.val()).reshape(dims)
 }
 
@@ -165,27 +142,28 @@ pub fn gelu_mlp<B: Backend, const D: usize>(
     out: &Linear<B>,
     x: Tensor<B, D>,
     p: Precision,
+    k: &Kernels,
 ) -> Tensor<B, D> {
-    let h = linear_gelu(fc, x, p);
+    let h = linear_gelu(fc, x, p, k);
     let dx = float_format(h.dtype());
-    linear_with(out, h, p, dx)
+    linear_with(out, h, p, dx, k)
 }
 
 /// The format of the MLP's first product where [`inner_forward`] reads it: the activation's
 /// (the products' operand format, [`Precision::operand_dtype`]) for [`GeluKernel::Fused`], f32 for burn's
 /// operations.
-pub(crate) fn inner_product_dtype(p: Precision) -> FloatDType {
-    match selected() {
+pub(crate) fn inner_product_dtype(p: Precision, k: &Kernels) -> FloatDType {
+    match k.gelu {
         GeluKernel::Fused => p.operand_dtype(),
         GeluKernel::Burn => FloatDType::F32,
     }
 }
 
-/// The passes on a backend without autodiff, as [`linear_gelu`] runs them for [`selected`]: the
+/// The passes on a backend without autodiff, as [`linear_gelu`] runs them for `k.gelu`: the
 /// activation from the product `y` (without its bias, in [`inner_product_dtype`]).
 /// `recompute/math.rs`'s hand-written layer uses them.
-pub(crate) fn inner_forward<I: FusedGelu>(y: Tensor<I, 2>, b: Tensor<I, 1>) -> Tensor<I, 2> {
-    match selected() {
+pub(crate) fn inner_forward<I: FusedGelu>(y: Tensor<I, 2>, b: Tensor<I, 1>, k: &Kernels) -> Tensor<I, 2> {
+    match k.gelu {
         GeluKernel::Fused => I::bias_gelu_forward(y, b),
         GeluKernel::Burn => gelu(y.cast(FloatDType::F32) + b.unsqueeze::<2>()),
     }
@@ -197,8 +175,9 @@ pub(crate) fn inner_backward<I: FusedGelu>(
     dh: Tensor<I, 2>,
     y: Tensor<I, 2>,
     b: Tensor<I, 1>,
+    k: &Kernels,
 ) -> (Tensor<I, 2>, Tensor<I, 1>) {
-    match selected() {
+    match k.gelu {
         GeluKernel::Fused => I::bias_gelu_backward(dh, y, b),
         GeluKernel::Burn => {
             let x = y.cast(FloatDType::F32) + b.unsqueeze::<2>();
@@ -214,9 +193,9 @@ pub(crate) fn inner_backward<I: FusedGelu>(
 /// The operation on `B`: the product `[rows, n]` and the bias in, `[rows, n]` out (in the product's format).
 type GeluOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>) -> Tensor<B, 2>;
 
-/// The custom operation when `B` is a training backend and [`GeluKernel::Fused`] is chosen.
-fn tracked<B: Backend>() -> Option<GeluOp<B>> {
-    if selected() == GeluKernel::Burn {
+/// The custom operation when `B` is a training backend and `k` chooses [`GeluKernel::Fused`].
+fn tracked<B: Backend>(k: &Kernels) -> Option<GeluOp<B>> {
+    if k.gelu == GeluKernel::Burn {
         return None;
     }
     let found = on::<B, burn::backend::Flex>();

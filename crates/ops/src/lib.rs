@@ -19,8 +19,8 @@
 //! - [`recompute`]: a self-attention layer as one operation that keeps only its input and recomputes its
 //!   activations in the backward pass (activation checkpointing).
 //! - [`adamw`]: the optimizer's multi-tensor AdamW step and gradient norm on CUDA.
-//! - [`kernel_stream`]: where the CUDA C kernels are launched (cubecl's stream or a side stream) and from
-//!   which thread.
+//! - [`kernels`]: the kernel choices of a run ([`Kernels`]), one value the model passes to every
+//!   operation; nothing here is chosen process-wide.
 
 pub mod adamw;
 pub mod attention;
@@ -29,7 +29,7 @@ pub mod flash;
 pub mod format;
 pub mod gelu;
 pub mod heads;
-pub mod kernel_stream;
+pub mod kernels;
 pub mod linear;
 pub mod lookup;
 pub mod matmul;
@@ -44,5 +44,6 @@ pub mod tiled;
 pub mod xent;
 
 pub use format::Precision;
+pub use kernels::Kernels;
 #[cfg(feature = "cuda")]
 pub use side::{device_thread_calls, foreign_streams};

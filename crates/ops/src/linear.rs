@@ -3,6 +3,7 @@
 //! bias added by [`crate::rows`] in the format the consumer reads.
 
 use crate::format::{Precision, operand, widen};
+use crate::kernels::Kernels;
 use crate::matmul::Written;
 use burn::nn::Linear;
 use burn::tensor::backend::Backend;
@@ -17,17 +18,23 @@ pub(crate) fn product_rows<B: Backend, const D: usize>(
     w: Tensor<B, 2>,
     p: Precision,
     written: Written,
+    k: &Kernels,
 ) -> (Tensor<B, 2>, [usize; D]) {
     let mut dims = x.dims();
-    let k = dims[D - 1];
+    let inner = dims[D - 1];
     dims[D - 1] = w.dims()[1];
-    (product(x.reshape([-1, k as i32]), w, p, written), dims)
+    (product(x.reshape([-1, inner as i32]), w, p, written, k), dims)
 }
 
 /// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32 ([`crate::rows::add`]). Training on CUDA runs the
 /// product on the named kernel (`matmul.rs`), as one `[m, k] × [k, n]` product over all leading dimensions.
-pub fn linear<B: Backend, const D: usize>(layer: &Linear<B>, x: Tensor<B, D>, p: Precision) -> Tensor<B, D> {
-    linear_with(layer, x, p, FloatDType::F32)
+pub fn linear<B: Backend, const D: usize>(
+    layer: &Linear<B>,
+    x: Tensor<B, D>,
+    p: Precision,
+    k: &Kernels,
+) -> Tensor<B, D> {
+    linear_with(layer, x, p, FloatDType::F32, k)
 }
 
 /// `layer.forward(x)` in `format`, the format its consumer reads (bf16 attention operands): on the named
@@ -38,15 +45,16 @@ pub fn linear_in<B: Backend, const D: usize>(
     x: Tensor<B, D>,
     p: Precision,
     format: FloatDType,
+    k: &Kernels,
 ) -> Tensor<B, D> {
-    let Some(product) = crate::matmul::named_for::<B>().filter(|_| format != FloatDType::F32) else {
-        return linear(layer, x, p).cast(format);
+    let Some(product) = crate::matmul::named_for::<B>(k).filter(|_| format != FloatDType::F32) else {
+        return linear(layer, x, p, k).cast(format);
     };
     let written = Written {
         out: format,
         dx: FloatDType::F32,
     };
-    let (y, dims) = product_rows(product, x, layer.weight.val(), p, written);
+    let (y, dims) = product_rows(product, x, layer.weight.val(), p, written, k);
     let y = y.reshape(dims);
     match &layer.bias {
         Some(bias) => crate::rows::add_for(y, bias.val(), Some(p.operand_dtype())),
@@ -62,15 +70,16 @@ pub fn linear_with<B: Backend, const D: usize>(
     x: Tensor<B, D>,
     p: Precision,
     dx: FloatDType,
+    k: &Kernels,
 ) -> Tensor<B, D> {
     let w = layer.weight.val();
-    let y = match (crate::matmul::named_for::<B>(), p) {
+    let y = match (crate::matmul::named_for::<B>(k), p) {
         (Some(product), _) => {
             let written = Written {
                 out: FloatDType::F32,
                 dx,
             };
-            let (y, dims) = product_rows(product, x, w, p, written);
+            let (y, dims) = product_rows(product, x, w, p, written, k);
             y.reshape(dims)
         }
         // burn's layer adds the bias inside its product.

@@ -28,12 +28,12 @@ use burn::tensor::backend::Backend;
 use burn::tensor::module::embedding;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Int, Tensor, TensorMetadata};
-use scatter::{CHOICE, scatter_grad};
+use scatter::{FALLBACKS, scatter_grad};
 
 /// How many table gradients the CUDA kernels refused or failed to launch in this process (the scatter
 /// summed them instead).
 pub fn fallbacks() -> usize {
-    CHOICE.fallbacks()
+    FALLBACKS.count()
 }
 
 /// Rows `[m, l, d]` of `table` for ids `[m, l]`.

@@ -26,6 +26,8 @@ use crate::dispatch::same;
 use crate::format::Precision;
 use crate::format::float;
 use crate::format::operand;
+use crate::kernels::Kernels;
+pub use crate::kernels::MatmulKernel;
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -36,8 +38,6 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{FloatDType, Tensor};
-use serde::{Deserialize, Serialize};
-use std::sync::atomic::{AtomicU8, Ordering};
 
 #[cfg(feature = "cuda")]
 mod cublas;
@@ -46,53 +46,27 @@ mod cuda;
 #[cfg(feature = "cuda")]
 pub use cuda::{fallbacks, launch_kernel};
 
-/// Which kernel runs the linear layers' products in training on CUDA (`train.matmul`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum MatmulKernel {
-    /// cubek's `specialized_tma_mma`, through [`named_autodiff`].
-    Named,
-    /// cuBLAS's `cublasGemmEx`, through [`named_autodiff`]; products it cannot take, or a machine without
-    /// libcublas, fall back to [`MatmulKernel::Named`] (counted in `fallbacks`).
-    #[default]
-    Cublas,
-    /// burn's default kernel, through burn's own autodiff.
-    Burn,
-}
-
-impl MatmulKernel {
-    const ALL: [MatmulKernel; 3] = [MatmulKernel::Cublas, MatmulKernel::Named, MatmulKernel::Burn];
-}
-
-/// Index in [`MatmulKernel::ALL`] of the kernel chosen (process-wide: a kernel is a property of the device
-/// run, not of the model).
-static KERNEL: AtomicU8 = AtomicU8::new(0);
-
-/// Chooses the kernel for every product this process runs from now on.
-pub fn select(kernel: MatmulKernel) {
-    let i = MatmulKernel::ALL.iter().position(|&k| k == kernel).unwrap_or(0);
-    KERNEL.store(i as u8, Ordering::Relaxed);
-}
-
-/// The kernel [`select`] chose ([`MatmulKernel::Cublas`] unless told otherwise).
-pub fn selected() -> MatmulKernel {
-    MatmulKernel::ALL
-        .get(KERNEL.load(Ordering::Relaxed) as usize)
-        .copied()
-        .unwrap_or_default()
-}
-
 /// A backend that can multiply two `[m, k] × [k, n]` matrices of one float format (either may be a
 /// transposed view) into a result of a given format, accumulating in f32, on a kernel of its choosing.
 pub trait NamedMatmul: Backend {
-    /// `lhs · rhs` in `out`.
-    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>, out: FloatDType) -> FloatTensor<Self>;
+    /// `lhs · rhs` in `out`, on the kernel `k` names.
+    fn named_matmul(
+        lhs: FloatTensor<Self>,
+        rhs: FloatTensor<Self>,
+        out: FloatDType,
+        k: &Kernels,
+    ) -> FloatTensor<Self>;
 }
 
 /// The CPU backend has one kernel: burn's product, cast to the result's format. It lets the CPU tests
 /// check the operation's gradients and casts.
 impl NamedMatmul for burn::backend::Flex {
-    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>, out: FloatDType) -> FloatTensor<Self> {
+    fn named_matmul(
+        lhs: FloatTensor<Self>,
+        rhs: FloatTensor<Self>,
+        out: FloatDType,
+        _: &Kernels,
+    ) -> FloatTensor<Self> {
         float::<Self, 2>(lhs)
             .matmul(float(rhs))
             .cast(FloatDType::F32)
@@ -121,14 +95,14 @@ impl Written {
 }
 
 /// `x · w` for `x: [m, k]` and `w: [k, n]`, the product in `p`'s format, the result and `x`'s gradient in
-/// the [`Written`] formats.
-pub type ProductFn<B> = fn(Tensor<B, 2>, Tensor<B, 2>, Precision, Written) -> Tensor<B, 2>;
+/// the [`Written`] formats, on the kernel the [`Kernels`] name.
+pub type ProductFn<B> = fn(Tensor<B, 2>, Tensor<B, 2>, Precision, Written, &Kernels) -> Tensor<B, 2>;
 
 /// [`named_autodiff`] as a function on `B` when `B` is one of the autodiff backends this workspace trains on
-/// (CUDA, or the CPU's `Flex`, where it runs burn's product) and [`selected`] is not [`MatmulKernel::Burn`];
+/// (CUDA, or the CPU's `Flex`, where it runs burn's product) and `k` does not choose [`MatmulKernel::Burn`];
 /// `None` otherwise (the caller then uses burn's `matmul`).
-pub fn named_for<B: Backend>() -> Option<ProductFn<B>> {
-    if selected() == MatmulKernel::Burn {
+pub fn named_for<B: Backend>(k: &Kernels) -> Option<ProductFn<B>> {
+    if k.matmul == MatmulKernel::Burn {
         return None;
     }
     let found = on::<B, burn::backend::Flex>();
@@ -145,16 +119,22 @@ fn on<B: Backend, I: NamedMatmul>() -> Option<ProductFn<B>> {
 }
 
 /// `a · b` on `B`'s named kernel, f32.
-pub(crate) fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>) -> Tensor<B, 2> {
-    product_in(a, b, FloatDType::F32)
+pub(crate) fn product<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>, k: &Kernels) -> Tensor<B, 2> {
+    product_in(a, b, FloatDType::F32, k)
 }
 
 /// `a · b` on `B`'s named kernel, in `out`.
-pub(crate) fn product_in<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>, out: FloatDType) -> Tensor<B, 2> {
+pub(crate) fn product_in<B: NamedMatmul>(
+    a: Tensor<B, 2>,
+    b: Tensor<B, 2>,
+    out: FloatDType,
+    k: &Kernels,
+) -> Tensor<B, 2> {
     float(B::named_matmul(
         a.into_primitive().tensor(),
         b.into_primitive().tensor(),
         out,
+        k,
     ))
 }
 
@@ -162,19 +142,19 @@ pub(crate) fn product_in<B: NamedMatmul>(a: Tensor<B, 2>, b: Tensor<B, 2>, out: 
 struct Product;
 
 impl<B: NamedMatmul> Backward<B, 2> for Product {
-    /// `x` and `w` in the products' format, that format, and the input gradient's.
-    type State = (FloatTensor<B>, FloatTensor<B>, Precision, FloatDType);
+    /// `x` and `w` in the products' format, that format, the input gradient's, the kernels.
+    type State = (FloatTensor<B>, FloatTensor<B>, Precision, FloatDType, Kernels);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [nx, nw] = ops.parents;
-        let (x, w, p, dx_format) = ops.state;
+        let (x, w, p, dx_format, k) = ops.state;
         let dy = operand(float::<B, 2>(grads.consume::<B>(&ops.node)), p);
         if let Some(node) = nx {
-            let dx = product_in(dy.clone(), float::<B, 2>(w).transpose(), dx_format);
+            let dx = product_in(dy.clone(), float::<B, 2>(w).transpose(), dx_format, &k);
             grads.register::<B>(node.id, dx.into_primitive().tensor());
         }
         if let Some(node) = nw {
-            let dw = product(float::<B, 2>(x).transpose(), dy);
+            let dw = product(float::<B, 2>(x).transpose(), dy, &k);
             grads.register::<B>(node.id, dw.into_primitive().tensor());
         }
     }
@@ -188,6 +168,7 @@ pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
     w: Tensor<Autodiff<I, C>, 2>,
     p: Precision,
     written: Written,
+    k: &Kernels,
 ) -> Tensor<Autodiff<I, C>, 2> {
     let (x, w) = (x.into_primitive().tensor(), w.into_primitive().tensor());
     let prep = Product
@@ -198,7 +179,7 @@ pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
         operand(float::<I, 2>(x.primitive), p),
         operand(float::<I, 2>(w.primitive), p),
     );
-    let y = product_in(xi.clone(), wi.clone(), written.out)
+    let y = product_in(xi.clone(), wi.clone(), written.out, k)
         .into_primitive()
         .tensor();
     let y = match prep {
@@ -208,6 +189,7 @@ pub fn named_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
                 wi.into_primitive().tensor(),
                 p,
                 written.dx,
+                *k,
             ),
             y,
         ),
@@ -256,7 +238,7 @@ mod tests {
             let up = Tensor::<Flex, 2>::random([m, nn], n, &dev);
             let reference = run(|x, w| x.matmul(w), &x, &w, &up);
             let full = run(
-                |x, w| named_autodiff(x, w, Precision::F32, Written::F32),
+                |x, w| named_autodiff(x, w, Precision::F32, Written::F32, &Kernels::default()),
                 &x,
                 &w,
                 &up,
@@ -271,7 +253,7 @@ mod tests {
             }
             // bf16 operands: every result f32, within bf16's resolution of f32 but not equal to it.
             let half = run(
-                |x, w| named_autodiff(x, w, Precision::Bf16, Written::F32),
+                |x, w| named_autodiff(x, w, Precision::Bf16, Written::F32, &Kernels::default()),
                 &x,
                 &w,
                 &up,
@@ -297,7 +279,7 @@ mod tests {
         let w = Tensor::<Flex, 2>::random([24, 7], n, &dev);
         let up = Tensor::<Flex, 2>::random([9, 7], n, &dev).cast(FloatDType::BF16);
         let f32s = run(
-            |x, w| named_autodiff(x, w, Precision::Bf16, Written::F32),
+            |x, w| named_autodiff(x, w, Precision::Bf16, Written::F32, &Kernels::default()),
             &x,
             &w,
             &up,
@@ -306,7 +288,12 @@ mod tests {
             out: FloatDType::BF16,
             dx: FloatDType::BF16,
         };
-        let [y, dx, dw] = run(|x, w| named_autodiff(x, w, Precision::Bf16, bf16), &x, &w, &up);
+        let [y, dx, dw] = run(
+            |x, w| named_autodiff(x, w, Precision::Bf16, bf16, &Kernels::default()),
+            &x,
+            &w,
+            &up,
+        );
         assert_eq!(
             [y.dtype(), dx.dtype(), dw.dtype()],
             [DType::BF16, DType::BF16, DType::F32]
@@ -327,15 +314,30 @@ mod tests {
         let dev = Default::default();
         let x = Tensor::<A, 2>::ones([2, 3], &dev);
         let w = Tensor::<A, 2>::ones([3, 4], &dev).require_grad();
-        let g = named_autodiff(x.clone(), w.clone(), Precision::F32, Written::F32)
-            .sum()
-            .backward();
+        let g = named_autodiff(
+            x.clone(),
+            w.clone(),
+            Precision::F32,
+            Written::F32,
+            &Kernels::default(),
+        )
+        .sum()
+        .backward();
         assert!(x.grad(&g).is_none());
         // Each of the 3 × 4 weights meets both rows of ones.
         assert_eq!(
             w.grad(&g).expect("dw").into_data().to_vec::<f32>().expect("f32"),
             vec![2.0; 12]
         );
-        assert!(named_for::<A>().is_some() && named_for::<Flex>().is_none());
+        let k = Kernels::default();
+        assert!(named_for::<A>(&k).is_some() && named_for::<Flex>(&k).is_none());
+        let burn = Kernels {
+            matmul: MatmulKernel::Burn,
+            ..k
+        };
+        assert!(
+            named_for::<A>(&burn).is_none(),
+            "the `burn` choice keeps burn's product"
+        );
     }
 }

@@ -15,8 +15,10 @@
 #[cfg(feature = "cuda")]
 mod cuda;
 
-use crate::dispatch::{Choice, same};
+use crate::dispatch::{Fallbacks, same};
 use crate::format::float;
+use crate::kernels::Kernels;
+pub use crate::kernels::NormKernel;
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -28,45 +30,19 @@ use burn::nn::LayerNorm;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{FloatDType, Tensor};
-use serde::{Deserialize, Serialize};
 
-/// What computes the training layer norms on CUDA (`train.norm`); the CPU always runs the decomposition.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum NormKernel {
-    /// One CUDA C kernel per pass (`norm/norm.cu`). The default.
-    #[default]
-    Fused,
-    /// burn's decomposition, as before the kernels (for comparing them).
-    Burn,
-}
-
-/// The process's choice (as the attention's) and its fallbacks.
-static CHOICE: Choice = Choice::new("layer-norm");
-
-/// Chooses what computes the layer norms of every training pass this process runs from now on.
-pub fn select(kernel: NormKernel) {
-    CHOICE.set_burn(kernel == NormKernel::Burn);
-}
-
-/// What [`select`] chose ([`NormKernel::Fused`] unless told otherwise).
-pub fn selected() -> NormKernel {
-    if CHOICE.burn() {
-        NormKernel::Burn
-    } else {
-        NormKernel::Fused
-    }
-}
+/// Passes the kernels refused in this process.
+static FALLBACKS: Fallbacks = Fallbacks::new("layer-norm");
 
 /// How many layer-norm passes fell back from the CUDA kernels to the decomposition in this process.
 pub fn fallbacks() -> usize {
-    CHOICE.fallbacks()
+    FALLBACKS.count()
 }
 
 /// Counts a pass the kernels refused for `why`; logs the first.
 #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
 fn fell_back(why: &str) {
-    CHOICE.fell_back(why);
+    FALLBACKS.fell_back(why);
 }
 
 /// ε of every layer norm the backbone builds (`LayerNormConfig::new`'s default; burn keeps the field
@@ -85,7 +61,9 @@ pub trait FusedNorm: Backend {
         beta: Tensor<Self, 1>,
         eps: f64,
         out: FloatDType,
+        k: &Kernels,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        let _ = k;
         forward_decomposed(x, gamma, beta, eps, out)
     }
 
@@ -97,7 +75,9 @@ pub trait FusedNorm: Backend {
         mean: Tensor<Self, 1>,
         rstd: Tensor<Self, 1>,
         gamma: Tensor<Self, 1>,
+        k: &Kernels,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+        let _ = k;
         backward_decomposed(dy, x, mean, rstd, gamma)
     }
 }
@@ -146,8 +126,12 @@ impl FusedNorm for burn::backend::Flex {}
 
 /// `ln.forward(x)` over the last axis: on the training backends one operation with [`FusedNorm`]'s
 /// passes, elsewhere (inference backends) the decomposition.
-pub fn layer_norm<B: Backend, const D: usize>(ln: &LayerNorm<B>, x: Tensor<B, D>) -> Tensor<B, D> {
-    layer_norm_as(ln, x, FloatDType::F32)
+pub fn layer_norm<B: Backend, const D: usize>(
+    ln: &LayerNorm<B>,
+    x: Tensor<B, D>,
+    k: &Kernels,
+) -> Tensor<B, D> {
+    layer_norm_as(ln, x, FloatDType::F32, k)
 }
 
 /// [`layer_norm`] for an output that only products read: in their operand format under `p`
@@ -156,8 +140,9 @@ pub fn layer_norm_operand<B: Backend, const D: usize>(
     ln: &LayerNorm<B>,
     x: Tensor<B, D>,
     p: crate::format::Precision,
+    k: &Kernels,
 ) -> Tensor<B, D> {
-    layer_norm_as(ln, x, p.operand_dtype())
+    layer_norm_as(ln, x, p.operand_dtype(), k)
 }
 
 /// [`layer_norm`] with its output in `out`'s format.
@@ -165,6 +150,7 @@ fn layer_norm_as<B: Backend, const D: usize>(
     ln: &LayerNorm<B>,
     x: Tensor<B, D>,
     out: FloatDType,
+    k: &Kernels,
 ) -> Tensor<B, D> {
     let dims = x.dims();
     let d = dims[D - 1];
@@ -175,14 +161,14 @@ fn layer_norm_as<B: Backend, const D: usize>(
         None => Tensor::zeros([d], &gamma.device()),
     };
     let y = match tracked::<B>() {
-        Some(op) => op(flat, gamma, beta, out),
+        Some(op) => op(flat, gamma, beta, out, k),
         None => forward_decomposed(flat, gamma, beta, LN_EPS, out).0,
     };
     y.reshape(dims)
 }
 
 /// The operation on `B`: `[rows, d]`, γ, β in, `[rows, d]` out in the format given.
-type NormOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>, FloatDType) -> Tensor<B, 2>;
+type NormOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>, FloatDType, &Kernels) -> Tensor<B, 2>;
 
 /// The custom operation when `B` is a training backend.
 fn tracked<B: Backend>() -> Option<NormOp<B>> {
@@ -203,8 +189,8 @@ fn on<B: Backend, I: FusedNorm>() -> Option<NormOp<B>> {
 #[derive(Debug)]
 struct Norm;
 
-/// What the backward pass reads: the input, the rows' means and `1/σ`, and γ (inner backend).
-type Kept<I> = [FloatTensor<I>; 4];
+/// What the backward pass reads: the input, the rows' means and `1/σ`, and γ (inner backend); the kernels.
+type Kept<I> = ([FloatTensor<I>; 4], Kernels);
 
 impl<I: FusedNorm> Backward<I, 3> for Norm {
     type State = Kept<I>;
@@ -212,8 +198,8 @@ impl<I: FusedNorm> Backward<I, 3> for Norm {
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
         // A product that read a bf16 output may hand back a bf16 gradient (burn's matmul does).
         let dy = float::<I, 2>(grads.consume::<I>(&ops.node)).cast(FloatDType::F32);
-        let [x, mean, rstd, gamma] = ops.state;
-        let (dx, dgamma, dbeta) = I::norm_backward(dy, float(x), float(mean), float(rstd), float(gamma));
+        let ([x, mean, rstd, gamma], k) = ops.state;
+        let (dx, dgamma, dbeta) = I::norm_backward(dy, float(x), float(mean), float(rstd), float(gamma), &k);
         let [x_node, gamma_node, beta_node] = ops.parents;
         // Only for parents that ask (a frozen norm, an untracked input).
         if let Some(node) = x_node {
@@ -234,6 +220,7 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
     gamma: Tensor<Autodiff<I, C>, 1>,
     beta: Tensor<Autodiff<I, C>, 1>,
     out: FloatDType,
+    k: &Kernels,
 ) -> Tensor<Autodiff<I, C>, 2> {
     let (x, gamma, beta) = (
         x.into_primitive().tensor(),
@@ -246,6 +233,7 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
         float(beta.primitive.clone()),
         LN_EPS,
         out,
+        k,
     );
     let y = y.into_primitive().tensor();
     let out = match Norm
@@ -260,7 +248,7 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
                 rstd.into_primitive().tensor(),
                 gamma.primitive.clone(),
             ];
-            prep.finish(kept, y)
+            prep.finish((kept, *k), y)
         }
         OpsKind::UnTracked(prep) => prep.finish(y),
     };

@@ -1,4 +1,4 @@
-//! Activation checkpointing of the self-attention layers (`train.recompute`).
+//! Activation checkpointing of the self-attention layers (`train.kernels.recompute`).
 //!
 //! A training step keeps about twenty activations of a layer's width for each layer's backward pass;
 //! `paper` (72 self-attention layers over 20 × 2,199 tokens of width 768) needs more than an H200 holds.
@@ -17,6 +17,7 @@ mod math;
 use crate::dispatch::same;
 use crate::format::Precision;
 use crate::format::float;
+use crate::kernels::Kernels;
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -30,16 +31,7 @@ use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Distribution, Tensor};
 use math::{LayerBackend, Lin, Mask, Masks, Norm, Setting, Weights};
-use std::cell::Cell;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-
-/// Recomputation on (process-wide, like the kernel choices: it changes memory and time, not results).
-static ON: AtomicBool = AtomicBool::new(false);
-
-/// Turns recomputation of the self-attention layers on or off for every step this process runs from now on.
-pub fn set_enabled(on: bool) {
-    ON.store(on, Ordering::Relaxed);
-}
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Layers run by the recomputing operation so far (the bench prints it, tests check the path was taken).
 static RUN: AtomicU64 = AtomicU64::new(0);
@@ -47,27 +39,6 @@ static RUN: AtomicU64 = AtomicU64::new(0);
 /// How many layer passes the recomputing operation has run in this process.
 pub fn layers_recomputed() -> u64 {
     RUN.load(Ordering::Relaxed)
-}
-
-thread_local! {
-    /// [`scoped`]'s setting for this thread, over the process-wide one.
-    static SCOPED: Cell<Option<bool>> = const { Cell::new(None) };
-}
-
-/// Whether recomputation is on in this thread: [`scoped`]'s setting, else [`set_enabled`]'s.
-pub fn enabled() -> bool {
-    SCOPED
-        .with(Cell::get)
-        .unwrap_or_else(|| ON.load(Ordering::Relaxed))
-}
-
-/// Runs `f` with recomputation `on` or off in this thread whatever the process-wide setting (tests that
-/// compare both paths run side by side in one process).
-pub fn scoped<R>(on: bool, f: impl FnOnce() -> R) -> R {
-    let before = SCOPED.with(|s| s.replace(Some(on)));
-    let out = f();
-    SCOPED.with(|s| s.set(before));
-    out
 }
 
 /// The parts of a pre-norm self-attention layer (`x + proj(attn(ln1(x)))`, then `x + out(gelu(fc(ln2(x))))`),
@@ -102,15 +73,16 @@ pub struct LayerParts<'a, B: Backend> {
 /// layer on `l = t · n` rows, each position attending over its own `t` frames (`math::Setting::over_time`).
 /// `Err(x)` hands the input back for a layer the operation does not take (one without biases), which the
 /// caller runs through burn's autodiff.
-pub type LayerFn<B> = fn(&LayerParts<'_, B>, Tensor<B, 3>, bool, Option<(usize, usize)>) -> Taken<B>;
+pub type LayerFn<B> =
+    fn(&LayerParts<'_, B>, Tensor<B, 3>, bool, Option<(usize, usize)>, &Kernels) -> Taken<B>;
 
 /// The layer's output, or its input handed back (`Err`) for a layer the operation does not take.
 pub type Taken<B> = Result<Tensor<B, 3>, Tensor<B, 3>>;
 
-/// The recomputing layer as a function on `B`, when recomputation is on and `B` is an autodiff backend this
-/// workspace trains on; `None` otherwise.
-pub fn recomputed_for<B: Backend>() -> Option<LayerFn<B>> {
-    if !enabled() {
+/// The recomputing layer as a function on `B`, when `k` turns recomputation on and `B` is an autodiff
+/// backend this workspace trains on; `None` otherwise.
+pub fn recomputed_for<B: Backend>(k: &Kernels) -> Option<LayerFn<B>> {
+    if !k.recompute {
         return None;
     }
     let found = on::<B, burn::backend::Flex>();
@@ -228,6 +200,7 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
     x: Tensor<Autodiff<I, C>, 3>,
     causal: bool,
     over_time: Option<(usize, usize)>,
+    kernels: &Kernels,
 ) -> Taken<Autodiff<I, C>> {
     let Some((weights, tracked)) = weights(parts) else {
         return Err(x);
@@ -243,6 +216,7 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         precision: parts.precision,
         eps: crate::norm::LN_EPS,
         over_time,
+        kernels: *kernels,
     };
     RUN.fetch_add(1, Ordering::Relaxed);
     let xi = float::<I, 3>(x.primitive);

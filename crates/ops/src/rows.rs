@@ -27,12 +27,12 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::backend::Backend;
 use burn::tensor::{FloatDType, Shape, Tensor, TensorMetadata};
-use staged::{CHOICE, staged};
+use staged::{FALLBACKS, staged};
 
 /// How many row sums the CUDA kernel refused or failed to launch in this process (burn's staged reduction
 /// summed them instead).
 pub fn fallbacks() -> usize {
-    CHOICE.fallbacks()
+    FALLBACKS.count()
 }
 
 /// Column sums of `[rows, d]` on `B`.

@@ -1,5 +1,5 @@
 //! A CUDA stream of umgen's own beside cubecl's, for work cubecl cannot launch (cuBLAS's products; umgen's
-//! CUDA C kernels with `train.kernel_stream = "side"`), ordered with cubecl's stream on the device; and the
+//! CUDA C kernels with `train.kernels.stream = "side"`), ordered with cubecl's stream on the device; and the
 //! launch of umgen's CUDA C kernels on cubecl's own stream ([`cubecl_stream`], the default), which needs
 //! no ordering at all.
 //!
@@ -27,7 +27,7 @@
 //! compiled with NVRTC, which cubecl loads anyway.)
 #![allow(unsafe_code)]
 
-use crate::kernel_stream::{KernelStream, LaunchThread, selected, selected_thread};
+use crate::kernels::{KernelStream, Kernels as Choices, LaunchThread, SideFamily, SideSync};
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::ops::numeric::zeros_client;
@@ -43,8 +43,8 @@ mod cubecl_stream;
 mod fusion;
 mod waits;
 pub(crate) use fusion::*;
+use waits::foreign;
 pub use waits::{device_thread_calls, foreign_streams};
-use waits::{foreign, host_sync};
 
 /// Stores `value` in `flag[0]` (a single unit).
 #[cube(launch)]
@@ -136,11 +136,11 @@ impl Side {
         &self.stream
     }
 
-    /// Runs `work` of the kernel family `family` (`cross-entropy`, …: see [`host_sync`]) on the side stream
-    /// between cubecl's queued work and what cubecl queues next.
+    /// Runs `work` of the kernel family `family` on the side stream between cubecl's queued work and what
+    /// cubecl queues next, the host waiting around it as `sync` says for that family.
     pub(crate) fn ordered<T>(
         &mut self,
-        family: &str,
+        (family, sync): (SideFamily, SideSync),
         work: impl FnOnce(&Arc<CudaStream>) -> Result<T, String>,
     ) -> Result<T, String> {
         self.ctx
@@ -149,9 +149,9 @@ impl Side {
         self.count = self.count.wrapping_add(1).max(1);
         let v = self.count;
         let client = &self.flags.client;
-        let (sync_before, sync_after) = host_sync(family);
+        let (sync_before, sync_after) = sync.waits(family);
         if sync_before {
-            burn::cubecl::future::block_on(client.sync()).map_err(|e| format!("UMGEN_SIDE_SYNC: {e:?}"))?;
+            burn::cubecl::future::block_on(client.sync()).map_err(|e| format!("side sync: {e:?}"))?;
         }
         let one = || (CubeCount::Static(1, 1, 1), CubeDim::new_1d(1));
         let (count, dim) = one();
@@ -185,9 +185,7 @@ impl Side {
         let done = work(stream);
         run(&self.store_fn, flag1, "umgen_store")?;
         if sync_after {
-            stream
-                .synchronize()
-                .map_err(|e| format!("UMGEN_SIDE_SYNC: {e:?}"))?;
+            stream.synchronize().map_err(|e| format!("side sync: {e:?}"))?;
         }
         let (count, dim) = one();
         wait::launch::<CudaRuntime>(client, count, dim, self.flags.clone().into_tensor_arg(), v);
@@ -215,7 +213,7 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
 
 /// Runs `work` (a custom operation's launches and the device pointers they take) on cubecl's device
 /// thread for `like`'s device, as one call the host waits for; an error if that thread cannot be reached.
-/// With `train.launch_thread = "caller"` it runs `work` here.
+/// With `thread` [`LaunchThread::Caller`] (`train.kernels.launch_thread = "caller"`) it runs `work` here.
 ///
 /// Every call into cubecl that answers (a pointer fetch, `get_resource`) is a round trip to that thread,
 /// which first runs everything queued before it: a cuBLAS product made five (four pointers and the
@@ -226,9 +224,10 @@ pub(crate) fn pointer(t: &Primitive) -> Result<(u64, impl Sized + use<>), String
 /// stream ([`with_cached`]).
 pub(crate) fn on_device_thread<T: Send + 'static>(
     like: &Primitive,
+    thread: LaunchThread,
     work: impl FnOnce() -> Result<T, String> + Send,
 ) -> Result<T, String> {
-    if selected_thread() == LaunchThread::Caller {
+    if thread == LaunchThread::Caller {
         return work();
     }
     let start = std::time::Instant::now();
@@ -258,24 +257,24 @@ impl Pointers {
 
 /// Launches the kernel `name` of `cache`'s kernels for `like`'s device on `blocks` blocks of `threads`
 /// threads with `params`: on cubecl's stream (compiled from `instance`'s source, see
-/// [`cubecl_stream::launch`]) unless `train.kernel_stream = "side"`, else on the side stream ordered with
-/// cubecl's (built by `build` on first use; `what` names the kernels in errors).
+/// [`cubecl_stream::launch`]) unless `kernels.stream` is [`KernelStream::Side`], else on the side stream
+/// ordered with cubecl's (built by `build` on first use; `family` names the kernels in errors).
 ///
 /// # Safety
 ///
 /// Every pointer in `params` must be a live buffer (see [`Pointers`]) of the extent the kernel reads or
 /// writes through it.
 pub(crate) unsafe fn launch_kernel<P: DeviceRepr>(
-    cache: &'static LocalKey<KernelCache>,
+    (cache, kernels): (&'static LocalKey<KernelCache>, &Choices),
     like: &Primitive,
-    (what, build): (&str, &dyn Fn() -> Result<Kernels, String>),
+    (family, build): (SideFamily, &dyn Fn() -> Result<Compiled, String>),
     name: &str,
     instance: (&str, &dyn Fn() -> Result<String, String>),
     (blocks, threads): (usize, u32),
     params: &P,
 ) -> Result<(), String> {
     let grid = u32::try_from(blocks).map_err(|_| format!("{name}: {blocks} blocks"))?;
-    if selected() == KernelStream::Cubecl {
+    if kernels.stream == KernelStream::Cubecl {
         // SAFETY: the caller's contract.
         return unsafe { cubecl_stream::launch(like, name, instance, (grid, 1, 1), threads, params) };
     }
@@ -284,9 +283,10 @@ pub(crate) unsafe fn launch_kernel<P: DeviceRepr>(
         block_dim: (threads, 1, 1),
         shared_mem_bytes: 0,
     };
-    with_cached(cache, like, what, build, |kernels| {
-        let f = kernels.function(name)?.clone();
-        kernels.side.ordered(what, |stream| {
+    let sync = kernels.side_sync;
+    with_cached(cache, like, family.name(), build, |compiled| {
+        let f = compiled.function(name)?.clone();
+        compiled.side.ordered((family, sync), |stream| {
             // SAFETY: the caller's contract (live buffers of the kernel's extents); cubecl's stream waits for
             // the kernel before anything queued later can free or reuse them.
             unsafe { stream.launch_builder(&f).arg(params).launch(config) }
@@ -298,13 +298,13 @@ pub(crate) unsafe fn launch_kernel<P: DeviceRepr>(
 
 /// Kernels compiled by NVRTC from one source and the side stream they run on, for one device and the
 /// calling thread.
-pub(crate) struct Kernels {
+pub(crate) struct Compiled {
     /// The stream they run on.
     pub(crate) side: Side,
     functions: Vec<(String, CudaFunction)>,
 }
 
-impl Kernels {
+impl Compiled {
     /// Compiles `source` with the options `options` gives for the device's major compute capability
     /// (`like`'s device, which must have `min_major` or newer) and loads the kernels `names`.
     pub(crate) fn compile(
@@ -363,14 +363,14 @@ pub(crate) fn kernel_source(source: &str) -> String {
     [umgen_cuda::source::PRIMITIVES, source].join("\n")
 }
 
-/// A thread's state of one kind (a source's [`Kernels`], a cuBLAS handle) by device and cubecl stream;
+/// A thread's state of one kind (a source's [`Compiled`], a cuBLAS handle) by device and cubecl stream;
 /// `Err` remembers why a device has none, so that the reason is found once. Every [`Side`] stream in it
 /// meets the one cubecl stream it is kept for, as the protocol needs. (On cubecl's device thread,
 /// [`on_device_thread`], every caller's stream has its own.)
 pub(crate) type Cache<T> = RefCell<Vec<((usize, cubecl::stream_id::StreamId), Result<T, String>)>>;
 
-/// A thread's [`Kernels`] of one source ([`Cache`]).
-pub(crate) type KernelCache = Cache<Kernels>;
+/// A thread's [`Compiled`] of one source ([`Cache`]).
+pub(crate) type KernelCache = Cache<Compiled>;
 
 /// Runs `work` with `cache`'s state for `like`'s device and the calling cubecl stream, built by `build` on
 /// first use (a failure is logged once, naming `what`, and returned every time).

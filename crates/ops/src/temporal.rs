@@ -18,6 +18,7 @@ mod cuda;
 use crate::dispatch::same;
 use crate::format::Precision;
 use crate::format::float;
+use crate::kernels::Kernels;
 use crate::tiled::{tiled_backward, tiled_forward};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -45,12 +46,15 @@ pub trait TemporalAttention: Backend {
         heads: usize,
         causal: bool,
         precision: Precision,
+        k: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        let _ = k;
         forward_decomposed(q, kv, heads, causal, precision)
     }
 
     /// The gradients of `q` and `kv` from the output's gradient `dout`, given the forward pass's output and
     /// log-sum-exp when [`Self::KEEPS_FORWARD`] (`saved`; `None` otherwise).
+    #[allow(clippy::too_many_arguments)]
     fn temporal_backward(
         q: Tensor<Self, 4>,
         kv: Tensor<Self, 4>,
@@ -59,7 +63,9 @@ pub trait TemporalAttention: Backend {
         heads: usize,
         causal: bool,
         precision: Precision,
+        k: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
+        let _ = k;
         backward_decomposed(q, kv, saved, dout, heads, causal, precision)
     }
 }
@@ -142,8 +148,8 @@ pub fn backward_decomposed<B: Backend>(
 impl TemporalAttention for burn::backend::Flex {}
 
 /// Attention over time on `B`: `q` `[b, t, n, d]`, `kv` `[b, t, n, 2d]`, heads, causal, the products'
-/// precision; the output `[b, t, n, d]`.
-pub type OverTime<B> = fn(Tensor<B, 4>, Tensor<B, 4>, usize, bool, Precision) -> Tensor<B, 4>;
+/// precision, the kernels; the output `[b, t, n, d]`.
+pub type OverTime<B> = fn(Tensor<B, 4>, Tensor<B, 4>, usize, bool, Precision, &Kernels) -> Tensor<B, 4>;
 
 /// The operation when `B` is a training backend; `None` elsewhere (inference backends keep the layer's
 /// transposed path).
@@ -166,13 +172,14 @@ fn on<B: Backend, I: TemporalAttention>() -> Option<OverTime<B>> {
 struct Temporal;
 
 /// q, kv, and the output and log-sum-exp where the backend's backward pass reads them (inner backend);
-/// heads, causal, precision.
+/// heads, causal, precision, the kernels.
 type Kept<I> = (
     [FloatTensor<I>; 2],
     Option<[FloatTensor<I>; 2]>,
     usize,
     bool,
     Precision,
+    Kernels,
 );
 
 impl<I: TemporalAttention> Backward<I, 2> for Temporal {
@@ -180,9 +187,9 @@ impl<I: TemporalAttention> Backward<I, 2> for Temporal {
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let dout = float::<I, 4>(grads.consume::<I>(&ops.node));
-        let ([q, kv], saved, heads, causal, precision) = ops.state;
+        let ([q, kv], saved, heads, causal, precision, k) = ops.state;
         let saved = saved.map(|[out, lse]| (float(out), float(lse)));
-        let (dq, dkv) = I::temporal_backward(float(q), float(kv), saved, dout, heads, causal, precision);
+        let (dq, dkv) = I::temporal_backward(float(q), float(kv), saved, dout, heads, causal, precision, &k);
         let [q_node, kv_node] = ops.parents;
         if let Some(node) = q_node {
             grads.register::<I>(node.id, dq.into_primitive().tensor());
@@ -200,6 +207,7 @@ fn apply<I: TemporalAttention, C: CheckpointStrategy>(
     heads: usize,
     causal: bool,
     precision: Precision,
+    k: &Kernels,
 ) -> Tensor<Autodiff<I, C>, 4> {
     let (q, kv) = (q.into_primitive().tensor(), kv.into_primitive().tensor());
     let (out, lse) = I::temporal_forward(
@@ -208,6 +216,7 @@ fn apply<I: TemporalAttention, C: CheckpointStrategy>(
         heads,
         causal,
         precision,
+        k,
     );
     let out = out.into_primitive().tensor();
     let result = match Temporal
@@ -218,7 +227,7 @@ fn apply<I: TemporalAttention, C: CheckpointStrategy>(
         OpsKind::Tracked(prep) => {
             let inputs = [q.primitive.clone(), kv.primitive.clone()];
             let saved = I::KEEPS_FORWARD.then(|| [out.clone(), lse.into_primitive().tensor()]);
-            prep.finish((inputs, saved, heads, causal, precision), out)
+            prep.finish((inputs, saved, heads, causal, precision, *k), out)
         }
         OpsKind::UnTracked(prep) => prep.finish(out),
     };

@@ -8,7 +8,6 @@
 use crate::format::{Precision, matmul, operand};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, FloatDType, Tensor};
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Shorter key sequences take the decomposed path: their score matrices are no larger than a few copies of
 /// the keys, and the block loop only adds launches (H200, `umgen-kernel-bench attention`: 70,352 sequences of 8
@@ -16,32 +15,11 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 /// 101 ms, in 3.4 GiB instead of 29.6).
 pub const MIN_TILED_KEYS: usize = 256;
 
-/// Bytes one block's score matrix may take by default; sets the query block length. Few, large blocks:
-/// every causal block has its own key length, hence its own kernel shapes to compile and tune on CUDA.
-pub const BLOCK_BYTES: usize = 1 << 30;
-
-/// [`set_block_bytes`]'s value; 0 for [`BLOCK_BYTES`].
-static BLOCK_BYTES_SET: AtomicUsize = AtomicUsize::new(0);
-
-/// Sets the bytes one query block's scores may take in training, process-wide (`None`: the default,
-/// 1 GiB). Smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels;
-/// `umgen-kernel-bench attention --block-mib` compares sizes.
-pub fn set_block_bytes(bytes: Option<usize>) {
-    BLOCK_BYTES_SET.store(bytes.unwrap_or(0), Ordering::Relaxed);
-}
-
-fn block_bytes() -> usize {
-    match BLOCK_BYTES_SET.load(Ordering::Relaxed) {
-        0 => BLOCK_BYTES,
-        b => b,
-    }
-}
-
-/// Query rows per block in training: as many as keep one block's scores within the block size
-/// ([`set_block_bytes`], 1 GiB by default), a multiple of 64.
-pub fn block_rows(b: usize, h: usize, lq: usize, lk: usize) -> usize {
+/// Query rows per block in training: as many as keep one block's scores within `block_bytes`
+/// ([`crate::Kernels::block_bytes`], 1 GiB by default), a multiple of 64.
+pub fn block_rows(b: usize, h: usize, lq: usize, lk: usize, block_bytes: usize) -> usize {
     let per_row = (b * h * lk * 4).max(1);
-    let rows = (block_bytes() / per_row).max(64) / 64 * 64;
+    let rows = (block_bytes / per_row).max(64) / 64 * 64;
     rows.min(lq).max(1)
 }
 

@@ -8,14 +8,16 @@
 //! q the target distribution of [`crate::smoothing::Targets`] scattered in. Elsewhere (inference backends)
 //! it is `log_softmax` and [`crate::smoothing::nll_sum`]. The two passes over the logits are
 //! [`FusedXent`]'s: on CUDA one kernel each (`xent/xent.cu`, a warp a row: an online log-sum-exp forward,
-//! one read and one write backward) unless `train.xent = "burn"`; on the CPU burn's operations
+//! one read and one write backward) unless `train.kernels.xent = "burn"`; on the CPU burn's operations
 //! ([`lse_decomposed`], [`grad_decomposed`]).
 
 #[cfg(feature = "cuda")]
 mod cuda;
 
-use crate::dispatch::{Choice, same};
+use crate::dispatch::{Fallbacks, same};
 use crate::format::float;
+use crate::kernels::Kernels;
+pub use crate::kernels::XentKernel;
 use crate::smoothing::{Targets, nll_sum};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -27,47 +29,21 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::activation::log_softmax;
 use burn::tensor::backend::Backend;
 use burn::tensor::{IndexingUpdateOp, Int, Tensor};
-use serde::{Deserialize, Serialize};
 
-/// What computes the cross-entropy's passes over the logits when training on CUDA (`train.xent`); the
-/// CPU always runs burn's operations.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum XentKernel {
-    /// One CUDA C kernel per pass (`xent/xent.cu`). The default.
-    #[default]
-    Fused,
-    /// burn's operations, as before the kernels (for comparing them).
-    Burn,
-}
-
-/// The process's choice and its fallbacks.
-static CHOICE: Choice = Choice::new("cross-entropy");
-
-/// Chooses what computes the cross-entropy of every training pass this process runs from now on.
-pub fn select(kernel: XentKernel) {
-    CHOICE.set_burn(kernel == XentKernel::Burn);
-}
-
-/// What [`select`] chose ([`XentKernel::Fused`] unless told otherwise).
-pub fn selected() -> XentKernel {
-    if CHOICE.burn() {
-        XentKernel::Burn
-    } else {
-        XentKernel::Fused
-    }
-}
+/// Passes the kernels refused in this process.
+static FALLBACKS: Fallbacks = Fallbacks::new("cross-entropy");
 
 /// How many cross-entropy passes fell back from the CUDA kernels to burn's operations in this process.
 pub fn fallbacks() -> usize {
-    CHOICE.fallbacks()
+    FALLBACKS.count()
 }
 
 /// A backend that computes the two passes of a cross-entropy over the rows of `[rows, vocab]` logits. The
 /// passes default to burn's operations ([`lse_decomposed`], [`grad_decomposed`]); CUDA overrides them.
 pub trait FusedXent: Backend {
     /// Each row's `log Σ exp x` `[rows, 1]`.
-    fn xent_lse(x: Tensor<Self, 2>) -> Tensor<Self, 2> {
+    fn xent_lse(x: Tensor<Self, 2>, k: &Kernels) -> Tensor<Self, 2> {
+        let _ = k;
         lse_decomposed(x)
     }
 
@@ -79,7 +55,9 @@ pub trait FusedXent: Backend {
         ids: Tensor<Self, 2, Int>,
         weights: Tensor<Self, 2>,
         g: Tensor<Self, 1>,
+        k: &Kernels,
     ) -> Tensor<Self, 2> {
+        let _ = k;
         grad_decomposed(x, lse, ids, weights, g)
     }
 }
@@ -113,18 +91,19 @@ pub fn sum<B: Backend>(
     targets: Tensor<B, 2, Int>,
     ordinal: usize,
     sigma: f64,
+    k: &Kernels,
 ) -> Tensor<B, 1> {
     let found = on::<B, burn::backend::Flex>();
     #[cfg(feature = "cuda")]
     let found = found.or_else(on::<B, burn::backend::Cuda>);
     match found {
-        Some(op) => op(logits, targets, ordinal, sigma),
+        Some(op) => op(logits, targets, ordinal, sigma, k),
         None => nll_sum(log_softmax(logits, 1), targets, ordinal, sigma),
     }
 }
 
 /// The loss on `B`.
-type LossFn<B> = fn(Tensor<B, 2>, Tensor<B, 2, Int>, usize, f64) -> Tensor<B, 1>;
+type LossFn<B> = fn(Tensor<B, 2>, Tensor<B, 2, Int>, usize, f64, &Kernels) -> Tensor<B, 1>;
 
 /// [`apply`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
 fn on<B: Backend, I: FusedXent>() -> Option<LossFn<B>> {
@@ -136,8 +115,8 @@ fn on<B: Backend, I: FusedXent>() -> Option<LossFn<B>> {
 #[derive(Debug)]
 struct Xent;
 
-/// The logits, their log-sum-exp and the target distribution.
-type Kept<I> = (Tensor<I, 2>, Tensor<I, 2>, Targets<I>);
+/// The logits, their log-sum-exp, the target distribution and the kernels.
+type Kept<I> = (Tensor<I, 2>, Tensor<I, 2>, Targets<I>, Kernels);
 
 impl<I: FusedXent> Backward<I, 1> for Xent {
     type State = Kept<I>;
@@ -146,8 +125,8 @@ impl<I: FusedXent> Backward<I, 1> for Xent {
         let g = float::<I, 1>(grads.consume::<I>(&ops.node));
         let [node] = ops.parents;
         let Some(node) = node else { return };
-        let (x, lse, q) = ops.state;
-        let dx = I::xent_grad(x, lse, q.ids, q.weights, g);
+        let (x, lse, q, k) = ops.state;
+        let dx = I::xent_grad(x, lse, q.ids, q.weights, g, &k);
         grads.register::<I>(node.id, dx.into_primitive().tensor());
     }
 }
@@ -158,17 +137,18 @@ fn apply<I: FusedXent, C: CheckpointStrategy>(
     targets: Tensor<Autodiff<I, C>, 2, Int>,
     ordinal: usize,
     sigma: f64,
+    k: &Kernels,
 ) -> Tensor<Autodiff<I, C>, 1> {
     let t = logits.into_primitive().tensor();
     let x = float::<I, 2>(t.primitive.clone());
     let targets = Tensor::<I, 2, Int>::from_primitive(targets.into_primitive());
     let q = Targets::new(targets, ordinal, sigma, x.dims()[1]);
-    let lse = I::xent_lse(x.clone());
+    let lse = I::xent_lse(x.clone(), k);
     // −Σ q log p = Σ_rows (lse − Σ_k q_k x_k), as the weights of a row sum to 1.
     let cross = lse.clone().sum() - (x.clone().gather(1, q.ids.clone()) * q.weights.clone()).sum();
     let loss = (q.entropy() + cross).into_primitive().tensor();
     let out = match Xent.prepare::<C>([t.node.clone()]).compute_bound().stateful() {
-        OpsKind::Tracked(prep) => prep.finish((x, lse, q), loss),
+        OpsKind::Tracked(prep) => prep.finish((x, lse, q, *k), loss),
         OpsKind::UnTracked(prep) => prep.finish(loss),
     };
     float(out)
@@ -191,7 +171,7 @@ mod tests {
         let t: Vec<i64> = vec![0, 3, 15, 16, 19, 9, 1];
         let t = Tensor::<A, 2, Int>::from_data(TensorData::new(t, [7, 1]), &dev);
         for sigma in [0.0, 1.5] {
-            let ours = sum(x.clone(), t.clone(), 16, sigma);
+            let ours = sum(x.clone(), t.clone(), 16, sigma, &Kernels::default());
             let theirs = nll_sum(log_softmax(x.clone(), 1), t.clone(), 16, sigma);
             let (a, b) = (ours.clone().into_scalar(), theirs.clone().into_scalar());
             assert!((a - b).abs() < 1e-4 * b.abs().max(1.0), "σ {sigma}: {a} vs {b}");

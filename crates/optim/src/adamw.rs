@@ -100,8 +100,14 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
 
     /// Steps through `kernels` from now on (`None`: tensor by tensor, with burn's AdamW).
     pub fn with_kernels(mut self, kernels: Option<MultiTensor<B::InnerBackend>>) -> Self {
-        self.kernels = kernels;
+        self.set_kernels(kernels);
         self
+    }
+
+    /// [`Self::with_kernels`] on an optimizer in use: the moments stay, so steps may take turns between a
+    /// backend's kernels and burn's AdamW (both read and write the same record).
+    pub fn set_kernels(&mut self, kernels: Option<MultiTensor<B::InnerBackend>>) {
+        self.kernels = kernels;
     }
 
     /// One AdamW step of `module` with `grads` scaled to a global norm of at most `max_norm` (not scaled
@@ -171,7 +177,7 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
         if grads.is_empty() {
             return None;
         }
-        let by_kernel = self.kernels.and_then(|k| (k.norm)(grads).ok());
+        let by_kernel = self.kernels.as_ref().and_then(|k| (k.norm)(grads).ok());
         Some(by_kernel.unwrap_or_else(|| norm_reference::<B::InnerBackend>(grads)))
     }
 
@@ -212,7 +218,7 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
             lr,
             grad_scale: guarded.clone().map(|s| s.into_primitive().tensor()),
         };
-        let stepped = match self.kernels {
+        let stepped = match &self.kernels {
             Some(kernels) if !slots.is_empty() => (kernels.adamw)(slots, &step),
             _ => Err((slots, String::new())),
         };

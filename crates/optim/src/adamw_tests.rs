@@ -83,23 +83,27 @@ fn norm(grads: &[FloatTensor<Inner>]) -> Result<GradNorm<Inner>, String> {
 }
 
 /// Kernels that compute what the CPU would, through the multi-tensor path.
-const REFERENCE: MultiTensor<Inner> = MultiTensor {
-    adamw: reference,
-    norm,
-};
+fn reference_kernels() -> MultiTensor<Inner> {
+    MultiTensor {
+        adamw: std::sync::Arc::new(reference),
+        norm: std::sync::Arc::new(norm),
+    }
+}
 
 /// Kernels that decline every call.
-const DECLINING: MultiTensor<Inner> = MultiTensor {
-    adamw: declines,
-    norm: |_| Err("declined".into()),
-};
+fn declining_kernels() -> MultiTensor<Inner> {
+    MultiTensor {
+        adamw: std::sync::Arc::new(declines),
+        norm: std::sync::Arc::new(|_: &[FloatTensor<Inner>]| Err("declined".into())),
+    }
+}
 
 /// Three steps of `burn_adamw` and of `fused` from the same weights, each compared after every step.
 fn agree(kernels: Option<MultiTensor<Inner>>, exact: bool) {
     let mut x = net();
     let mut y = x.clone();
     let mut theirs = burn_adamw();
-    let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels);
+    let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels.clone());
     for step in 0..3 {
         let lr = 1e-2 * (step + 1) as f64;
         let (gx, gy) = (grads(&x, step), grads(&y, step));
@@ -128,12 +132,12 @@ fn without_a_kernel_it_is_burns_adamw() {
 
 #[test]
 fn a_kernel_declining_leaves_burns_adamw() {
-    agree(Some(DECLINING), true);
+    agree(Some(declining_kernels()), true);
 }
 
 #[test]
 fn the_reference_arithmetic_matches_burns_adamw() {
-    agree(Some(REFERENCE), false);
+    agree(Some(reference_kernels()), false);
 }
 
 #[test]
@@ -144,7 +148,7 @@ fn records_move_between_the_two_optimizers() {
     let x = theirs.step(1e-2, x, g);
     // burn's record continues in ours, through the reference kernel, and ours back in burn's.
     let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS)
-        .with_kernels(Some(REFERENCE))
+        .with_kernels(Some(reference_kernels()))
         .load_record(theirs.to_record());
     let y = ours.step(1e-2, x.clone(), grads(&x, 1));
     let z = theirs.step(1e-2, x.clone(), grads(&x, 1));
@@ -166,10 +170,14 @@ fn records_move_between_the_two_optimizers() {
 /// kernel, and a bound above the norm changes nothing.
 #[test]
 fn a_gradient_scale_is_clipping() {
-    for (kernels, exact) in [(None, true), (Some(DECLINING), true), (Some(REFERENCE), false)] {
+    for (kernels, exact) in [
+        (None, true),
+        (Some(declining_kernels()), true),
+        (Some(reference_kernels()), false),
+    ] {
         for bound in [0.05, 1e9] {
             let mut theirs = burn_adamw();
-            let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels);
+            let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels.clone());
             let mut x = net();
             let mut y = x.clone();
             for step in 0..2 {
@@ -226,8 +234,8 @@ fn a_non_finite_guard_or_gradient_skips_the_step() {
             &Default::default(),
         ))
     };
-    for kernels in [None, Some(DECLINING), Some(REFERENCE)] {
-        let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels);
+    for kernels in [None, Some(declining_kernels()), Some(reference_kernels())] {
+        let mut ours = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels.clone());
         let x = net();
         // A skipped first step: the weights stay, the moments are zeros.
         let s = ours.step_clipped(1e-2, x.clone(), grads(&x, 0), 1.0, nan());

@@ -8,6 +8,7 @@ use burn::optim::LearningRate;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Tensor, TensorMetadata, TensorPrimitive};
+use std::sync::Arc;
 
 /// One parameter tensor's AdamW step, of any rank (as a backend's primitives).
 #[derive(Debug, Clone)]
@@ -53,8 +54,8 @@ impl<B: Backend> AdamWStep<B> {
 /// optimizer then steps them with burn's AdamW).
 pub type AdamWStepped<B> = Result<Vec<[FloatTensor<B>; 3]>, (Vec<AdamWSlot<B>>, String)>;
 
-/// A backend's multi-tensor AdamW step.
-pub type AdamWKernel<B> = fn(Vec<AdamWSlot<B>>, &AdamWStep<B>) -> AdamWStepped<B>;
+/// A backend's multi-tensor AdamW step (a closure: the backend's launch settings travel with it).
+pub type AdamWKernel<B> = Arc<dyn Fn(Vec<AdamWSlot<B>>, &AdamWStep<B>) -> AdamWStepped<B> + Send + Sync>;
 
 /// The gradients' global L2 norm and the sums of squares it adds up, on the device.
 #[derive(Debug, Clone)]
@@ -69,10 +70,9 @@ pub struct GradNorm<B: Backend> {
 }
 
 /// A backend's global L2 norm of tensors of any rank, or the reason it cannot take them.
-pub type NormKernel<B> = fn(&[FloatTensor<B>]) -> Result<GradNorm<B>, String>;
+pub type NormKernel<B> = Arc<dyn Fn(&[FloatTensor<B>]) -> Result<GradNorm<B>, String> + Send + Sync>;
 
 /// A backend's multi-tensor kernels for [`FusedAdamW`].
-#[derive(Debug)]
 pub struct MultiTensor<B: Backend> {
     /// The AdamW step.
     pub adamw: AdamWKernel<B>,
@@ -80,14 +80,21 @@ pub struct MultiTensor<B: Backend> {
     pub norm: NormKernel<B>,
 }
 
-// By hand: derived, they would ask `B` to be `Copy`.
+// By hand: derived, they would ask `B` to be `Clone` and the closures to be `Debug`.
 impl<B: Backend> Clone for MultiTensor<B> {
     fn clone(&self) -> Self {
-        *self
+        Self {
+            adamw: Arc::clone(&self.adamw),
+            norm: Arc::clone(&self.norm),
+        }
     }
 }
 
-impl<B: Backend> Copy for MultiTensor<B> {}
+impl<B: Backend> std::fmt::Debug for MultiTensor<B> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("MultiTensor { adamw, norm }")
+    }
+}
 
 /// The global L2 norm of `grads` in burn's operations, as [`crate::grad_norm`] computes it (each tensor's
 /// sum of squares, then their sum): what the norm kernel is checked against, and what runs without one.

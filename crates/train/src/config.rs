@@ -4,13 +4,7 @@ use crate::error::{Result, TrainError};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use umgen_backbone::LossOptions;
-use umgen_ops::adamw::AdamWChoice;
-use umgen_ops::flash::AttentionKernel;
-use umgen_ops::gelu::GeluKernel;
-use umgen_ops::kernel_stream::{KernelStream, LaunchThread};
-use umgen_ops::matmul::MatmulKernel;
-use umgen_ops::norm::NormKernel;
-use umgen_ops::xent::XentKernel;
+use umgen_ops::Kernels;
 use umgen_optim::{AdamWSettings, adam_epsilon};
 
 /// How the backbone is trained.
@@ -72,48 +66,11 @@ pub struct TrainConfig {
     pub split: String,
     /// Size of a gradient all-reduce bucket in MiB (data-parallel runs).
     pub bucket_mib: f64,
-    /// Kernel of the linear layers' products when training on CUDA: `cublas` (the default; cuBLAS, falling
-    /// back to `named` where it is missing), `named` (cubek's `specialized_tma_mma`,
-    /// `umgen_ops::matmul`) or `burn` (burn's default kernel).
-    pub matmul: MatmulKernel,
-    /// MiB one query block's attention scores may take in the tiled attention (`attention::set_block_bytes`):
-    /// smaller blocks skip more of a causal matrix's hidden half and launch more, smaller kernels.
-    pub attention_block_mib: usize,
-    /// Kernels of the training attention on CUDA: `fused` (one cubecl kernel per pass,
-    /// `umgen_ops::flash`), `flash2` (FlashAttention-2 in CUDA C through NVRTC, head sizes 32 and 64;
-    /// others run `fused`) or `tiled` (the tiled passes in burn tensor operations, in blocks of
-    /// `attention_block_mib`).
-    pub attention: AttentionKernel,
-    /// Keys (or queries) per step of the fused attention kernels' loop, 16, 32 or 64
-    /// (`umgen_ops::flash::set_step`): shorter steps take less shared memory per cube, so more cubes
-    /// share an SM, for more loop steps and synchronisations.
-    pub attention_step: usize,
-    /// Recompute each self-attention layer's activations in the backward pass instead of keeping them
-    /// (activation checkpointing, `umgen_ops::recompute`): the step keeps one activation per layer
-    /// instead of about twenty, for one more forward pass of those layers.
-    pub recompute: bool,
-    /// What computes the layer norms when training on CUDA: `fused` (one CUDA C kernel per pass,
-    /// `umgen_ops::norm`) or `burn` (burn's decomposition). The CPU runs the decomposition.
-    pub norm: NormKernel,
-    /// What computes the MLPs' bias + GELU when training: `fused` (one operation per pass writing the
-    /// activation in the next product's format, on CUDA one CUDA C kernel, `umgen_ops::gelu`) or
-    /// `burn` (burn's bias add and GELU in f32).
-    pub gelu: GeluKernel,
-    /// What computes the cross-entropy's passes over the logits when training on CUDA: `fused` (one CUDA
-    /// C kernel per pass, `umgen_ops::xent`) or `burn` (burn's operations). The CPU runs burn's.
-    pub xent: XentKernel,
-    /// Where the CUDA C kernels (attention, layer norm, attention over time, cross-entropy) run: `cubecl`
-    /// (on cubecl's own stream, launched as cubecl kernels) or `side` (a side stream per kernel family,
-    /// ordered with cubecl's through device flags), `umgen_ops::kernel_stream`.
-    pub kernel_stream: KernelStream,
-    /// What steps AdamW when training on CUDA: `fused` (one CUDA C kernel over all parameter tensors, the
-    /// clipping factor applied as it reads the gradients, `umgen_ops::adamw`) or `burn` (burn's AdamW,
-    /// tensor by tensor). The CPU runs burn's.
-    pub adamw: AdamWChoice,
-    /// Which thread launches the custom operations' kernels and cuBLAS products on CUDA: `device`
-    /// (cubecl's device thread, one blocking call per operation) or `caller` (the training thread, one
-    /// blocking call to cubecl's device thread per device pointer), `umgen_ops::kernel_stream`.
-    pub launch_thread: LaunchThread,
+    /// The kernel choices (`[train.kernels]`, [`Kernels`]): which kernels run the products, the attention,
+    /// the norms, GELU, the cross-entropy and AdamW on CUDA, on which stream and from which thread, the
+    /// tiled attention's block size, and activation checkpointing. They change speed and memory, not
+    /// results (beyond rounding), so a run may resume under other choices.
+    pub kernels: Kernels,
     /// What a step whose loss or gradient norm is not finite does: `skip` (the default: the step leaves
     /// the weights and AdamW's moments as they were, and the run stops after `max_skipped_steps` such
     /// steps in a row) or `stop` (the run stops with an error naming the step). Either way no checkpoint
@@ -163,17 +120,7 @@ impl Default for TrainConfig {
             data: None,
             split: "train".into(),
             bucket_mib: 25.0,
-            matmul: MatmulKernel::default(),
-            attention_block_mib: umgen_ops::tiled::BLOCK_BYTES >> 20,
-            attention: AttentionKernel::default(),
-            attention_step: umgen_ops::flash::DEFAULT_STEP,
-            recompute: false,
-            norm: NormKernel::default(),
-            gelu: GeluKernel::default(),
-            xent: XentKernel::default(),
-            kernel_stream: KernelStream::default(),
-            adamw: AdamWChoice::default(),
-            launch_thread: LaunchThread::default(),
+            kernels: Kernels::default(),
             nonfinite: NonFinite::default(),
             max_skipped_steps: 10,
         }
@@ -181,30 +128,6 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
-    /// Applies the kernel and memory settings (`matmul`, `attention`, `attention_block_mib`,
-    /// `attention_step`, `recompute`, `norm`, `gelu`, `xent`, `kernel_stream`, `adamw`, `launch_thread`) to this
-    /// process, before any product runs.
-    pub fn select_kernels(&self) -> Result<()> {
-        if self.attention_block_mib == 0 {
-            return Err(TrainError::Setup(
-                "train.attention_block_mib = 0: a query block needs at least 1 MiB of scores".into(),
-            ));
-        }
-        umgen_ops::flash::set_step(Some(self.attention_step))
-            .map_err(|e| TrainError::Setup(format!("train.attention_step = {}: {e}", self.attention_step)))?;
-        umgen_ops::matmul::select(self.matmul);
-        umgen_ops::flash::select(self.attention);
-        umgen_ops::tiled::set_block_bytes(Some(self.attention_block_mib << 20));
-        umgen_ops::recompute::set_enabled(self.recompute);
-        umgen_ops::norm::select(self.norm);
-        umgen_ops::gelu::select(self.gelu);
-        umgen_ops::xent::select(self.xent);
-        umgen_ops::kernel_stream::select(self.kernel_stream);
-        umgen_ops::adamw::select(self.adamw);
-        umgen_ops::kernel_stream::select_thread(self.launch_thread);
-        Ok(())
-    }
-
     /// The first setting that no run can use, as (key under `[train]`, what is wrong with its value);
     /// `None` when every one is usable. `UmgenConfig::load` refuses such a config before anything runs,
     /// naming the key and where it was set.
@@ -279,11 +202,12 @@ impl TrainConfig {
                 format!("{} must be a positive number that f32 holds", self.eps),
             ));
         }
-        if self.attention_block_mib == 0 {
-            return Some(("attention_block_mib", "0 must be 1 or more".into()));
-        }
-        if let Err(e) = umgen_ops::flash::check_step(self.attention_step) {
-            return Some(("attention_step", e));
+        if let Some((key, why)) = self.kernels.problem() {
+            let key = match key {
+                "attention_step" => "kernels.attention_step",
+                _ => "kernels.attention_block_mib",
+            };
+            return Some((key, why));
         }
         if self.max_skipped_steps == 0 {
             return Some((
@@ -323,7 +247,7 @@ impl TrainConfig {
         })
     }
 
-    /// The options of the training loss (`ego_loss_weight`, `prior_drop`, `ordinal_sigma`), checked: an
+    /// The options of the training loss (`ego_loss_weight`, `prior_drop`, `ordinal_sigma`, `kernels`), checked: an
     /// error names the key and its value. `umgen train` and `umgen bench train` take the loss this way.
     pub fn loss_options(&self) -> Result<LossOptions> {
         let options = self.loss_options_unchecked();
@@ -338,6 +262,7 @@ impl TrainConfig {
             ego_weight: self.ego_loss_weight,
             prior_drop: self.prior_drop,
             ordinal_sigma: self.ordinal_sigma,
+            kernels: self.kernels,
         }
     }
 
@@ -355,24 +280,9 @@ impl TrainConfig {
                 "tokens",
                 "data",
                 "bucket_mib",
-                // Same products on another kernel or in other blocks: rounding differs, the run does not.
-                "matmul",
-                "attention_block_mib",
-                "attention",
-                "attention_step",
-                // Recomputed layers and the layer-norm and cross-entropy kernels give the same gradients to
-                // rounding; the bias + GELU kernels the same activations to rounding, and GELU's exact
-                // derivative where burn's uses the tanh approximation's.
-                "recompute",
-                "norm",
-                "gelu",
-                "xent",
-                // The same kernels on another stream.
-                "kernel_stream",
-                // The same AdamW to rounding, with the same record.
-                "adamw",
-                // The same launches from another thread.
-                "launch_thread",
+                // Same products on other kernels, streams or threads, in other blocks, recomputed or kept:
+                // rounding differs, the run does not (each choice in `Kernels`' docs).
+                "kernels",
                 // What happens to a step that breaks the run, not how the run trains.
                 "nonfinite",
                 "max_skipped_steps",

@@ -4,97 +4,83 @@ use super::*;
 
 #[test]
 fn kernel_settings_parse_are_checked_and_resuming_may_change_them() {
-    let cublas = TrainConfig::default();
+    use umgen_ops::kernels::{
+        AdamWChoice, AttentionKernel, GeluKernel, KernelStream, LaunchThread, MatmulKernel, NormKernel,
+        XentKernel,
+    };
+    let default = TrainConfig::default();
     let parse = |json: &str| serde_json::from_str::<TrainConfig>(json);
-    let burn = parse(r#"{"matmul": "burn"}"#).expect("train.matmul = burn");
-    let named = parse(r#"{"matmul": "named"}"#).expect("train.matmul = named");
+    let all = parse(
+        r#"{"kernels": {"matmul": "named", "attention": "fused", "attention_step": 32,
+            "attention_block_mib": 256, "recompute": true, "norm": "burn", "gelu": "burn", "xent": "burn",
+            "adamw": "burn", "stream": "side", "launch_thread": "caller"}}"#,
+    )
+    .expect("every kernel choice");
+    let k = all.kernels;
     assert_eq!(
-        (cublas.matmul, named.matmul, burn.matmul),
-        (MatmulKernel::Cublas, MatmulKernel::Named, MatmulKernel::Burn)
-    );
-    assert_eq!(named.identity(), burn.identity());
-    assert_eq!(named.identity(), cublas.identity());
-    // A setting that changes the run still does.
-    let lr = parse(r#"{"lr": 0.5}"#).expect("lr");
-    assert_ne!(named.identity(), lr.identity());
-    let blocks = parse(r#"{"attention_block_mib": 256}"#).expect("attention_block_mib");
-    assert_eq!(named.identity(), blocks.identity());
-    let tiled = parse(r#"{"attention": "tiled"}"#).expect("attention = tiled");
-    let fused = parse(r#"{"attention": "fused"}"#).expect("attention = fused");
-    assert_eq!(
-        (named.attention, tiled.attention, fused.attention),
         (
-            AttentionKernel::Flash2,
-            AttentionKernel::Tiled,
-            AttentionKernel::Fused
+            k.matmul,
+            k.attention,
+            k.norm,
+            k.gelu,
+            k.xent,
+            k.adamw,
+            k.stream,
+            k.launch_thread
+        ),
+        (
+            MatmulKernel::Named,
+            AttentionKernel::Fused,
+            NormKernel::Burn,
+            GeluKernel::Burn,
+            XentKernel::Burn,
+            AdamWChoice::Burn,
+            KernelStream::Side,
+            LaunchThread::Caller
         )
     );
-    assert_eq!(named.identity(), tiled.identity());
-    assert_eq!(named.identity(), fused.identity());
-    let burn_norm = parse(r#"{"norm": "burn"}"#).expect("norm = burn");
     assert_eq!(
-        (named.norm, burn_norm.norm),
-        (NormKernel::Fused, NormKernel::Burn)
+        (k.attention_step, k.attention_block_mib, k.recompute),
+        (32, 256, true)
     );
-    assert_eq!(named.identity(), burn_norm.identity());
-    let burn_gelu = parse(r#"{"gelu": "burn"}"#).expect("gelu = burn");
-    assert_eq!(
-        (named.gelu, burn_gelu.gelu),
-        (GeluKernel::Fused, GeluKernel::Burn)
-    );
-    assert_eq!(named.identity(), burn_gelu.identity());
-    let burn_xent = parse(r#"{"xent": "burn"}"#).expect("xent = burn");
-    assert_eq!(
-        (named.xent, burn_xent.xent),
-        (XentKernel::Fused, XentKernel::Burn)
-    );
-    assert_eq!(named.identity(), burn_xent.identity());
-    let side = parse(r#"{"kernel_stream": "side"}"#).expect("kernel_stream = side");
-    assert_eq!(
-        (named.kernel_stream, side.kernel_stream),
-        (KernelStream::Cubecl, KernelStream::Side)
-    );
-    assert_eq!(named.identity(), side.identity());
-    let burn_adamw = parse(r#"{"adamw": "burn"}"#).expect("adamw = burn");
-    assert_eq!(
-        (named.adamw, burn_adamw.adamw),
-        (AdamWChoice::Fused, AdamWChoice::Burn)
-    );
-    assert_eq!(named.identity(), burn_adamw.identity());
-    let caller = parse(r#"{"launch_thread": "caller"}"#).expect("launch_thread = caller");
-    assert_eq!(
-        (named.launch_thread, caller.launch_thread),
-        (LaunchThread::Device, LaunchThread::Caller)
-    );
-    assert_eq!(named.identity(), caller.identity());
-    let e = parse(r#"{"adamw": "apex"}"#).unwrap_err().to_string();
-    assert!(e.contains("apex") && e.contains("fused"), "{e}");
-    let e = parse(r#"{"kernel_stream": "main"}"#).unwrap_err().to_string();
-    assert!(e.contains("main") && e.contains("cubecl"), "{e}");
-    let e = parse(r#"{"norm": "fast"}"#).unwrap_err().to_string();
-    assert!(e.contains("fast") && e.contains("fused"), "{e}");
-    let recompute = parse(r#"{"recompute": true}"#).expect("recompute = true");
-    assert!(recompute.recompute && !named.recompute);
-    assert_eq!(named.identity(), recompute.identity());
-    let e = parse(r#"{"attention": "flash"}"#).unwrap_err().to_string();
+    // The loss runs on the run's kernels.
+    assert_eq!(all.loss_options().expect("valid").kernels, k);
+    // Kernel choices leave a run's identity alone, so a run may resume under others.
+    assert_eq!(default.identity(), all.identity());
+    // A setting that changes the run still does.
+    let lr = parse(r#"{"lr": 0.5}"#).expect("lr");
+    assert_ne!(default.identity(), lr.identity());
+    // Unknown names are refused, naming the value and what is accepted.
+    let e = parse(r#"{"kernels": {"attention": "flash"}}"#)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("flash") && e.contains("flash2"), "{e}");
-    let e = parse(r#"{"attention_block_mib": 0}"#)
-        .expect("parses")
-        .select_kernels()
-        .unwrap_err();
-    assert!(e.to_string().contains("train.attention_block_mib = 0"), "{e}");
-    let step = parse(r#"{"attention_step": 16}"#).expect("attention_step = 16");
-    assert_eq!(named.identity(), step.identity());
-    let e = parse(r#"{"attention_step": 48}"#)
-        .expect("parses")
-        .select_kernels()
-        .unwrap_err();
-    assert!(e.to_string().contains("train.attention_step = 48"), "{e}");
-    let e = parse(r#"{"matmul": "tma"}"#).unwrap_err().to_string();
+    let e = parse(r#"{"kernels": {"matmul": "tma"}}"#)
+        .unwrap_err()
+        .to_string();
     assert!(
         e.contains("tma") && e.contains("cublas") && e.contains("named") && e.contains("burn"),
         "{e}"
     );
+    // The choices live in their table only.
+    let e = parse(r#"{"matmul": "named"}"#).unwrap_err().to_string();
+    assert!(e.contains("matmul"), "{e}");
+    let e = parse(r#"{"kernels": {"kernel_stream": "side"}}"#)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("kernel_stream"), "{e}");
+    // Values no run can use are named with their key.
+    let (key, why) = parse(r#"{"kernels": {"attention_step": 48}}"#)
+        .expect("parses")
+        .problem()
+        .expect("48 is not a step");
+    assert_eq!(key, "kernels.attention_step");
+    assert!(why.contains("48"), "{why}");
+    let (key, _) = parse(r#"{"kernels": {"attention_block_mib": 0}}"#)
+        .expect("parses")
+        .problem()
+        .expect("0 MiB");
+    assert_eq!(key, "kernels.attention_block_mib");
 }
 
 #[test]
@@ -136,7 +122,11 @@ fn values_no_run_can_use_are_named_by_key() {
             "eps",
             "0.000000000000000000000000000000000000000000000000000000000001 must be a positive number that f32 holds",
         ),
-        (r#"{"attention_step": 48}"#, "attention_step", "attention step 48"),
+        (
+            r#"{"kernels": {"attention_step": 48}}"#,
+            "kernels.attention_step",
+            "attention step 48",
+        ),
         (
             r#"{"max_skipped_steps": 0}"#,
             "max_skipped_steps",

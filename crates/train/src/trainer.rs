@@ -88,7 +88,6 @@ pub fn train<B: AutodiffBackend>(
     let (rank, world) = (group.rank(), group.world_size());
     let lead = rank == 0;
     let bucket = (tc.bucket_mib * 1048576.0).max(4.0) as usize;
-    tc.select_kernels()?;
     let out = &tc.out_dir;
     let f = tc.frames + 1;
     let windows = tokens.windows(f, tc.gap, Some(&tc.split));
@@ -120,8 +119,8 @@ pub fn train<B: AutodiffBackend>(
     }
     B::seed(device, tc.seed);
     let mut model = stable_param_ids(Backbone::<B>::new(&run.backbone, &run.spec, device)?);
-    let mut optim =
-        FusedAdamW::<_, B>::new(settings).with_kernels(umgen_ops::adamw::kernels::<B::InnerBackend>());
+    let mut optim = FusedAdamW::<_, B>::new(settings)
+        .with_kernels(umgen_ops::adamw::kernels::<B::InnerBackend>(&tc.kernels));
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
     let mut step = 0u64;
     let mut last_ckpt = None;

@@ -9,10 +9,10 @@
 # ones while each kernel's own time stays right), for one step and for two; the second log less the first
 # is a steady step (the first step also draws the lazily initialised parameters and the embedding tables),
 # and the script sums that step's kernel times by kind (the first step's total is printed too): the named
-# matmul kernel (train.matmul = "named"), burn's matmul kernels, fused element-wise, fused and plain
-# reductions, copies, the rest by name. cuBLAS's kernels (train.matmul = "cublas", the default)
+# matmul kernel (train.kernels.matmul = "named"), burn's matmul kernels, fused element-wise, fused and plain
+# reductions, copies, the rest by name. cuBLAS's kernels (train.kernels.matmul = "cublas", the default)
 # are not cubecl's and are not in the log: their time shows as cubecl's `wait` kernel, which holds cubecl's
-# stream until the product is done; pass `--set train.matmul=named` to see the products by name. The logs
+# stream until the product is done; pass `--set train.kernels.matmul=named` to see the products by name. The logs
 # stay in $OUT (default ./profile-out). UMGEN names the binary (default: umgen); run from the repository
 # root.
 set -uo pipefail

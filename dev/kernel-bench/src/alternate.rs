@@ -3,20 +3,20 @@
 //!
 //! On an H100 the median step of one binary moved by about 20 ms between processes on one machine (226–246
 //! ms for `small`), more than most kernel changes save; steps of one process agree far
-//! better. The kernel settings are process-wide choices read at every call (`TrainConfig::select_kernels`),
-//! so one model can run its steps under each value in turn.
+//! better. The kernel choices are a value each step passes to the model (`train.kernels`), so one model
+//! can run its steps under each value in turn.
 
 use anyhow::{Context, bail};
 use std::io::Write;
 use std::path::Path;
 use umgen::UmgenConfig;
-use umgen::train::TrainConfig;
+use umgen::ops::Kernels;
 
-/// The values of one setting and the training configuration each gives.
+/// The values of one setting and the kernels each gives.
 pub(super) struct Alternation {
     key: String,
     values: Vec<String>,
-    configs: Vec<TrainConfig>,
+    kernels: Vec<Kernels>,
 }
 
 /// What of a configuration decides the run (the model, its data and its maths): the whole configuration
@@ -29,7 +29,7 @@ fn identity(c: &UmgenConfig) -> serde_json::Value {
 
 impl Alternation {
     /// `spec` (`KEY=V1,V2[,…]`) applied after `sets` to the config at `path`, each value checked to change
-    /// nothing but kernel choices against `base` and to be one `select_kernels` takes.
+    /// nothing but kernel choices against `base` (the config's loading checks that a run can use it).
     pub(super) fn parse(
         spec: &str,
         path: &Path,
@@ -49,7 +49,7 @@ impl Alternation {
             bail!("--alternate `{spec}`: give two or more values, KEY=V1,V2");
         }
         let reference = identity(base);
-        let mut configs = Vec::with_capacity(values.len());
+        let mut kernels = Vec::with_capacity(values.len());
         for value in &values {
             let mut layered = sets.to_vec();
             layered.push(format!("{key}={value}"));
@@ -59,21 +59,15 @@ impl Alternation {
             if identity(&config) != reference {
                 bail!(
                     "--alternate {key}={value}: changes the model or the run, not only a kernel choice (those \
-                     that alternate: train.matmul, train.attention, train.attention_step, \
-                     train.attention_block_mib, train.recompute, train.norm, train.gelu, train.xent, train.kernel_stream, \
-                     train.adamw, train.launch_thread)"
+                     that alternate are under train.kernels: train.kernels.matmul, train.kernels.stream, …)"
                 );
             }
-            config
-                .train
-                .select_kernels()
-                .with_context(|| format!("--alternate {key}={value}"))?;
-            configs.push(config.train);
+            kernels.push(config.train.kernels);
         }
         Ok(Self {
             key: key.trim().to_string(),
             values,
-            configs,
+            kernels,
         })
     }
 
@@ -82,11 +76,14 @@ impl Alternation {
         self.values.len()
     }
 
-    /// Selects the kernels of step `step`'s value and returns its index.
-    pub(super) fn select(&self, step: usize) -> anyhow::Result<usize> {
-        let i = step % self.configs.len();
-        self.configs[i].select_kernels()?;
-        Ok(i)
+    /// The turn (the value's index) of step `step`.
+    pub(super) fn turn(&self, step: usize) -> usize {
+        step % self.kernels.len().max(1)
+    }
+
+    /// The kernels of turn `turn`.
+    pub(super) fn kernels(&self, turn: usize) -> Kernels {
+        self.kernels.get(turn).copied().unwrap_or_default()
     }
 
     /// One line per value: the median of its timed steps (`times[i]`, seconds), and its ratio to the first.

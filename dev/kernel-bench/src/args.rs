@@ -28,7 +28,7 @@ pub enum Command {
     /// between), each timed and checked against the default on the shapes of the `small` training step.
     Matmul(BenchMatmulArgs),
     /// A linear layer's product, forward and both gradients, on the kernels training can use
-    /// (`train.matmul = "named"`, and `"cublas"` on CUDA) against burn's own path: agreement with burn's
+    /// (`train.kernels.matmul = "named"`, and `"cublas"` on CUDA) against burn's own path: agreement with burn's
     /// f32 result, and time.
     Linear(BenchLinearArgs),
     /// The layer norm, the TAR's attention over time, the cross-entropy and an AdamW step as training
@@ -56,11 +56,11 @@ pub struct TrainArgs {
     #[command(flatten)]
     pub bench: BenchTrainArgs,
     /// Steps take turns between the values of one kernel setting, `KEY=V1,V2[,...]` (e.g.
-    /// `train.attention=flash2,fused`), and each value's median step is printed: a comparison inside one
+    /// `train.kernels.attention=flash2,fused`), and each value's median step is printed: a comparison inside one
     /// process, free of the spread between processes. Only settings that leave the run the same alternate
-    /// (`train.matmul`, `train.attention`, `train.attention_step`, `train.attention_block_mib`,
-    /// `train.recompute`, `train.norm`, `train.gelu`, `train.xent`, `train.kernel_stream`, `train.adamw`,
-    /// `train.launch_thread`); `--warmup` must cover one step of each value.
+    /// (`train.kernels.matmul`, `train.kernels.attention`, `train.kernels.attention_step`, `train.kernels.attention_block_mib`,
+    /// `train.kernels.recompute`, `train.kernels.norm`, `train.kernels.gelu`, `train.kernels.xent`, `train.kernels.stream`, `train.kernels.adamw`,
+    /// `train.kernels.launch_thread`); `--warmup` must cover one step of each value.
     #[arg(long, value_name = "KEY=V1,V2")]
     pub alternate: Option<String>,
     /// Write a sampling profile of the host's threads over the timed steps to this file (collapsed stacks;
@@ -206,18 +206,18 @@ pub struct BenchAttentionArgs {
     /// size (default: the training default, 1024).
     #[arg(long, value_delimiter = ',')]
     pub block_mib: Vec<usize>,
-    /// Loop steps of the fused kernels (`train.attention_step`: 16, 32 or 64), comma-separated: one fused
+    /// Loop steps of the fused kernels (`train.kernels.attention_step`: 16, 32 or 64), comma-separated: one fused
     /// row per step (default: the training default).
     #[arg(long, value_delimiter = ',')]
     pub step: Vec<usize>,
-    /// Training attention kernels to measure (`train.attention`), comma-separated: one row each (the tiled
+    /// Training attention kernels to measure (`train.kernels.attention`), comma-separated: one row each (the tiled
     /// one once per `--block-mib` size, the fused one once per `--step`). Default: `flash2,fused,tiled` on
     /// CUDA, `tiled` on the CPU, which has neither of the others.
     #[arg(long, value_enum, value_delimiter = ',')]
     pub kernels: Vec<AttentionArg>,
 }
 
-/// `--kernels` values (`train.attention`).
+/// `--kernels` values (`train.kernels.attention`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum AttentionArg {
     /// One cubecl kernel per pass (CUDA).

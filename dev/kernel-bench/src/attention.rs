@@ -10,6 +10,7 @@ use burn::tensor::{Distribution, ElementConversion, FloatDType, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
+use umgen::ops::Kernels;
 use umgen::ops::attention::tiled_for;
 use umgen::ops::flash::{self, AttentionKernel};
 use umgen_cli::device::{Device, memory_in_use};
@@ -62,7 +63,7 @@ struct Run<B: Backend> {
 
 fn measure<B: AutodiffBackend>(
     c: &Case,
-    tiled: Option<Precision>,
+    tiled: Option<(Precision, Kernels)>,
     iters: usize,
     device: Device,
     dev: &B::Device,
@@ -83,9 +84,9 @@ fn measure<B: AutodiffBackend>(
             Tensor::<B, 4>::from_inner(k.clone()).require_grad(),
             Tensor::<B, 4>::from_inner(v.clone()).require_grad(),
         );
-        let y = if let Some(precision) = tiled {
+        let y = if let Some((precision, kernels)) = tiled {
             let f = tiled_for::<B>().context("no tiled attention for this backend")?;
-            f(qa.clone(), ka.clone(), va.clone(), c.causal, precision)
+            f(qa.clone(), ka.clone(), va.clone(), c.causal, precision, &kernels)
         } else {
             let opts = AttentionModuleOptions {
                 is_causal: c.causal,
@@ -205,17 +206,23 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
             // they added.
             let mut runs = Vec::new();
             for &(kernel, size) in &variants {
-                flash::select(kernel);
-                match kernel {
-                    AttentionKernel::Fused => flash::set_step(size).map_err(anyhow::Error::msg)?,
-                    AttentionKernel::Tiled => umgen::ops::tiled::set_block_bytes(size),
-                    AttentionKernel::Flash2 => {}
+                let mut kernels = Kernels {
+                    attention: kernel,
+                    ..Kernels::DEFAULT
+                };
+                match (kernel, size) {
+                    (AttentionKernel::Fused, Some(step)) => kernels.attention_step = step,
+                    (AttentionKernel::Tiled, Some(bytes)) => kernels.attention_block_mib = bytes >> 20,
+                    _ => {}
                 }
-                runs.push(measure::<B>(c, Some(a.precision.into()), a.iters, device, &dev));
+                runs.push(measure::<B>(
+                    c,
+                    Some((a.precision.into(), kernels)),
+                    a.iters,
+                    device,
+                    &dev,
+                ));
             }
-            flash::select(AttentionKernel::default());
-            flash::set_step(None).map_err(anyhow::Error::msg)?;
-            umgen::ops::tiled::set_block_bytes(None);
             let d = measure::<B>(c, None, a.iters, device, &dev)?;
             let mut rows = Vec::new();
             for (t, &(kernel, size)) in runs.into_iter().zip(&variants) {
@@ -232,7 +239,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                     AttentionKernel::Fused => format!("step {}", size.unwrap_or(flash::DEFAULT_STEP)),
                     AttentionKernel::Flash2 => "-".into(),
                     AttentionKernel::Tiled => {
-                        (size.unwrap_or(umgen::ops::tiled::BLOCK_BYTES) >> 20).to_string()
+                        (size.unwrap_or(umgen::ops::kernels::BLOCK_BYTES) >> 20).to_string()
                     }
                 };
                 rows.push((kernel, block, t.seconds, d.seconds, errs, t.reserved, d.reserved));

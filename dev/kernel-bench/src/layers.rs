@@ -15,6 +15,7 @@ use burn::tensor::{Distribution, Int, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
+use umgen::ops::Kernels;
 use umgen::ops::norm::layer_norm;
 use umgen::ops::temporal::{from_heads, over_time_for, to_heads};
 use umgen_cli::device::Device;
@@ -86,7 +87,7 @@ fn measure<B: AutodiffBackend>(
     let norm_pass = |ours: bool| {
         let xa = Tensor::<B, 4>::from_inner(x.clone()).require_grad();
         let y = if ours {
-            layer_norm(&ln, xa.clone())
+            layer_norm(&ln, xa.clone(), &Kernels::DEFAULT)
         } else {
             ln.forward(xa.clone())
         };
@@ -116,7 +117,14 @@ fn measure<B: AutodiffBackend>(
         let qa = Tensor::<B, 4>::from_inner(x.clone()).require_grad();
         let kva = Tensor::<B, 4>::from_inner(kv.clone()).require_grad();
         let y = if ours {
-            op(qa.clone(), kva.clone(), heads, true, Precision::F32)
+            op(
+                qa.clone(),
+                kva.clone(),
+                heads,
+                true,
+                Precision::F32,
+                &Kernels::DEFAULT,
+            )
         } else {
             let h = |x| to_heads(x, heads);
             let (k, v) = (kva.clone().narrow(3, 0, d), kva.clone().narrow(3, d, d));
@@ -170,7 +178,7 @@ fn measure<B: AutodiffBackend>(
 }
 
 /// An MLP's first layer, `gelu(x · W + b)` from `d` to `4·d` with bf16 products, as training runs it
-/// (`train.gelu = "fused"`: one operation writing the activation in bf16) and with burn's bias add and GELU
+/// (`train.kernels.gelu = "fused"`: one operation writing the activation in bf16) and with burn's bias add and GELU
 /// (`"burn"`): activation, input gradient and bias gradient.
 fn mlp_activation<B: AutodiffBackend>(
     a: &BenchLayersArgs,
@@ -180,25 +188,26 @@ fn mlp_activation<B: AutodiffBackend>(
 ) -> anyhow::Result<()> {
     use burn::nn::LinearConfig;
     use burn::tensor::FloatDType;
-    use umgen::ops::gelu::{self, GeluKernel, linear_gelu};
+    use umgen::ops::gelu::{GeluKernel, linear_gelu};
     let layer = LinearConfig::new(d, 4 * d).init::<B>(dev);
     let bias = layer.bias.as_ref().context("an MLP layer has a bias")?.val();
     let x = Tensor::<B::InnerBackend, 2>::random([rows, d], Distribution::Normal(0.0, 1.0), dev);
     let r = Tensor::<B::InnerBackend, 2>::random([rows, 4 * d], Distribution::Normal(0.0, 1.0), dev);
-    let pass = |kernel: GeluKernel| {
-        gelu::select(kernel);
+    let pass = |gelu: GeluKernel| {
+        let kernels = Kernels {
+            gelu,
+            ..Kernels::DEFAULT
+        };
         let xa = Tensor::<B, 2>::from_inner(x.clone()).require_grad();
-        let h = linear_gelu(&layer, xa.clone(), Precision::Bf16).cast(FloatDType::F32);
+        let h = linear_gelu(&layer, xa.clone(), Precision::Bf16, &kernels).cast(FloatDType::F32);
         let g = (h.clone() * Tensor::from_inner(r.clone())).sum().backward();
         let dx = xa.grad(&g).context("no input gradient")?;
         let db = bias.grad(&g).context("no bias gradient")?;
         let as4 = |t: Tensor<B::InnerBackend, 2>| t.unsqueeze::<4>();
         Ok([as4(h.inner()), as4(dx), db.reshape([1, 1, 1, 4 * d])])
     };
-    let chosen = gelu::selected();
     let ran = timed::<B, _>(a.iters, dev, || pass(GeluKernel::Fused))
         .and_then(|ours| Ok((ours, timed::<B, _>(a.iters, dev, || pass(GeluKernel::Burn))?)));
-    gelu::select(chosen);
     let ((ms, [y, dx, db]), (burn_ms, [ry, rdx, rdb])) = ran?;
     writeln!(
         out,
@@ -215,29 +224,30 @@ fn mlp_activation<B: AutodiffBackend>(
 
 /// The cross-entropy of `rows` random logits `[rows, --vocab]` against random targets smoothed over
 /// neighbouring ids (σ 1.5, every id ordered): loss and logit gradient, with the kernels chosen and
-/// with burn's operations (the same custom operation with `train.xent = "burn"`).
+/// with burn's operations (the same custom operation with `train.kernels.xent = "burn"`).
 fn cross_entropy<B: AutodiffBackend>(
     a: &BenchLayersArgs,
     rows: usize,
     dev: &B::Device,
     out: &mut impl Write,
 ) -> anyhow::Result<()> {
-    use umgen::ops::xent::{self, XentKernel};
+    use umgen::ops::xent::XentKernel;
     let v = a.vocab;
     let logits = Tensor::<B::InnerBackend, 2>::random([rows, v], Distribution::Normal(0.0, 2.0), dev);
     let targets = Tensor::<B, 2, Int>::random([rows, 1], Distribution::Uniform(0.0, v as f64), dev);
-    let pass = |kernel: XentKernel| {
-        xent::select(kernel);
+    let pass = |xent: XentKernel| {
+        let kernels = Kernels {
+            xent,
+            ..Kernels::DEFAULT
+        };
         let xa = Tensor::<B, 2>::from_inner(logits.clone()).require_grad();
-        let loss = xent::sum(xa.clone(), targets.clone(), v, 1.5);
+        let loss = umgen::ops::xent::sum(xa.clone(), targets.clone(), v, 1.5, &kernels);
         let g = loss.clone().backward();
         let dx = xa.grad(&g).context("no logit gradient")?;
         Ok([loss.inner().reshape([1, 1, 1, 1]), dx.reshape([1, 1, rows, v])])
     };
-    let chosen = xent::selected();
     let ran = timed::<B, _>(a.iters, dev, || pass(XentKernel::Fused))
         .and_then(|ours| Ok((ours, timed::<B, _>(a.iters, dev, || pass(XentKernel::Burn))?)));
-    xent::select(chosen);
     let ((ms, [y, dx]), (burn_ms, [ry, rdx])) = ran?;
     writeln!(
         out,
@@ -308,7 +318,7 @@ fn adamw<B: AutodiffBackend>(
     use burn::tensor::ops::FloatTensorOps;
     use umgen::optim::{AdamWSettings, AdamWSlot, AdamWStep, adamw_reference};
     type Raw<B> = burn::tensor::ops::FloatTensor<<B as AutodiffBackend>::InnerBackend>;
-    let Some(kernels) = umgen::ops::adamw::kernels::<B::InnerBackend>() else {
+    let Some(kernels) = umgen::ops::adamw::kernels::<B::InnerBackend>(&Kernels::DEFAULT) else {
         writeln!(out, "{:<26} no multi-tensor kernel on this backend", "adamw")?;
         return Ok(());
     };

@@ -12,7 +12,8 @@ use burn::tensor::{Distribution, FloatDType, Tensor};
 use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
-use umgen::ops::matmul::{MatmulKernel, Written, named_for, select};
+use umgen::ops::Kernels;
+use umgen::ops::matmul::{MatmulKernel, Written, named_for};
 use umgen_cli::device::Device;
 
 /// A product under test: `x · w` on the autodiff backend `B`.
@@ -37,7 +38,8 @@ pub fn run(a: &BenchLinearArgs) -> anyhow::Result<()> {
 }
 
 fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::Device) -> anyhow::Result<()> {
-    let named = named_for::<B>().with_context(|| format!("no named matmul on {}", a.device))?;
+    let named =
+        named_for::<B>(&Kernels::DEFAULT).with_context(|| format!("no named matmul on {}", a.device))?;
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
@@ -67,9 +69,12 @@ fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::D
                     .cast(FloatDType::F32),
             };
             let on = |kernel: MatmulKernel, written: Written| {
+                let kernels = Kernels {
+                    matmul: kernel,
+                    ..Kernels::DEFAULT
+                };
                 move |x: Tensor<B, 2>, w: Tensor<B, 2>| {
-                    select(kernel);
-                    named(x, w, p, written).cast(FloatDType::F32)
+                    named(x, w, p, written, &kernels).cast(FloatDType::F32)
                 }
             };
             // The result and the input's gradient written in bf16, as the MLP's products write them.
@@ -109,7 +114,6 @@ fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::D
             }
         }
     }
-    select(MatmulKernel::default());
     Ok(())
 }
 

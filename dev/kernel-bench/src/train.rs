@@ -5,6 +5,7 @@ use crate::alternate::Alternation;
 use crate::args::TrainArgs;
 use crate::host_profile::HostProfile;
 use std::io::Write;
+use umgen::ops::Kernels;
 use umgen_cli::commands::bench::bench_config;
 use umgen_cli::commands::bench_train::{StepHooks, run_with};
 
@@ -21,7 +22,11 @@ impl StepHooks for Hooks {
     }
 
     fn before_step(&mut self, i: usize) -> anyhow::Result<usize> {
-        self.alternation.as_ref().map_or(Ok(0), |a| a.select(i))
+        Ok(self.alternation.as_ref().map_or(0, |a| a.turn(i)))
+    }
+
+    fn kernels(&self, turn: usize, base: &Kernels) -> Kernels {
+        self.alternation.as_ref().map_or(*base, |a| a.kernels(turn))
     }
 
     fn timed(&mut self, start: bool) -> anyhow::Result<()> {

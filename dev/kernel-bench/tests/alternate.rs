@@ -47,17 +47,17 @@ fn check_turns(report: &str, key: &str, [first, second]: [&str; 2]) {
 
 #[test]
 fn alternating_steps_are_timed_per_value() {
-    let report = alternated("train.xent=fused,burn");
-    check_turns(&report, "train.xent", ["fused", "burn"]);
+    let report = alternated("train.kernels.xent=fused,burn");
+    check_turns(&report, "train.kernels.xent", ["fused", "burn"]);
     // The stream umgen's CUDA kernels run on is a kernel choice too (the CPU runs neither).
-    let report = alternated("train.kernel_stream=cubecl,side");
-    check_turns(&report, "train.kernel_stream", ["cubecl", "side"]);
+    let report = alternated("train.kernels.stream=cubecl,side");
+    check_turns(&report, "train.kernels.stream", ["cubecl", "side"]);
     // And what steps AdamW (a resumed run may switch it: it keeps the run's identity).
-    let report = alternated("train.adamw=burn,fused");
-    check_turns(&report, "train.adamw", ["burn", "fused"]);
+    let report = alternated("train.kernels.adamw=burn,fused");
+    check_turns(&report, "train.kernels.adamw", ["burn", "fused"]);
     // And which thread launches the custom operations.
-    let report = alternated("train.launch_thread=caller,device");
-    check_turns(&report, "train.launch_thread", ["caller", "device"]);
+    let report = alternated("train.kernels.launch_thread=caller,device");
+    check_turns(&report, "train.kernels.launch_thread", ["caller", "device"]);
 }
 
 #[test]
@@ -78,12 +78,12 @@ fn alternation_refuses_what_is_not_a_kernel_choice() {
         err.contains("backbone.precision=bf16") && err.contains("not only a kernel choice"),
         "{err}"
     );
-    let err = refused(&["--alternate", "train.xent=fused"]);
+    let err = refused(&["--alternate", "train.kernels.xent=fused"]);
     assert!(err.contains("two or more values"), "{err}");
-    let err = refused(&["--alternate", "train.xent"]);
+    let err = refused(&["--alternate", "train.kernels.xent"]);
     assert!(err.contains("KEY=V1,V2"), "{err}");
-    let err = refused(&["--alternate", "train.xent=fused,fast"]);
-    assert!(err.contains("train.xent=fast"), "{err}");
-    let err = refused(&["--warmup", "1", "--alternate", "train.xent=fused,burn"]);
+    let err = refused(&["--alternate", "train.kernels.xent=fused,fast"]);
+    assert!(err.contains("train.kernels.xent=fast"), "{err}");
+    let err = refused(&["--warmup", "1", "--alternate", "train.kernels.xent=fused,burn"]);
     assert!(err.contains("--warmup 2"), "{err}");
 }

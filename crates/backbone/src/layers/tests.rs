@@ -1,4 +1,4 @@
-//! The self-attention layer's training paths against each other: recomputed (`train.recompute`) against
+//! The self-attention layer's training paths against each other: recomputed (`train.kernels.recompute`) against
 //! burn's autodiff of the same layer, and the attention over time on the rows as they lie against the
 //! transposed layer.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -8,7 +8,6 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::{Autodiff, Flex};
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::Distribution;
-use umgen_ops::recompute::scoped;
 
 type A = Autodiff<Flex>;
 
@@ -19,8 +18,12 @@ fn recompute(
     causal: bool,
     over_time: Option<(usize, usize)>,
 ) -> Tensor<A, 3> {
-    let layer = scoped(true, recomputed_for::<A>).expect("the CPU's autodiff backend has the operation");
-    layer(&blk.parts(), x, causal, over_time).unwrap_or_else(|_| panic!("a layer with biases is taken"))
+    let on = Kernels {
+        recompute: true,
+        ..Kernels::DEFAULT
+    };
+    let layer = recomputed_for::<A>(&on).expect("the CPU's autodiff backend has the operation");
+    layer(&blk.parts(), x, causal, over_time, &on).unwrap_or_else(|_| panic!("a layer with biases is taken"))
 }
 
 fn close<const D: usize>(a: Tensor<Flex, D>, b: Tensor<Flex, D>, tol: f32, what: &str) {
@@ -110,7 +113,9 @@ fn check(len: usize, causal: bool, precision: Precision, tol: f32) {
     let blk = layer(32, 4, 0.0, precision);
     let x = Tensor::<Flex, 3>::random([2, len, 32], Distribution::Normal(0.0, 1.0), &dev);
     let r = Tensor::<Flex, 3>::random([2, len, 32], Distribution::Normal(0.0, 1.0), &dev);
-    let (y0, dx0, dp0) = run(&blk, &x, &r, |b, x| b.forward_autodiff(x, causal));
+    let (y0, dx0, dp0) = run(&blk, &x, &r, |b, x| {
+        b.forward_autodiff(x, causal, &Kernels::DEFAULT)
+    });
     let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| recompute(b, x, causal, None));
     agree(
         (y1, dx1, dp1),
@@ -136,7 +141,7 @@ fn check_over_time(t: usize, n: usize, precision: Precision, tol: f32) {
     let x = Tensor::<Flex, 3>::random([2, t * n, 32], Distribution::Normal(0.0, 1.0), &dev);
     let r = Tensor::<Flex, 3>::random([2, t * n, 32], Distribution::Normal(0.0, 1.0), &dev);
     let (y0, dx0, dp0) = run(&blk, &x, &r, |b, x| {
-        b.over_time_autodiff(x.reshape([2, t, n, 32]))
+        b.over_time_autodiff(x.reshape([2, t, n, 32]), &Kernels::DEFAULT)
             .reshape([2, t * n, 32])
     });
     let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| recompute(b, x, true, Some((t, n))));
@@ -176,9 +181,13 @@ fn layer_over_time_matches_the_transposed_layer_and_is_causal() {
     let (b, t, n, d) = (2, 4, 3, 16);
     let x = random([b, t, n, d]).require_grad();
     let w = random([b, t, n, d]);
-    let ours = blk.forward_over_time(x.clone());
+    let ours = blk.forward_over_time(x.clone(), &Kernels::DEFAULT);
     let theirs = blk
-        .forward(x.clone().swap_dims(1, 2).reshape([b * n, t, d]), true)
+        .forward(
+            x.clone().swap_dims(1, 2).reshape([b * n, t, d]),
+            true,
+            &Kernels::DEFAULT,
+        )
         .reshape([b, n, t, d])
         .swap_dims(1, 2);
     close(ours.clone().inner(), theirs.clone().inner(), 1e-5, "layer output");
@@ -195,7 +204,9 @@ fn layer_over_time_matches_the_transposed_layer_and_is_causal() {
         .clone()
         .inner()
         .slice_assign([0..b, 3..4, 0..n, 0..d], random([b, 1, n, d]).inner());
-    let again = blk.forward_over_time(Tensor::from_inner(moved)).inner();
+    let again = blk
+        .forward_over_time(Tensor::from_inner(moved), &Kernels::DEFAULT)
+        .inner();
     let ours = ours.inner();
     close(
         again.clone().narrow(1, 0, 3),

@@ -2,12 +2,13 @@
 
 use super::*;
 use burn::tensor::Tensor;
+use umgen_backbone::Kernels;
 
 fn h_and_ego(m: &Backbone<F>, ids: &[i64], b: usize, f: usize) -> (Vec<f32>, Vec<f32>) {
     let n = spec().n;
     let toks = tensor::<F>(ids, b, f, n);
     let t = f - 1;
-    let e = m.embed.forward(toks.clone());
+    let e = m.embed.forward(toks.clone(), &Kernels::DEFAULT);
     let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
     let action = toks.clone().narrow(1, 1, t).narrow(2, 1, 3);
     let h = m.tar(toks.clone().narrow(1, 0, t), cond.clone(), next, Some(action));
@@ -82,7 +83,7 @@ fn oar_causality(m: &Backbone<F>) {
     let ids = tokens(&spec(), 1, f, 12);
     let run = |ids: &[i64]| -> Vec<Vec<f32>> {
         let toks = tensor::<F>(ids, 1, f, n);
-        let e = m.embed.forward(toks.clone());
+        let e = m.embed.forward(toks.clone(), &Kernels::DEFAULT);
         let t = f - 1;
         let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
         let h = m.tar(
@@ -142,7 +143,9 @@ fn ego_queries_start_from_their_own_frames_action_only_with_ego_last() {
         Backbone::<F>::new(&cfg, &spec(), &Default::default()).unwrap()
     };
     let logits = |m: &Backbone<F>, ids: &[i64]| -> Vec<Vec<f32>> {
-        let e = m.embed.forward(tensor::<F>(ids, 1, 3, spec().n));
+        let e = m
+            .embed
+            .forward(tensor::<F>(ids, 1, 3, spec().n), &Kernels::DEFAULT);
         let v: Vec<f32> = m
             .ego_logits(e, false)
             .unwrap()

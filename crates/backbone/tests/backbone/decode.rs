@@ -2,6 +2,7 @@
 //! embedding reproduce, position by position, the teacher-forced outputs that training computes.
 
 use super::*;
+use umgen_backbone::Kernels;
 use umgen_backbone::Slot;
 
 /// A model, a frame of 2 scenes (`flat` `[b, n]`), its embedding `e`, a random prior `h` (any prior
@@ -21,7 +22,10 @@ fn frame_with_prior(seed: u64) -> Frame {
     let sp = spec();
     let (b, n) = (2, sp.n);
     let frame = tensor::<F>(&tokens(&sp, b, 1, seed), b, 1, n);
-    let e = m.embed.forward(frame.clone()).reshape([b, n, 32]);
+    let e = m
+        .embed
+        .forward(frame.clone(), &Kernels::DEFAULT)
+        .reshape([b, n, 32]);
     let h = Tensor::<F, 3>::random(
         [b, n, 32],
         burn::tensor::Distribution::Normal(0.0, 1.0),

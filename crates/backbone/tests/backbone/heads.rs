@@ -1,6 +1,7 @@
 //! Heads cover their own vocabulary only, and the loss is the cross-entropy computed independently.
 
 use super::*;
+use umgen_backbone::Kernels;
 
 #[test]
 fn each_segment_scores_only_its_own_vocabulary() {
@@ -8,11 +9,11 @@ fn each_segment_scores_only_its_own_vocabulary() {
     let x = Tensor::<F, 3>::ones([2, spec().n, config().d_model], &Default::default());
     for (s, seg) in spec().segments.iter().enumerate() {
         assert_eq!(
-            m.oar_heads.logits(s, x.clone()).dims(),
+            m.oar_heads.logits(s, x.clone(), &Kernels::DEFAULT).dims(),
             [2, seg.tokens, seg.vocab]
         );
         assert_eq!(
-            m.tar_heads.logits(s, x.clone()).dims(),
+            m.tar_heads.logits(s, x.clone(), &Kernels::DEFAULT).dims(),
             [2, seg.tokens, seg.vocab]
         );
     }
@@ -39,7 +40,7 @@ fn the_loss_is_the_token_weighted_cross_entropy() {
     };
     // Independent computation in f64 from the raw logits of the OAR.
     let t = f - 1;
-    let e = m.embed.forward(toks.clone());
+    let e = m.embed.forward(toks.clone(), &Kernels::DEFAULT);
     let (cond, next) = (e.clone().narrow(1, 0, t), e.narrow(1, 1, t));
     let h = m.tar(
         toks.clone().narrow(1, 0, t),
@@ -53,7 +54,7 @@ fn the_loss_is_the_token_weighted_cross_entropy() {
     for (s, seg) in spec().segments.iter().enumerate() {
         let logits: Vec<f32> = m
             .oar_heads
-            .logits(s, o.clone())
+            .logits(s, o.clone(), &Kernels::DEFAULT)
             .into_data()
             .iter::<f32>()
             .collect();
@@ -101,6 +102,7 @@ fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
             ego_weight: 1.0,
             prior_drop,
             ordinal_sigma: 0.0,
+            kernels: Kernels::DEFAULT,
         };
         let l = m.loss_with(tensor::<F>(ids, 1, f, n), opts).unwrap();
         let get = |name: &str| {
@@ -129,6 +131,7 @@ fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
                 ego_weight: 1.0,
                 prior_drop: 0.0,
                 ordinal_sigma: 0.0,
+                kernels: Kernels::DEFAULT,
             },
         )
         .unwrap()
@@ -146,6 +149,7 @@ fn a_dropped_prior_cuts_the_oar_loss_off_the_history() {
         ego_weight: 1.0,
         prior_drop: 1.5,
         ordinal_sigma: 0.0,
+        kernels: Kernels::DEFAULT,
     };
     let err = m.loss_with(tensor::<F>(&ids, 1, f, n), bad).err().unwrap();
     assert!(err.to_string().contains("prior_drop = 1.5"), "{err}");
@@ -164,6 +168,7 @@ fn ordinal_smoothing_touches_only_ordered_bins() {
             ego_weight: 1.0,
             prior_drop: 0.0,
             ordinal_sigma: sigma,
+            kernels: Kernels::DEFAULT,
         };
         let l = m.loss_with(tensor::<F>(&ids, b, f, n), opts).unwrap();
         l.parts.into_iter().map(|(k, v)| (k, v.into_scalar())).collect()
@@ -182,6 +187,7 @@ fn ordinal_smoothing_touches_only_ordered_bins() {
         ego_weight: 1.0,
         prior_drop: 0.0,
         ordinal_sigma: -1.0,
+        kernels: Kernels::DEFAULT,
     };
     let err = m.loss_with(tensor::<F>(&ids, b, f, n), bad).err().unwrap();
     assert!(err.to_string().contains("ordinal_sigma = -1"), "{err}");

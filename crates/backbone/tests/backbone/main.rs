@@ -14,7 +14,7 @@ use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::f64::consts::PI;
 use umgen_backbone::{
-    ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, Precision, SegmentSpec, TrackSpec,
+    ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, Kernels, Precision, SegmentSpec, TrackSpec,
 };
 
 /// Held while a test seeds burn and draws from it (its model, random inputs).
@@ -262,7 +262,7 @@ fn the_paper_layout_runs_at_a_small_width() {
         (f64::from(total) - chance).abs() < 0.1 * chance,
         "{total} vs chance {chance}"
     );
-    let e = m.embed.forward(tensor(&ids, 1, 3, 2251));
+    let e = m.embed.forward(tensor(&ids, 1, 3, 2251), &Kernels::DEFAULT);
     assert_eq!(e.dims(), [1, 3, 2251, 16]);
     // The paper config's size, from the formula checked against built models above.
     let paper = BackboneConfig::default();

@@ -1,9 +1,10 @@
-//! Recomputed self-attention layers (`train.recompute`): the whole model's loss and gradients as without.
+//! Recomputed self-attention layers (`train.kernels.recompute`): the whole model's loss and gradients as without.
 
 use super::*;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
-use umgen_ops::recompute::{layers_recomputed, scoped};
+use umgen_backbone::{Kernels, LossOptions};
+use umgen_ops::recompute::layers_recomputed;
 
 /// Every parameter gradient of `m`, flattened, in visiting order; `None` for a parameter without one.
 fn grads(m: &Backbone<A>, g: &GradientsParams) -> Vec<Option<Tensor<F, 1>>> {
@@ -25,12 +26,19 @@ fn recomputed_layers_give_the_loss_and_gradients_of_kept_ones() {
     let ids = tokens(&spec(), b, f, 5);
     let m = model::<A>();
     let m = model::<A>().load_record(m.into_record());
-    let run = |on: bool| {
-        scoped(on, || {
-            let l = m.loss(tensor::<A>(&ids, b, f, n), 1.0).unwrap().total;
-            let g = GradientsParams::from_grads(l.backward(), &m);
-            (l.into_scalar(), grads(&m, &g))
-        })
+    let run = |recompute: bool| {
+        let opts = LossOptions {
+            ego_weight: 1.0,
+            prior_drop: 0.0,
+            ordinal_sigma: 0.0,
+            kernels: Kernels {
+                recompute,
+                ..Kernels::DEFAULT
+            },
+        };
+        let l = m.loss_with(tensor::<A>(&ids, b, f, n), opts).unwrap().total;
+        let g = GradientsParams::from_grads(l.backward(), &m);
+        (l.into_scalar(), grads(&m, &g))
     };
     let (l0, g0) = run(false);
     let before = layers_recomputed();

@@ -138,7 +138,7 @@ pub struct BenchModelArgs {
 pub enum BenchPreset {
     /// D 384, 4 layers per stack, batch 4 × T 8.
     Small,
-    /// D 768, the paper's depths, batch 1 × T 20, self-attention layers recomputed (`train.recompute`).
+    /// D 768, the paper's depths, batch 1 × T 20, self-attention layers recomputed (`train.kernels.recompute`).
     Paper,
 }
 
@@ -167,7 +167,7 @@ impl BenchPreset {
             "backbone.track_accel=false".into(),
             format!("train.batch_size={batch}"),
             format!("train.frames={frames}"),
-            format!("train.recompute={recompute}"),
+            format!("train.kernels.recompute={recompute}"),
         ]
         .into()
     }

@@ -10,7 +10,7 @@ use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use std::io::Write;
 use std::time::Instant;
-use umgen::backbone::{Backbone, BackboneSpec};
+use umgen::backbone::{Backbone, BackboneSpec, Kernels, LossOptions};
 use umgen::backbone_spec;
 use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
 use umgen::optim::FusedAdamW;
@@ -66,6 +66,12 @@ pub trait StepHooks {
         Ok(0)
     }
 
+    /// The kernels of turn `turn`, given the run's (`base`).
+    fn kernels(&self, turn: usize, base: &Kernels) -> Kernels {
+        let _ = turn;
+        *base
+    }
+
     /// When the timed steps start (`true`) and when they end.
     fn timed(&mut self, start: bool) -> anyhow::Result<()> {
         let _ = start;
@@ -97,7 +103,6 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
     let tokens_per_step = (b * tc.frames * spec.n * world) as f64;
     let flops = spec.train_flops(cfg, b, tc.frames) * world as f64;
     let bucket = (tc.bucket_mib * 1048576.0) as usize;
-    tc.select_kernels()?;
     anyhow::ensure!(a.steps >= 1, "--steps 0: give one timed step or more");
     let turns = hooks.turns();
     anyhow::ensure!(
@@ -120,8 +125,10 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         let model = Backbone::<B>::new(cfg, &spec, &dev)?;
         let mut model = broadcast_module(model, group.as_mut(), bucket)?;
         // The trainer's optimizer and clipping, so that the step is the one a run takes.
-        let kernels = umgen::ops::adamw::kernels::<<B as AutodiffBackend>::InnerBackend>();
-        let mut optim = FusedAdamW::<_, B>::new(tc.adamw_settings()?).with_kernels(kernels);
+        type Inner<B> = <B as AutodiffBackend>::InnerBackend;
+        let by_turn_kernels: Vec<Kernels> = (0..turns).map(|t| hooks.kernels(t, &tc.kernels)).collect();
+        let mut optim = FusedAdamW::<_, B>::new(tc.adamw_settings()?)
+            .with_kernels(umgen::ops::adamw::kernels::<Inner<B>>(&tc.kernels));
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
         let mut by_turn = vec![Vec::new(); turns];
@@ -143,6 +150,10 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             let split = i >= a.warmup + a.steps;
             let synced = split || i == 0;
             let turn = hooks.before_step(i)?;
+            let kernels = by_turn_kernels.get(turn).copied().unwrap_or(tc.kernels);
+            if turns > 1 {
+                optim.set_kernels(umgen::ops::adamw::kernels::<Inner<B>>(&kernels));
+            }
             if i == a.warmup {
                 counts[0] = crate::device::device_thread(device);
                 hooks.timed(true)?;
@@ -170,7 +181,13 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                 Ok(())
             };
             // The loss as the trainer takes it (prior drop, ordinal smoothing): the step a run would take.
-            let losses = model.loss_with(batch.clone(), loss_options)?;
+            let losses = model.loss_with(
+                batch.clone(),
+                LossOptions {
+                    kernels,
+                    ..loss_options
+                },
+            )?;
             let loss = losses.total.clone();
             if synced {
                 // Only a read of the loss makes the lazy graph run before the backward pass.
@@ -247,7 +264,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             out,
             "matmul        {:?}, {} product(s) fell back (cuBLAS to the named kernel, or it to burn's; \
              the first is logged with its reason)",
-            tc.matmul,
+            tc.kernels.matmul,
             umgen::ops::matmul::fallbacks()
         )?;
     }
@@ -257,7 +274,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             out,
             "attention     {:?}, {} pass(es) fell back (flash2 to the fused kernels, or those to the tiled; \
              the first is logged with its reason)",
-            tc.attention,
+            tc.kernels.attention,
             umgen::ops::flash::fallbacks()
         )?;
         writeln!(
@@ -270,14 +287,14 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             out,
             "bias + GELU   {:?}, {} pass(es) fell back (the CUDA kernels to burn's operations; the first is \
              logged with its reason)",
-            tc.gelu,
+            tc.kernels.gelu,
             umgen::ops::gelu::fallbacks()
         )?;
         writeln!(
             out,
             "cross-entropy {:?}, {} pass(es) fell back (the CUDA kernels to burn's operations; the first is \
              logged with its reason)",
-            tc.xent,
+            tc.kernels.xent,
             umgen::ops::xent::fallbacks()
         )?;
         writeln!(
@@ -296,20 +313,20 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             out,
             "adamw         {:?}, {} step(s) fell back (the CUDA kernel to burn's AdamW or its arithmetic; the \
              first is logged with its reason), gradients clipped at {}",
-            tc.adamw,
+            tc.kernels.adamw,
             umgen::ops::adamw::fallbacks(),
             tc.grad_clip
         )?;
         writeln!(
             out,
             "launches      from the {:?} thread (umgen's kernels and cuBLAS's products)",
-            tc.launch_thread
+            tc.kernels.launch_thread
         )?;
     }
     writeln!(
         out,
         "recompute     {}",
-        if tc.recompute {
+        if tc.kernels.recompute {
             format!(
                 "on: {} self-attention layer passes kept only their input",
                 umgen::ops::recompute::layers_recomputed()

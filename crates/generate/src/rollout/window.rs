@@ -4,7 +4,7 @@
 use super::{Generator, host_rows};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
-use umgen_backbone::Slot;
+use umgen_backbone::{Kernels, Slot};
 
 impl<B: Backend> Generator<'_, B> {
     /// The next frame's action (`forced`, or drawn from the ego module) and TAR prior `[m, N, d]`, from the
@@ -28,7 +28,7 @@ impl<B: Backend> Generator<'_, B> {
         for start in (0..m).step_by(per) {
             let part = &history[start..(start + per).min(m)];
             let tokens = self.window_tensor(part, dev);
-            let e = self.model.embed.forward(tokens.clone());
+            let e = self.model.embed.forward(tokens.clone(), &Kernels::DEFAULT);
             let action = match forced {
                 Some(a) => Some(a[start..start + part.len()].to_vec()),
                 None => self.predict_action(e.clone()),
@@ -95,7 +95,7 @@ impl<B: Backend> Generator<'_, B> {
         }
         let new = Tensor::<B, 3, Int>::from_data(TensorData::new(known, [m, 1, n]), dev);
         // Frames embed independently: only the new one needs embedding.
-        let e_new = self.model.embed.forward(new.clone());
+        let e_new = self.model.embed.forward(new.clone(), &Kernels::DEFAULT);
         let e_next = if w > 1 {
             Tensor::cat(vec![e.clone().narrow(1, 1, w - 1), e_new], 1)
         } else {

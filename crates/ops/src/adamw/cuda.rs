@@ -3,8 +3,9 @@
 //! with the tensors bound as its buffers; and [`Slotted`], the source of such a kernel's entry point.
 #![allow(unsafe_code)]
 
-use super::choice::{AdamWChoice, CHOICE, selected};
+use super::fallbacks::FALLBACKS;
 use super::slots::{ADAMW_SLOTS as SLOTS, SPAN, Slotted, THREADS, fill_slots};
+use crate::kernels::LaunchThread;
 use crate::side::{self, Handles, Inner, Primitive, SidePass, empty_f32};
 use burn::backend::Cuda;
 use burn::tensor::ops::FloatTensor;
@@ -53,6 +54,8 @@ struct Pass {
     lr: f64,
     scaled: bool,
     slots: Vec<Layout>,
+    /// The thread that launches it.
+    thread: LaunchThread,
 }
 
 /// Why the kernel cannot take `slot`, if it cannot.
@@ -78,17 +81,18 @@ fn refused(slot: &AdamWSlot<Cuda>) -> Option<String> {
     (len > (u32::MAX as usize) - SPAN).then(|| format!("a parameter tensor of {len} elements"))
 }
 
-/// The multi-tensor AdamW step on `Cuda` ([`umgen_optim::AdamWKernel`]).
-pub(super) fn step(slots: Vec<AdamWSlot<Cuda>>, step: &AdamWStep<Cuda>) -> AdamWStepped<Cuda> {
-    if selected() == AdamWChoice::Burn {
-        return Err((slots, "train.adamw = \"burn\"".into()));
-    }
+/// The multi-tensor AdamW step on `Cuda` ([`umgen_optim::AdamWKernel`]), launched from `thread`.
+pub(super) fn step(
+    slots: Vec<AdamWSlot<Cuda>>,
+    step: &AdamWStep<Cuda>,
+    thread: LaunchThread,
+) -> AdamWStepped<Cuda> {
     let refusal = slots.iter().find_map(refused).or_else(|| {
         let scale = step.grad_scale.as_ref()?;
         (scale.dtype() != DType::F32).then(|| format!("a {:?} gradient scale", scale.dtype()))
     });
     if let Some(why) = refusal {
-        CHOICE.fell_back(&why);
+        FALLBACKS.fell_back(&why);
         return Err((slots, why));
     }
     // One operation per launch: burn-fusion looks an operation's inputs up in a list (`OperationStreams`),
@@ -98,14 +102,18 @@ pub(super) fn step(slots: Vec<AdamWSlot<Cuda>>, step: &AdamWStep<Cuda>) -> AdamW
     let mut slots = slots.into_iter().peekable();
     while slots.peek().is_some() {
         let chunk: Vec<_> = slots.by_ref().take(SLOTS).collect();
-        stepped.extend(register_chunk(chunk, step));
+        stepped.extend(register_chunk(chunk, step, thread));
     }
     Ok(stepped)
 }
 
 /// Registers the step of up to [`SLOTS`] slots as one custom operation (one launch); their new parameters
 /// and moments.
-fn register_chunk(slots: Vec<AdamWSlot<Cuda>>, step: &AdamWStep<Cuda>) -> Vec<[FloatTensor<Cuda>; 3]> {
+fn register_chunk(
+    slots: Vec<AdamWSlot<Cuda>>,
+    step: &AdamWStep<Cuda>,
+    thread: LaunchThread,
+) -> Vec<[FloatTensor<Cuda>; 3]> {
     let mut inputs = Vec::with_capacity(4 * slots.len() + 1);
     inputs.extend(step.grad_scale.clone());
     let mut shapes = Vec::with_capacity(3 * slots.len());
@@ -128,6 +136,7 @@ fn register_chunk(slots: Vec<AdamWSlot<Cuda>>, step: &AdamWStep<Cuda>) -> Vec<[F
         lr: step.lr,
         scaled: step.grad_scale.is_some(),
         slots: layout,
+        thread,
     };
     let mut outputs = side::register_many("umgen_adamw", inputs, shapes, pass).into_iter();
     let mut stepped = Vec::new();
@@ -177,13 +186,13 @@ impl SidePass for Pass {
         }
         let step = self.step(scale);
         let launched = match slots.first() {
-            Some(like) => side::on_device_thread(&like.param, || self.launch(&slots, &step)),
+            Some(like) => side::on_device_thread(&like.param, self.thread, || self.launch(&slots, &step)),
             None => Ok(Vec::new()),
         };
         match launched {
             Ok(outputs) => outputs,
             Err(why) => {
-                CHOICE.fell_back(&why);
+                FALLBACKS.fell_back(&why);
                 adamw_reference(slots, &step).into_iter().flatten().collect()
             }
         }

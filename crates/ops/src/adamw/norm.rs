@@ -4,8 +4,9 @@
 //! the gradients bound as buffers.
 #![allow(unsafe_code)]
 
-use super::choice::{AdamWChoice, CHOICE, selected};
+use super::fallbacks::FALLBACKS;
 use super::slots::{SPAN, SUMSQ_SLOTS as SLOTS, Slotted, THREADS, fill_slots};
+use crate::kernels::LaunchThread;
 use crate::side::{self, Handles, Inner, Primitive, SidePass, empty_f32};
 use burn::backend::Cuda;
 use burn::tensor::ops::FloatTensor;
@@ -43,13 +44,15 @@ unsafe impl DeviceRepr for FinalParams {}
 #[derive(Debug)]
 struct Pass {
     lens: Vec<usize>,
+    /// The thread that launches it.
+    thread: LaunchThread,
 }
 
-/// The global norm of `grads` on `Cuda` ([`umgen_optim::NormKernel`]).
-pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<GradNorm<Cuda>, String> {
-    if selected() == AdamWChoice::Burn {
-        return Err("train.adamw = \"burn\"".into());
-    }
+/// The global norm of `grads` on `Cuda` ([`umgen_optim::NormKernel`]), launched from `thread`.
+pub(super) fn global_norm(
+    grads: &[FloatTensor<Cuda>],
+    thread: LaunchThread,
+) -> Result<GradNorm<Cuda>, String> {
     let lens: Vec<usize> = grads.iter().map(|g| g.shape().num_elements()).collect();
     let refusal = if let Some(g) = grads.iter().find(|g| g.dtype() != DType::F32) {
         Some(format!("a {:?} gradient (the norm kernel takes f32)", g.dtype()))
@@ -59,15 +62,16 @@ pub(super) fn global_norm(grads: &[FloatTensor<Cuda>]) -> Result<GradNorm<Cuda>,
         grads.is_empty().then(|| "no gradients".to_string())
     };
     if let Some(why) = refusal {
-        CHOICE.fell_back(&why);
+        FALLBACKS.fell_back(&why);
         return Err(why);
     }
     // Each block of `SPAN` elements is a part; a gradient owns as many as it has spans.
     let spans: Vec<usize> = lens.iter().map(|n| n.div_ceil(SPAN)).collect();
     let outputs = vec![vec![1], vec![spans.iter().sum::<usize>().max(1)]];
-    let [norm, parts] = side::register_many("umgen_grad_norm", grads.to_vec(), outputs, Pass { lens })
-        .try_into()
-        .unwrap_or_else(|_| unreachable!("two outputs"));
+    let [norm, parts] =
+        side::register_many("umgen_grad_norm", grads.to_vec(), outputs, Pass { lens, thread })
+            .try_into()
+            .unwrap_or_else(|_| unreachable!("two outputs"));
     let typed = |t| Tensor::<Cuda, 1>::from_primitive(TensorPrimitive::Float(t));
     Ok(GradNorm {
         norm: typed(norm),
@@ -84,13 +88,13 @@ impl SidePass for Pass {
             .map(|t| into_contiguous(handles.get_float_tensor::<Inner>(t)))
             .collect();
         let launched = match grads.first() {
-            Some(like) => side::on_device_thread(like, || self.launch(&grads)),
+            Some(like) => side::on_device_thread(like, self.thread, || self.launch(&grads)),
             None => Err("no gradients".into()),
         };
         match launched {
             Ok((norm, parts)) => vec![norm, parts],
             Err(why) => {
-                CHOICE.fell_back(&why);
+                FALLBACKS.fell_back(&why);
                 // The parts by span, as the kernel's, from the reference's sums by gradient.
                 let reference = norm_reference::<Inner>(&grads);
                 let parts = span_parts(&reference.parts, &self.lens);

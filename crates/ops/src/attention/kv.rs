@@ -12,6 +12,7 @@ use crate::dispatch::same;
 use crate::flash::FusedAttention;
 use crate::format::{Precision, float};
 use crate::heads::split_kv;
+use crate::kernels::Kernels;
 use crate::tiled::operands;
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -24,8 +25,9 @@ use burn::tensor::Tensor;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 
-/// The operation on `B`: queries `[b, h, lq, dh]`, `kv` `[b, lk, 2·h·dh]`, causal, the products' format.
-pub(crate) type KvFn<B> = fn(Tensor<B, 4>, Tensor<B, 3>, bool, Precision) -> Tensor<B, 4>;
+/// The operation on `B`: queries `[b, h, lq, dh]`, `kv` `[b, lk, 2·h·dh]`, causal, the products' format,
+/// the kernels.
+pub(crate) type KvFn<B> = fn(Tensor<B, 4>, Tensor<B, 3>, bool, Precision, &Kernels) -> Tensor<B, 4>;
 
 /// The operation when `B` is a training backend.
 pub(crate) fn kv_for<B: Backend>() -> Option<KvFn<B>> {
@@ -44,8 +46,8 @@ fn on<B: Backend, I: FusedAttention>() -> Option<KvFn<B>> {
 #[derive(Debug)]
 struct KvAttention;
 
-/// q, k, v (in the products' format), output, log-sum-exp; causal, the products' format.
-type Kept<B> = ([FloatTensor<B>; 5], bool, Precision);
+/// q, k, v (in the products' format), output, log-sum-exp; causal, the products' format, the kernels.
+type Kept<B> = ([FloatTensor<B>; 5], bool, Precision, Kernels);
 
 impl<B: FusedAttention> Backward<B, 2> for KvAttention {
     type State = Kept<B>;
@@ -53,7 +55,7 @@ impl<B: FusedAttention> Backward<B, 2> for KvAttention {
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [nq, nkv] = ops.parents;
         let dout = float::<B, 4>(grads.consume::<B>(&ops.node));
-        let ([q, k, v, out, lse], causal, precision) = ops.state;
+        let ([q, k, v, out, lse], causal, precision, kernels) = ops.state;
         let (dq, dkv) = B::attention_backward_kv(
             float(q),
             float(k),
@@ -63,6 +65,7 @@ impl<B: FusedAttention> Backward<B, 2> for KvAttention {
             dout,
             causal,
             precision,
+            &kernels,
         );
         if let Some(node) = nq {
             grads.register::<B>(node.id, dq.into_primitive().tensor());
@@ -79,6 +82,7 @@ fn apply<I: FusedAttention, C: CheckpointStrategy>(
     kv: Tensor<Autodiff<I, C>, 3>,
     causal: bool,
     precision: Precision,
+    kernels: &Kernels,
 ) -> Tensor<Autodiff<I, C>, 4> {
     let heads = q.dims()[1];
     let (q, kv) = (q.into_primitive().tensor(), kv.into_primitive().tensor());
@@ -89,13 +93,13 @@ fn apply<I: FusedAttention, C: CheckpointStrategy>(
     let (k, v) = split_kv(float::<I, 3>(kv.primitive), heads);
     // Cast once here, as `tiled_autodiff` does: the backward pass keeps the operands in the products' format.
     let (qi, ki, vi) = operands(float::<I, 4>(q.primitive), k, v, precision);
-    let (out, lse) = I::attention_forward(qi.clone(), ki.clone(), vi.clone(), causal, precision);
+    let (out, lse) = I::attention_forward(qi.clone(), ki.clone(), vi.clone(), causal, precision, kernels);
     let out_p = out.clone().into_primitive().tensor();
     let y = match prep {
         OpsKind::Tracked(prep) => {
             let prim = |t: Tensor<I, 4>| t.into_primitive().tensor();
             let kept = [prim(qi), prim(ki), prim(vi), prim(out), prim(lse)];
-            prep.finish((kept, causal, precision), out_p)
+            prep.finish((kept, causal, precision, *kernels), out_p)
         }
         OpsKind::UnTracked(prep) => prep.finish(out_p),
     };

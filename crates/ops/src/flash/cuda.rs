@@ -9,12 +9,13 @@
 use super::flash2;
 use super::kernels;
 use super::{
-    AttentionKernel, BLOCK, FusedAttention, fell_back, merge_kv, selected, shared_bytes, step,
-    tiled_backward_pass, tiled_forward_pass, unfit,
+    AttentionKernel, BLOCK, FusedAttention, fell_back, merge_kv, shared_bytes, tiled_backward_pass,
+    tiled_forward_pass, unfit,
 };
 use crate::format::Precision;
 use crate::format::float;
 use crate::format::float_format;
+use crate::kernels::Kernels;
 use crate::side::{Handles, Inner, Primitive, empty_f32};
 use crate::tiled::softmax_delta;
 use burn::backend::Cuda;
@@ -29,7 +30,12 @@ use cubecl::prelude::{CubeCount, CubeDim, CubePrimitive, StorageType};
 use cubecl::tf32;
 
 /// Why the kernels cannot take these operands, if they cannot.
-fn refused(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> Option<String> {
+fn refused(
+    q: &Tensor<Cuda, 4>,
+    k: &Tensor<Cuda, 4>,
+    v: &Tensor<Cuda, 4>,
+    kernels: &Kernels,
+) -> Option<String> {
     let [b, h, _, d] = q.dims();
     if let Some(why) = unfit(d) {
         return Some(why);
@@ -52,7 +58,7 @@ fn refused(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> Opt
     if v.dims()[3] != d {
         return Some(format!("value size {} ≠ query size {d}", v.dims()[3]));
     }
-    let need = shared_bytes(d, dt.size(), step());
+    let need = shared_bytes(d, dt.size(), kernels.attention_step);
     let have = CudaRuntime::client(&q.device())
         .properties()
         .hardware
@@ -74,6 +80,7 @@ fn register<const N: usize>(
     kind: Kind,
     causal: bool,
     flash2: bool,
+    kernels: &Kernels,
     inputs: &[&Tensor<Cuda, 4>],
     shapes: [(Shape, DType); N],
 ) -> [Tensor<Cuda, 4>; N] {
@@ -98,6 +105,7 @@ fn register<const N: usize>(
         causal,
         kind,
         flash2,
+        kernels: *kernels,
     };
     let out = client.register(streams, OperationIr::Custom(desc), pass);
     let tensors: Vec<Tensor<Cuda, 4>> = out.into_iter().map(float).collect();
@@ -113,20 +121,22 @@ impl FusedAttention for Cuda {
         v: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
-        if selected() == AttentionKernel::Tiled {
-            return tiled_forward_pass(q, k, v, causal, precision);
+        if kernels.attention == AttentionKernel::Tiled {
+            return tiled_forward_pass(q, k, v, causal, precision, kernels);
         }
-        if let Some(why) = refused(&q, &k, &v) {
+        if let Some(why) = refused(&q, &k, &v, kernels) {
             fell_back("fused", &why, "tiled");
-            return tiled_forward_pass(q, k, v, causal, precision);
+            return tiled_forward_pass(q, k, v, causal, precision, kernels);
         }
         let [b, h, lq, d] = q.dims();
-        let flash2 = use_flash2(&q);
+        let flash2 = use_flash2(&q, kernels);
         let [out, lse] = register(
             Kind::Forward,
             causal,
             flash2,
+            kernels,
             &[&q, &k, &v],
             [
                 (Shape::new([b, h, lq, d]), results(flash2, &q)),
@@ -145,12 +155,13 @@ impl FusedAttention for Cuda {
         dout: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>, Tensor<Self, 4>) {
-        if backward_tiled(&q, &k, &v) {
-            return tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
+        if backward_tiled(&q, &k, &v, kernels) {
+            return tiled_backward_pass(q, k, v, out, lse, dout, causal, precision, kernels);
         }
         let h = q.dims()[1];
-        let (dq, dkv) = backward_merged(q, k, v, out, lse, dout, causal, precision);
+        let (dq, dkv) = backward_merged(q, k, v, out, lse, dout, causal, precision, kernels);
         // Views of the merged gradient: `[b, lk, h, d]` twice, heads first.
         let (dk, dv) = (dkv.clone().narrow(2, 0, h), dkv.narrow(2, h, h));
         (dq, dk.swap_dims(1, 2), dv.swap_dims(1, 2))
@@ -165,12 +176,13 @@ impl FusedAttention for Cuda {
         dout: Tensor<Self, 4>,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 3>) {
-        if backward_tiled(&q, &k, &v) {
-            let (dq, dk, dv) = tiled_backward_pass(q, k, v, out, lse, dout, causal, precision);
+        if backward_tiled(&q, &k, &v, kernels) {
+            let (dq, dk, dv) = tiled_backward_pass(q, k, v, out, lse, dout, causal, precision, kernels);
             return (dq, merge_kv(dk, dv));
         }
-        let (dq, dkv) = backward_merged(q, k, v, out, lse, dout, causal, precision);
+        let (dq, dkv) = backward_merged(q, k, v, out, lse, dout, causal, precision, kernels);
         let [b, lk, h2, d] = dkv.dims();
         (dq, dkv.reshape([b, lk, h2 * d]))
     }
@@ -178,8 +190,8 @@ impl FusedAttention for Cuda {
 
 /// Whether a backward pass runs the tiled passes: where they are selected, or where the kernels refuse the
 /// operands (the forward pass counted that fallback).
-fn backward_tiled(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>) -> bool {
-    selected() == AttentionKernel::Tiled || refused(q, k, v).is_some()
+fn backward_tiled(q: &Tensor<Cuda, 4>, k: &Tensor<Cuda, 4>, v: &Tensor<Cuda, 4>, kernels: &Kernels) -> bool {
+    kernels.attention == AttentionKernel::Tiled || refused(q, k, v, kernels).is_some()
 }
 
 /// The backward pass as one custom operation: dq `[b, h, lq, d]` and the keys' and values' gradients as one
@@ -195,17 +207,19 @@ fn backward_merged(
     dout: Tensor<Cuda, 4>,
     causal: bool,
     precision: Precision,
+    kernels: &Kernels,
 ) -> (Tensor<Cuda, 4>, Tensor<Cuda, 4>) {
     let delta = softmax_delta(dout.clone(), out);
     let dout = crate::format::operand(dout, precision);
     let [b, h, lq, d] = q.dims();
     let lk = k.dims()[2];
-    let flash2 = use_flash2(&q);
+    let flash2 = use_flash2(&q, kernels);
     let dtype = results(flash2, &q);
     let [dq, dkv] = register(
         Kind::Backward,
         causal,
         flash2,
+        kernels,
         &[&q, &k, &v, &dout, &lse, &delta],
         [
             (Shape::new([b, h, lq, d]), dtype),
@@ -232,8 +246,8 @@ enum Kind {
 
 /// Whether the `flash2` kernels run a pass on `q`'s operands: chosen, and taking its head size and type
 /// (otherwise the fused kernels run it, counted as a fallback).
-fn use_flash2(q: &Tensor<Cuda, 4>) -> bool {
-    if selected() != AttentionKernel::Flash2 {
+fn use_flash2(q: &Tensor<Cuda, 4>, kernels: &Kernels) -> bool {
+    if kernels.attention != AttentionKernel::Flash2 {
         return false;
     }
     match flash2::unfit(q.dims()[3], q.dtype()) {
@@ -253,6 +267,8 @@ struct Pass {
     kind: Kind,
     /// The `flash2` kernels run it (the fused ones if they fail to launch).
     flash2: bool,
+    /// The fused kernels' step, the stream and the launching thread.
+    kernels: Kernels,
 }
 
 impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
@@ -261,22 +277,46 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Pass {
             Kind::Forward => {
                 let ([q, k, v], _) = self.desc.as_fixed::<3, 2>();
                 let [q, k, v] = [q, k, v].map(|t| handles.get_float_tensor::<Inner>(t));
+                let thread = self.kernels.launch_thread;
                 self.flash2_or(
-                    || crate::side::on_device_thread(&q, || flash2::launch(&q, &k, &v, None, self.causal)),
-                    || forward(&q, &k, &v, self.causal),
+                    || {
+                        crate::side::on_device_thread(&q, thread, || {
+                            flash2::launch(&q, &k, &v, None, self.causal, &self.kernels)
+                        })
+                    },
+                    || forward(&q, &k, &v, self.causal, self.kernels.attention_step),
                 )
             }
             Kind::Backward => {
                 let (inputs, _) = self.desc.as_fixed::<6, 2>();
                 let [q, k, v, dout, lse, delta] =
                     inputs.each_ref().map(|t| handles.get_float_tensor::<Inner>(t));
+                let thread = self.kernels.launch_thread;
                 self.flash2_or(
                     || {
-                        crate::side::on_device_thread(&q, || {
-                            flash2::launch(&q, &k, &v, Some([&dout, &lse, &delta]), self.causal)
+                        crate::side::on_device_thread(&q, thread, || {
+                            flash2::launch(
+                                &q,
+                                &k,
+                                &v,
+                                Some([&dout, &lse, &delta]),
+                                self.causal,
+                                &self.kernels,
+                            )
                         })
                     },
-                    || backward(&q, &k, &v, &dout, &lse, &delta, self.causal),
+                    || {
+                        backward(
+                            &q,
+                            &k,
+                            &v,
+                            &dout,
+                            &lse,
+                            &delta,
+                            self.causal,
+                            self.kernels.attention_step,
+                        )
+                    },
                 )
             }
         };
@@ -328,13 +368,12 @@ fn scale_and_offset(q: &Primitive, k: &Primitive) -> (f32, usize) {
     (1.0 / (d as f32).sqrt(), lk.saturating_sub(lq))
 }
 
-fn forward(q: &Primitive, k: &Primitive, v: &Primitive, causal: bool) -> Vec<Primitive> {
+fn forward(q: &Primitive, k: &Primitive, v: &Primitive, causal: bool, step: usize) -> Vec<Primitive> {
     let [b, h, lq, d] = dims(q);
     let out = empty_f32(q, vec![b, h, lq, d]);
     let lse = empty_f32(q, vec![b, h, lq, 1]);
     let (scale, off) = scale_and_offset(q, k);
     let (format, kstep) = tile_format(q.dtype);
-    let step = step();
     let (count, dim) = geometry(lq, b, h);
     kernels::forward_pass::forward::launch::<CudaRuntime>(
         &q.client,
@@ -365,6 +404,7 @@ fn backward(
     lse: &Primitive,
     delta: &Primitive,
     causal: bool,
+    step: usize,
 ) -> Vec<Primitive> {
     let [b, h, lq, d] = dims(q);
     let lk = k.meta.shape()[2];
@@ -377,7 +417,6 @@ fn backward(
     };
     let (scale, off) = scale_and_offset(q, k);
     let (format, kstep) = tile_format(q.dtype);
-    let step = step();
     let arg = |t: &Primitive| t.clone().into_tensor_arg();
     let (count, dim) = geometry(lk, b, h);
     kernels::backward_pass::backward_kv::launch::<CudaRuntime>(

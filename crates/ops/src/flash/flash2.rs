@@ -1,6 +1,6 @@
 //! Launches the `flash2` kernels (umgen-cuda's `kernels/flash2/`: `flash2_warp.cu`, `flash2_tiles.cu` and
 //! `flash2.cu`, CUDA C compiled with
-//! NVRTC) on cubecl's stream (or, with `train.kernel_stream = "side"`, on a side stream ordered with
+//! NVRTC) on cubecl's stream (or, with `train.kernels.stream = "side"`, on a side stream ordered with
 //! cubecl's), on burn's buffers as they lie in memory.
 //!
 //! They are FlashAttention-2 as its authors wrote it: `mma.sync` products with scores, probabilities and
@@ -13,15 +13,14 @@
 //! layouts on the host.
 #![allow(unsafe_code)]
 
-use crate::kernel_stream::{KernelStream, selected};
+use crate::kernels::{KernelStream, Kernels, SideFamily};
 use crate::side::Primitive;
-use crate::side::{KernelCache, Kernels, Pointers, launch_on_cubecl, with_cached};
+use crate::side::{Compiled, KernelCache, Pointers, launch_on_cubecl, with_cached};
 use crate::side::{empty_f32, empty_packed};
 use burn::tensor::DType;
 use cudarc::driver::{CudaFunction, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::CompileOptions;
 use std::cell::RefCell;
-use std::sync::OnceLock;
 // `Params` of `flash2_tiles.cu`, field for field (one definition, shared with the generation engine).
 use umgen_cuda::gpu::Flash2 as Params;
 
@@ -30,20 +29,6 @@ const SOURCE: &str = umgen_cuda::source::FLASH2;
 
 /// The grid's largest y (and z) extent.
 const GRID_YZ: usize = 65_535;
-
-/// Warps per block (each owns 16 rows): `UMGEN_FLASH2_WARPS`, 4 or 8 (default 8, which was 10–18 %
-/// faster on an H100: docs/decisions/005-training-attention-flash2.md), read once.
-fn warps() -> usize {
-    static WARPS: OnceLock<usize> = OnceLock::new();
-    *WARPS.get_or_init(|| match std::env::var("UMGEN_FLASH2_WARPS").as_deref() {
-        Ok("4") => 4,
-        Ok("8") | Err(_) => 8,
-        Ok(other) => {
-            tracing::warn!("UMGEN_FLASH2_WARPS={other}: the flash2 kernels take 4 or 8 warps; 8 run");
-            8
-        }
-    })
-}
 
 /// The kernels' source: [`SOURCE`], or the file `UMGEN_FLASH2_SOURCE` names (for trying a change to the
 /// kernels without rebuilding umgen: `cat flash2_warp.cu flash2_tiles.cu flash2.cu > FILE`, then edit; it must keep the
@@ -73,7 +58,7 @@ thread_local! {
 /// Compiles the kernels for `like`'s device and logs their resources: for compute capability 9.0 as
 /// `compute_90a` (Hopper's `wgmma` for head size 64, as cubecl's stream compiles them), else 8.0 (bf16
 /// `mma.sync`).
-fn build(like: &Primitive) -> Result<Kernels, String> {
+fn build(like: &Primitive, warps: usize) -> Result<Compiled, String> {
     let options = |major: i32| CompileOptions {
         arch: Some(if major == 9 { "compute_90a" } else { "compute_80" }),
         use_fast_math: Some(true),
@@ -87,14 +72,17 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
             }
         }
     }
-    let kernels = Kernels::compile(like, source()?, options, &names, 8)?;
-    tracing::info!("flash2 kernels compiled: {}", resources(kernels.functions()));
+    let kernels = Compiled::compile(like, source()?, options, &names, 8)?;
+    tracing::info!(
+        "flash2 kernels compiled: {}",
+        resources(kernels.functions(), warps)
+    );
     Ok(kernels)
 }
 
 /// Registers, spilled bytes and blocks per SM of the head-size-64 kernels: what limits their occupancy.
-fn resources(functions: &[(String, CudaFunction)]) -> String {
-    let threads = 32 * warps() as u32;
+fn resources(functions: &[(String, CudaFunction)], warps: usize) -> String {
+    let threads = 32 * warps as u32;
     functions
         .iter()
         .filter(|(name, _)| name.ends_with("_64"))
@@ -143,6 +131,7 @@ pub(super) fn launch(
     v: &Primitive,
     grads: Option<[&Primitive; 3]>,
     causal: bool,
+    kernels: &Kernels,
 ) -> Result<Vec<Primitive>, String> {
     let s = q.meta.shape();
     let (b, h, lq, d) = (s[0], s[1], s[2], s[3]);
@@ -217,15 +206,18 @@ pub(super) fn launch(
             (results, launches)
         }
     };
+    // Warps per block (each owns 16 rows), 4 or 8: 8 was 10–18 % faster on an H100
+    // (docs/decisions/005-training-attention-flash2.md).
+    let warps = kernels.flash2_warps;
     let grid = |rows: usize| {
         (
-            rows.div_ceil(16 * warps()) as u32,
+            rows.div_ceil(16 * warps) as u32,
             bh.min(GRID_YZ) as u32,
             bh.div_ceil(GRID_YZ) as u32,
         )
     };
-    let threads = 32 * warps() as u32;
-    if selected() == KernelStream::Cubecl {
+    let threads = 32 * warps as u32;
+    if kernels.stream == KernelStream::Cubecl {
         let element = if dtype == "bf16" { "u16" } else { "float" };
         let instance = format!("INSTANCES({dtype}_{d}, {element}, {d})");
         for (name, rows) in &launches {
@@ -239,27 +231,29 @@ pub(super) fn launch(
         &KERNELS,
         q,
         "flash2 attention",
-        || build(q),
-        |kernels| {
+        || build(q, warps),
+        |compiled| {
             let functions = launches
                 .iter()
-                .map(|(name, rows)| Ok((name, *rows, kernels.function(name)?.clone())))
+                .map(|(name, rows)| Ok((name, *rows, compiled.function(name)?.clone())))
                 .collect::<Result<Vec<_>, String>>()?;
-            kernels.side.ordered("attention", |stream| {
-                for (name, rows, f) in &functions {
-                    let config = LaunchConfig {
-                        grid_dim: grid(*rows),
-                        block_dim: (threads, 1, 1),
-                        shared_mem_bytes: 0,
-                    };
-                    // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides
-                    // recorded beside it, and cubecl's stream waits for the kernels before anything queued later
-                    // can free or reuse them.
-                    unsafe { stream.launch_builder(f).arg(&p).launch(config) }
-                        .map_err(|e| format!("{name}: {e:?}"))?;
-                }
-                Ok(())
-            })
+            compiled
+                .side
+                .ordered((SideFamily::Attention, kernels.side_sync), |stream| {
+                    for (name, rows, f) in &functions {
+                        let config = LaunchConfig {
+                            grid_dim: grid(*rows),
+                            block_dim: (threads, 1, 1),
+                            shared_mem_bytes: 0,
+                        };
+                        // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides
+                        // recorded beside it, and cubecl's stream waits for the kernels before anything queued later
+                        // can free or reuse them.
+                        unsafe { stream.launch_builder(f).arg(&p).launch(config) }
+                            .map_err(|e| format!("{name}: {e:?}"))?;
+                    }
+                    Ok(())
+                })
         },
     )?;
     Ok(results)

@@ -1,13 +1,13 @@
 //! [`FusedGelu`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
 //! fusion stream that launches `gelu.cu`'s kernel on cubecl's stream with its buffers bound to the launch
 //! (as AdamW's kernels are), so the training thread queues it without a call to cubecl's device thread
-//! and without waiting, unless `train.gelu = "burn"` ([`super::select`]). Products in another format than
+//! and without waiting, unless `train.kernels.gelu = "burn"`. Products in another format than
 //! f32 or bf16, empty inputs, or a failure to compile or launch (the first launch of each kernel is checked) run burn's
 //! operations instead, counted by [`super::fallbacks`]. The kernels always run on cubecl's stream, whatever
-//! `train.kernel_stream` says: a bound launch needs no device pointers and no ordering.
+//! `train.kernels.stream` says: a bound launch needs no device pointers and no ordering.
 #![allow(unsafe_code)]
 
-use super::{FusedGelu, GeluKernel, backward_decomposed, fell_back, forward_decomposed, selected};
+use super::{FusedGelu, backward_decomposed, fell_back, forward_decomposed};
 use crate::format::float;
 use crate::format::float_format;
 use crate::side::{self, Handles, Inner, Primitive, empty_f32, empty_packed};
@@ -52,9 +52,6 @@ fn refused(y: &Tensor<Cuda, 2>) -> Option<String> {
 
 impl FusedGelu for Cuda {
     fn bias_gelu_forward(y: Tensor<Self, 2>, b: Tensor<Self, 1>) -> Tensor<Self, 2> {
-        if selected() == GeluKernel::Burn {
-            return forward_decomposed(y, b);
-        }
         if let Some(why) = refused(&y) {
             fell_back(&why);
             return forward_decomposed(y, b);
@@ -71,7 +68,7 @@ impl FusedGelu for Cuda {
         b: Tensor<Self, 1>,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>) {
         // The forward pass counted a refusal.
-        if selected() == GeluKernel::Burn || refused(&y).is_some() {
+        if refused(&y).is_some() {
             return backward_decomposed(dh, y, b);
         }
         let ([rows, n], dtype) = (y.dims(), y.dtype());

@@ -1,7 +1,11 @@
 use super::*;
+use crate::kernels::Kernels;
 use burn::backend::Flex;
 use burn::nn::LinearConfig;
 use burn::tensor::Distribution;
+
+/// The default kernels (the fused bias + GELU).
+const K: Kernels = Kernels::DEFAULT;
 
 type A = Autodiff<Flex>;
 
@@ -71,9 +75,9 @@ fn reference(x: &[f64], w: &[f64], b: &[f64], r: &[f64], (rows, k, n): (usize, u
 
 #[test]
 fn training_backends_take_the_operation() {
-    assert!(tracked::<A>().is_some());
-    assert!(tracked::<Autodiff<Flex, BalancedCheckpointing>>().is_some());
-    assert!(tracked::<Flex>().is_none());
+    assert!(tracked::<A>(&K).is_some());
+    assert!(tracked::<Autodiff<Flex, BalancedCheckpointing>>(&K).is_some());
+    assert!(tracked::<Flex>(&K).is_none());
 }
 
 /// The activation and the gradients of the input, weight and bias equal GELU's exact form and derivative
@@ -99,7 +103,7 @@ fn linear_gelu_matches_an_f64_reference() {
         (Precision::F32, FloatDType::F32, 1e-5),
         (Precision::Bf16, FloatDType::BF16, 0.03),
     ] {
-        let h = linear_gelu(&layer, x.clone(), p);
+        let h = linear_gelu(&layer, x.clone(), p, &K);
         assert_eq!(h.dtype(), out.into(), "{p:?}");
         let grads = (h.clone().cast(FloatDType::F32) * r.clone()).sum().backward();
         let h = values(h.inner());
@@ -150,7 +154,7 @@ fn a_bf16_mlp_keeps_f32_results_close_to_the_f32_one() {
     let x = Tensor::<A, 3>::random([2, 5, 8], Distribution::Normal(0.0, 1.0), &dev).require_grad();
     let r = Tensor::<A, 3>::random([2, 5, 8], Distribution::Normal(0.0, 1.0), &dev);
     let run = |p| {
-        let y = gelu_mlp(&fc, &out, x.clone(), p);
+        let y = gelu_mlp(&fc, &out, x.clone(), p, &K);
         assert_eq!(y.dtype(), FloatDType::F32.into(), "{p:?}");
         let g = (y.clone() * r.clone()).sum().backward();
         let grads = [
@@ -184,8 +188,8 @@ fn forward_matches_burns_and_the_bias_gradient_sums_the_columns() {
     let dev = Default::default();
     let layer = LinearConfig::new(6, 10).init::<A>(&dev);
     let x = Tensor::<A, 3>::random([2, 300, 6], Distribution::Normal(0.0, 1.5), &dev);
-    let ours = linear_gelu(&layer, x.clone(), Precision::F32).inner();
-    let burns = gelu(linear(&layer, x, Precision::F32)).inner();
+    let ours = linear_gelu(&layer, x.clone(), Precision::F32, &K).inner();
+    let burns = gelu(linear(&layer, x, Precision::F32, &K)).inner();
     assert!(rel(&values(ours), &values(burns)) < 1e-6);
     let y = Tensor::<Flex, 2>::random([600, 10], Distribution::Normal(0.0, 1.5), &dev);
     let dh = Tensor::<Flex, 2>::random([600, 10], Distribution::Normal(0.0, 1.0), &dev);

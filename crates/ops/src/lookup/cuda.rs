@@ -5,7 +5,7 @@
 //! the scatter instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
-use super::scatter::{CHOICE, scatter_grad};
+use super::scatter::{FALLBACKS, scatter_grad};
 use crate::format::float;
 use crate::side::{self, Handles, Inner, Primitive, empty_f32, empty_packed};
 use burn::backend::Cuda;
@@ -60,7 +60,7 @@ impl Sizes {
 pub(super) fn table_grad(g: Tensor<Cuda, 2>, ids: Tensor<Cuda, 1, Int>, vocab: usize) -> Tensor<Cuda, 2> {
     let [rows, d] = g.dims();
     if let Err(why) = Sizes::new(rows, vocab, d) {
-        CHOICE.fell_back(&why);
+        FALLBACKS.fell_back(&why);
         return scatter_grad(g, ids, vocab);
     }
     let inputs = [side::fused(g), ids.into_primitive()];
@@ -80,7 +80,7 @@ impl side::SidePass for Pass {
         let g = into_contiguous(handles.get_float_tensor::<Inner>(&inputs[0]));
         let ids = into_contiguous(handles.get_int_tensor::<Inner>(&inputs[1]));
         launch(&g, &ids, self.vocab).unwrap_or_else(|why| {
-            CHOICE.fell_back(&why);
+            FALLBACKS.fell_back(&why);
             let ids = Tensor::<Inner, 1, Int>::from_primitive(ids);
             vec![side::inner(scatter_grad(float::<Inner, 2>(g), ids, self.vocab))]
         })

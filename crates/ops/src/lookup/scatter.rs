@@ -1,10 +1,10 @@
-//! The table's gradient by scatters, and the kernels' choice: what both `lookup.rs` and `lookup/cuda.rs` use.
+//! The table's gradient by scatters, and the kernels' fallbacks: what both `lookup.rs` and `lookup/cuda.rs` use.
 
-use crate::dispatch::Choice;
+use crate::dispatch::Fallbacks;
 use burn::tensor::backend::Backend;
 use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 
-pub(super) static CHOICE: Choice = Choice::new("embedding gradient");
+pub(super) static FALLBACKS: Fallbacks = Fallbacks::new("embedding gradient");
 
 /// Most bytes the `k` table copies may take together.
 pub(super) const COPIES_BYTES: usize = 128 << 20;

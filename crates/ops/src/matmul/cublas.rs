@@ -1,8 +1,8 @@
-//! cuBLAS for the named products (`train.matmul = "cublas"`): `cublasGemmEx` on the operands as they lie in
+//! cuBLAS for the named products (`train.kernels.matmul = "cublas"`): `cublasGemmEx` on the operands as they lie in
 //! burn's memory, f32 or bf16 operands (f32 through TF32 tensor cores, as the cubek kernel does), an f32
 //! result (or one in the operands' own 16-bit format), f32 accumulation.
 //!
-//! With `train.kernel_stream = "cubecl"` (the default) each product is queued on cubecl's own stream for
+//! With `train.kernels.stream = "cubecl"` (the default) each product is queued on cubecl's own stream for
 //! the caller (`cubecl_cuda::last_stream`, right after the operands' pointers were fetched on cubecl's
 //! device thread), in order with everything cubecl queues before and after it. With `"side"` the products
 //! run on a [`Side`] stream, ordered with cubecl's stream on the device (`side.rs`): four more launches a
@@ -10,7 +10,8 @@
 #![allow(unsafe_code)]
 
 #[cfg(feature = "patched-cubecl")]
-use crate::kernel_stream::{KernelStream, LaunchThread};
+use crate::kernels::{KernelStream, LaunchThread};
+use crate::kernels::{Kernels, SideFamily};
 use crate::side::Primitive;
 use crate::side::{Cache, Side, pointer, with_cached};
 use burn::tensor::DType;
@@ -23,7 +24,7 @@ use std::ffi::c_void;
 /// from a thread-local destructor at process exit, while CUDA may be tearing down, is a risk this does not
 /// take; the driver reclaims it with the process.
 struct Blas {
-    /// The side stream, made on first use (`train.kernel_stream = "side"`, or launches from the caller's
+    /// The side stream, made on first use (`train.kernels.stream = "side"`, or launches from the caller's
     /// thread).
     side: Option<Side>,
     handle: sys::cublasHandle_t,
@@ -70,15 +71,14 @@ impl Blas {
     fn ordered(
         &mut self,
         like: &Primitive,
+        kernels: &Kernels,
         gemm: impl FnOnce(sys::cublasHandle_t) -> Result<(), String>,
     ) -> Result<(), String> {
         let handle = self.handle;
         // `last_stream` is an API of the vendored cubecl-cuda (vendor/README.md); built against an
         // unpatched one, cuBLAS runs on the side stream.
         #[cfg(feature = "patched-cubecl")]
-        if crate::kernel_stream::selected() == KernelStream::Cubecl
-            && crate::kernel_stream::selected_thread() == LaunchThread::Device
-        {
+        if kernels.stream == KernelStream::Cubecl && kernels.launch_thread == LaunchThread::Device {
             // The stream cubecl resolved for the caller's last command on this thread.
             let stream = burn::cubecl::cuda::last_stream();
             if stream.is_null() {
@@ -93,7 +93,7 @@ impl Blas {
         let stream = self.side.as_ref().ok_or("no side stream")?.stream().cu_stream();
         self.use_stream(stream as sys::cudaStream_t)?;
         let side = self.side.as_mut().ok_or("no side stream")?;
-        side.ordered("cuBLAS", |_| gemm(handle))
+        side.ordered((SideFamily::Cublas, kernels.side_sync), |_| gemm(handle))
     }
 }
 
@@ -143,7 +143,12 @@ fn int(what: &str, v: usize) -> Result<i32, String> {
 /// `out [m, n]` row-major, f32 or the operands' own format, ordered with cubecl's stream on the device (module docs). An operand cuBLAS
 /// cannot take, or a device without cuBLAS, says why (the caller falls back, after cubecl's stream has
 /// passed the failed product).
-pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Result<(), String> {
+pub(super) fn launch(
+    lhs: &Primitive,
+    rhs: &Primitive,
+    out: &Primitive,
+    kernels: &Kernels,
+) -> Result<(), String> {
     if lhs.dtype != rhs.dtype {
         return Err(format!("mixed operands {:?} × {:?}", lhs.dtype, rhs.dtype));
     }
@@ -225,7 +230,9 @@ pub(super) fn launch(lhs: &Primitive, rhs: &Primitive, out: &Primitive) -> Resul
         }
         .map_err(|e| format!("cublasGemmEx: {e:?}"))
     };
-    with_cached(&HANDLES, lhs, "cuBLAS", Blas::new, |blas| blas.ordered(lhs, gemm))
+    with_cached(&HANDLES, lhs, "cuBLAS", Blas::new, |blas| {
+        blas.ordered(lhs, kernels, gemm)
+    })
 }
 
 #[cfg(test)]

@@ -1,5 +1,5 @@
 //! [`NamedMatmul`] for `Cuda` (burn-fusion over the cubecl backend): a custom operation in the fusion
-//! stream that launches cubek's `specialized_tma_mma` (or cuBLAS, `cublas.rs`, with `train.matmul =
+//! stream that launches cubek's `specialized_tma_mma` (or cuBLAS, `cublas.rs`, with `train.kernels.matmul =
 //! "cublas"`) on the two operands as they lie in memory, row- or column-major, and writes the result in the
 //! format asked for (f32, or bf16 from bf16 operands), accumulating in f32.
 //!
@@ -9,6 +9,7 @@
 
 use super::NamedMatmul;
 use crate::format::float_format;
+use crate::kernels::Kernels;
 use crate::side::{Handles, Inner, Primitive};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
@@ -34,14 +35,26 @@ pub fn fallbacks() -> usize {
 }
 
 impl NamedMatmul for Cuda {
-    fn named_matmul(lhs: FloatTensor<Self>, rhs: FloatTensor<Self>, out: FloatDType) -> FloatTensor<Self> {
+    fn named_matmul(
+        lhs: FloatTensor<Self>,
+        rhs: FloatTensor<Self>,
+        out: FloatDType,
+        kernels: &Kernels,
+    ) -> FloatTensor<Self> {
         let client = lhs.client.clone();
         let shape = Shape::new([lhs.shape[0], rhs.shape[1]]);
         let out = TensorIr::uninit(client.create_empty_handle(), shape, DType::from(out));
         let streams = OperationStreams::with_inputs([&lhs, &rhs]);
         let desc = CustomOpIr::new("umgen_named_matmul", &[lhs.into_ir(), rhs.into_ir()], &[out]);
         client
-            .register(streams, OperationIr::Custom(desc.clone()), Product { desc })
+            .register(
+                streams,
+                OperationIr::Custom(desc.clone()),
+                Product {
+                    desc,
+                    kernels: *kernels,
+                },
+            )
             .output()
     }
 }
@@ -50,6 +63,8 @@ impl NamedMatmul for Cuda {
 #[derive(Debug)]
 struct Product {
     desc: CustomOpIr,
+    /// cuBLAS or the named kernel, the stream and the launching thread.
+    kernels: Kernels,
 }
 
 impl Operation<FusionCubeRuntime<CudaRuntime>> for Product {
@@ -57,7 +72,7 @@ impl Operation<FusionCubeRuntime<CudaRuntime>> for Product {
         let ([l, r], [o]) = self.desc.as_fixed();
         let lhs = handles.get_float_tensor::<Inner>(l);
         let rhs = handles.get_float_tensor::<Inner>(r);
-        handles.register_float_tensor::<Inner>(&o.id, run(lhs, rhs, o.dtype));
+        handles.register_float_tensor::<Inner>(&o.id, run(lhs, rhs, o.dtype, &self.kernels));
     }
 }
 
@@ -135,10 +150,12 @@ fn fell_back(kernel: &str, instead: &str, lhs: &Primitive, rhs: &Primitive, why:
 
 /// `lhs · rhs` in `dtype` on cuBLAS when selected, else (or when it refuses) on the named kernel, else on
 /// burn's default kernel.
-fn run(lhs: Primitive, rhs: Primitive, dtype: DType) -> Primitive {
+fn run(lhs: Primitive, rhs: Primitive, dtype: DType, kernels: &Kernels) -> Primitive {
     let out = init_matmul_output(&lhs, &rhs, dtype);
-    if super::selected() == super::MatmulKernel::Cublas {
-        match crate::side::on_device_thread(&lhs, || super::cublas::launch(&lhs, &rhs, &out)) {
+    if kernels.matmul == super::MatmulKernel::Cublas {
+        match crate::side::on_device_thread(&lhs, kernels.launch_thread, || {
+            super::cublas::launch(&lhs, &rhs, &out, kernels)
+        }) {
             Ok(()) => return out,
             Err(why) => fell_back("cuBLAS", "the named kernel", &lhs, &rhs, &why),
         }

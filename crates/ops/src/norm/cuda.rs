@@ -1,15 +1,15 @@
 //! [`FusedNorm`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
 //! fusion stream that launches `norm.cu`'s kernels (compiled with NVRTC) on cubecl's stream with their
 //! buffers bound to the launch (so the training thread queues them without waiting), or on a side stream
-//! ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]), unless `train.norm =
-//! "burn"` ([`super::select`]). Rows wider than 1,024, other types than f32, or a failure to compile or
+//! ordered with cubecl's with `train.kernels.stream = "side"` ([`crate::side`]), unless `train.kernels.norm =
+//! "burn"`. Rows wider than 1,024, other types than f32, or a failure to compile or
 //! launch run the decomposition instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
-use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed, selected};
+use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed};
 use crate::format::float;
-use crate::kernel_stream::{self, KernelStream};
-use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32, empty_packed};
+use crate::kernels::{KernelStream, Kernels, SideFamily};
+use crate::side::{self, Compiled, Handles, Inner, KernelCache, Primitive, empty_f32, empty_packed};
 use burn::backend::Cuda;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, FloatDType, Tensor};
@@ -88,8 +88,9 @@ impl FusedNorm for Cuda {
         beta: Tensor<Self, 1>,
         eps: f64,
         out: FloatDType,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
-        if selected() == NormKernel::Burn {
+        if kernels.norm == NormKernel::Burn {
             return forward_decomposed(x, gamma, beta, eps, out);
         }
         if let Some(why) = refused(&x) {
@@ -97,7 +98,11 @@ impl FusedNorm for Cuda {
             return forward_decomposed(x, gamma, beta, eps, out);
         }
         let [rows, d] = x.dims();
-        let pass = Pass::Forward { eps: eps as f32, out };
+        let pass = Pass::Forward {
+            eps: eps as f32,
+            out,
+            kernels: *kernels,
+        };
         let inputs = vec![side::fused(x), side::fused(gamma), side::fused(beta)];
         let outputs = vec![
             (vec![rows, d], DType::from(out)),
@@ -117,9 +122,10 @@ impl FusedNorm for Cuda {
         mean: Tensor<Self, 1>,
         rstd: Tensor<Self, 1>,
         gamma: Tensor<Self, 1>,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
         // The forward pass counted a refusal.
-        if selected() == NormKernel::Burn || refused(&x).is_some() {
+        if kernels.norm == NormKernel::Burn || refused(&x).is_some() {
             return backward_decomposed(dy, x, mean, rstd, gamma);
         }
         let [rows, d] = x.dims();
@@ -131,7 +137,8 @@ impl FusedNorm for Cuda {
             side::fused(rstd),
             side::fused(gamma),
         ];
-        let [dx, dgamma, dbeta] = register_backward(inputs, [vec![rows, d], vec![warps, d], vec![warps, d]]);
+        let [dx, dgamma, dbeta] =
+            register_backward(inputs, [vec![rows, d], vec![warps, d], vec![warps, d]], kernels);
         let sum = |t| crate::rows::sum(float::<Cuda, 2>(t));
         (float(dx), sum(dgamma), sum(dbeta))
     }
@@ -146,49 +153,54 @@ fn backward_warps(rows: usize) -> usize {
 fn register_backward<const I: usize, const O: usize>(
     inputs: [FloatTensor<Cuda>; I],
     shapes: [Vec<usize>; O],
+    kernels: &Kernels,
 ) -> [FloatTensor<Cuda>; O] {
-    side::register("umgen_norm_backward", inputs, shapes, Pass::Backward)
+    let pass = Pass::Backward { kernels: *kernels };
+    side::register("umgen_norm_backward", inputs, shapes, pass)
 }
 
 /// Which pass.
 #[derive(Debug, Clone, Copy)]
 enum Pass {
     /// x, γ, β in; y (in `out`'s format), mean, rstd out.
-    Forward { eps: f32, out: FloatDType },
+    Forward {
+        eps: f32,
+        out: FloatDType,
+        kernels: Kernels,
+    },
     /// dy, x, mean, rstd, γ in; dx and the warps' column sums of dy · x̂ and dy out.
-    Backward,
+    Backward { kernels: Kernels },
 }
 
 impl side::SidePass for Pass {
     fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
         match *self {
-            Pass::Forward { eps, out } => {
+            Pass::Forward { eps, out, kernels } => {
                 let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, desc);
-                launch(&x, &gamma, Some(&beta), None, eps, out).unwrap_or_else(|why| {
+                launch(&x, &gamma, Some(&beta), None, (eps, out), &kernels).unwrap_or_else(|why| {
                     fell_back(&why);
                     let (y, mean, rstd) =
                         forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps), out);
                     vec![side::inner(y), side::inner(mean), side::inner(rstd)]
                 })
             }
-            Pass::Backward => {
+            Pass::Backward { kernels } => {
                 let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
-                launch(&x, &gamma, None, Some([&dy, &mean, &rstd]), 0.0, FloatDType::F32).unwrap_or_else(
-                    |why| {
-                        fell_back(&why);
-                        let warps = backward_warps(x.meta.shape()[0]);
-                        let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
-                            float(dy),
-                            float(x),
-                            float(mean),
-                            float(rstd),
-                            float(gamma),
-                        );
-                        // The registered shapes hold one row per warp.
-                        let rows = |t| side::as_partial_sums(t, warps);
-                        vec![side::inner(dx), rows(dgamma), rows(dbeta)]
-                    },
-                )
+                let grads = Some([&dy, &mean, &rstd]);
+                launch(&x, &gamma, None, grads, (0.0, FloatDType::F32), &kernels).unwrap_or_else(|why| {
+                    fell_back(&why);
+                    let warps = backward_warps(x.meta.shape()[0]);
+                    let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
+                        float(dy),
+                        float(x),
+                        float(mean),
+                        float(rstd),
+                        float(gamma),
+                    );
+                    // The registered shapes hold one row per warp.
+                    let rows = |t| side::as_partial_sums(t, warps);
+                    vec![side::inner(dx), rows(dgamma), rows(dbeta)]
+                })
             }
         }
     }
@@ -200,7 +212,7 @@ thread_local! {
 }
 
 /// Compiles the kernels for `like`'s device.
-fn build(like: &Primitive) -> Result<Kernels, String> {
+fn build(like: &Primitive) -> Result<Compiled, String> {
     let names: Vec<String> = PER_LANE
         .iter()
         .flat_map(|p| {
@@ -210,7 +222,7 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
             ]
         })
         .collect();
-    Kernels::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
+    Compiled::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
 }
 
 /// The kernels' source as NVRTC compiles it.
@@ -222,15 +234,15 @@ fn source() -> Result<String, String> {
 /// mean, rstd) or the backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums),
 /// returning the results; an error says why it could not (no result was written that the caller keeps, so
 /// it may run the decomposition). On cubecl's stream the kernels are launched from this thread with their
-/// buffers bound ([`launch_bound`]); with `train.kernel_stream = "side"` their pointers are fetched and they
+/// buffers bound ([`launch_bound`]); with `train.kernels.stream = "side"` their pointers are fetched and they
 /// are launched on cubecl's device thread ([`launch_with_pointers`]).
 fn launch(
     x: &Primitive,
     gamma: &Primitive,
     beta: Option<&Primitive>,
     grads: Option<[&Primitive; 3]>,
-    eps: f32,
-    out: FloatDType,
+    (eps, out): (f32, FloatDType),
+    kernels: &Kernels,
 ) -> Result<Vec<Primitive>, String> {
     let mut operands = vec![x, gamma];
     operands.extend(beta);
@@ -246,10 +258,12 @@ fn launch(
         d: i32::try_from(d).map_err(|_| format!("width {d}"))?,
         eps,
     };
-    if kernel_stream::selected() == KernelStream::Cubecl {
+    if kernels.stream == KernelStream::Cubecl {
         return launch_bound(x, gamma, beta, grads, per, sizes, out);
     }
-    let mut results = side::on_device_thread(x, || launch_with_pointers(x, gamma, beta, grads, per, sizes))?;
+    let mut results = side::on_device_thread(x, kernels.launch_thread, || {
+        launch_with_pointers(x, gamma, beta, grads, (per, sizes), kernels)
+    })?;
     // The side stream's kernels write f32 only.
     if out != FloatDType::F32 {
         results[0] = side::inner(float::<Inner, 2>(results[0].clone()).cast(out));
@@ -263,8 +277,8 @@ fn launch_with_pointers(
     gamma: &Primitive,
     beta: Option<&Primitive>,
     grads: Option<[&Primitive; 3]>,
-    per: usize,
-    sizes: Sizes,
+    (per, sizes): (usize, Sizes),
+    kernels: &Kernels,
 ) -> Result<Vec<Primitive>, String> {
     let rows = x.meta.shape()[0];
     let mut p = Params {
@@ -297,9 +311,9 @@ fn launch_with_pointers(
     // writes (`rows × d`, `rows`, `d`, or one row per warp of the grid).
     unsafe {
         side::launch_kernel(
-            &KERNELS,
+            (&KERNELS, kernels),
             x,
-            ("layer norm", &|| build(x)),
+            (SideFamily::LayerNorm, &|| build(x)),
             &name,
             (&format!("NORM_KERNELS({per})"), &source),
             (blocks, 32 * WARPS as u32),

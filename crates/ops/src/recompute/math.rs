@@ -12,6 +12,7 @@ use crate::format::Precision;
 use crate::format::{float_format, operand};
 use crate::gelu::{FusedGelu, inner_backward, inner_forward, inner_product_dtype};
 use crate::heads::{merge_heads, split_heads};
+use crate::kernels::Kernels;
 use crate::matmul::{NamedMatmul, product, product_in};
 use crate::norm::FusedNorm;
 use crate::temporal::TemporalAttention;
@@ -64,6 +65,8 @@ pub struct Setting {
     /// frames of `n` positions, and each position attends over its own frames (`crate::temporal`'s
     /// kernels, as the layer without recomputation runs them) instead of the rows over each other.
     pub over_time: Option<(usize, usize)>,
+    /// The kernels of every pass.
+    pub kernels: Kernels,
 }
 
 /// A dropout keep-mask (true = kept) and the scale of kept values, `1 / (1 − p)`.
@@ -114,10 +117,23 @@ type Stats<I> = (Tensor<I, 1>, Tensor<I, 1>);
 
 /// `(x − mean) / √(var + ε) · γ + β` over the last axis ([`FusedNorm`]'s kernels) in the products' format
 /// under `p` (it feeds products only), with the rows' statistics.
-fn norm<I: LayerBackend>(x: Tensor<I, 3>, n: &Norm<I>, eps: f64, p: Precision) -> (Tensor<I, 3>, Stats<I>) {
+fn norm<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    n: &Norm<I>,
+    eps: f64,
+    p: Precision,
+    k: &Kernels,
+) -> (Tensor<I, 3>, Stats<I>) {
     let [b, l, d] = x.dims();
     let out = p.operand_dtype();
-    let (y, mean, rstd) = I::norm_forward(x.reshape([b * l, d]), n.gamma.clone(), n.beta.clone(), eps, out);
+    let (y, mean, rstd) = I::norm_forward(
+        x.reshape([b * l, d]),
+        n.gamma.clone(),
+        n.beta.clone(),
+        eps,
+        out,
+        k,
+    );
     (y.reshape([b, l, d]), (mean, rstd))
 }
 
@@ -127,30 +143,48 @@ fn norm_grad<I: LayerBackend>(
     (mean, rstd): Stats<I>,
     n: &Norm<I>,
     dy: Tensor<I, 3>,
+    k: &Kernels,
 ) -> (Tensor<I, 3>, Tensor<I, 1>, Tensor<I, 1>) {
     let [b, l, d] = x.dims();
     let flat = |t: Tensor<I, 3>| t.reshape([b * l, d]);
-    let (dx, dgamma, dbeta) = I::norm_backward(flat(dy), flat(x), mean, rstd, n.gamma.clone());
+    let (dx, dgamma, dbeta) = I::norm_backward(flat(dy), flat(x), mean, rstd, n.gamma.clone(), k);
     (dx.reshape([b, l, d]), dgamma, dbeta)
 }
 
 /// `x · w` `[b · l, n]` with the product in `p`'s format (as `precision::linear` on the named kernel),
 /// written in `out`.
-fn unbiased<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, out: FloatDType) -> Tensor<I, 2> {
-    let [b, len, k] = x.dims();
-    product_in(operand(x.reshape([b * len, k]), p), operand(l.w.clone(), p), out)
+fn unbiased<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    l: &Lin<I>,
+    p: Precision,
+    out: FloatDType,
+    k: &Kernels,
+) -> Tensor<I, 2> {
+    let [b, len, inner] = x.dims();
+    product_in(
+        operand(x.reshape([b * len, inner]), p),
+        operand(l.w.clone(), p),
+        out,
+        k,
+    )
 }
 
 /// `x · w + b` with the product in `p`'s format.
-fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision) -> Tensor<I, 3> {
-    linear_in(x, l, p, FloatDType::F32)
+fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, k: &Kernels) -> Tensor<I, 3> {
+    linear_in(x, l, p, FloatDType::F32, k)
 }
 
 /// [`linear`] written in `format` (as `precision::linear_in`): the product, then the bias added in it.
-fn linear_in<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, format: FloatDType) -> Tensor<I, 3> {
+fn linear_in<I: LayerBackend>(
+    x: Tensor<I, 3>,
+    l: &Lin<I>,
+    p: Precision,
+    format: FloatDType,
+    k: &Kernels,
+) -> Tensor<I, 3> {
     let [b, len, _] = x.dims();
     let n = l.w.dims()[1];
-    unbiased(x, l, p, format).reshape([b, len, n]) + l.b.clone().cast(format).unsqueeze::<3>()
+    unbiased(x, l, p, format, k).reshape([b, len, n]) + l.b.clone().cast(format).unsqueeze::<3>()
 }
 
 /// Gradients of a linear layer's input (in `dx`), weight and bias (as `matmul.rs`'s operation computes
@@ -161,13 +195,14 @@ fn linear_grad<I: LayerBackend>(
     dy: Tensor<I, 3>,
     p: Precision,
     dx: FloatDType,
+    k: &Kernels,
 ) -> (Tensor<I, 3>, Tensor<I, 2>, Tensor<I, 1>) {
     let [b, len, _] = x.dims();
     let n = dy.dims()[2];
     // The bias's sum and the products' bf16 operand in one pass (as `rows::add_for`), where a cast and
     // then the sum read `dy` twice.
     let (dy2, db) = crate::rows::sum_cast(dy.reshape([b * len, n]), p.operand_dtype());
-    let (dx, dw) = product_grad(x, l, dy2, p, dx);
+    let (dx, dw) = product_grad(x, l, dy2, p, dx, k);
     (dx, dw, db)
 }
 
@@ -178,11 +213,12 @@ fn product_grad<I: LayerBackend>(
     dy: Tensor<I, 2>,
     p: Precision,
     dx: FloatDType,
+    k: &Kernels,
 ) -> (Tensor<I, 3>, Tensor<I, 2>) {
-    let [b, len, k] = x.dims();
+    let [b, len, inner] = x.dims();
     let dy = operand(dy, p);
-    let dx = product_in(dy.clone(), operand(l.w.clone(), p).transpose(), dx).reshape([b, len, k]);
-    let dw = product(operand(x.reshape([b * len, k]), p).transpose(), dy);
+    let dx = product_in(dy.clone(), operand(l.w.clone(), p).transpose(), dx, k).reshape([b, len, inner]);
+    let dw = product(operand(x.reshape([b * len, inner]), p).transpose(), dy, k);
     (dx, dw)
 }
 
@@ -198,7 +234,7 @@ fn attend<I: LayerBackend>(
 ) -> (Tensor<I, 4>, Tensor<I, 4>) {
     let lq = q.dims()[2];
     if k.dims()[2] >= MIN_TILED_KEYS {
-        I::attention_forward(q, k, v, s.causal, s.precision.attention())
+        I::attention_forward(q, k, v, s.causal, s.precision.attention(), &s.kernels)
     } else {
         tiled_forward(q, k, v, s.causal, lq, s.precision.attention())
     }
@@ -217,7 +253,17 @@ fn attend_grad<I: LayerBackend>(
 ) -> (Tensor<I, 4>, Tensor<I, 3>) {
     let lq = q.dims()[2];
     if k.dims()[2] >= MIN_TILED_KEYS {
-        I::attention_backward_kv(q, k, v, out, lse, dout, s.causal, s.precision.attention())
+        I::attention_backward_kv(
+            q,
+            k,
+            v,
+            out,
+            lse,
+            dout,
+            s.causal,
+            s.precision.attention(),
+            &s.kernels,
+        )
     } else {
         let (dq, dk, dv) = tiled_backward(q, k, v, out, lse, dout, s.causal, lq, s.precision.attention());
         (dq, merge_kv(dk, dv))
@@ -233,19 +279,19 @@ fn run<I: LayerBackend>(
     masks: &Masks<I>,
     x: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Saved<I>) {
-    let p = s.precision;
+    let (p, k) = (s.precision, &s.kernels);
     // The normalised inputs and the merged attention output feed products only: in their format once here
     // (the norms write it), not cast by each product (the forward pass's two, the recomputation's two and
     // the weight gradients').
-    let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps, p);
+    let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps, p, k);
     // Over positions the queries, keys and values are the attention's operands: written in its format
     // (the attention over time reads f32).
     let qkv_format = match s.over_time {
         None => p.attention().operand_dtype(),
         Some(_) => FloatDType::F32,
     };
-    let q = linear_in(n1.clone(), &w.q, p, qkv_format);
-    let kv = linear_in(n1.clone(), &w.kv, p, qkv_format);
+    let q = linear_in(n1.clone(), &w.q, p, qkv_format, k);
+    let kv = linear_in(n1.clone(), &w.kv, p, qkv_format, k);
     let [b, len, d] = q.dims();
     let (attn, merged) = match s.over_time {
         None => {
@@ -259,17 +305,17 @@ fn run<I: LayerBackend>(
         }
         Some((t, n)) => {
             let (q, kv) = (q.reshape([b, t, n, d]), kv.reshape([b, t, n, 2 * d]));
-            let (att, lse) = I::temporal_forward(q.clone(), kv.clone(), s.heads, s.causal, p);
+            let (att, lse) = I::temporal_forward(q.clone(), kv.clone(), s.heads, s.causal, p, k);
             let merged = att.clone().reshape([b, len, d]);
             (Attn::OverTime([q, kv, att, lse]), merged)
         }
     };
     let merged = operand(merged, p);
-    let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p));
-    let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps, p);
-    let hidden = unbiased(n2.clone(), &w.fc, p, inner_product_dtype(p));
+    let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p, k));
+    let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps, p, k);
+    let hidden = unbiased(n2.clone(), &w.fc, p, inner_product_dtype(p, k), k);
     let [b, len, _] = n2.dims();
-    let act = inner_forward(hidden.clone(), w.fc.b.clone()).reshape([b, len, hidden.dims()[1]]);
+    let act = inner_forward(hidden.clone(), w.fc.b.clone(), k).reshape([b, len, hidden.dims()[1]]);
     let saved = Saved {
         x,
         stats1,
@@ -293,7 +339,7 @@ pub fn forward<I: LayerBackend>(
     x: Tensor<I, 3>,
 ) -> Tensor<I, 3> {
     let (x1, f) = run(w, s, masks, x);
-    x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision))
+    x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision, &s.kernels))
 }
 
 /// The gradients of the input and of every parameter from the output's gradient `dy`, recomputing the
@@ -305,16 +351,16 @@ pub fn backward<I: LayerBackend>(
     x: Tensor<I, 3>,
     dy: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, WeightGrads<I>) {
-    let p = s.precision;
+    let (p, k) = (s.precision, &s.kernels);
     let (_, f) = run(w, s, masks, x);
     let d_out = drop(&masks.mlp, dy.clone());
     // The activation's gradient in its own format (bf16 with the bf16 presets), as `gelu::gelu_mlp` has it.
     let act_format = float_format(f.act.dtype());
-    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p, act_format);
+    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p, act_format, k);
     let d_act = d_act.reshape(f.hidden.dims());
-    let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone());
-    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, p, FloatDType::F32);
-    let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2);
+    let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone(), k);
+    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, p, FloatDType::F32, k);
+    let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2, k);
     let dx1 = dy + dx1_norm;
     let d_proj = drop(&masks.attn, dx1.clone());
     // The attention's output gradient in the output's own format: bf16 where flash2 wrote it so, which
@@ -323,7 +369,7 @@ pub fn backward<I: LayerBackend>(
         Attn::Rows([.., att, _]) => float_format(att.dtype()),
         Attn::OverTime(_) => FloatDType::F32,
     };
-    let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p, d_merged_format);
+    let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p, d_merged_format, k);
     let (dq, dkv) = match f.attn {
         Attn::Rows([q, k, v, att, lse]) => {
             let (dq, dkv) = attend_grad(q, k, v, att, lse, split_heads(d_merged, s.heads), s);
@@ -333,13 +379,13 @@ pub fn backward<I: LayerBackend>(
             let [b, t, n, d] = q.dims();
             let saved = I::KEEPS_FORWARD.then_some((att, lse));
             let dout = d_merged.reshape([b, t, n, d]);
-            let (dq, dkv) = I::temporal_backward(q, kv, saved, dout, s.heads, s.causal, p);
+            let (dq, dkv) = I::temporal_backward(q, kv, saved, dout, s.heads, s.causal, p, k);
             (dq.reshape([b, t * n, d]), dkv.reshape([b, t * n, 2 * d]))
         }
     };
-    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p, FloatDType::F32);
-    let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p, FloatDType::F32);
-    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv);
+    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p, FloatDType::F32, k);
+    let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p, FloatDType::F32, k);
+    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv, k);
     let dx = dx1 + dx_norm;
     let one = |t: Tensor<I, 1>| t.into_primitive();
     let two = |t: Tensor<I, 2>| t.into_primitive();

@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::format::Precision;
+use crate::kernels::Kernels;
 use burn::backend::Flex;
 use burn::module::{Module, ModuleMapper, ModuleVisitor};
 use burn::nn::{LayerNormConfig, LinearConfig};
@@ -128,7 +129,8 @@ fn recomputed_layer_matches_burns_operations() {
     };
     let (y0, dx0, dp0) = run(&blk, &x, &r, reference);
     let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
-        recomputed::<Flex, NoCheckpointing>(&b.parts(), x, true, None).expect("a layer with biases")
+        recomputed::<Flex, NoCheckpointing>(&b.parts(), x, true, None, &Kernels::default())
+            .expect("a layer with biases")
     });
     assert!(rel(y1, y0) < 1e-4, "output");
     assert!(rel(dx1, dx0) < 1e-4, "input gradient");
@@ -188,6 +190,7 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
         precision: Precision::F32,
         eps: crate::norm::LN_EPS,
         over_time: None,
+        kernels: Kernels::default(),
     };
     let y1 = math::forward(&weights, setting, &masks, x.clone());
     let (dx1, dp1) = math::backward(&weights, setting, &masks, x, r);
@@ -204,7 +207,24 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
 }
 
 #[test]
-fn the_operation_is_handed_out_for_training_backends_only() {
+fn the_operation_is_handed_out_for_training_backends_only_and_when_asked_for() {
     assert!(on::<A, Flex>().is_some());
     assert!(on::<Flex, Flex>().is_none());
+    let on = Kernels {
+        recompute: true,
+        ..Kernels::DEFAULT
+    };
+    assert!(recomputed_for::<A>(&on).is_some());
+    assert!(recomputed_for::<A>(&Kernels::DEFAULT).is_none(), "off by default");
+    assert!(recomputed_for::<Flex>(&on).is_none());
+}
+
+#[test]
+fn a_layer_without_biases_is_handed_back() {
+    let mut blk = layer(8, 2);
+    blk.q.bias = None;
+    let x = Tensor::<A, 3>::random([1, 4, 8], Distribution::Normal(0.0, 1.0), &Default::default());
+    let back = recomputed::<Flex, NoCheckpointing>(&blk.parts(), x.clone(), false, None, &Kernels::DEFAULT)
+        .expect_err("the operation takes layers with biases only");
+    assert_eq!(back.into_data(), x.into_data());
 }

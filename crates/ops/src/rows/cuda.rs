@@ -5,7 +5,7 @@
 //! burn reduction (and burn's cast) instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
-use super::staged::{CHOICE, staged};
+use super::staged::{FALLBACKS, staged};
 use crate::format::float;
 use crate::side::{self, Handles, Inner, Primitive, empty_f32, empty_packed};
 use burn::backend::Cuda;
@@ -40,7 +40,7 @@ fn groups(rows: usize) -> usize {
 /// The column sums `[d]` of `x` `[rows, d]`.
 pub(super) fn sum(x: Tensor<Cuda, 2>) -> Tensor<Cuda, 1> {
     if let Some(why) = refused(&x) {
-        CHOICE.fell_back(&why);
+        FALLBACKS.fell_back(&why);
         return staged(x);
     }
     let d = x.dims()[1];
@@ -52,7 +52,7 @@ pub(super) fn sum(x: Tensor<Cuda, 2>) -> Tensor<Cuda, 1> {
 pub(super) fn sum_cast(x: Tensor<Cuda, 2>) -> (Tensor<Cuda, 2>, Tensor<Cuda, 1>) {
     // `rows::sum_cast` sends f32 rows only (`launch` refuses others too).
     if let Some(why) = refused(&x) {
-        CHOICE.fell_back(&why);
+        FALLBACKS.fell_back(&why);
         return (x.clone().cast(FloatDType::BF16), staged(x));
     }
     let [rows, d] = x.dims();
@@ -90,7 +90,7 @@ impl side::SidePass for Pass {
         };
         let [x] = x;
         launch(&x, cast).unwrap_or_else(|why| {
-            CHOICE.fell_back(&why);
+            FALLBACKS.fell_back(&why);
             let x = float::<Inner, 2>(x);
             let sums = side::inner(staged(x.clone()));
             match cast {

@@ -1,13 +1,13 @@
-//! The row sums by burn's reductions, and the kernels' choice: what both `rows.rs` and `rows/cuda.rs` use.
+//! The row sums by burn's reductions, and the kernels' fallbacks: what both `rows.rs` and `rows/cuda.rs` use.
 
-use crate::dispatch::Choice;
+use crate::dispatch::Fallbacks;
 use burn::tensor::backend::Backend;
 use burn::tensor::{FloatDType, Tensor};
 
 /// Row groups of [`sum`]'s first stage.
 pub(super) const GROUPS: usize = 256;
 
-pub(super) static CHOICE: Choice = Choice::new("row-sum");
+pub(super) static FALLBACKS: Fallbacks = Fallbacks::new("row-sum");
 
 /// [`sum`] by burn's reductions: the rows in [`GROUPS`] groups, then the groups (in f32).
 pub(super) fn staged<I: Backend>(x: Tensor<I, 2>) -> Tensor<I, 1> {

@@ -1,5 +1,5 @@
 //! umgen's CUDA C kernels launched as cubecl kernels, on cubecl's own stream
-//! ([`crate::kernel_stream::KernelStream::Cubecl`]).
+//! ([`crate::kernels::KernelStream::Cubecl`]).
 //!
 //! cubecl-cuda launches any [`CubeTask`] whose compiled form carries CUDA C source: it compiles the source
 //! with NVRTC on first use (for the device's architecture), keeps the function by the task's

@@ -1,6 +1,6 @@
 //! [`TemporalAttention`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation
 //! in the fusion stream that launches `temporal.cu`'s kernels (compiled with NVRTC) on cubecl's stream, or
-//! on a side stream ordered with cubecl's with `train.kernel_stream = "side"` ([`crate::side`]). More than
+//! on a side stream ordered with cubecl's with `train.kernels.stream = "side"` ([`crate::side`]). More than
 //! 32 frames, head sizes other than 32, 64 and 128, other types than f32, or a failure to compile or launch
 //! run the decomposition instead, counted by [`crate::flash::fallbacks`] with the attention's other
 //! fallbacks.
@@ -9,7 +9,8 @@
 use super::{Saved, TemporalAttention, backward_decomposed, forward_decomposed};
 use crate::format::Precision;
 use crate::format::float;
-use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
+use crate::kernels::{Kernels, SideFamily};
+use crate::side::{self, Compiled, Handles, Inner, KernelCache, Primitive, empty_f32};
 use burn::backend::Cuda;
 use burn::tensor::{DType, Tensor};
 use burn_ir::CustomOpIr;
@@ -102,6 +103,7 @@ impl TemporalAttention for Cuda {
         heads: usize,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
         if let Some(why) = refused(&q, heads) {
             crate::flash::fell_back("temporal", &why, "decomposed");
@@ -113,6 +115,7 @@ impl TemporalAttention for Cuda {
             causal,
             backward: false,
             precision,
+            kernels: *kernels,
         };
         let [out, lse] = side::register(
             "umgen_temporal_forward",
@@ -123,6 +126,7 @@ impl TemporalAttention for Cuda {
         (float(out), float(lse))
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn temporal_backward(
         q: Tensor<Self, 4>,
         kv: Tensor<Self, 4>,
@@ -131,6 +135,7 @@ impl TemporalAttention for Cuda {
         heads: usize,
         causal: bool,
         precision: Precision,
+        kernels: &Kernels,
     ) -> (Tensor<Self, 4>, Tensor<Self, 4>) {
         // The forward pass counted a refusal; the decomposition recomputes the forward pass it needs.
         if refused(&q, heads).is_some() {
@@ -142,6 +147,7 @@ impl TemporalAttention for Cuda {
             causal,
             backward: true,
             precision,
+            kernels: *kernels,
         };
         let [dq, dkv] = side::register(
             "umgen_temporal_backward",
@@ -162,6 +168,8 @@ struct Pass {
     backward: bool,
     /// For the decomposition, should the kernels fail.
     precision: Precision,
+    /// The stream and the launching thread.
+    kernels: Kernels,
 }
 
 impl side::SidePass for Pass {
@@ -171,10 +179,15 @@ impl side::SidePass for Pass {
             causal,
             backward,
             precision,
+            kernels,
         } = *self;
+        let thread = kernels.launch_thread;
         if backward {
             let [q, kv, dout] = side::contiguous_inputs::<3, 2>(handles, desc);
-            side::on_device_thread(&q, || launch(&q, &kv, Some(&dout), heads, causal)).unwrap_or_else(|why| {
+            side::on_device_thread(&q, thread, || {
+                launch(&q, &kv, Some(&dout), (heads, causal), kernels)
+            })
+            .unwrap_or_else(|why| {
                 crate::flash::fell_back("temporal", &why, "decomposed");
                 let (dq, dkv) = backward_decomposed::<Inner>(
                     float(q),
@@ -189,11 +202,13 @@ impl side::SidePass for Pass {
             })
         } else {
             let [q, kv] = side::contiguous_inputs::<2, 2>(handles, desc);
-            side::on_device_thread(&q, || launch(&q, &kv, None, heads, causal)).unwrap_or_else(|why| {
-                crate::flash::fell_back("temporal", &why, "decomposed");
-                let (out, lse) = forward_decomposed::<Inner>(float(q), float(kv), heads, causal, precision);
-                vec![side::inner(out), side::inner(lse)]
-            })
+            side::on_device_thread(&q, thread, || launch(&q, &kv, None, (heads, causal), kernels))
+                .unwrap_or_else(|why| {
+                    crate::flash::fell_back("temporal", &why, "decomposed");
+                    let (out, lse) =
+                        forward_decomposed::<Inner>(float(q), float(kv), heads, causal, precision);
+                    vec![side::inner(out), side::inner(lse)]
+                })
         }
     }
 }
@@ -204,7 +219,7 @@ thread_local! {
 }
 
 /// Compiles the kernels for `like`'s device.
-fn build(like: &Primitive) -> Result<Kernels, String> {
+fn build(like: &Primitive) -> Result<Compiled, String> {
     let names: Vec<String> = [1, 2, 4]
         .iter()
         .flat_map(|p| {
@@ -214,7 +229,7 @@ fn build(like: &Primitive) -> Result<Kernels, String> {
             ]
         })
         .collect();
-    Kernels::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
+    Compiled::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
 }
 
 /// The kernels' source as NVRTC compiles it.
@@ -240,8 +255,8 @@ fn launch(
     q: &Primitive,
     kv: &Primitive,
     dout: Option<&Primitive>,
-    heads: usize,
-    causal: bool,
+    (heads, causal): (usize, bool),
+    kernels: Kernels,
 ) -> Result<Vec<Primitive>, String> {
     let mut operands = vec![q, kv];
     operands.extend(dout);
@@ -293,9 +308,9 @@ fn launch(
     // describe (`v` and `dv` the second halves of `kv` and `dkv`).
     unsafe {
         side::launch_kernel(
-            &KERNELS,
+            (&KERNELS, &kernels),
             q,
-            ("attention over time", &|| build(q)),
+            (SideFamily::AttentionOverTime, &|| build(q)),
             &name,
             (&format!("TEMPORAL_KERNELS({dpl})"), &source),
             (blocks, 32 * WARPS as u32),

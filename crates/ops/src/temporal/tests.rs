@@ -1,4 +1,5 @@
 use super::*;
+use crate::kernels::Kernels;
 use burn::backend::{Autodiff, Flex};
 use burn::tensor::Distribution;
 
@@ -47,11 +48,26 @@ fn operation_matches_burns_attention_on_transposed_operands() {
         let kv = random([b, t, n, 2 * d]).require_grad();
         let w = random([b, t, n, d]);
         let op = over_time_for::<A>().expect("a training backend");
-        let ours = op(q.clone(), kv.clone(), heads, causal, Precision::F32);
+        let ours = op(
+            q.clone(),
+            kv.clone(),
+            heads,
+            causal,
+            Precision::F32,
+            &Kernels::default(),
+        );
         let (k, v) = split(kv.clone());
         let h = |x| to_heads(x, heads);
         let theirs = from_heads(
-            crate::attention::attend(h(q.clone()), h(k), h(v), None, causal, Precision::F32),
+            crate::attention::attend(
+                h(q.clone()),
+                h(k),
+                h(v),
+                None,
+                causal,
+                Precision::F32,
+                &Kernels::default(),
+            ),
             b,
             n,
         );

@@ -1,14 +1,15 @@
 //! [`FusedXent`] for `Cuda` (burn-fusion over the cubecl backend): each pass is a custom operation in the
 //! fusion stream that launches `xent.cu`'s kernels (compiled with NVRTC) on cubecl's
-//! stream, or on a side stream ordered with cubecl's with `train.kernel_stream = "side"`
-//! ([`crate::side`]), unless `train.xent = "burn"` ([`super::select`]).
+//! stream, or on a side stream ordered with cubecl's with `train.kernels.stream = "side"`
+//! ([`crate::side`]), unless `train.kernels.xent = "burn"`.
 //! Other types than f32, or a failure to compile or launch, run burn's operations instead, counted by
 //! [`super::fallbacks`].
 #![allow(unsafe_code)]
 
-use super::{CHOICE, FusedXent, XentKernel, grad_decomposed, lse_decomposed, selected};
+use super::{FALLBACKS, FusedXent, XentKernel, grad_decomposed, lse_decomposed};
 use crate::format::float;
-use crate::side::{self, Handles, Inner, KernelCache, Kernels, Primitive, empty_f32};
+use crate::kernels::{Kernels, SideFamily};
+use crate::side::{self, Compiled, Handles, Inner, KernelCache, Primitive, empty_f32};
 use burn::backend::Cuda;
 use burn::tensor::{DType, Int, Tensor};
 use burn_ir::CustomOpIr;
@@ -55,12 +56,12 @@ fn refused(x: &Tensor<Cuda, 2>) -> Option<String> {
 }
 
 impl FusedXent for Cuda {
-    fn xent_lse(x: Tensor<Self, 2>) -> Tensor<Self, 2> {
-        if selected() == XentKernel::Burn {
+    fn xent_lse(x: Tensor<Self, 2>, kernels: &Kernels) -> Tensor<Self, 2> {
+        if kernels.xent == XentKernel::Burn {
             return lse_decomposed(x);
         }
         if let Some(why) = refused(&x) {
-            CHOICE.fell_back(&why);
+            FALLBACKS.fell_back(&why);
             return lse_decomposed(x);
         }
         let rows = x.dims()[0];
@@ -68,7 +69,7 @@ impl FusedXent for Cuda {
             "umgen_xent_forward",
             [side::fused(x)],
             [vec![rows]],
-            Pass::Forward,
+            Pass::Forward { kernels: *kernels },
         );
         float::<Cuda, 1>(lse).reshape([rows, 1])
     }
@@ -79,9 +80,10 @@ impl FusedXent for Cuda {
         ids: Tensor<Self, 2, Int>,
         weights: Tensor<Self, 2>,
         g: Tensor<Self, 1>,
+        kernels: &Kernels,
     ) -> Tensor<Self, 2> {
         // The forward pass counted a refusal.
-        if selected() == XentKernel::Burn || refused(&x).is_some() {
+        if kernels.xent == XentKernel::Burn || refused(&x).is_some() {
             return grad_decomposed(x, lse, ids, weights, g);
         }
         let [rows, v] = x.dims();
@@ -93,7 +95,8 @@ impl FusedXent for Cuda {
             side::fused(ids.float()),
             side::fused(weights),
         ];
-        let [dx] = side::register("umgen_xent_backward", inputs, [vec![rows, v]], Pass::Backward);
+        let pass = Pass::Backward { kernels: *kernels };
+        let [dx] = side::register("umgen_xent_backward", inputs, [vec![rows, v]], pass);
         float(dx)
     }
 }
@@ -102,34 +105,35 @@ impl FusedXent for Cuda {
 #[derive(Debug, Clone, Copy)]
 enum Pass {
     /// x in; lse out.
-    Forward,
+    Forward { kernels: Kernels },
     /// x, lse, g, ids (as f32), weights in; dx out.
-    Backward,
+    Backward { kernels: Kernels },
 }
 
 impl side::SidePass for Pass {
     fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
         match self {
-            Pass::Forward => {
+            Pass::Forward { kernels } => {
                 let [x] = side::contiguous_inputs::<1, 1>(handles, desc);
-                side::on_device_thread(&x, || launch(&x, None)).unwrap_or_else(|why| {
-                    CHOICE.fell_back(&why);
-                    let lse = lse_decomposed::<Inner>(float(x));
-                    let rows = lse.dims()[0];
-                    vec![side::inner(lse.reshape([rows]))]
-                })
+                side::on_device_thread(&x, kernels.launch_thread, || launch(&x, None, *kernels))
+                    .unwrap_or_else(|why| {
+                        FALLBACKS.fell_back(&why);
+                        let lse = lse_decomposed::<Inner>(float(x));
+                        let rows = lse.dims()[0];
+                        vec![side::inner(lse.reshape([rows]))]
+                    })
             }
-            Pass::Backward => {
+            Pass::Backward { kernels } => {
                 let [x, lse, g, ids, weights] = side::contiguous_inputs::<5, 1>(handles, desc);
-                side::on_device_thread(&x, || launch(&x, Some([&lse, &g, &ids, &weights]))).unwrap_or_else(
-                    |why| {
-                        CHOICE.fell_back(&why);
+                let grads = Some([&lse, &g, &ids, &weights]);
+                side::on_device_thread(&x, kernels.launch_thread, || launch(&x, grads, *kernels))
+                    .unwrap_or_else(|why| {
+                        FALLBACKS.fell_back(&why);
                         let ids = float::<Inner, 2>(ids).int();
                         let dx =
                             grad_decomposed::<Inner>(float(x), float(lse), ids, float(weights), float(g));
                         vec![side::inner(dx)]
-                    },
-                )
+                    })
             }
         }
     }
@@ -141,12 +145,12 @@ thread_local! {
 }
 
 /// Compiles the kernels for `like`'s device.
-fn build(like: &Primitive) -> Result<Kernels, String> {
+fn build(like: &Primitive) -> Result<Compiled, String> {
     let names = [
         "umgen_xent_forward".to_string(),
         "umgen_xent_backward".to_string(),
     ];
-    Kernels::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
+    Compiled::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
 }
 
 /// The kernels' source as NVRTC compiles it (two kernels: every entry compiles all of it).
@@ -157,7 +161,7 @@ fn source() -> Result<String, String> {
 /// Runs the forward pass on contiguous logits `x` `[rows, v]` (`grads` `None`: the rows' log-sum-exp) or
 /// the backward pass (`grads` = `[lse, g, ids, weights]`: dx), returning the result; an error says why
 /// it could not (no result was written that the caller keeps, so it may run burn's operations).
-fn launch(x: &Primitive, grads: Option<[&Primitive; 4]>) -> Result<Vec<Primitive>, String> {
+fn launch(x: &Primitive, grads: Option<[&Primitive; 4]>, kernels: Kernels) -> Result<Vec<Primitive>, String> {
     let mut operands = vec![x];
     operands.extend(grads.into_iter().flatten());
     if let Some(t) = operands.iter().find(|t| t.dtype != DType::F32) {
@@ -197,9 +201,9 @@ fn launch(x: &Primitive, grads: Option<[&Primitive; 4]>) -> Result<Vec<Primitive
     // or writes (`rows × v`, `rows`, `rows × k`, or one value for g).
     unsafe {
         side::launch_kernel(
-            &KERNELS,
+            (&KERNELS, &kernels),
             x,
-            ("cross-entropy", &|| build(x)),
+            (SideFamily::CrossEntropy, &|| build(x)),
             name,
             ("", &source),
             (blocks, 32 * WARPS as u32),

@@ -6,9 +6,9 @@ use burn::tensor::backend::Backend;
 use burn::tensor::module::attention_fallback;
 use burn::tensor::ops::AttentionModuleOptions;
 use burn::tensor::{Distribution, Tensor};
-use umgen_ops::Precision;
 use umgen_ops::attention::{tiled_autodiff, tiled_for};
 use umgen_ops::tiled::{tiled_backward, tiled_forward};
+use umgen_ops::{Kernels, Precision};
 
 fn random<B: Backend>(shape: [usize; 4], seed: u64) -> Tensor<B, 4> {
     let _one = super::SEEDED
@@ -72,7 +72,14 @@ fn reference_grads(
         Tensor::<A, 4>::from_inner(v).require_grad(),
     );
     let y = if tiled {
-        tiled_autodiff(q.clone(), k.clone(), v.clone(), causal, Precision::F32)
+        tiled_autodiff(
+            q.clone(),
+            k.clone(),
+            v.clone(),
+            causal,
+            Precision::F32,
+            &Kernels::DEFAULT,
+        )
     } else {
         reference(q.clone(), k.clone(), v.clone(), causal)
     };
@@ -143,7 +150,15 @@ fn attend_on_the_training_backend_gives_the_decomposed_values_and_gradients() {
         Tensor::<A, 4>::from_inner(k.clone()).require_grad(),
         Tensor::<A, 4>::from_inner(v.clone()).require_grad(),
     );
-    let y = attend(qa.clone(), ka.clone(), va.clone(), None, true, Precision::F32);
+    let y = attend(
+        qa.clone(),
+        ka.clone(),
+        va.clone(),
+        None,
+        true,
+        Precision::F32,
+        &Kernels::DEFAULT,
+    );
     let err = max_abs_diff(y.clone().inner(), reference(q, k, v, true));
     assert!(err < 1e-5, "output max |Δ| {err}");
     let grads = (y * Tensor::from_inner(w)).sum().backward();
@@ -208,7 +223,14 @@ fn attention_over_one_kv_tensor_gives_the_decomposed_gradients() {
                 .unsqueeze::<4>()
                 .expand([b, h, l, l])
         });
-        let ours = attend_kv(q.clone(), kv.clone(), mask.clone(), !masked, Precision::F32);
+        let ours = attend_kv(
+            q.clone(),
+            kv.clone(),
+            mask.clone(),
+            !masked,
+            Precision::F32,
+            &Kernels::DEFAULT,
+        );
         let (k, v) = (
             split(kv.clone().narrow(2, 0, d)),
             split(kv.clone().narrow(2, d, d)),

@@ -3,9 +3,9 @@
 use burn::backend::{Autodiff, Flex};
 use burn::nn::LinearConfig;
 use burn::tensor::{DType, Distribution, Tensor};
-use umgen_ops::Precision;
 use umgen_ops::attention::attend;
 use umgen_ops::linear::linear;
+use umgen_ops::{Kernels, Precision};
 
 type A = Autodiff<Flex>;
 
@@ -19,8 +19,8 @@ fn bf16_linear_is_close_to_f32_and_keeps_f32_gradients() {
     let dev = Default::default();
     let layer = LinearConfig::new(48, 24).init::<A>(&dev);
     let x = Tensor::<A, 3>::random([2, 5, 48], Distribution::Normal(0.0, 1.0), &dev).require_grad();
-    let full = linear(&layer, x.clone(), Precision::F32);
-    let half = linear(&layer, x.clone(), Precision::Bf16);
+    let full = linear(&layer, x.clone(), Precision::F32, &Kernels::DEFAULT);
+    let half = linear(&layer, x.clone(), Precision::Bf16, &Kernels::DEFAULT);
     assert_eq!(half.dtype(), DType::F32);
     let err = rel(half.clone().inner(), full.clone().inner());
     // bf16 keeps 8 significant bits: products of 48 terms land near 2⁻⁸ relative, never at zero.
@@ -42,8 +42,8 @@ fn bf16_linear_casts_linear_layers_and_leaves_attention_in_f32() {
     let dev = Default::default();
     let layer = LinearConfig::new(48, 24).init::<A>(&dev);
     let x = Tensor::<A, 3>::random([2, 5, 48], Distribution::Normal(0.0, 1.0), &dev);
-    let half = linear(&layer, x.clone(), Precision::Bf16).inner();
-    let mixed = linear(&layer, x, Precision::Bf16Linear).inner();
+    let half = linear(&layer, x.clone(), Precision::Bf16, &Kernels::DEFAULT).inner();
+    let mixed = linear(&layer, x, Precision::Bf16Linear, &Kernels::DEFAULT).inner();
     assert_eq!(
         rel(mixed, half),
         0.0,
@@ -54,7 +54,7 @@ fn bf16_linear_casts_linear_layers_and_leaves_attention_in_f32() {
     let qkv = |seed: f64| Tensor::<A, 4>::random([1, 2, 300, 16], Distribution::Normal(seed, 1.0), &dev);
     let (q, k, v) = (qkv(0.0), qkv(0.1), qkv(-0.1));
     let att = |p| {
-        attend(q.clone(), k.clone(), v.clone(), None, true, p)
+        attend(q.clone(), k.clone(), v.clone(), None, true, p, &Kernels::DEFAULT)
             .inner()
             .flatten::<3>(0, 1)
     };

@@ -14,7 +14,7 @@ typedef unsigned short u16;
 #define ALIGNED __align__(16)
 
 // The softmax's base-2 exponent and logarithm as single approximate instructions, what `--use_fast_math`
-// makes of exp2f and log2f: the kernels are also compiled by cubecl (`train.kernel_stream = "cubecl"`),
+// makes of exp2f and log2f: the kernels are also compiled by cubecl (`train.kernels.stream = "cubecl"`),
 // which passes NVRTC no such option, and the precise exp2f adds range handling to every score.
 DEV float fast_exp2(float x) {
     float y;
