@@ -61,7 +61,7 @@ impl<B: Backend> Heads<B> {
 
     /// Summed cross-entropy per segment of features `[m, N, d]` against targets `[m, N]`, with the number
     /// of tokens each sum covers. Segment `s`'s first `ordinal[s]` ids are ordered bins, scored with
-    /// [`crate::smoothing::nll_sum`] at `sigma` bins (0: plain cross-entropy), through
+    /// `umgen_ops::smoothing::nll_sum` at `sigma` bins (0: plain cross-entropy), through
     /// one fused operation on the training backends (`xent.rs`).
     pub fn cross_entropy(
         &self,

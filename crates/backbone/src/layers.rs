@@ -225,9 +225,9 @@ impl<B: Backend> SelfBlock<B> {
     }
 
     /// The causal layer over time of `x` `[b, t, n, d]`: each of the `n` positions attends over its own
-    /// `t` frames. Training backends run [`crate::temporal`]'s operation on the rows as they lie, recomputed
+    /// `t` frames. Training backends run `umgen_ops::temporal`'s operation on the rows as they lie, recomputed
     /// (`recompute.rs`) or not; the others group the frames of each position (`[b · n, t, d]`, a
-    /// transposition each way) for [`Self::forward_autodiff`].
+    /// transposition each way) for `forward_autodiff`.
     pub fn forward_over_time(&self, x: Tensor<B, 4>, k: &Kernels) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
         match recomputed_for::<B>(k) {

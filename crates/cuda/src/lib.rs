@@ -1,4 +1,6 @@
-//! umgen's CUDA kernels and what launches them.
+//! umgen's CUDA kernels: every CUDA C source (the training operations' in `src/kernels/train/`, which
+//! umgen-ops launches on burn's streams, [`source::train`]; the generation engine's), their host emulators,
+//! and the generation engine's operations and executor.
 //!
 //! The generation engine (`umgen_generate::engine`) runs the backbone's generation forward pass as a fixed
 //! program of operations over buffers allocated once: [`ops`] names those operations (a matrix-vector
@@ -16,8 +18,8 @@
 //! or writes through it.
 //!
 //! The kernels also run on the host under `kernels/warp_emulator.h` (every CUDA thread a std::thread, warp
-//! shuffles emulated): `kernels/engine_emulator.cpp` compares each with a double-precision reference, and
-//! the backbone's training kernels share the same primitives ([`source::PRIMITIVES`]).
+//! shuffles emulated): `kernels/engine_emulator.cpp` and `kernels/train/*_emulator.cpp` compare each with a
+//! double-precision reference; the training kernels share the same primitives ([`source::PRIMITIVES`]).
 
 pub mod emulator;
 pub mod ops;

@@ -14,6 +14,24 @@ pub const PRIMITIVES: &str = concat!(
     "\n"
 );
 
+/// The training kernels umgen-ops launches (`kernels/train/`), each compiled after [`PRIMITIVES`].
+pub mod train {
+    /// AdamW and the gradients' global norm over slots of parameter tensors.
+    pub const ADAMW: &str = include_str!("kernels/train/adamw.cu");
+    /// Bias + GELU, forward and backward.
+    pub const GELU: &str = include_str!("kernels/train/gelu.cu");
+    /// The embedding table's gradient (a counting sort and sums over the sorted rows).
+    pub const LOOKUP: &str = include_str!("kernels/train/lookup.cu");
+    /// Layer norm, forward and backward, one warp a row.
+    pub const NORM: &str = include_str!("kernels/train/norm.cu");
+    /// Column sums over rows (a bias's gradient), with an optional bf16 copy.
+    pub const ROWS: &str = include_str!("kernels/train/rows.cu");
+    /// The TAR's attention over time on the rows as they lie.
+    pub const TEMPORAL: &str = include_str!("kernels/train/temporal.cu");
+    /// The cross-entropy's two passes over the logits, one warp a row.
+    pub const XENT: &str = include_str!("kernels/train/xent.cu");
+}
+
 /// FlashAttention-2's forward and backward kernels (`kernels/flash2/`: warp primitives, tiles and fragment
 /// products, the three passes), with their own primitives: NVRTC compiles them alone.
 pub const FLASH2: &str = concat!(

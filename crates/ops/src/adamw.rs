@@ -2,7 +2,7 @@
 //! gradients' global norm (for clipping).
 //!
 //! On `Cuda` each is one custom operation in burn-fusion's stream, unless `train.kernels.adamw = "burn"`
-//!: the AdamW step launches `adamw/adamw.cu`'s `umgen_adamw` once per 32 parameter tensors
+//!: the AdamW step launches umgen-cuda's `kernels/train/adamw.cu`'s `umgen_adamw` once per 32 parameter tensors
 //! (every tensor's update, the clipping factor applied to each gradient as it is read), the norm
 //! `umgen_sumsq` once per 128 gradients and `umgen_sumsq_final` once, all on cubecl's stream with the
 //! tensors bound as the launches' buffers, so the host fetches no device address. burn's AdamW took a

@@ -151,7 +151,7 @@ impl<B: FusedAttention> Backward<B, 3> for TiledAttention {
 }
 
 /// The training attention on `Autodiff<I, C>`: forward through `I`'s [`FusedAttention::attention_forward`]
-/// (fused kernels on CUDA, [`tiled_forward`] elsewhere), keeping its inputs, output and log-sum-exp for
+/// (fused kernels on CUDA, [`crate::tiled::tiled_forward`] elsewhere), keeping its inputs, output and log-sum-exp for
 /// [`FusedAttention::attention_backward`].
 pub fn tiled_autodiff<I: FusedAttention, C: CheckpointStrategy>(
     q: Tensor<Autodiff<I, C>, 4>,

@@ -141,7 +141,7 @@ pub trait FusedAttention: Backend {
 
     /// [`Self::attention_backward`] with the keys' and values' gradients as one `[b, lk, 2·h·d]` (the keys'
     /// columns, then the values'): the layout of a kv product's gradient (`attention/kv.rs`, the recomputed
-    /// layers). CUDA's flash2 kernels write it so; elsewhere [`merge_kv`] copies the two into it.
+    /// layers). CUDA's flash2 kernels write it so; elsewhere `merge_kv` copies the two into it.
     #[allow(clippy::too_many_arguments)]
     fn attention_backward_kv(
         q: Tensor<Self, 4>,

@@ -8,7 +8,7 @@
 //! of kernel time: twenty kernels of 0.7–0.78 ms and casts of 0.23 ms. On the training backends
 //! [`linear_gelu`] is instead the product (without its bias, written in the next product's format: bf16
 //! with the bf16 presets, as PyTorch's autocast writes it) followed by a custom autodiff operation whose
-//! passes are [`FusedGelu`]'s: on CUDA one kernel each (`gelu/gelu.cu`), the forward pass reading the
+//! passes are [`FusedGelu`]'s: on CUDA one kernel each (umgen-cuda's `kernels/train/gelu.cu`), the forward pass reading the
 //! product once and writing the activation in its format, the backward pass recomputing the
 //! pre-activation and writing its gradient (in that format too) with the bias's gradient summed in f32; on
 //! the CPU the same arithmetic as burn operations ([`forward_decomposed`], [`backward_decomposed`]). The

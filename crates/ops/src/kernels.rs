@@ -12,7 +12,7 @@ mod side_sync;
 pub use side_sync::{SideFamily, SideSync};
 
 /// Keys (or queries, for the key/value gradients) per step of a fused kernel's loop that the kernels
-/// take: multiples of 16 up to [`BLOCK`].
+/// take: multiples of 16 up to [`crate::flash::BLOCK`].
 pub const STEPS: [usize; 3] = [16, 32, 64];
 
 /// The step the kernels use unless told otherwise (`train.kernels.attention_step`).
@@ -137,9 +137,9 @@ pub fn check_step(step: usize) -> Result<usize, String> {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum MatmulKernel {
-    /// cubek's `specialized_tma_mma`, through [`named_autodiff`].
+    /// cubek's `specialized_tma_mma`, through [`crate::matmul::named_autodiff`].
     Named,
-    /// cuBLAS's `cublasGemmEx`, through [`named_autodiff`]; products it cannot take, or a machine without
+    /// cuBLAS's `cublasGemmEx`, through [`crate::matmul::named_autodiff`]; products it cannot take, or a machine without
     /// libcublas, fall back to [`MatmulKernel::Named`] (counted in `fallbacks`).
     #[default]
     Cublas,
@@ -166,7 +166,7 @@ pub enum AttentionKernel {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum NormKernel {
-    /// One CUDA C kernel per pass (`norm/norm.cu`). The default.
+    /// One CUDA C kernel per pass (umgen-cuda's `kernels/train/norm.cu`). The default.
     #[default]
     Fused,
     /// burn's decomposition, as before the kernels (for comparing them).
@@ -177,7 +177,7 @@ pub enum NormKernel {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum GeluKernel {
-    /// One operation per pass ([`FusedGelu`]: on CUDA one CUDA C kernel, `gelu/gelu.cu`). The default.
+    /// One operation per pass (`gelu::FusedGelu`: on CUDA one CUDA C kernel, umgen-cuda's `kernels/train/gelu.cu`). The default.
     #[default]
     Fused,
     /// burn's bias add and GELU, as before the kernels (for comparing them).
@@ -189,7 +189,7 @@ pub enum GeluKernel {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum XentKernel {
-    /// One CUDA C kernel per pass (`xent/xent.cu`). The default.
+    /// One CUDA C kernel per pass (umgen-cuda's `kernels/train/xent.cu`). The default.
     #[default]
     Fused,
     /// burn's operations, as before the kernels (for comparing them).
@@ -200,7 +200,7 @@ pub enum XentKernel {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum AdamWChoice {
-    /// One CUDA C kernel for all parameter tensors (`adamw/adamw.cu`). The default.
+    /// One CUDA C kernel for all parameter tensors (umgen-cuda's `kernels/train/adamw.cu`). The default.
     #[default]
     Fused,
     /// burn's AdamW, one chain of tensor operations per parameter tensor (as before the kernel).

@@ -5,9 +5,9 @@
 //! it trains on (`Autodiff<Flex>` on the CPU, `Autodiff<Cuda>`), most of them are custom autodiff
 //! operations whose passes a trait of the inner backend computes: burn's tensor operations by default,
 //! hand-written kernels on CUDA. Rust has no specialisation, so each operation recognises those backends
-//! by type ([`dispatch`]); any other backend takes burn's own operations, which compute the same function.
+//! by type (`dispatch.rs`); any other backend takes burn's own operations, which compute the same function.
 //!
-//! - [`format`]: the products' number format ([`Precision`]: f32, or bf16 operands with f32 master
+//! - [`mod@format`]: the products' number format ([`Precision`]: f32, or bf16 operands with f32 master
 //!   weights) and the casts around it; [`linear`]: linear layers in it, on the named kernel ([`matmul`]:
 //!   cuBLAS or cubek) on CUDA, the bias added by [`rows`].
 //! - [`attention`]: the training attention as one operation that keeps only its inputs, output and

@@ -5,7 +5,7 @@
 //! tokens of a `small` step walked by 32 … 384 units took 6–13 ms per table (profile, docs/decisions/007-memory-bound-training-kernels.md).
 //! [`embed`] is a custom autodiff operation on the training backends whose forward pass is burn's lookup.
 //! On CUDA its backward pass is a counting sort of the ids and a walk over the sorted rows (`lookup/cuda.rs`,
-//! `lookup/lookup.cu`: a unit per row or per column of a tile at each step, the rows of each id summed in
+//! umgen-cuda's `kernels/train/lookup.cu`: a unit per row or per column of a tile at each step, the rows of each id summed in
 //! their order). On the other training backends it splits the rows into `k` chunks, scatters each chunk
 //! into its own copy of the table (`scatter` along the vocabulary axis of a `[k, vocab, d]` zero tensor, `k ·
 //! d` units of `rows / k` rows each) and sums the copies. Elsewhere it is burn's lookup.

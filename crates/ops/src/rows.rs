@@ -6,10 +6,10 @@
 //! `small` step spent 41 ms in 37 such sums of 1.1 ms each (docs/decisions/007-memory-bound-training-kernels.md), where the data they read
 //! takes 0.04 ms. [`add`] is a custom autodiff operation on the training backends whose forward pass is
 //! burn's broadcast (so element-wise fusion around it is unchanged) and whose backward pass sums the rows
-//! with [`sum`]: rows in groups, then the groups (on CUDA one kernel each, `rows/rows.cu`, whose blocks
+//! with `sum`: rows in groups, then the groups (on CUDA one kernel each, umgen-cuda's `kernels/train/rows.cu`, whose blocks
 //! read whole row segments; burn's reductions of the groups gave each column one unit, 15–20 µs for a
 //! `[256, 384]` matrix). The layer norms' scales and shifts (`norm.rs`) and the recomputed layers
-//! (`recompute/math.rs`) use [`sum`] in their hand-written backward passes. Elsewhere (inference backends,
+//! (`recompute/math.rs`) use `sum` in their hand-written backward passes. Elsewhere (inference backends,
 //! backends this workspace does not train on) [`add`] is burn's broadcast.
 
 #[cfg(feature = "cuda")]
@@ -41,7 +41,7 @@ type SumFn<B> = fn(Tensor<B, 2>) -> Tensor<B, 1>;
 
 /// Sum over every row of `[.., d]` (f32 or bf16): `[d]` in f32. In two stages (rows in groups, then the groups): burn's reduction
 /// of a `[70,368, 384]` matrix along its rows in one go gives each column one unit. On CUDA the stages are
-/// `rows/rows.cu`'s kernel; elsewhere [`staged`].
+/// umgen-cuda's `kernels/train/rows.cu`'s kernel; elsewhere [`staged`].
 pub(crate) fn sum<I: Backend, const D: usize>(x: Tensor<I, D>) -> Tensor<I, 1> {
     let d = x.dims()[D - 1];
     let x = x.reshape([-1, d as i32]);
@@ -76,7 +76,7 @@ pub fn add<B: Backend, const D: usize>(x: Tensor<B, D>, p: Tensor<B, 1>) -> Tens
 
 /// [`add`] whose backward pass passes the incoming gradient on to `x` in `grad` (where given): where `x`
 /// is a product whose backward pass reads its gradient in bf16, the bias's gradient (f32) is summed and the
-/// bf16 copy written in one pass ([`sum_cast`]), where the sum and then the product's cast read it twice.
+/// bf16 copy written in one pass (`sum_cast`), where the sum and then the product's cast read it twice.
 pub fn add_for<B: Backend, const D: usize>(
     x: Tensor<B, D>,
     p: Tensor<B, 1>,

@@ -356,7 +356,7 @@ impl Compiled {
     }
 }
 
-/// A kernel source (`norm/norm.cu`, …) as NVRTC compiles it: after the warp primitives of
+/// A kernel source (umgen-cuda's `kernels/train/norm.cu`, …) as NVRTC compiles it: after the warp primitives of
 /// `warp_device.cuh` and the bf16 stores of `bf16.cuh`, which it cannot include itself (NVRTC resolves no
 /// include files).
 pub(crate) fn kernel_source(source: &str) -> String {

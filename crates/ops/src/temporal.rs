@@ -7,7 +7,7 @@
 //! burn's attention over 8 keys runs matrix products and a softmax for tiles of 8 × 8: in a profiled
 //! `small` step (docs/decisions/007-memory-bound-training-kernels.md) the temporal attention and its transpositions took about 1.8 ms of each
 //! TAR layer's forward pass. On the training backends [`over_time_for`] hands out a custom autodiff
-//! operation whose passes are [`TemporalAttention`]'s: on CUDA one kernel each (`temporal/temporal.cu`,
+//! operation whose passes are [`TemporalAttention`]'s: on CUDA one kernel each (umgen-cuda's `kernels/train/temporal.cu`,
 //! one warp per position and head, up to 32 frames) reading the operands in place, so the layer's other
 //! operations (norms, products, MLP) work on `[b · t · n, d]` rows with no transposition at all; on the
 //! CPU the tiled passes of [`crate::attention`] after the same transpositions as before.

@@ -7,7 +7,7 @@
 //! row's log-sum-exp and, in the backward pass, the gradient in one expression: `g · (softmax − q)`, with
 //! q the target distribution of [`crate::smoothing::Targets`] scattered in. Elsewhere (inference backends)
 //! it is `log_softmax` and [`crate::smoothing::nll_sum`]. The two passes over the logits are
-//! [`FusedXent`]'s: on CUDA one kernel each (`xent/xent.cu`, a warp a row: an online log-sum-exp forward,
+//! [`FusedXent`]'s: on CUDA one kernel each (umgen-cuda's `kernels/train/xent.cu`, a warp a row: an online log-sum-exp forward,
 //! one read and one write backward) unless `train.kernels.xent = "burn"`; on the CPU burn's operations
 //! ([`lse_decomposed`], [`grad_decomposed`]).
 

@@ -45,7 +45,7 @@ impl Slotted<'_> {
     pub(super) fn source(&self) -> String {
         let mut s = format!(
             "#define UMGEN_ADAMW_SLOTS {ADAMW_SLOTS}\n#define UMGEN_SUMSQ_SLOTS {SUMSQ_SLOTS}\n{}\n",
-            side::kernel_source(include_str!("adamw.cu"))
+            side::kernel_source(umgen_cuda::source::train::ADAMW)
         );
         s.push_str(&format!(
             "extern \"C\" __global__ void __launch_bounds__(UMGEN_ADAMW_THREADS) {}({}",

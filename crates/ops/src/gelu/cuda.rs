@@ -162,7 +162,7 @@ impl side::SidePass for Pass {
 
 /// The kernels' source as NVRTC compiles it.
 fn source() -> Result<String, String> {
-    Ok(side::kernel_source(include_str!("gelu.cu")))
+    Ok(side::kernel_source(umgen_cuda::source::train::GELU))
 }
 
 /// Launches the forward pass (`dh` `None`: gelu(y + b)) or the backward pass (`dh · gelu'(y + b)` and the

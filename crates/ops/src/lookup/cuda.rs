@@ -89,7 +89,7 @@ impl side::SidePass for Pass {
 
 /// The kernels' source as NVRTC compiles it.
 fn source() -> Result<String, String> {
-    Ok(side::kernel_source(include_str!("lookup.cu")))
+    Ok(side::kernel_source(umgen_cuda::source::train::LOOKUP))
 }
 
 /// Launches the six kernels over contiguous `g` `[rows, d]` (f32) and `ids` `[rows]` (i32), returning the

@@ -227,7 +227,7 @@ fn build(like: &Primitive) -> Result<Compiled, String> {
 
 /// The kernels' source as NVRTC compiles it.
 fn source() -> Result<String, String> {
-    Ok(side::kernel_source(include_str!("norm.cu")))
+    Ok(side::kernel_source(umgen_cuda::source::train::NORM))
 }
 
 /// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y in `out`'s format,

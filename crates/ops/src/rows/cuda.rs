@@ -103,7 +103,7 @@ impl side::SidePass for Pass {
 
 /// The kernel's source as NVRTC compiles it.
 fn source() -> Result<String, String> {
-    Ok(side::kernel_source(include_str!("rows.cu")))
+    Ok(side::kernel_source(umgen_cuda::source::train::ROWS))
 }
 
 /// Launches the kernel over contiguous f32 or bf16 `x` `[rows, d]`: into `groups` partial rows (f32), then

@@ -234,7 +234,7 @@ fn build(like: &Primitive) -> Result<Compiled, String> {
 
 /// The kernels' source as NVRTC compiles it.
 fn source() -> Result<String, String> {
-    Ok(side::kernel_source(include_str!("temporal.cu")))
+    Ok(side::kernel_source(umgen_cuda::source::train::TEMPORAL))
 }
 
 /// Strides of a contiguous `[b, t, n, width]` tensor's first three axes.

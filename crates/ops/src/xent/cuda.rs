@@ -155,7 +155,7 @@ fn build(like: &Primitive) -> Result<Compiled, String> {
 
 /// The kernels' source as NVRTC compiles it (two kernels: every entry compiles all of it).
 fn source() -> Result<String, String> {
-    Ok(side::kernel_source(include_str!("xent.cu")))
+    Ok(side::kernel_source(umgen_cuda::source::train::XENT))
 }
 
 /// Runs the forward pass on contiguous logits `x` `[rows, v]` (`grads` `None`: the rows' log-sum-exp) or

@@ -1,16 +1,9 @@
-//! The operations on the CPU: the tiled attention against burn's, mixed precision, and the CUDA C kernels
-//! run on the host by their emulators.
+//! The operations on the CPU: the tiled attention against burn's, and mixed precision. (The CUDA C
+//! kernels' host emulators run in umgen-cuda's tests.)
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod attention;
-mod emulator;
-mod gelu;
-mod lookup;
-mod norm;
 mod precision;
-mod rows;
-mod temporal;
-mod xent;
 
 /// Held while a test seeds burn and draws from it.
 static SEEDED: std::sync::Mutex<()> = std::sync::Mutex::new(());

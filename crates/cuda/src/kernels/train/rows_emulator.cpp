@@ -3,10 +3,10 @@
 // bit-identical on blocks of another size:
 //
 //   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/rows-emu
-//       crates/ops/src/rows/rows_emulator.cpp && /tmp/rows-emu
+//       crates/cuda/src/kernels/train/rows_emulator.cpp && /tmp/rows-emu
 //
-// (`crates/ops/tests/ops/rows.rs` runs it in the test suite.) Exit status 0 when every case agrees.
-#include "../../../cuda/src/kernels/warp_emulator.h"
+// (`crates/cuda/tests/training_kernels.rs` runs it in the test suite.) Exit status 0 when every case agrees.
+#include "../warp_emulator.h"
 #include "rows.cu"
 
 #include <cstring>

@@ -3,13 +3,13 @@
 // a double-precision reference:
 //
 //   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/temporal-emu
-//       crates/ops/src/temporal/temporal_emulator.cpp && /tmp/temporal-emu
+//       crates/cuda/src/kernels/train/temporal_emulator.cpp && /tmp/temporal-emu
 //
-// (`crates/ops/tests/ops/temporal.rs` runs it in the test suite.) Queries come from a `[b, t, n,
+// (`crates/cuda/tests/training_kernels.rs` runs it in the test suite.) Queries come from a `[b, t, n,
 // d]` buffer, keys and values from the two halves of a `[b, t, n, 2d]` one (as the layers' products give
 // them), and the key and value gradients go to the two halves of one buffer. Exit status 0 when every case
 // agrees within f32 tolerance.
-#include "../../../cuda/src/kernels/warp_emulator.h"
+#include "../warp_emulator.h"
 #include "temporal.cu"
 
 struct Case {

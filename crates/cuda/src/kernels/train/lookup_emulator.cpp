@@ -4,11 +4,11 @@
 // fixes them):
 //
 //   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/lookup-emu
-//       crates/ops/src/lookup/lookup_emulator.cpp && /tmp/lookup-emu
+//       crates/cuda/src/kernels/train/lookup_emulator.cpp && /tmp/lookup-emu
 //
-// (`crates/ops/tests/ops/lookup.rs` runs it in the test suite.) Exit status 0 when every case
+// (`crates/cuda/tests/training_kernels.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees.
-#include "../../../cuda/src/kernels/warp_emulator.h"
+#include "../warp_emulator.h"
 #include "lookup.cu"
 
 #include <cstring>

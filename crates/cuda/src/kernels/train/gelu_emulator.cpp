@@ -2,13 +2,13 @@
 // compares their results with a double-precision reference:
 //
 //   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/gelu-emu
-//       crates/ops/src/gelu/gelu_emulator.cpp && /tmp/gelu-emu
+//       crates/cuda/src/kernels/train/gelu_emulator.cpp && /tmp/gelu-emu
 //
-// (`crates/ops/tests/ops/gelu.rs` runs it in the test suite.) Exit status 0 when every case
+// (`crates/cuda/tests/training_kernels.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees: f32 outputs within f32 tolerance, bf16 outputs within half a bf16 step (2⁻⁸) of the largest
 // reference value.
 #include <cstring>
-#include "../../../cuda/src/kernels/warp_emulator.h"
+#include "../warp_emulator.h"
 #include "gelu.cu"
 
 struct Case {

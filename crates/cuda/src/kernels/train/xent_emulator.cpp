@@ -2,11 +2,11 @@
 // warp shuffle emulated, and compares their results with a double-precision reference:
 //
 //   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/xent-emu
-//       crates/ops/src/xent/xent_emulator.cpp && /tmp/xent-emu
+//       crates/cuda/src/kernels/train/xent_emulator.cpp && /tmp/xent-emu
 //
-// (`crates/ops/tests/ops/xent.rs` runs it in the test suite.) Exit status 0 when every case
+// (`crates/cuda/tests/training_kernels.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees within f32 tolerance.
-#include "../../../cuda/src/kernels/warp_emulator.h"
+#include "../warp_emulator.h"
 #include "xent.cu"
 
 struct Case {

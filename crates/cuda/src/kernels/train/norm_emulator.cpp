@@ -2,11 +2,11 @@
 // warp shuffle emulated, and compares their results with a double-precision reference:
 //
 //   g++ -std=c++20 -O2 -pthread -Wno-unknown-pragmas -o /tmp/norm-emu
-//       crates/ops/src/norm/norm_emulator.cpp && /tmp/norm-emu
+//       crates/cuda/src/kernels/train/norm_emulator.cpp && /tmp/norm-emu
 //
-// (`crates/ops/tests/ops/norm.rs` runs it in the test suite.) Exit status 0 when every case
+// (`crates/cuda/tests/training_kernels.rs` runs it in the test suite.) Exit status 0 when every case
 // agrees within f32 tolerance.
-#include "../../../cuda/src/kernels/warp_emulator.h"
+#include "../warp_emulator.h"
 #include "norm.cu"
 // The bound entry points (which cubecl's stream launches) of the `small` and `paper` widths.
 NORM_BOUND_KERNELS(12)
