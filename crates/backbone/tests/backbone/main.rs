@@ -9,6 +9,7 @@ mod ordinal;
 mod precision;
 mod recompute;
 
+use burn::module::Module;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -146,19 +147,25 @@ pub fn model<B: Backend>() -> Backbone<B> {
 /// The test model with its products in `precision` (the same parameters whatever the precision).
 pub fn model_in<B: Backend>(precision: Precision) -> Backbone<B> {
     // burn's seed is one generator for the process: tests on parallel threads would make their models
-    // from it in whatever order the threads take. One at a time, each model is the seed's.
+    // from it in whatever order the threads take. One at a time, each model is the seed's. burn draws a
+    // parameter when it is first read, so the record is taken (every parameter drawn) under the lock and
+    // loaded into a second model, whose own draws are never made.
     let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     B::seed(&Default::default(), 3);
     let cfg = BackboneConfig {
         precision,
         ..config()
     };
-    Backbone::new(&cfg, &spec(), &Default::default()).unwrap()
+    let record = Backbone::<B>::new(&cfg, &spec(), &Default::default())
+        .unwrap()
+        .into_record();
+    Backbone::new(&cfg, &spec(), &Default::default())
+        .unwrap()
+        .load_record(record)
 }
 
 #[test]
 fn parameter_count_matches_the_built_model() {
-    use burn::module::Module;
     let m = model::<F>();
     assert_eq!(m.num_params(), spec().param_count(&config()));
     let mut untracked = spec();
