@@ -9,12 +9,12 @@
 //! them. It is always built, so that a host executor can run the same programs on the CPU (the tests, and
 //! the reference a GPU run is checked against).
 //!
-//! With the `cuda` feature, [`gpu::CudaExec`] runs them on a GPU: the kernels in `src/kernels/*.cu` are CUDA
+//! With the `cuda` feature, `gpu::CudaExec` runs them on a GPU: the kernels in `src/kernels/*.cu` are CUDA
 //! C compiled once by NVRTC at start-up for the element type of the weights (bf16 or f32), as machine code
 //! kept in [`kernel_cache_dir`]; products of many rows go to cuBLAS, and a sequence of operations that
 //! repeats (the decoding step) is captured once as a CUDA graph and replayed, so that a step costs one
 //! launch from the host. Every `unsafe` of the GPU path
-//! is in [`gpu`]; each launch first checks that every buffer it names holds the elements the kernel reads
+//! is in `gpu`; each launch first checks that every buffer it names holds the elements the kernel reads
 //! or writes through it.
 //!
 //! The kernels also run on the host under `kernels/warp_emulator.h` (every CUDA thread a std::thread, warp
