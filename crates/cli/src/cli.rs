@@ -179,6 +179,10 @@ pub struct SumoArgs {
     /// Use every n-th qualifying vehicle as an ego.
     #[arg(long, default_value_t = 1)]
     pub ego_every: usize,
+    /// SUMO's traffic-light states for the trace (the output of `<timedEvent type="SaveTLSStates">`):
+    /// stored beside the log, every frame then lists the signal heads in its view (`extras["signals"]`).
+    #[arg(long, value_name = "FILE")]
+    pub tls: Option<PathBuf>,
 }
 
 /// Arguments of `umgen data info`.

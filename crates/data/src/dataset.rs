@@ -3,6 +3,7 @@
 use crate::error::{DataError, Result, corrupt, io};
 use crate::index::{ClipEntry, Index};
 use crate::log::LogShard;
+use crate::signals::Signals;
 use crate::view::{ViewOptions, frames};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -26,6 +27,7 @@ pub struct Dataset {
     options: ViewOptions,
     logs: Mutex<HashMap<String, Arc<LogShard>>>,
     networks: Mutex<HashMap<String, Arc<RoadNetwork>>>,
+    signals: Mutex<HashMap<String, Arc<Signals>>>,
 }
 
 impl Dataset {
@@ -38,6 +40,7 @@ impl Dataset {
             options: ViewOptions::default(),
             logs: Mutex::new(HashMap::new()),
             networks: Mutex::new(HashMap::new()),
+            signals: Mutex::new(HashMap::new()),
         })
     }
 
@@ -130,6 +133,29 @@ impl Dataset {
         Ok(net)
     }
 
+    /// The traffic signals of log `id`, when it has them (loaded on first use and shared).
+    pub fn signals(&self, id: &str) -> Result<Option<Arc<Signals>>> {
+        let Some(entry) = self
+            .index
+            .logs
+            .iter()
+            .find(|l| l.id == id)
+            .and_then(|l| l.signals.as_ref())
+        else {
+            return Ok(None);
+        };
+        let mut all = self
+            .signals
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(s) = all.get(id) {
+            return Ok(Some(s.clone()));
+        }
+        let s = Arc::new(Signals::load(&self.root.join(&entry.file), entry.crc32)?);
+        all.insert(id.into(), s.clone());
+        Ok(Some(s))
+    }
+
     /// The id of the road network of clip `clip`'s log, if the index names one.
     pub fn clip_network_id(&self, clip: usize) -> Option<&str> {
         let entry = self.index.clips.get(clip)?;
@@ -174,7 +200,7 @@ impl Dataset {
         };
         let slices: Vec<_> = steps.iter().map(|s| s.states()).collect();
         let dt = self.index.frame_interval * gap as f64;
-        let frames = frames(
+        let mut frames = frames(
             log.path(),
             log.tracks(),
             entry.ego_track,
@@ -183,6 +209,10 @@ impl Dataset {
             dt,
             &self.options,
         )?;
+        if let Some(signals) = self.signals(&entry.log)? {
+            let steps: Vec<usize> = (0..frames_n).map(|i| first + i * gap).collect();
+            signals.attach(&mut frames, &steps, self.options.agent_range);
+        }
         let network = self.network(self.clip_network_id(clip).unwrap_or_default())?;
         let id = if start == 0 && gap == 1 && frames_n == entry.frames {
             entry.id.clone()

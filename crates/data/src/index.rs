@@ -63,6 +63,21 @@ pub struct LogEntry {
     pub split: String,
     /// Statistics over the frames of its clips.
     pub stats: Stats,
+    /// Its traffic signals, when they were imported (`umgen data sumo --tls`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub signals: Option<SignalsEntry>,
+}
+
+/// A log's traffic signals file ([`crate::Signals`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SignalsEntry {
+    /// Path relative to the dataset directory.
+    pub file: String,
+    /// CRC32 of the file.
+    pub crc32: u32,
+    /// Signal heads.
+    pub heads: usize,
 }
 
 /// A clip: `frames` consecutive steps of one log seen from one ego track.

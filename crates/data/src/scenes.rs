@@ -148,6 +148,7 @@ pub fn write_scene_dataset(out: &Path, clips: &[SceneClip], prefix: &str, split:
             tracks: log.tracks.len(),
             split: split.into(),
             stats,
+            signals: None,
         });
         index.clips.push(entry);
     }

@@ -21,6 +21,7 @@ fn sumo(a: &SumoArgs) -> anyhow::Result<()> {
     o.network_name.clone_from(&a.network_name);
     o.split.clone_from(&a.split);
     (o.clip_frames, o.min_frames, o.ego_every) = (a.clip_frames, a.min_frames, a.ego_every);
+    o.tls.clone_from(&a.tls);
     let spinner =
         indicatif::ProgressBar::new_spinner().with_message(format!("importing {}", a.fcd.display()));
     spinner.enable_steady_tick(std::time::Duration::from_millis(120));
@@ -28,7 +29,7 @@ fn sumo(a: &SumoArgs) -> anyhow::Result<()> {
     spinner.finish_and_clear();
     let r = report?;
     tracing::info!(
-        "{}: log `{}` on network `{}`: {} steps, {} actors, {} clips, {} frames{}",
+        "{}: log `{}` on network `{}`: {} steps, {} actors, {} clips, {} frames{}{}",
         a.out.display(),
         r.log,
         r.network,
@@ -36,6 +37,11 @@ fn sumo(a: &SumoArgs) -> anyhow::Result<()> {
         r.tracks,
         r.clips,
         r.frames,
+        if a.tls.is_some() {
+            format!(", {} signal heads", r.signal_heads)
+        } else {
+            String::new()
+        },
         if r.skipped > 0 {
             format!(" ({} records of unmodelled classes left out)", r.skipped)
         } else {

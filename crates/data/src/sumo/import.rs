@@ -2,9 +2,10 @@
 
 use super::fcd::parse_fcd;
 use super::net::parse_net;
+use super::tls::{parse_heads, parse_states};
 use super::types::TypeTable;
 use crate::error::{DataError, Result, corrupt, io};
-use crate::index::{ClipEntry, INDEX_FILE, Index, LogEntry, NetworkEntry};
+use crate::index::{ClipEntry, INDEX_FILE, Index, LogEntry, NetworkEntry, SignalsEntry};
 use crate::log::{Log, write_atomic};
 use crate::stats::clip_stats;
 use crate::view::ViewOptions;
@@ -49,6 +50,9 @@ pub struct ImportOptions {
     pub ego_every: usize,
     /// How frames are cut.
     pub view: ViewOptions,
+    /// SUMO's traffic-light states for the trace (`SaveTLSStates` output): stored beside the log, and
+    /// every frame then lists the signal heads in its view ([`crate::Signals`]).
+    pub tls: Option<PathBuf>,
 }
 
 impl ImportOptions {
@@ -67,6 +71,7 @@ impl ImportOptions {
             ego_classes: EGO_CLASSES.iter().map(|s| s.to_string()).collect(),
             ego_every: 1,
             view: ViewOptions::default(),
+            tls: None,
         }
     }
 }
@@ -88,6 +93,8 @@ pub struct ImportReport {
     pub frames: u64,
     /// Trace records of unmodelled classes left out.
     pub skipped: u64,
+    /// Signal heads imported with their states (0 without `tls`).
+    pub signal_heads: usize,
 }
 
 fn file_name(p: &Path) -> String {
@@ -112,6 +119,14 @@ pub fn import(options: &ImportOptions) -> Result<ImportReport> {
     let net = parse_net(&options.net, &net_id)?;
     let types = TypeTable::load(&options.types)?;
     let fcd = parse_fcd(&options.fcd, &net, &types)?;
+    let signals = match &options.tls {
+        Some(tls) => {
+            let heads = parse_heads(&options.net)?;
+            let log = &fcd.log;
+            Some(parse_states(tls, &heads, (log.t0, log.dt, log.steps.len()))?)
+        }
+        None => None,
+    };
     let out = &options.out;
     let mut index = if out.join(INDEX_FILE).exists() {
         Index::load(out)?
@@ -166,6 +181,18 @@ pub fn import(options: &ImportOptions) -> Result<ImportReport> {
             elements: net.network.element_count(),
         });
     }
+    let signals = match &signals {
+        Some(s) => {
+            let file = format!("logs/{log_id}.signals.json");
+            let crc32 = s.save(&out.join(&file))?;
+            Some(SignalsEntry {
+                file,
+                crc32,
+                heads: s.heads.len(),
+            })
+        }
+        None => None,
+    };
     fcd.log.write(&out.join(&log_file))?;
     let report = ImportReport {
         log: log_id.clone(),
@@ -175,6 +202,7 @@ pub fn import(options: &ImportOptions) -> Result<ImportReport> {
         clips: clips.len(),
         frames: stats.frames,
         skipped: fcd.skipped,
+        signal_heads: signals.as_ref().map_or(0, |s| s.heads),
     };
     index.stats.merge(&stats);
     index.logs.push(LogEntry {
@@ -187,6 +215,7 @@ pub fn import(options: &ImportOptions) -> Result<ImportReport> {
         tracks: report.tracks,
         split: options.split.clone(),
         stats,
+        signals,
     });
     index.clips.extend(clips);
     index.check(&out.join(INDEX_FILE))?;

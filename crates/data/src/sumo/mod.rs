@@ -9,6 +9,7 @@ mod fcd;
 mod geometry;
 mod import;
 mod net;
+mod tls;
 mod types;
 mod xml;
 
@@ -16,4 +17,5 @@ pub use fcd::{Fcd, parse_fcd};
 pub use geometry::{offset, strip};
 pub use import::{EGO_CLASSES, ImportOptions, ImportReport, import};
 pub use net::{SumoNet, parse_net};
+pub use tls::{parse_heads, parse_states};
 pub use types::{TypeInfo, TypeTable, class_category, class_defaults};

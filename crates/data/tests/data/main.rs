@@ -5,6 +5,7 @@ mod format;
 mod geometry;
 mod import;
 mod scenes;
+mod signals;
 
 use std::path::{Path, PathBuf};
 
