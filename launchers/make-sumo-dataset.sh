@@ -5,7 +5,8 @@
 #
 # For each network generator (grid, spider, rand) it builds a road network with sidewalks, crossings and
 # traffic lights (netgenerate), makes vehicle, bicycle and pedestrian demand (randomTrips.py), simulates
-# it at 0.1 s recording every 0.5 s (sumo --fcd-output) and imports the trace (umgen data sumo).
+# it at 0.1 s recording every 0.5 s (sumo --fcd-output) and every traffic light's state (SaveTLSStates),
+# and imports both (umgen data sumo --tls).
 # SUMO comes from PyPI (eclipse-sumo) into a virtual environment, installed on first use.
 #
 # Options:
@@ -106,7 +107,9 @@ for gen in $NETWORKS; do
   trips -o "$w/bike.trips.xml" --seed $((seed + 1000)) -p "$(period 8)" --prefix b --vclass bicycle --validate --trip-attributes 'type="u_bike"'
   trips -o "$w/ped.trips.xml" --seed $((seed + 2000)) -p "$(period 3)" --prefix p --pedestrians --max-distance 800 --trip-attributes 'type="u_walker"'
   echo "make-sumo-dataset: $name: simulation" >&2
-  "$BIN/sumo" -n "$w/net.net.xml" -a "$WORK/vtypes.add.xml" -r "$w/veh.trips.xml,$w/bike.trips.xml,$w/ped.trips.xml" \
+  # Every traffic light's state at every step (the importer keeps those of the recorded steps).
+  printf '<additional>\n    <timedEvent type="SaveTLSStates" dest="%s"/>\n</additional>\n' "$w/tls.xml" >"$w/tls.add.xml"
+  "$BIN/sumo" -n "$w/net.net.xml" -a "$WORK/vtypes.add.xml,$w/tls.add.xml" -r "$w/veh.trips.xml,$w/bike.trips.xml,$w/ped.trips.xml" \
     --step-length 0.1 --device.fcd.period 0.5 --device.fcd.begin "$WARMUP" --end "$END" --lanechange.duration 2 \
     --time-to-teleport 120 --seed "$seed" --no-step-log --no-warnings --fcd-output "$w/fcd.xml" >"$w/sumo.log" 2>&1 \
     || die "sumo failed: $w/sumo.log"
@@ -114,7 +117,7 @@ for gen in $NETWORKS; do
   case " $TEST " in *" $gen "*) split=test ;; esac
   echo "make-sumo-dataset: $name: import ($split)" >&2
   # shellcheck disable=SC2086
-  $UMGEN data sumo --net "$w/net.net.xml" --fcd "$w/fcd.xml" --types "$WORK/vtypes.add.xml" --out "$OUT" \
-    --name "$name" --network-name "$name" --split "$split" --ego-every "$EGO_EVERY"
+  $UMGEN data sumo --net "$w/net.net.xml" --fcd "$w/fcd.xml" --tls "$w/tls.xml" --types "$WORK/vtypes.add.xml" \
+    --out "$OUT" --name "$name" --network-name "$name" --split "$split" --ego-every "$EGO_EVERY"
 done
 echo "make-sumo-dataset: wrote $OUT" >&2

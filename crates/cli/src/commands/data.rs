@@ -75,9 +75,13 @@ fn info(a: &InfoArgs) -> anyhow::Result<()> {
     }
     writeln!(out, "logs")?;
     for l in &idx.logs {
+        let signals = l
+            .signals
+            .as_ref()
+            .map_or(String::new(), |s| format!("  {} signal heads", s.heads));
         writeln!(
             out,
-            "  {:<16} {:<12} {:>6} steps {:>6} actors  {}",
+            "  {:<16} {:<12} {:>6} steps {:>6} actors  {}{signals}",
             l.id, l.network, l.steps, l.tracks, l.split
         )?;
     }
