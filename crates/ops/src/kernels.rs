@@ -169,7 +169,7 @@ pub enum NormKernel {
     /// One CUDA C kernel per pass (umgen-cuda's `kernels/train/norm.cu`). The default.
     #[default]
     Fused,
-    /// burn's decomposition, as before the kernels (for comparing them).
+    /// burn's decomposition (for comparing the kernels with it).
     Burn,
 }
 
@@ -180,7 +180,7 @@ pub enum GeluKernel {
     /// One operation per pass (`gelu::FusedGelu`: on CUDA one CUDA C kernel, umgen-cuda's `kernels/train/gelu.cu`). The default.
     #[default]
     Fused,
-    /// burn's bias add and GELU, as before the kernels (for comparing them).
+    /// burn's bias add and GELU (for comparing the kernels with them).
     Burn,
 }
 
@@ -192,7 +192,7 @@ pub enum XentKernel {
     /// One CUDA C kernel per pass (umgen-cuda's `kernels/train/xent.cu`). The default.
     #[default]
     Fused,
-    /// burn's operations, as before the kernels (for comparing them).
+    /// burn's operations (for comparing the kernels with them).
     Burn,
 }
 
@@ -203,7 +203,7 @@ pub enum AdamWChoice {
     /// One CUDA C kernel for all parameter tensors (umgen-cuda's `kernels/train/adamw.cu`). The default.
     #[default]
     Fused,
-    /// burn's AdamW, one chain of tensor operations per parameter tensor (as before the kernel).
+    /// burn's AdamW, one chain of tensor operations per parameter tensor (for comparing the kernel with it).
     Burn,
 }
 
@@ -214,8 +214,8 @@ pub enum KernelStream {
     /// cubecl's own stream, launched as cubecl kernels. The default.
     #[default]
     Cubecl,
-    /// A side stream per kernel family, ordered with cubecl's through device flags (as before; for
-    /// comparing the two).
+    /// A side stream per kernel family, ordered with cubecl's through device flags (for comparing the
+    /// two).
     Side,
 }
 
@@ -226,7 +226,7 @@ pub enum LaunchThread {
     /// cubecl's device thread, one blocking call per operation. The default.
     #[default]
     Device,
-    /// The calling thread, a blocking call per device pointer (as before; for comparing the two).
+    /// The calling thread, a blocking call per device pointer (for comparing the two).
     Caller,
 }
 

@@ -6,7 +6,7 @@
 //! about 0.7 ms forward, where reading the input once and writing the output takes 0.08 ms; the step has
 //! 26 of them. On the training backends [`layer_norm`] is instead a custom autodiff operation whose passes
 //! are [`FusedNorm`]'s: on CUDA, one kernel each (umgen-cuda's `kernels/train/norm.cu`, one warp a row); on the CPU, the same
-//! decomposition as before ([`forward_decomposed`], [`backward_decomposed`]), which CUDA also runs for
+//! decomposition ([`forward_decomposed`], [`backward_decomposed`]), which CUDA also runs for
 //! rows over 1,024 wide (counted by [`fallbacks`]). The operation keeps only its
 //! input (which the residual stream keeps anyway), the rows' means and `1/σ`. Where the output feeds
 //! products only, [`layer_norm_operand`] writes it in the products' format (bf16 under mixed precision),

@@ -10,7 +10,7 @@
 //! operation whose passes are [`TemporalAttention`]'s: on CUDA one kernel each (umgen-cuda's `kernels/train/temporal.cu`,
 //! one warp per position and head, up to 32 frames) reading the operands in place, so the layer's other
 //! operations (norms, products, MLP) work on `[b · t · n, d]` rows with no transposition at all; on the
-//! CPU the tiled passes of [`crate::attention`] after the same transpositions as before.
+//! CPU the tiled passes of [`crate::tiled`] after the transpositions that group each position's frames.
 
 #[cfg(feature = "cuda")]
 mod cuda;
