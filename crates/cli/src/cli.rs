@@ -125,8 +125,8 @@ pub struct TrainArgs {
     /// Continue from the newest good checkpoint in `train.out_dir`.
     #[arg(long)]
     pub resume: bool,
-    /// Stop after this many minutes, with a checkpoint (`--resume` continues), for machines lent for a
-    /// fixed time. Checked on logging steps (`train.log_every`).
+    /// Stop after this many minutes, with a checkpoint (`--resume` continues), for jobs with a wall-clock
+    /// budget. Checked on logging steps (`train.log_every`).
     #[arg(long, value_name = "MINUTES", value_parser = tokenizer::positive_minutes)]
     pub time_limit: Option<f64>,
     /// Data-parallel settings.

@@ -71,7 +71,7 @@ pub struct GenerateArgs {
     #[arg(long, value_name = "K", default_value_t = 0)]
     pub speculate: usize,
     /// Stop generating after this many minutes (the frame under way is finished) and write the frames
-    /// made so far, for machines lent for a fixed time.
+    /// made so far, for jobs with a wall-clock budget.
     #[arg(long, value_name = "MINUTES", value_parser = tokenizer::positive_minutes)]
     pub time_limit: Option<f64>,
     /// Keep the k most likely ids (0 = all), every modality. At an agent slot's first token pad keeps

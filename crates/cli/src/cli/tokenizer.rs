@@ -43,7 +43,7 @@ pub struct TokenizerTrainArgs {
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
     /// Stop after this many minutes of training (after a checkpoint; the tokenizer is written and a later
-    /// run with the same `--out` resumes), for machines lent for a fixed time.
+    /// run with the same `--out` resumes), for jobs with a wall-clock budget.
     #[arg(long, value_name = "MINUTES", value_parser = positive_minutes)]
     pub time_limit: Option<f64>,
     /// `cpu`, or `cuda:N` in builds with the `cuda` feature (`cuda` under a launcher: the GPU of
