@@ -102,10 +102,12 @@ impl Signals {
             .filter_map(|(i, h)| {
                 let (dx, dy) = (h.x - ego.x, h.y - ego.y);
                 let (x, y) = (c * dx + s * dy, -s * dx + c * dy);
+                if x.abs() > range || y.abs() > range {
+                    return None;
+                }
                 let heading = wrap_angle(h.heading - ego.heading);
                 let state = self.state(i, step) as u8;
-                (x.abs() <= range && y.abs() <= range)
-                    .then_some((x.hypot(y), [x as f32, y as f32, heading as f32, f32::from(state)]))
+                Some((x.hypot(y), [x as f32, y as f32, heading as f32, f32::from(state)]))
             })
             .collect();
         seen.sort_by(|a, b| a.0.total_cmp(&b.0));

@@ -203,9 +203,12 @@ impl TrainConfig {
             ));
         }
         if let Some((key, why)) = self.kernels.problem() {
+            // The key under `[train]` (`Kernels::problem` names it under `[train.kernels]`).
             let key = match key {
                 "attention_step" => "kernels.attention_step",
-                _ => "kernels.attention_block_mib",
+                "attention_block_mib" => "kernels.attention_block_mib",
+                "flash2_warps" => "kernels.flash2_warps",
+                _ => "kernels",
             };
             return Some((key, why));
         }

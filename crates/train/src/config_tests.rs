@@ -81,6 +81,12 @@ fn kernel_settings_parse_are_checked_and_resuming_may_change_them() {
         .problem()
         .expect("0 MiB");
     assert_eq!(key, "kernels.attention_block_mib");
+    let (key, why) = parse(r#"{"kernels": {"flash2_warps": 6}}"#)
+        .expect("parses")
+        .problem()
+        .expect("6 warps");
+    assert_eq!(key, "kernels.flash2_warps");
+    assert!(why.contains('6'), "{why}");
 }
 
 #[test]

@@ -126,7 +126,13 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         let mut model = broadcast_module(model, group.as_mut(), bucket)?;
         // The trainer's optimizer and clipping, so that the step is the one a run takes.
         type Inner<B> = <B as AutodiffBackend>::InnerBackend;
-        let by_turn_kernels: Vec<Kernels> = (0..turns).map(|t| hooks.kernels(t, &tc.kernels)).collect();
+        // Each turn's kernels and the optimizer's multi-tensor kernels for them, made once.
+        let by_turn_kernels: Vec<_> = (0..turns)
+            .map(|t| {
+                let k = hooks.kernels(t, &tc.kernels);
+                (k, umgen::ops::adamw::kernels::<Inner<B>>(&k))
+            })
+            .collect();
         let mut optim = FusedAdamW::<_, B>::new(tc.adamw_settings()?)
             .with_kernels(umgen::ops::adamw::kernels::<Inner<B>>(&tc.kernels));
         let batch = random_tokens::<B>(&spec, b, f, &dev);
@@ -150,10 +156,13 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             let split = i >= a.warmup + a.steps;
             let synced = split || i == 0;
             let turn = hooks.before_step(i)?;
-            let kernels = by_turn_kernels.get(turn).copied().unwrap_or(tc.kernels);
-            if turns > 1 {
-                optim.set_kernels(umgen::ops::adamw::kernels::<Inner<B>>(&kernels));
-            }
+            let kernels = match by_turn_kernels.get(turn) {
+                Some((k, adamw)) if turns > 1 => {
+                    optim.set_kernels(adamw.clone());
+                    *k
+                }
+                _ => tc.kernels,
+            };
             if i == a.warmup {
                 counts[0] = crate::device::device_thread(device);
                 hooks.timed(true)?;

@@ -6,7 +6,7 @@
 use super::xml::{Item, XmlStream};
 use crate::error::Result;
 use crate::signals::{LightState, SignalHead, Signals};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::Path;
 
 /// The signal heads of the network at `path`, by traffic light and link index (one head per index: SUMO
@@ -40,8 +40,9 @@ pub fn parse_heads(path: &Path) -> Result<Vec<SignalHead>> {
         }
     }
     let mut heads: Vec<SignalHead> = Vec::new();
+    let mut seen: HashSet<(String, usize)> = HashSet::new();
     for (tl, link, lane, offset) in links {
-        if heads.iter().any(|h| h.tl == tl && h.link == link) {
+        if !seen.insert((tl.clone(), link)) {
             continue;
         }
         let Some(&([x, y], heading)) = lane_ends.get(&lane) else {
