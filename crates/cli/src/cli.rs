@@ -241,6 +241,10 @@ pub struct VizArgs {
     /// Side of the BEV in pixels (the map covers 128 m).
     #[arg(long, default_value_t = 512)]
     pub size: usize,
+    /// With `--data`: also draw what this config's modalities mark on the BEV (a plug-in's traffic lights,
+    /// say). A generated scene's bundle names its modalities itself.
+    #[arg(long, value_name = "FILE", conflicts_with = "generated")]
+    pub config: Option<PathBuf>,
 }
 
 /// A config file and overrides, shared by every command that reads a config.

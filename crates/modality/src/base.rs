@@ -1,6 +1,7 @@
 //! The [`Modality`] trait: one implementation per kind of scene content.
 
 use crate::error::Result;
+use crate::mark::Mark;
 use crate::scalar::ClampCount;
 use crate::spec::{Codebook, ModalitySpec};
 use umgen_scene::{Frame, SceneClip};
@@ -51,6 +52,14 @@ pub trait Modality: Send + Sync + std::fmt::Debug {
 
     /// Values clamped into range since the modality was built, per field.
     fn clamp_report(&self) -> Vec<ClampCount> {
+        Vec::new()
+    }
+
+    /// What `umgen viz` draws for this modality's part of `frame` on the bird's-eye view, over the map
+    /// and agents. The built-in content (map, agents, ego, camera) is drawn by viz itself; a modality
+    /// that reads [`Frame::extras`] returns its marks here so that pictures show it.
+    fn marks(&self, frame: &Frame) -> Vec<Mark> {
+        let _ = frame;
         Vec::new()
     }
 }

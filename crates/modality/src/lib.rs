@@ -10,6 +10,8 @@
 //! length N and a fingerprint that checkpoints use to refuse tokens they were not trained on.
 //! A [`ModalityCatalog`] maps config kinds to factories, so a config file can name modalities.
 //!
+//! A modality may also draw its content on pictures ([`Modality::marks`], as [`Mark`]s).
+//!
 //! [`Discretizer`] implements the paper's scalar discretisation with clamp counting, for modalities
 //! made of real values.
 //!
@@ -41,6 +43,7 @@
 mod base;
 mod error;
 mod layout;
+mod mark;
 mod registry;
 mod scalar;
 mod spec;
@@ -48,6 +51,7 @@ mod spec;
 pub use base::{DecodeReport, Modality};
 pub use error::{ModalityError, Result};
 pub use layout::{FrameLayout, Position, Segment, Slot};
+pub use mark::Mark;
 pub use registry::{Factory, LayoutConfig, ModalityCatalog, ModalityRegistry, parse_settings};
 pub use scalar::{Clamp, ClampCount, Discretizer, ScalarBins};
 pub use spec::{Codebook, Grid, ModalitySpec, Tracks, downsampling};

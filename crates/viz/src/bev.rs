@@ -1,6 +1,8 @@
-//! The bird's-eye view of a frame: map layers, agent boxes with velocity arrows, the ego box.
+//! The bird's-eye view of a frame: map layers, agent boxes with velocity arrows, the ego box, and the
+//! marks modalities add.
 
 use crate::image::Rgb;
+use umgen_modality::Mark;
 use umgen_render::MapView;
 use umgen_scene::{Agent, AgentCategory, MapLayer, MapRaster};
 
@@ -83,6 +85,38 @@ pub fn draw_bev(view: &MapView, raster: Option<&MapRaster>, agents: &[Agent], eg
     img
 }
 
+/// Draws modality marks (ego frame, metres) onto a BEV of `view`; widths and radii below a pixel are drawn
+/// one pixel wide, so that small marks stay visible.
+pub fn draw_marks(img: &mut Rgb, view: &MapView, marks: &[Mark]) {
+    let scale = view.size[1] as f64 / view.extent_m;
+    for m in marks {
+        match *m {
+            Mark::Line {
+                from,
+                to,
+                width,
+                colour,
+            } => img.line(
+                view.ego_to_pixel(from),
+                view.ego_to_pixel(to),
+                (width * scale).max(1.0),
+                colour,
+            ),
+            Mark::Dot { at, radius, colour } => {
+                let [cx, cy] = view.ego_to_pixel(at);
+                let r = (radius * scale).max(1.0);
+                let disc: Vec<[f64; 2]> = (0..16)
+                    .map(|k| {
+                        let a = f64::from(k) * std::f64::consts::TAU / 16.0;
+                        [cx + r * a.cos(), cy + r * a.sin()]
+                    })
+                    .collect();
+                img.canvas().fill_polygon(&disc, colour);
+            }
+        }
+    }
+}
+
 /// Pixel corners of a box: front-left, front-right, rear-right, rear-left.
 fn box_corners(view: &MapView, x: f64, y: f64, heading: f64, length: f64, width: f64) -> [[f64; 2]; 4] {
     let (s, c) = heading.sin_cos();
@@ -90,4 +124,41 @@ fn box_corners(view: &MapView, x: f64, y: f64, heading: f64, length: f64, width:
         let (lx, ly) = (sl * length / 2.0, sw * width / 2.0);
         view.ego_to_pixel([x + c * lx - s * ly, y + s * lx + c * ly])
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn marks_land_where_the_view_puts_their_ego_coordinates() {
+        let view = MapView::default();
+        let mut img = Rgb::filled(view.size[1], view.size[0], BACKGROUND);
+        let (red, green) = ([200, 10, 10], [10, 200, 10]);
+        let marks = [
+            Mark::Dot {
+                at: [20.0, 10.0],
+                radius: 1.5,
+                colour: red,
+            },
+            Mark::Line {
+                from: [-20.0, -10.0],
+                to: [-20.0, 10.0],
+                width: 1.0,
+                colour: green,
+            },
+        ];
+        draw_marks(&mut img, &view, &marks);
+        let at = |p: [f64; 2]| {
+            let [c, r] = view.ego_to_pixel(p);
+            img.get(r as usize, c as usize).unwrap()
+        };
+        assert_eq!(at([20.0, 10.0]), red);
+        assert_eq!(at([-20.0, 0.0]), green);
+        assert_eq!(at([-20.0, 5.0]), green);
+        // The mirror images and the space between stay background.
+        assert_eq!(at([20.0, -10.0]), BACKGROUND);
+        assert_eq!(at([20.0, 13.0]), BACKGROUND);
+        assert_eq!(at([0.0, 0.0]), BACKGROUND);
+    }
 }

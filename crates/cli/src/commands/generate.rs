@@ -212,6 +212,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     )?;
     super::scenes::draw(
         &bundle,
+        &registry,
         &decoded[0],
         &a.out.join("rollout.gif"),
         a.png.then_some(a.out.as_path()),

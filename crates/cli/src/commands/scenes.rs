@@ -65,6 +65,7 @@ pub fn map_view(bundle: &Bundle) -> anyhow::Result<Option<umgen_render::MapView>
 /// decoded agents, camera below; the first `context` frames are labelled CTX, the others GEN.
 pub fn draw(
     bundle: &Bundle,
+    registry: &ModalityRegistry,
     clip: &SceneClip,
     gif: &Path,
     png_dir: Option<&Path>,
@@ -78,7 +79,9 @@ pub fn draw(
         .map(|(i, f)| {
             // Small rasters (the tiny config's 64 px) are enlarged to about 256 px wide.
             let k = (256 / view.size[1].max(1)).max(1);
-            let mut pic = umgen_viz::scene_picture(&view, f.map.as_ref(), f.image.as_ref(), f, "").scaled(k);
+            let marks = super::viz::marks(registry, f);
+            let mut pic =
+                umgen_viz::scene_picture(&view, f.map.as_ref(), f.image.as_ref(), f, &marks, "").scaled(k);
             let label = if i < context {
                 format!("CTX {i} {} AGENTS", f.agents.len())
             } else {

@@ -2,6 +2,9 @@
 
 use crate::cli::VizArgs;
 use anyhow::Context;
+use umgen::UmgenConfig;
+use umgen::modality::{Mark, ModalityRegistry};
+use umgen::scene::Frame;
 use umgen_data::Dataset;
 use umgen_render::{Camera, MapView};
 
@@ -30,6 +33,16 @@ pub fn run(a: &VizArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         a.start
     );
     let scene = ds.read_window(clip, a.start, n, gap)?;
+    let registry = match &a.config {
+        Some(path) => {
+            let (config, missing) = UmgenConfig::load(path, &[])?.without_missing_tokenizers();
+            for m in missing {
+                tracing::warn!("modality `{m}`: its tokenizer does not exist; it draws no marks");
+            }
+            Some(config.registry(&kinds.catalog()?)?)
+        }
+        None => None,
+    };
     let network = scene.network.clone().context("the clip has no road network")?;
     let view = MapView {
         size: [a.size, a.size],
@@ -46,7 +59,8 @@ pub fn run(a: &VizArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         let raster = view.render(&network, &pose);
         let image = camera.render(&network, &pose, &f.agents);
         let label = format!("{} T={:.1}S {} AGENTS", entry.id, f.time, f.agents.len());
-        let pic = umgen_viz::scene_picture(&view, Some(&raster), Some(&image), f, &label);
+        let marks = registry.as_ref().map(|r| marks(r, f)).unwrap_or_default();
+        let pic = umgen_viz::scene_picture(&view, Some(&raster), Some(&image), f, &marks, &label);
         if let Some(dir) = &a.png_dir {
             umgen_viz::write_png(&dir.join(format!("frame-{i:04}.png")), &pic)?;
         }
@@ -75,12 +89,11 @@ fn generated(a: &VizArgs, dir: &std::path::Path, kinds: &crate::Kinds) -> anyhow
     let rows: Vec<Vec<u32>> = serde_json::from_value(scene.clone()).context("tokens.json: scene rows")?;
     let context = tokens["context_frames"].as_u64().unwrap_or(0) as usize;
     let interval = meta["interval"].as_f64().unwrap_or(0.5);
-    let (clip, malformed) =
-        super::scenes::decode(&registry, &rows, &umgen::scene::Frame::default(), interval)?;
+    let (clip, malformed) = super::scenes::decode(&registry, &rows, &Frame::default(), interval)?;
     if malformed > 0 {
         tracing::warn!("{malformed} malformed token group(s) were skipped while decoding");
     }
-    super::scenes::draw(&bundle, &clip, &a.out, a.png_dir.as_deref(), context)?;
+    super::scenes::draw(&bundle, &registry, &clip, &a.out, a.png_dir.as_deref(), context)?;
     tracing::info!(
         "{}: scene {} ({context} context + {} generated frames)",
         a.out.display(),
@@ -88,4 +101,13 @@ fn generated(a: &VizArgs, dir: &std::path::Path, kinds: &crate::Kinds) -> anyhow
         rows.len() - context
     );
     Ok(())
+}
+
+/// What every modality of `registry` marks on the BEV of `frame`.
+pub fn marks(registry: &ModalityRegistry, frame: &Frame) -> Vec<Mark> {
+    registry
+        .modalities()
+        .iter()
+        .flat_map(|m| m.marks(frame))
+        .collect()
 }
