@@ -1,7 +1,6 @@
 //! Workspace-level integration tests, one module per concern.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-mod custom_modality;
 mod tokenize;
 mod vendor_channel;
 mod vendor_ring;
