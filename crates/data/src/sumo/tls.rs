@@ -1,5 +1,5 @@
-//! SUMO's traffic lights as [`Signals`]: each controlled connection of a `net.xml` (`<connection tl=
-//! linkIndex=>`) is a signal head at the end of the lane it leaves, and the output of SUMO's
+//! SUMO's traffic lights as [`Signals`]: each controlled vehicle connection of a `net.xml` (`<connection tl=
+//! linkIndex=>` from a normal edge) is a signal head at the end of the lane it leaves, and the output of SUMO's
 //! `SaveTLSStates` (`<tlsState time= id= state=>`, one character per link index, written every step) gives
 //! each head's state over the log's steps.
 
@@ -10,13 +10,16 @@ use std::collections::{HashMap, HashSet};
 use std::path::Path;
 
 /// The signal heads of the network at `path`, by traffic light and link index (one head per index: SUMO
-/// gives every connection of a link index the same state).
+/// gives every connection of a link index the same state). Links from internal edges are pedestrian
+/// crossings' signals (they leave a walking area, whose lane ends nowhere near a stop line): they are not
+/// heads, and their count is logged.
 pub fn parse_heads(path: &Path) -> Result<Vec<SignalHead>> {
     let mut xml = XmlStream::open(path)?;
     let mut lane_ends: HashMap<String, ([f64; 2], f64)> = HashMap::new();
     // (tl, link index, lane it leaves), in file order; lanes come before connections in net.xml, but
     // nothing here relies on it.
     let mut links: Vec<(String, usize, String, u64)> = Vec::new();
+    let mut crossings = 0usize;
     while let Some(item) = xml.next()? {
         let Item::Open(el) = item else { continue };
         match el.name.as_str() {
@@ -29,6 +32,10 @@ pub fn parse_heads(path: &Path) -> Result<Vec<SignalHead>> {
             }
             "connection" => {
                 let Some(tl) = el.get("tl") else { continue };
+                if el.req("from", &xml)?.starts_with(':') {
+                    crossings += 1;
+                    continue;
+                }
                 let index = el.num("linkIndex", &xml)?;
                 if !(index >= 0.0 && index.fract() == 0.0) {
                     return Err(xml.error(&el, format!("linkIndex {index} is not an index")));
@@ -61,6 +68,12 @@ pub fn parse_heads(path: &Path) -> Result<Vec<SignalHead>> {
             y,
             heading,
         });
+    }
+    if crossings > 0 {
+        tracing::info!(
+            "{}: {crossings} signalled pedestrian crossing link(s) left out of the signal heads",
+            path.display()
+        );
     }
     Ok(heads)
 }

@@ -38,6 +38,20 @@ fn heads_stand_at_the_stop_line_of_the_lane_they_control() {
 }
 
 #[test]
+fn signalled_pedestrian_crossings_are_not_heads() {
+    // The light also signals the crossing, from the walking area (SUMO: a link from an internal edge).
+    let net = std::fs::read_to_string(fixture("tiny.net.xml")).unwrap().replace(
+        "    <junction id=\"B\"",
+        "    <connection from=\":B_w0\" to=\":B_c0\" fromLane=\"0\" toLane=\"0\" tl=\"B\" linkIndex=\"2\" \
+         dir=\"s\" state=\"o\"/>\n    <junction id=\"B\"",
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let heads = parse_heads(&write(dir.path(), "crossing.net.xml", &net)).unwrap();
+    assert_eq!(heads, parse_heads(&fixture("tiny.net.xml")).unwrap());
+    assert!(net.contains("linkIndex=\"2\""));
+}
+
+#[test]
 fn frames_list_the_heads_in_view_with_the_state_of_their_step() {
     let dir = tempfile::tempdir().unwrap();
     let report = import(&options(dir.path(), TLS)).unwrap();
