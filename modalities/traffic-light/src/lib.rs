@@ -8,10 +8,14 @@
 //! the heads back under the same key, so generated frames carry light states, and
 //! [`marks`](umgen::modality::Modality::marks) draws them on `umgen viz` pictures.
 //!
+//! [`crossings`] counts vehicles crossing stop lines by the light's state, recorded or generated: whether
+//! agents stop at red.
+//!
 //! The crate's binary, `umgen-lights`, is every `umgen` command with this kind registered
 //! (`umgen_cli::App`); `docs/adding-a-modality.md` walks through both.
 
 mod config;
+pub mod crossings;
 mod modality;
 
 pub use config::{SLOT, TrafficLightConfig, VALUE_FIELDS};

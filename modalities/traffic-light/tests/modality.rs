@@ -15,13 +15,15 @@ fn catalog() -> ModalityCatalog {
     catalog
 }
 
-fn lights_only(settings: &str) -> ModalityRegistry {
+/// A registry of the lights alone, with `settings` under `[modality.lights]`.
+fn registry_of(settings: &str) -> umgen::Result<ModalityRegistry> {
     let text =
         format!("[layout]\norder = [\"lights\"]\n[modality.lights]\nkind = \"traffic_light\"\n{settings}");
-    UmgenConfig::from_toml_str(&text)
-        .unwrap()
-        .registry(&catalog())
-        .unwrap()
+    UmgenConfig::from_toml_str(&text).unwrap().registry(&catalog())
+}
+
+fn lights_only(settings: &str) -> ModalityRegistry {
+    registry_of(settings).unwrap()
 }
 
 fn frame(heads: &[[f32; 4]]) -> Frame {
@@ -230,15 +232,7 @@ fn bad_input_is_refused_naming_the_modality_and_frame() {
     let e = registry_ok(frame(&[[f32::NAN, 2.0, 0.0, 1.0]]));
     assert!(e.contains("lights") && e.to_lowercase().contains("x"), "{e}");
     // Config errors name the key.
-    let config = |s: &str| {
-        let text =
-            format!("[layout]\norder = [\"lights\"]\n[modality.lights]\nkind = \"traffic_light\"\n{s}");
-        UmgenConfig::from_toml_str(&text)
-            .unwrap()
-            .registry(&catalog())
-            .unwrap_err()
-            .to_string()
-    };
+    let config = |s: &str| registry_of(s).unwrap_err().to_string();
     assert!(config("colour = 1\n").contains("modality.lights.colour"));
     assert!(config("count = 0\n").contains("modality.lights.count"));
     assert!(config("x = [5.0, -5.0]\n").contains("modality.lights.x"));

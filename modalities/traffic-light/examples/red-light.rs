@@ -1,0 +1,131 @@
+//! Vehicles crossing stop lines on red: a split's recorded clips against `umgen generate` outputs.
+//!
+//! ```sh
+//! cargo run --release -p umgen-modality-traffic-light --example red-light -- \
+//!     --data data/sumo-sample --split test runs/gen-without-lights runs/gen-with-lights
+//! ```
+//!
+//! For the recorded clips, every pair of consecutive frames of the split counts, with the lights SUMO
+//! recorded. For a generated output, every pair of consecutive generated frames of every scene counts,
+//! against the lights SUMO recorded at the same time of the context clip (`generate --recorded-ego` keeps
+//! the ego on its recorded path, so those lights stand where the generated agents see them); a model with
+//! the traffic-light modality is also measured against the lights it generated itself. Prints a Markdown
+//! table: crossings, crossings on red, their share, red approaches (a vehicle within 20 m behind a red
+//! line) and red crossings per approach.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use umgen::data::Dataset;
+use umgen::scene::{Frame, SceneClip};
+use umgen_modality_traffic_light::crossings::{Crossings, crossings, stop_lines};
+use umgen_modality_traffic_light::{TrafficLight, TrafficLightConfig};
+
+type Error = Box<dyn std::error::Error>;
+
+fn read_json(p: &Path) -> Result<serde_json::Value, Error> {
+    let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
+    Ok(serde_json::from_slice(&bytes).map_err(|e| format!("{}: {e}", p.display()))?)
+}
+
+/// Crossings from `prev` to `next` against the lines of `lights` (a frame whose heads and ego pose
+/// place them).
+fn step(lights: &TrafficLight, at: &Frame, prev: &Frame, next: &Frame) -> Result<Crossings, Error> {
+    let lines = stop_lines(&lights.heads(at, 0)?, &at.ego.pose2());
+    Ok(crossings(prev, next, &lines))
+}
+
+fn recorded(lights: &TrafficLight, data: &Path, split: &str) -> Result<(Crossings, usize), Error> {
+    let ds = Dataset::open(data)?;
+    let mut total = Crossings::default();
+    let mut pairs = 0;
+    for (i, clip) in ds.clips().iter().enumerate().filter(|(_, c)| c.split == split) {
+        let frames = ds.read_window(i, 0, clip.frames, 1)?.frames;
+        for w in frames.windows(2) {
+            total.add(&step(lights, &w[0], &w[0], &w[1])?);
+            pairs += 1;
+        }
+    }
+    Ok((total, pairs))
+}
+
+/// Against SUMO's lights, and against the scene's own lights when it has them.
+fn generated(lights: &TrafficLight, dir: &Path) -> Result<(Crossings, Option<Crossings>, usize), Error> {
+    let meta = read_json(&dir.join("meta.json"))?;
+    let tokens = read_json(&dir.join("tokens.json"))?;
+    let scenes: Vec<SceneClip> = serde_json::from_value(read_json(&dir.join("scenes.json"))?)?;
+    let mut opened: HashMap<String, Dataset> = HashMap::new();
+    let (mut sumo, mut own, mut pairs) = (Crossings::default(), Crossings::default(), 0);
+    let mut has_own = true;
+    for (s, scene) in scenes.iter().enumerate() {
+        let c = tokens["context_of"][s]
+            .as_u64()
+            .ok_or("tokens.json: context_of")? as usize;
+        let context = &meta["contexts"][c];
+        let data = context["data"].as_str().ok_or("meta.json: contexts[].data")?;
+        let n = context["frames"].as_u64().ok_or("meta.json: contexts[].frames")? as usize;
+        if !opened.contains_key(data) {
+            opened.insert(data.to_string(), Dataset::open(Path::new(data))?);
+        }
+        let ds = &opened[data];
+        let index = ds.find_clip(context["clip"].as_str().ok_or("meta.json: contexts[].clip")?)?;
+        // Generated frames beyond the recorded clip have no recorded lights.
+        let g = scene.frames.len().min(ds.clips()[index].frames - n);
+        let real = ds.read_window(index, 0, n + g, 1)?.frames;
+        for k in 1..g {
+            let (prev, next) = (&scene.frames[k - 1], &scene.frames[k]);
+            sumo.add(&step(lights, &real[n + k - 1], prev, next)?);
+            match step(lights, prev, prev, next) {
+                Ok(c) => own.add(&c),
+                Err(_) => has_own = false,
+            }
+            pairs += 1;
+        }
+    }
+    Ok((sumo, has_own.then_some(own), pairs))
+}
+
+fn row(name: &str, c: &Crossings, pairs: usize) -> String {
+    let pct = |v: Option<f64>| v.map_or("–".into(), |v| format!("{:.1} %", 100.0 * v));
+    format!(
+        "| {name} | {pairs} | {} | {} | {} | {} | {} |",
+        c.total(),
+        c.red,
+        pct(c.red_share()),
+        c.red_approaches,
+        pct(c.run_rate())
+    )
+}
+
+fn main() -> Result<(), Error> {
+    let mut args = std::env::args().skip(1);
+    let (mut data, mut split, mut dirs) = (None, "test".to_string(), Vec::new());
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--data" => data = Some(PathBuf::from(args.next().ok_or("--data DIR")?)),
+            "--split" => split = args.next().ok_or("--split NAME")?,
+            _ => dirs.push(PathBuf::from(a)),
+        }
+    }
+    let data = data.ok_or("usage: red-light --data DIR [--split NAME] [GENERATED_DIR ...]")?;
+    let lights = TrafficLight::new("lights", TrafficLightConfig::default())?;
+    println!(
+        "| frames of | frame pairs | crossings | on red | share on red | red approaches | red run per approach |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    let (c, pairs) = recorded(&lights, &data, &split)?;
+    println!("{}", row(&format!("recorded `{split}`"), &c, pairs));
+    for dir in &dirs {
+        let (sumo, own, pairs) = generated(&lights, dir)?;
+        println!(
+            "{}",
+            row(&format!("{} (SUMO's lights)", dir.display()), &sumo, pairs)
+        );
+        if let Some(own) = own {
+            println!(
+                "{}",
+                row(&format!("{} (its own lights)", dir.display()), &own, pairs)
+            );
+        }
+    }
+    Ok(())
+}
