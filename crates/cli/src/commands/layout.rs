@@ -54,9 +54,24 @@ fn write_table(out: &mut impl Write, source: &str, layout: &FrameLayout) -> std:
     writeln!(out, "config       {source}")?;
     writeln!(out, "fingerprint  {}", layout.fingerprint())?;
     writeln!(out)?;
+    // Names and kinds as wide as the longest (a plug-in's kind may be longer than the built-ins').
+    let name_w = layout
+        .segments()
+        .iter()
+        .map(|s| s.modality.len())
+        .max()
+        .unwrap_or(0)
+        .max(12);
+    let kind_w = layout
+        .segments()
+        .iter()
+        .map(|s| s.kind.len())
+        .max()
+        .unwrap_or(0)
+        .max(8);
     writeln!(
         out,
-        "{:<12} {:<8} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>7} {:>7}  grid",
+        "{:<name_w$} {:<kind_w$} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>8} {:>7}  grid",
         "modality", "kind", "start", "offset", "tokens", "end", "vocab", "embed", "start_id", "end_id"
     )?;
     let dash = |p: Option<usize>| p.map_or_else(|| "-".to_string(), |p| p.to_string());
@@ -66,7 +81,7 @@ fn write_table(out: &mut impl Write, source: &str, layout: &FrameLayout) -> std:
             .map_or_else(|| "-".to_string(), |g| format!("{}x{}", g.rows, g.cols));
         writeln!(
             out,
-            "{:<12} {:<8} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>7} {:>7}  {grid}",
+            "{:<name_w$} {:<kind_w$} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>8} {:>7}  {grid}",
             s.modality,
             s.kind,
             dash(s.start_pos),
