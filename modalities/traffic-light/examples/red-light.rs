@@ -14,6 +14,7 @@
 //! line) and red crossings per approach.
 
 use std::collections::HashMap;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use umgen::data::Dataset;
 use umgen::scene::{Frame, SceneClip};
@@ -108,23 +109,20 @@ fn main() -> Result<(), Error> {
     }
     let data = data.ok_or("usage: red-light --data DIR [--split NAME] [GENERATED_DIR ...]")?;
     let lights = TrafficLight::new("lights", TrafficLightConfig::default())?;
-    println!(
+    let mut out = std::io::stdout().lock();
+    writeln!(
+        out,
         "| frames of | frame pairs | crossings | on red | share on red | red approaches | red run per approach |"
-    );
-    println!("|---|---|---|---|---|---|---|");
+    )?;
+    writeln!(out, "|---|---|---|---|---|---|---|")?;
     let (c, pairs) = recorded(&lights, &data, &split)?;
-    println!("{}", row(&format!("recorded `{split}`"), &c, pairs));
+    writeln!(out, "{}", row(&format!("recorded `{split}`"), &c, pairs))?;
     for dir in &dirs {
         let (sumo, own, pairs) = generated(&lights, dir)?;
-        println!(
-            "{}",
-            row(&format!("{} (SUMO's lights)", dir.display()), &sumo, pairs)
-        );
+        let name = dir.display();
+        writeln!(out, "{}", row(&format!("{name} (SUMO's lights)"), &sumo, pairs))?;
         if let Some(own) = own {
-            println!(
-                "{}",
-                row(&format!("{} (its own lights)", dir.display()), &own, pairs)
-            );
+            writeln!(out, "{}", row(&format!("{name} (its own lights)"), &own, pairs))?;
         }
     }
     Ok(())
