@@ -11,14 +11,15 @@
 //! the ego on its recorded path, so those lights stand where the generated agents see them); a model with
 //! the traffic-light modality is also measured against the lights it generated itself. Prints a Markdown
 //! table: crossings, crossings on red, their share, red approaches (a vehicle within 20 m behind a red
-//! line) and red crossings per approach.
+//! line) and red crossings per approach; and for such a model, how its lights agree with SUMO's (the stop
+//! lines of the 8 nearest recorded heads, a generated line at each, the same state).
 
 use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use umgen::data::Dataset;
 use umgen::scene::{Frame, SceneClip};
-use umgen_modality_traffic_light::crossings::{Crossings, crossings, stop_lines};
+use umgen_modality_traffic_light::crossings::{Agreement, Crossings, StopLine, crossings, stop_lines};
 use umgen_modality_traffic_light::{TrafficLight, TrafficLightConfig};
 
 type Error = Box<dyn std::error::Error>;
@@ -49,13 +50,29 @@ fn recorded(lights: &TrafficLight, data: &Path, split: &str) -> Result<(Crossing
     Ok((total, pairs))
 }
 
+/// What one `umgen generate` output measures: crossings against SUMO's lights; for a model with lights,
+/// crossings against its own and how its lights agree with SUMO's; the frame pairs.
+struct Generated {
+    sumo: Crossings,
+    own: Option<(Crossings, Agreement)>,
+    pairs: usize,
+}
+
+/// The stop lines of the `count` heads nearest to the ego of `frame` (what the modality tokenizes).
+fn nearest_lines(lights: &TrafficLight, frame: &Frame) -> Result<Vec<StopLine>, Error> {
+    let mut heads = lights.heads(frame, 0)?;
+    heads.truncate(lights.config().count);
+    Ok(stop_lines(&heads, &frame.ego.pose2()))
+}
+
 /// Against SUMO's lights, and against the scene's own lights when it has them.
-fn generated(lights: &TrafficLight, dir: &Path) -> Result<(Crossings, Option<Crossings>, usize), Error> {
+fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
     let meta = read_json(&dir.join("meta.json"))?;
     let tokens = read_json(&dir.join("tokens.json"))?;
     let scenes: Vec<SceneClip> = serde_json::from_value(read_json(&dir.join("scenes.json"))?)?;
     let mut opened: HashMap<String, Dataset> = HashMap::new();
     let (mut sumo, mut own, mut pairs) = (Crossings::default(), Crossings::default(), 0);
+    let mut agree = Agreement::default();
     let mut has_own = true;
     for (s, scene) in scenes.iter().enumerate() {
         let c = tokens["context_of"][s]
@@ -79,10 +96,20 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<(Crossings, Option<Cro
                 Ok(c) => own.add(&c),
                 Err(_) => has_own = false,
             }
+            if has_own {
+                agree.add(
+                    &nearest_lines(lights, &real[n + k - 1])?,
+                    &nearest_lines(lights, prev)?,
+                );
+            }
             pairs += 1;
         }
     }
-    Ok((sumo, has_own.then_some(own), pairs))
+    Ok(Generated {
+        sumo,
+        own: has_own.then_some((own, agree)),
+        pairs,
+    })
 }
 
 fn row(name: &str, c: &Crossings, pairs: usize) -> String {
@@ -117,12 +144,38 @@ fn main() -> Result<(), Error> {
     writeln!(out, "|---|---|---|---|---|---|---|")?;
     let (c, pairs) = recorded(&lights, &data, &split)?;
     writeln!(out, "{}", row(&format!("recorded `{split}`"), &c, pairs))?;
+    let mut agreements = Vec::new();
     for dir in &dirs {
-        let (sumo, own, pairs) = generated(&lights, dir)?;
+        let g = generated(&lights, dir)?;
         let name = dir.display();
-        writeln!(out, "{}", row(&format!("{name} (SUMO's lights)"), &sumo, pairs))?;
-        if let Some(own) = own {
-            writeln!(out, "{}", row(&format!("{name} (its own lights)"), &own, pairs))?;
+        writeln!(
+            out,
+            "{}",
+            row(&format!("{name} (SUMO's lights)"), &g.sumo, g.pairs)
+        )?;
+        if let Some((own, agree)) = g.own {
+            writeln!(out, "{}", row(&format!("{name} (its own lights)"), &own, g.pairs))?;
+            agreements.push((name, agree));
+        }
+    }
+    if !agreements.is_empty() {
+        writeln!(out)?;
+        writeln!(
+            out,
+            "| generated lights of | SUMO's stop lines | with a generated line there | same state |"
+        )?;
+        writeln!(out, "|---|---|---|---|")?;
+        for (name, a) in agreements {
+            let pct = |n: u64, of: u64| 100.0 * n as f64 / of.max(1) as f64;
+            writeln!(
+                out,
+                "| {name} | {} | {} ({:.1} %) | {} ({:.1} %) |",
+                a.lines,
+                a.matched,
+                pct(a.matched, a.lines),
+                a.same_state,
+                pct(a.same_state, a.matched)
+            )?;
         }
     }
     Ok(())

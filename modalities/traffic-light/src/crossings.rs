@@ -152,6 +152,36 @@ pub fn crossings(prev: &Frame, next: &Frame, lines: &[StopLine]) -> Crossings {
     out
 }
 
+/// How a scene's own lights agree with recorded ones: of the recorded stop lines, how many have a
+/// generated line within [`SAME_LINE_M`] · 2 and [`SAME_HEADING`], and how many of those show the
+/// recorded state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub struct Agreement {
+    /// Recorded stop lines.
+    pub lines: u64,
+    /// Those with a generated line at their place.
+    pub matched: u64,
+    /// Those matched lines whose generated state is the recorded one.
+    pub same_state: u64,
+}
+
+impl Agreement {
+    /// Compares the generated lines of one frame with the recorded ones of the same time.
+    pub fn add(&mut self, recorded: &[StopLine], generated: &[StopLine]) {
+        for r in recorded {
+            self.lines += 1;
+            let near = generated.iter().find(|g| {
+                (g.at[0] - r.at[0]).hypot(g.at[1] - r.at[1]) < 2.0 * SAME_LINE_M
+                    && wrap_angle(g.heading - r.heading).abs() < SAME_HEADING
+            });
+            if let Some(g) = near {
+                self.matched += 1;
+                self.same_state += u64::from(g.state == r.state);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -258,5 +288,37 @@ mod tests {
         assert!((lines[0].heading - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
         assert_eq!(lines[1].state, LightState::Red);
         assert_eq!(Crossings::default().red_share(), None);
+    }
+
+    #[test]
+    fn agreement_matches_lines_by_place_and_direction() {
+        let ego = Pose2::new(0.0, 0.0, 0.0);
+        let recorded = stop_lines(
+            &[
+                head(10.0, 0.0, 0.0, LightState::Red),
+                head(-10.0, 5.0, 0.0, LightState::Green),
+                head(20.0, 20.0, 1.0, LightState::Red),
+            ],
+            &ego,
+        );
+        // The generated ego stands 1 m further on: its lights are 1 m nearer.
+        let generated = stop_lines(
+            &[
+                head(8.5, 0.5, 0.1, LightState::Red),         // the first, same state
+                head(-11.0, 5.0, 0.0, LightState::Red),       // the second, other state
+                head(19.0, 20.0, 1.0 + 3.0, LightState::Red), // the third's place, facing away
+            ],
+            &Pose2::new(1.0, 0.0, 0.0),
+        );
+        let mut a = Agreement::default();
+        a.add(&recorded, &generated);
+        assert_eq!(
+            a,
+            Agreement {
+                lines: 3,
+                matched: 2,
+                same_state: 1
+            }
+        );
     }
 }
