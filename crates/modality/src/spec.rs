@@ -159,6 +159,19 @@ impl ModalitySpec {
         self
     }
 
+    /// Checks that `ids` is one frame's content block: exactly `tokens_per_frame` ids (what
+    /// [`Modality::detokenize`](crate::Modality::detokenize) receives).
+    pub fn check_frame_ids(&self, ids: &[u32]) -> Result<()> {
+        if ids.len() != self.tokens_per_frame {
+            return Err(ModalityError::TokenCount {
+                modality: self.name.clone(),
+                expected: self.tokens_per_frame,
+                actual: ids.len(),
+            });
+        }
+        Ok(())
+    }
+
     /// Size of an embedding table that covers content, start and end ids.
     pub fn embed_vocab(&self) -> u32 {
         self.vocab_size.max(self.start_id + 1).max(self.end_id + 1)

@@ -155,13 +155,7 @@ impl Modality for AgentModality {
     /// Replaces `frame.agents` with the decoded slots; an agent's track id is its slot index. A slot that
     /// mixes pad and value ids, or has no valid category, is skipped and counted as malformed.
     fn detokenize(&self, ids: &[u32], frame: &mut Frame) -> Result<DecodeReport> {
-        if ids.len() != self.spec.tokens_per_frame {
-            return Err(ModalityError::TokenCount {
-                modality: self.spec.name.clone(),
-                expected: self.spec.tokens_per_frame,
-                actual: ids.len(),
-            });
-        }
+        self.spec.check_frame_ids(ids)?;
         let mut report = DecodeReport::default();
         frame.agents.clear();
         for (slot, t) in ids.chunks_exact(ATTRIBUTES).enumerate() {

@@ -106,13 +106,7 @@ impl EgoModality {
 
     /// The action at the bin centres of three tokens.
     pub fn decode(&self, ids: &[u32]) -> Result<EgoAction> {
-        if ids.len() != 3 {
-            return Err(ModalityError::TokenCount {
-                modality: self.spec.name.clone(),
-                expected: 3,
-                actual: ids.len(),
-            });
-        }
+        self.spec.check_frame_ids(ids)?;
         let mut v = [0.0; 3];
         for (i, (&id, out)) in ids.iter().zip(&mut v).enumerate() {
             *out = self

@@ -161,13 +161,7 @@ impl Modality for TrafficLight {
     }
 
     fn detokenize(&self, ids: &[u32], frame: &mut Frame) -> Result<DecodeReport> {
-        if ids.len() != self.spec.tokens_per_frame {
-            return Err(ModalityError::TokenCount {
-                modality: self.spec.name.clone(),
-                expected: self.spec.tokens_per_frame,
-                actual: ids.len(),
-            });
-        }
+        self.spec.check_frame_ids(ids)?;
         let mut report = DecodeReport::default();
         let mut values = Vec::with_capacity(ids.len());
         for slot in ids.chunks_exact(SLOT) {
