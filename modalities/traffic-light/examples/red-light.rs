@@ -73,7 +73,12 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
     let mut opened: HashMap<String, Dataset> = HashMap::new();
     let (mut sumo, mut own, mut pairs) = (Crossings::default(), Crossings::default(), 0);
     let mut agree = Agreement::default();
-    let mut has_own = true;
+    // A model with the modality decodes its lights into every frame; one without has none.
+    let key = &lights.config().key;
+    let has_own = scenes
+        .iter()
+        .flat_map(|s| s.frames.first())
+        .all(|f| f.extras.contains_key(key));
     for (s, scene) in scenes.iter().enumerate() {
         let c = tokens["context_of"][s]
             .as_u64()
@@ -92,11 +97,8 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
         for k in 1..g {
             let (prev, next) = (&scene.frames[k - 1], &scene.frames[k]);
             sumo.add(&step(lights, &real[n + k - 1], prev, next)?);
-            match step(lights, prev, prev, next) {
-                Ok(c) => own.add(&c),
-                Err(_) => has_own = false,
-            }
             if has_own {
+                own.add(&step(lights, prev, prev, next)?);
                 agree.add(
                     &nearest_lines(lights, &real[n + k - 1])?,
                     &nearest_lines(lights, prev)?,

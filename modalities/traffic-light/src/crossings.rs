@@ -28,23 +28,33 @@ pub struct StopLine {
     pub state: LightState,
 }
 
+impl StopLine {
+    /// Whether `other` stands within `within_m` of this line and faces its way (within
+    /// [`SAME_HEADING`]).
+    fn near(&self, other: &StopLine, within_m: f64) -> bool {
+        (self.at[0] - other.at[0]).hypot(self.at[1] - other.at[1]) < within_m
+            && wrap_angle(self.heading - other.heading).abs() < SAME_HEADING
+    }
+
+    /// `p` (world) in the line's frame: along the direction of travel (negative before the line) and
+    /// beside it (left positive).
+    fn local(&self, p: [f64; 2]) -> [f64; 2] {
+        Pose2::new(self.at[0], self.at[1], self.heading).to_local(p)
+    }
+}
+
 /// The stop lines of a frame's heads (given in the frame of `ego`), heads at one line merged.
 pub fn stop_lines(heads: &[Head], ego: &Pose2) -> Vec<StopLine> {
     let mut lines: Vec<StopLine> = Vec::new();
     for h in heads {
-        let at = ego.to_parent([h.x, h.y]);
-        let heading = wrap_angle(h.heading + ego.heading);
-        let same = lines.iter_mut().find(|l| {
-            (l.at[0] - at[0]).hypot(l.at[1] - at[1]) < SAME_LINE_M
-                && wrap_angle(l.heading - heading).abs() < SAME_HEADING
-        });
-        match same {
+        let line = StopLine {
+            at: ego.to_parent([h.x, h.y]),
+            heading: wrap_angle(h.heading + ego.heading),
+            state: h.state,
+        };
+        match lines.iter_mut().find(|l| l.near(&line, SAME_LINE_M)) {
             Some(l) => l.state = merge(l.state, h.state),
-            None => lines.push(StopLine {
-                at,
-                heading,
-                state: h.state,
-            }),
+            None => lines.push(line),
         }
     }
     lines
@@ -129,22 +139,19 @@ pub fn crossings(prev: &Frame, next: &Frame, lines: &[StopLine]) -> Crossings {
         };
         let (p0, p1) = (p_ego.to_parent([a.x, a.y]), n_ego.to_parent([b.x, b.y]));
         for l in lines {
-            let (c, s) = (l.heading.cos(), l.heading.sin());
-            let along = |p: [f64; 2]| (p[0] - l.at[0]) * c + (p[1] - l.at[1]) * s;
-            let beside = |p: [f64; 2]| -(p[0] - l.at[0]) * s + (p[1] - l.at[1]) * c;
-            let (s0, s1) = (along(p0), along(p1));
+            let ([s0, d0], [s1, d1]) = (l.local(p0), l.local(p1));
             if !(s0 < 0.0 && s0 > -MAX_APPROACH_M) {
                 continue;
             }
-            if l.state == LightState::Red && beside(p0).abs() <= HALF_LANE_M {
+            if l.state == LightState::Red && d0.abs() <= HALF_LANE_M {
                 out.red_approaches += 1;
             }
             if s1 < 0.0 {
                 continue;
             }
+            // Beside the line where the straight path between the two positions meets it.
             let f = -s0 / (s1 - s0);
-            let cross = [p0[0] + f * (p1[0] - p0[0]), p0[1] + f * (p1[1] - p0[1])];
-            if beside(cross).abs() <= HALF_LANE_M {
+            if (d0 + f * (d1 - d0)).abs() <= HALF_LANE_M {
                 out.count(l.state);
             }
         }
@@ -170,11 +177,7 @@ impl Agreement {
     pub fn add(&mut self, recorded: &[StopLine], generated: &[StopLine]) {
         for r in recorded {
             self.lines += 1;
-            let near = generated.iter().find(|g| {
-                (g.at[0] - r.at[0]).hypot(g.at[1] - r.at[1]) < 2.0 * SAME_LINE_M
-                    && wrap_angle(g.heading - r.heading).abs() < SAME_HEADING
-            });
-            if let Some(g) = near {
+            if let Some(g) = generated.iter().find(|g| r.near(g, 2.0 * SAME_LINE_M)) {
                 self.matched += 1;
                 self.same_state += u64::from(g.state == r.state);
             }
