@@ -6,35 +6,15 @@
 //! rules and repeat with their seed.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use burn::module::Module;
-use burn::tensor::backend::Backend;
-use umgen_backbone::{
-    ActionSpec, AlignSpec, Backbone, BackboneConfig, BackboneSpec, SegmentSpec, Slot, TrackSpec,
-};
+use umgen_backbone::{ActionSpec, AlignSpec, Backbone, BackboneSpec, Slot, TrackSpec};
 use umgen_generate::engine::{Engine, EngineSettings, HostExec};
 use umgen_generate::{FrameControl, Generator, GroupBoxes, Sampling, TokenGroups};
 
-/// Held while a test seeds burn and makes its model.
-static SEEDED: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-type F = burn::backend::Flex;
+mod common;
+use common::{F, config, seeded, seg};
 
 /// Agent slots: 2 of 6 tokens (x, y, vx, vy, heading in 8 bins; then the category 8 or 9); pad 10.
 const PAD: u32 = 10;
-
-fn seg(label: &str, start: usize, tokens: usize, vocab: usize) -> SegmentSpec {
-    SegmentSpec {
-        label: label.into(),
-        block_start: start,
-        block_len: tokens + 2,
-        offset: start + 1,
-        tokens,
-        vocab,
-        embed_vocab: vocab + 2,
-        ordinal: 0,
-        codebook: None,
-    }
-}
 
 fn model() -> Backbone<F> {
     let mut map = seg("map", 5, 6, 12);
@@ -68,38 +48,7 @@ fn model() -> Backbone<F> {
             accel: true,
         }),
     };
-    let cfg = BackboneConfig {
-        d_model: 32,
-        heads: 4,
-        embed_dim: 24,
-        mlp_ratio: 2,
-        dropout: 0.0,
-        ego_hist_layers: 1,
-        ego_env_layers: 1,
-        tar_layers: 2,
-        oar_layers: 2,
-        max_frames: 8,
-        action: None,
-        align: None,
-        ego_last: true,
-        track: None,
-        track_accel: false,
-        step_s: 0.5,
-        precision: Default::default(),
-        ordinal_init: true,
-    };
-    // burn's seed is one generator for the process: tests on parallel threads would make their models
-    // from it in whatever order the threads take. One at a time, each model is the seed's. burn draws a
-    // parameter when it is first read, so the record is taken (every parameter drawn) under the lock and
-    // loaded into a second model, whose own draws are never made.
-    let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    F::seed(&Default::default(), 11);
-    let record = Backbone::<F>::new(&cfg, &spec, &Default::default())
-        .unwrap()
-        .into_record();
-    Backbone::new(&cfg, &spec, &Default::default())
-        .unwrap()
-        .load_record(record)
+    seeded(&config(), &spec, 11)
 }
 
 /// A valid frame: boundary ids, content from a pattern, agent slot `k % 2` empty.

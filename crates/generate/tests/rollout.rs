@@ -3,32 +3,12 @@
 //! seeds, forced actions and initial scenes.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use burn::module::Module;
-use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor, TensorData};
-use umgen_backbone::{
-    ActionSpec, Backbone, BackboneConfig, BackboneSpec, Kernels, SegmentSpec, Slot, TrackSpec,
-};
+use umgen_backbone::{ActionSpec, Backbone, BackboneSpec, Kernels, Slot, TrackSpec};
 use umgen_generate::{FrameControl, Generator, Sampling};
 
-/// Held while a test seeds burn and makes its model.
-static SEEDED: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-type F = burn::backend::Flex;
-
-fn seg(label: &str, start: usize, tokens: usize, vocab: usize) -> SegmentSpec {
-    SegmentSpec {
-        label: label.into(),
-        block_start: start,
-        block_len: tokens + 2,
-        offset: start + 1,
-        tokens,
-        vocab,
-        embed_vocab: vocab + 2,
-        ordinal: 0,
-        codebook: None,
-    }
-}
+mod common;
+use common::{F, config, seeded, seg};
 
 fn model() -> Backbone<F> {
     let spec = BackboneSpec {
@@ -59,38 +39,7 @@ fn model() -> Backbone<F> {
             accel: true,
         }),
     };
-    let cfg = BackboneConfig {
-        d_model: 32,
-        heads: 4,
-        embed_dim: 24,
-        mlp_ratio: 2,
-        dropout: 0.0,
-        ego_hist_layers: 1,
-        ego_env_layers: 1,
-        tar_layers: 2,
-        oar_layers: 2,
-        max_frames: 8,
-        action: None,
-        align: None,
-        ego_last: true,
-        track: None,
-        track_accel: false,
-        step_s: 0.5,
-        precision: Default::default(),
-        ordinal_init: true,
-    };
-    // burn's seed is one generator for the process: tests on parallel threads would make their models
-    // from it in whatever order the threads take. One at a time, each model is the seed's. burn draws a
-    // parameter when it is first read, so the record is taken (every parameter drawn) under the lock and
-    // loaded into a second model, whose own draws are never made.
-    let _one = SEEDED.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    F::seed(&Default::default(), 9);
-    let record = Backbone::<F>::new(&cfg, &spec, &Default::default())
-        .unwrap()
-        .into_record();
-    Backbone::new(&cfg, &spec, &Default::default())
-        .unwrap()
-        .load_record(record)
+    seeded(&config(), &spec, 9)
 }
 
 /// Valid frames: boundary ids around content ids drawn from a fixed pattern.
