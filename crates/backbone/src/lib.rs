@@ -37,6 +37,7 @@ mod losses;
 mod model;
 pub mod ordinal;
 mod plain;
+mod ready;
 mod spec;
 pub mod track;
 

@@ -27,7 +27,7 @@ impl<B: Backend> Backbone<B> {
         let [b, f, _] = tokens.dims();
         let t = f.saturating_sub(1);
         let k = &Kernels::DEFAULT;
-        let fwd = self.teacher_forced(tokens, 0.0, k)?;
+        let fwd = self.teacher_forced(tokens, 0.0, k, None)?;
         let per_segment = |heads: &crate::Heads<B>, x: &Tensor<B, 3>| {
             (0..self.spec().segments.len())
                 .map(|s| {

@@ -6,6 +6,7 @@ use crate::model::Backbone;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Int, Tensor};
 use umgen_ops::Kernels;
+use umgen_ops::ready::ReadyPoints;
 
 /// Per-modality losses of one batch, each a mean over that modality's tokens, and their total.
 #[derive(Debug, Clone)]
@@ -70,6 +71,18 @@ impl<B: Backend> Backbone<B> {
     /// goes without its TAR prior (zeros, as in initial-scene generation) with that probability, drawn on
     /// the device from the backend's seed. The TAR's own loss always sees its output.
     pub fn loss_with(&self, tokens: Tensor<B, 3, Int>, opts: LossOptions) -> Result<Losses<B>> {
+        self.loss_marked(tokens, opts, None)
+    }
+
+    /// [`Backbone::loss_with`] with the blocks' inputs marked as `ready`'s points
+    /// ([`Backbone::ready_groups`] says which parameters each completes), so that data parallelism can
+    /// reduce a block's gradients while the backward pass goes on.
+    pub fn loss_marked(
+        &self,
+        tokens: Tensor<B, 3, Int>,
+        opts: LossOptions,
+        ready: Option<&ReadyPoints>,
+    ) -> Result<Losses<B>> {
         if let Some(problem) = opts.problem() {
             return Err(BackboneError::Input(problem));
         }
@@ -77,7 +90,7 @@ impl<B: Backend> Backbone<B> {
         let ordinal: Vec<usize> = spec.segments.iter().map(|s| s.ordinal).collect();
         let sigma = opts.ordinal_sigma;
         let k = &opts.kernels;
-        let f = self.teacher_forced(tokens, opts.prior_drop, k)?;
+        let f = self.teacher_forced(tokens, opts.prior_drop, k, ready)?;
         let mut parts = Vec::new();
         let mut mean = |name: &str, sums: Vec<(Tensor<B, 1>, usize)>| {
             let count: usize = sums.iter().map(|(_, c)| c).sum();

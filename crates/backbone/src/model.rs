@@ -14,6 +14,7 @@ use burn::nn::{LayerNorm, LayerNormConfig};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Int, Tensor, TensorData};
 use umgen_ops::Kernels;
+use umgen_ops::ready::ReadyPoints;
 
 /// One TAR block: causal attention over time at each position, then bidirectional attention within
 /// each frame.
@@ -163,7 +164,7 @@ impl<B: Backend> Backbone<B> {
         e_next: Tensor<B, 4>,
         next_action: Option<Tensor<B, 3, Int>>,
     ) -> Tensor<B, 4> {
-        self.tar_with(tokens, e, e_next, next_action, &Kernels::DEFAULT)
+        self.tar_with(tokens, e, e_next, next_action, &Kernels::DEFAULT, None)
     }
 
     /// [`Self::tar`] with the kernels `k`.
@@ -174,6 +175,7 @@ impl<B: Backend> Backbone<B> {
         e_next: Tensor<B, 4>,
         next_action: Option<Tensor<B, 3, Int>>,
         k: &Kernels,
+        ready: Option<&ReadyPoints>,
     ) -> Tensor<B, 4> {
         let [b, t, _, d] = e.dims();
         let mut x = e;
@@ -207,8 +209,8 @@ impl<B: Backend> Backbone<B> {
             x = add_at(x, s.offset, moved);
         }
         let mut x = x + self.time.val().narrow(0, 0, t).reshape([1, t, 1, d]);
-        for blk in &self.tar {
-            x = blk.forward(x, k);
+        for (i, blk) in self.tar.iter().enumerate() {
+            x = blk.forward(mark(ready, x, crate::ready::tar_point(i)), k);
         }
         let h = umgen_ops::norm::layer_norm(&self.ln_tar, x, k);
         match track {
@@ -251,6 +253,16 @@ impl<B: Backend> Backbone<B> {
         )
     }
 
+    /// The TAR blocks.
+    pub(crate) fn tar_blocks(&self) -> &[TarBlock<B>] {
+        &self.tar
+    }
+
+    /// The OAR blocks.
+    pub(crate) fn oar_blocks(&self) -> &[SelfBlock<B>] {
+        &self.oar
+    }
+
     /// Longest window of frames the TAR takes (rows of the frame embedding).
     pub fn max_frames(&self) -> usize {
         self.time.val().dims()[0]
@@ -288,14 +300,14 @@ impl<B: Backend> Backbone<B> {
 
     /// OAR output `[m, L, d]` of inputs `[m, L, d]` (causal).
     pub fn oar(&self, w: Tensor<B, 3>) -> Tensor<B, 3> {
-        self.oar_with(w, &Kernels::DEFAULT)
+        self.oar_with(w, &Kernels::DEFAULT, None)
     }
 
     /// [`Self::oar`] with the kernels `k`.
-    fn oar_with(&self, w: Tensor<B, 3>, k: &Kernels) -> Tensor<B, 3> {
+    fn oar_with(&self, w: Tensor<B, 3>, k: &Kernels, ready: Option<&ReadyPoints>) -> Tensor<B, 3> {
         let mut x = w;
-        for blk in &self.oar {
-            x = blk.forward(x, true, k);
+        for (i, blk) in self.oar.iter().enumerate() {
+            x = blk.forward(mark(ready, x, self.oar_point(i)), true, k);
         }
         umgen_ops::norm::layer_norm(&self.ln_oar, x, k)
     }
@@ -303,12 +315,14 @@ impl<B: Backend> Backbone<B> {
     /// The teacher-forced pass over windows `[b, t + 1, N]`: frames `0..t` condition, frame `i + 1` is
     /// the target of frame `i`. With `prior_drop` > 0, each predicted frame's OAR input goes without its
     /// TAR prior with that probability, drawn on the device from the backend's seed. Every operation runs
-    /// on the kernels `k`.
+    /// on the kernels `k`. With `ready`, each TAR and OAR block's input is marked as that block's point
+    /// (`ready.rs`).
     pub(crate) fn teacher_forced(
         &self,
         tokens: Tensor<B, 3, Int>,
         prior_drop: f64,
         k: &Kernels,
+        ready: Option<&ReadyPoints>,
     ) -> Result<Forward<B>> {
         let [b, f, n] = tokens.dims();
         if f < 2 || n != self.spec.n {
@@ -331,6 +345,7 @@ impl<B: Backend> Backbone<B> {
             e_next.clone(),
             next_action.clone(),
             k,
+            ready,
         );
         let d = h.dims()[3];
         let prior = h.clone().reshape([b * t, n, d]);
@@ -344,7 +359,7 @@ impl<B: Backend> Backbone<B> {
         } else {
             prior
         };
-        let o = self.oar_with(self.oar_input(e_next.reshape([b * t, n, d]), prior), k);
+        let o = self.oar_with(self.oar_input(e_next.reshape([b * t, n, d]), prior), k, ready);
         Ok(Forward {
             e,
             h: h.reshape([b * t, n, d]),
@@ -367,6 +382,18 @@ pub(crate) struct Forward<B: Backend> {
     pub target: Tensor<B, 2, Int>,
     /// The target frames' action tokens `[b, t, q]`, when the model has an ego action.
     pub next_action: Option<Tensor<B, 3, Int>>,
+}
+
+/// `x`, marked as `point` where there are points.
+fn mark<B: Backend, const D: usize>(
+    ready: Option<&ReadyPoints>,
+    x: Tensor<B, D>,
+    point: usize,
+) -> Tensor<B, D> {
+    match ready {
+        Some(r) => r.mark(x, point),
+        None => x,
+    }
 }
 
 /// `x` `[b, t, N, d]` with `y` `[b·t, L, d]` added at positions `at..at + L`.

@@ -27,7 +27,7 @@ fn shapes<B: AutodiffBackend, M: AutodiffModule<B>>(model: &M) -> Vec<(ParamId, 
 }
 
 /// Index ranges of `sizes` grouped into buckets of at least `bucket_elems` (the last may be smaller).
-fn buckets(sizes: &[usize], bucket_elems: usize) -> Vec<std::ops::Range<usize>> {
+pub(crate) fn buckets(sizes: &[usize], bucket_elems: usize) -> Vec<std::ops::Range<usize>> {
     let mut out = Vec::new();
     let (mut start, mut acc) = (0, 0);
     for (i, s) in sizes.iter().enumerate() {
@@ -99,7 +99,7 @@ pub fn all_reduce_grads<B: AutodiffBackend, M: AutodiffModule<B>>(
 }
 
 /// Removes a gradient of rank `d` and flattens it.
-fn take_flat<B: AutodiffBackend>(
+pub(crate) fn take_flat<B: AutodiffBackend>(
     grads: &mut GradientsParams,
     id: ParamId,
     d: usize,
@@ -118,7 +118,7 @@ fn take_flat<B: AutodiffBackend>(
     }
 }
 
-fn register<B: AutodiffBackend>(
+pub(crate) fn register<B: AutodiffBackend>(
     grads: &mut GradientsParams,
     id: ParamId,
     t: Tensor<B::InnerBackend, 1>,

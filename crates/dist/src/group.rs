@@ -4,6 +4,7 @@ use crate::error::{DistError, Result};
 use crate::session::Session;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Tensor, TensorData};
+use std::sync::Arc;
 
 /// What every process group offers, whatever the tensors' backend.
 pub trait Group {
@@ -26,6 +27,23 @@ pub trait ProcessGroup<B: Backend>: Group {
     fn all_reduce_mean(&mut self, t: Tensor<B, 1>) -> Result<Tensor<B, 1>>;
     /// Rank 0's values, on every rank.
     fn broadcast(&mut self, t: Tensor<B, 1>) -> Result<Tensor<B, 1>>;
+    /// A handle that starts averages without waiting, where this group has one (NCCL); `None` where each
+    /// collective completes before it returns (TCP, a single rank).
+    fn async_mean(&self) -> Option<Arc<dyn AsyncMean<B>>> {
+        None
+    }
+}
+
+/// Averages over ranks that start without the host waiting for the device: each is queued behind the
+/// work that produces its input and runs beside the work queued after it. Every rank must start the same
+/// averages in the same order with tensors of the same length.
+pub trait AsyncMean<B: Backend>: Send + Sync {
+    /// Starts the element-wise mean over ranks of each tensor of a bucket, as one launch. The results
+    /// may be read only through what [`AsyncMean::settle`] returns for them.
+    fn start_mean(&self, bucket: Vec<Tensor<B, 1>>) -> Result<Vec<Tensor<B, 1>>>;
+    /// The results of started averages, ordered so that whatever reads them runs after the collectives
+    /// (and the failure of any started collective).
+    fn settle(&self, started: Vec<Tensor<B, 1>>) -> Result<Vec<Tensor<B, 1>>>;
 }
 
 /// The group of a lone process: every collective is the identity.

@@ -5,8 +5,9 @@
 //! and config identity and hands out the NCCL id), keep a [`Watchdog`] that fails every rank, naming the
 //! culprit, when one dies or hangs, and run collectives through a [`ProcessGroup`]: [`TcpGroup`] (a ring
 //! over TCP through host memory; CPU runs and tests) or, with the `cuda` feature, `NcclGroup` (NCCL on the
-//! device memory of burn-cuda tensors). [`all_reduce_grads`] averages gradients in buckets and
-//! [`broadcast_module`] copies rank 0's parameters to every rank.
+//! device memory of burn-cuda tensors). [`Overlap`] averages a training step's gradients in buckets
+//! that start while the backward pass goes on; [`all_reduce_grads`] averages given gradients in buckets
+//! and [`broadcast_module`] copies rank 0's parameters to every rank.
 
 mod env;
 mod error;
@@ -14,6 +15,7 @@ mod grads;
 mod group;
 #[cfg(feature = "cuda")]
 mod nccl;
+mod overlap;
 mod ring;
 mod session;
 mod watchdog;
@@ -22,9 +24,10 @@ mod wire;
 pub use env::{DEFAULT_PORT, DistEnv, first_host};
 pub use error::{DistError, Result};
 pub use grads::{all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks};
-pub use group::{Group, ProcessGroup, Single, TcpGroup};
+pub use group::{AsyncMean, Group, ProcessGroup, Single, TcpGroup};
 #[cfg(feature = "cuda")]
 pub use nccl::{NcclGroup, nccl_id};
+pub use overlap::Overlap;
 pub use session::{Session, SessionOptions};
 pub use watchdog::{FailureHook, Watchdog};
 

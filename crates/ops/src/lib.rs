@@ -18,6 +18,8 @@
 //!   [`xent`] (cross-entropy from logits, with [`smoothing`]'s targets): one kernel per pass on CUDA.
 //! - [`recompute`]: a self-attention layer as one operation that keeps only its input and recomputes its
 //!   activations in the backward pass (activation checkpointing).
+//! - [`ready`]: points in the forward pass where the backward pass has completed a block's gradients,
+//!   for data parallelism's overlapped all-reduce.
 //! - [`adamw`]: the optimizer's multi-tensor AdamW step and gradient norm on CUDA.
 //! - [`kernels`]: the kernel choices of a run ([`Kernels`]), one value the model passes to every
 //!   operation; nothing here is chosen process-wide.
@@ -34,6 +36,7 @@ pub mod linear;
 pub mod lookup;
 pub mod matmul;
 pub mod norm;
+pub mod ready;
 pub mod recompute;
 pub mod rows;
 #[cfg(feature = "cuda")]
@@ -45,5 +48,7 @@ pub mod xent;
 
 pub use format::Precision;
 pub use kernels::Kernels;
+#[cfg(feature = "cuda")]
+pub use side::external;
 #[cfg(feature = "cuda")]
 pub use side::{device_thread_calls, foreign_streams};

@@ -40,6 +40,7 @@ use std::sync::Arc;
 use std::thread::LocalKey;
 
 mod cubecl_stream;
+pub mod external;
 mod fusion;
 mod waits;
 pub(crate) use fusion::*;

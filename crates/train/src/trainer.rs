@@ -18,7 +18,7 @@ use umgen_checkpoint::burn_io::{
     weights_to_bytes,
 };
 use umgen_data::{TokenSet, Window};
-use umgen_dist::{ProcessGroup, all_reduce_grads, broadcast_module, rank0_decides, same_on_all_ranks};
+use umgen_dist::{Overlap, ProcessGroup, broadcast_module, rank0_decides, same_on_all_ranks};
 use umgen_metrics::MetricLog;
 use umgen_optim::{FusedAdamW, Schedule};
 
@@ -72,8 +72,9 @@ fn mix(seed: u64, step: u64) -> u64 {
 /// counts (the others are ignored), so every rank stops at the same step.
 ///
 /// Data parallel over `group`: every rank starts from rank 0's parameters, reads its own slice of each
-/// step's samples, and averages gradients (in buckets of `bucket_mib`) once per step, after the
-/// accumulation micro-steps; clipping and AdamW then run identically on every rank. Only rank 0 writes
+/// step's samples, and averages gradients (in buckets of `bucket_mib`) once per step, during the last
+/// accumulation micro-step's backward pass, each block's bucket as soon as that pass has completed it
+/// ([`Overlap`]); clipping and AdamW then run identically on every rank. Only rank 0 writes
 /// metrics and checkpoints. Resuming with another world size restores weights and optimizer state, but
 /// the global batch and the data order from there on differ from the original run (a warning says so).
 pub fn train<B: AutodiffBackend>(
@@ -206,18 +207,30 @@ pub fn train<B: AutodiffBackend>(
         B::seed(device, mix(tc.seed, step) ^ rank_salt);
         let mut acc = GradientsAccumulator::new();
         let mut parts = Vec::new();
+        let mut reduced = None;
         for micro in 0..tc.grad_accum {
             let picks = sampler.batch(step, micro, tc.grad_accum, tc.batch_size, rank, world);
             let batch = load_batch::<B>(tokens, &windows, &picks, f, tc.gap, n, device)?;
-            let losses = model.loss_with(batch, loss_options)?;
-            let grads = GradientsParams::from_grads(
-                losses.total.clone().div_scalar(tc.grad_accum as f64).backward(),
-                &model,
-            );
-            acc.accumulate(&model, grads);
-            parts.push(losses);
+            let scale = tc.grad_accum as f64;
+            if world > 1 && micro + 1 == tc.grad_accum {
+                // The last micro-step's backward pass starts each block's all-reduce as it completes
+                // the block's gradients (the earlier micro-steps' added); the others communicate nothing.
+                let overlap = Overlap::<B>::new(&model, &model.ready_groups(), acc.grads(), &*group, bucket);
+                let losses = model.loss_marked(batch, loss_options, Some(&overlap.points()))?;
+                reduced = Some(overlap.finish(losses.total.clone().div_scalar(scale).backward(), group)?);
+                parts.push(losses);
+            } else {
+                let losses = model.loss_with(batch, loss_options)?;
+                let grads =
+                    GradientsParams::from_grads(losses.total.clone().div_scalar(scale).backward(), &model);
+                acc.accumulate(&model, grads);
+                parts.push(losses);
+            }
         }
-        let grads = all_reduce_grads(&model, acc.grads(), group, bucket)?;
+        let grads = match reduced {
+            Some(g) => g,
+            None => acc.grads(),
+        };
         let lr = schedule.lr(step);
         let losses = step_losses(&parts);
         let guarded = guard.values(losses.clone().slice(0..1));

@@ -7,6 +7,7 @@ mod decode;
 mod heads;
 mod ordinal;
 mod precision;
+mod ready;
 mod recompute;
 
 use burn::module::Module;

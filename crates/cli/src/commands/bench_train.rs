@@ -12,7 +12,7 @@ use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec, Kernels, LossOptions};
 use umgen::backbone_spec;
-use umgen::dist::{DistEnv, all_reduce_grads, broadcast_module};
+use umgen::dist::{DistEnv, Overlap, broadcast_module};
 use umgen::optim::FusedAdamW;
 
 /// The median of `times` (the upper one of an even count), `None` for none.
@@ -190,13 +190,23 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                 Ok(())
             };
             // The loss as the trainer takes it (prior drop, ordinal smoothing): the step a run would take.
-            let losses = model.loss_with(
-                batch.clone(),
-                LossOptions {
-                    kernels,
-                    ..loss_options
-                },
-            )?;
+            let options = LossOptions {
+                kernels,
+                ..loss_options
+            };
+            // With several ranks, the trainer's overlapped all-reduce: each block's bucket starts as the
+            // backward pass completes it.
+            let overlap = (world > 1).then(|| {
+                Overlap::<B>::new(
+                    &model,
+                    &model.ready_groups(),
+                    GradientsParams::new(),
+                    group.as_ref(),
+                    bucket,
+                )
+            });
+            let points = overlap.as_ref().map(|o| o.points());
+            let losses = model.loss_marked(batch.clone(), options, points.as_ref())?;
             let loss = losses.total.clone();
             if synced {
                 // Only a read of the loss makes the lazy graph run before the backward pass.
@@ -205,9 +215,12 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             lap(0)?;
             // The loss guards the step as in `umgen train`.
             let guard = loss.clone().inner().reshape([1]);
-            let grads = GradientsParams::from_grads(loss.backward(), &model);
+            let grads = loss.backward();
             lap(1)?;
-            let grads = all_reduce_grads(&model, grads, group.as_mut(), bucket)?;
+            let grads = match overlap {
+                Some(o) => o.finish(grads, group.as_mut())?,
+                None => GradientsParams::from_grads(grads, &model),
+            };
             lap(2)?;
             model = optim
                 .step_clipped(tc.lr, model, grads, tc.grad_clip, Some(guard))

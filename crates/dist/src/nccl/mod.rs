@@ -1,16 +1,19 @@
 //! NCCL collectives on the device memory of burn-cuda tensors (feature `cuda`).
 //!
-//! burn 0.21 gives no handle to its CUDA stream: each thread that calls into cubecl gets its own
-//! non-blocking stream. So this group orders work on the host, both ways: it resolves the fusion
-//! tensor (running the queued kernels that produce it), waits for cubecl's stream (`client.sync()`),
-//! runs the NCCL call on its own stream and waits for that stream before burn touches the result. The
-//! two waits cost about a millisecond per collective, which bucketing (one collective per ~25 MiB)
-//! keeps small next to a training step. Collectives are out of place into a freshly allocated tensor,
-//! so NCCL never writes into a buffer that autodiff may share between gradients.
+//! Two ways to run one. The group's own collectives (`all_reduce_mean`, `broadcast`, `barrier`) order
+//! work on the host: they resolve the fusion tensor (running the queued kernels that produce it), wait for
+//! cubecl's stream (`client.sync()`), run the NCCL call on the group's stream and wait for it before burn
+//! touches the result; they serve the occasional small exchange (losses, flags, the first broadcast).
+//! Gradients go through [`AsyncMean`] (`started.rs`): queued in cubecl's stream order and ordered with the
+//! NCCL stream by CUDA events, with no host wait. Collectives are out of place into a freshly allocated
+//! tensor, so NCCL never writes into a buffer that autodiff may share between gradients.
 #![allow(unsafe_code)]
 
+mod comm;
+mod started;
+
 use crate::error::{DistError, Result};
-use crate::group::{Group, ProcessGroup};
+use crate::group::{AsyncMean, Group, ProcessGroup};
 use crate::session::Session;
 use crate::watchdog::Watchdog;
 use burn::backend::Cuda;
@@ -18,8 +21,11 @@ use burn::backend::cuda::CudaDevice;
 use burn::tensor::{Tensor, TensorPrimitive};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::tensor::CubeTensor;
-use cudarc::driver::{CudaContext, CudaSlice, CudaStream};
-use cudarc::nccl::{Comm, Id, ReduceOp};
+use comm::Comm;
+use cudarc::driver::{CudaContext, CudaSlice, DevicePtr};
+use cudarc::nccl::Id;
+use cudarc::nccl::sys::ncclRedOp_t;
+use started::Shared;
 use std::sync::Arc;
 
 type Inner = CubeBackend<burn::cubecl::cuda::CudaRuntime, f32, i32, u8>;
@@ -36,8 +42,7 @@ pub fn nccl_id(rank: usize) -> Result<Vec<u8>> {
 /// Collectives through NCCL on one GPU per rank.
 pub struct NcclGroup {
     session: Session,
-    comm: Comm,
-    stream: Arc<CudaStream>,
+    shared: Arc<Shared>,
     device: CudaDevice,
     /// One float for barriers.
     token: CudaSlice<f32>,
@@ -95,19 +100,17 @@ impl NcclGroup {
             .as_slice()
             .try_into()
             .map_err(|_| err("unique id", format!("{} bytes, not 128", session.payload.len())))?;
-        let id = Id::uninit(bytes.map(|b| b as std::ffi::c_char));
         // The primary context, which cubecl uses too.
         let ctx = CudaContext::new(device.index).map_err(|e| err("CUDA context", format!("{e:?}")))?;
         let stream = ctx.new_stream().map_err(|e| err("stream", format!("{e:?}")))?;
-        let comm = Comm::from_rank(stream.clone(), rank, session.world_size(), id)
-            .map_err(|e| err("communicator", format!("{e:?}")))?;
+        let comm = Comm::join(bytes, rank, session.world_size(), stream.clone())
+            .map_err(|e| err("communicator", e))?;
         let token = stream
             .alloc_zeros::<f32>(1)
             .map_err(|e| err("alloc", format!("{e:?}")))?;
         Ok(Self {
             session,
-            comm,
-            stream,
+            shared: Arc::new(Shared::new(comm, rank)),
             device: device.clone(),
             token,
         })
@@ -118,31 +121,25 @@ impl NcclGroup {
         Watchdog::track(dog.as_ref(), rank, op, std::time::Duration::ZERO, || f(self))
     }
 
-    /// Runs `call(comm, input, output)` out of place into a fresh tensor and waits for it.
+    /// Runs `call(comm, input, output, n)` out of place into a fresh tensor and waits for it.
     fn out_of_place(
         &mut self,
         t: Tensor<Cuda, 1>,
-        call: impl FnOnce(&Comm, &CudaSlice<f32>, &mut CudaSlice<f32>) -> std::result::Result<(), String>,
+        call: impl FnOnce(&Comm, u64, u64, usize) -> std::result::Result<(), String>,
     ) -> Result<Tensor<Cuda, 1>> {
         let rank = self.session.rank();
         let n = t.dims()[0];
         let out = Tensor::<Cuda, 1>::empty([n], &self.device);
+        // Resolving the input runs burn-fusion's queue, started collectives included, so this one is
+        // queued after them on every rank.
         let (_keep_in, in_ptr, _) = raw(t, rank)?;
-        let (keep_out, out_ptr, _) = raw(out.clone(), rank)?;
-        // SAFETY: both pointers are live burn buffers of at least `n` floats (checked in `raw`), kept
-        // alive by `_keep_in`/`keep_out` until the stream is synchronised below; the slices are leaked,
-        // never freed by cudarc.
-        let (input, mut output) = unsafe {
-            (
-                self.stream.upgrade_device_ptr::<f32>(in_ptr, n),
-                self.stream.upgrade_device_ptr::<f32>(out_ptr, n),
-            )
-        };
-        let result = call(&self.comm, &input, &mut output);
-        let synced = self.stream.synchronize();
-        input.leak();
-        output.leak();
-        drop(keep_out);
+        let (_keep_out, out_ptr, _) = raw(out.clone(), rank)?;
+        self.shared.check()?;
+        let comm = &self.shared.comm;
+        // The two buffers are live burn buffers of at least `n` floats (checked in `raw`), kept alive
+        // until the stream is synchronised below.
+        let result = call(comm, in_ptr, out_ptr, n);
+        let synced = comm.stream.synchronize();
         result.map_err(|reason| DistError::Nccl { rank, reason })?;
         synced.map_err(|e| DistError::Nccl {
             rank,
@@ -162,13 +159,13 @@ impl Group for NcclGroup {
     fn barrier(&mut self) -> Result<()> {
         self.counted("barrier", |g| {
             let rank = g.session.rank();
-            g.comm
-                .all_reduce_in_place(&mut g.token, &ReduceOp::Sum)
-                .map_err(|e| DistError::Nccl {
-                    rank,
-                    reason: format!("{e:?}"),
-                })?;
-            g.stream.synchronize().map_err(|e| DistError::Nccl {
+            g.shared.check()?;
+            let comm = &g.shared.comm;
+            let (ptr, _record) = g.token.device_ptr(&comm.stream);
+            // SAFETY: the group's own one-float buffer, alive as long as the group.
+            unsafe { comm.all_reduce(ptr, ptr, 1, ncclRedOp_t::ncclSum) }
+                .map_err(|reason| DistError::Nccl { rank, reason })?;
+            comm.stream.synchronize().map_err(|e| DistError::Nccl {
                 rank,
                 reason: format!("{e:?}"),
             })
@@ -185,22 +182,21 @@ impl Group for NcclGroup {
 }
 
 impl ProcessGroup<Cuda> for NcclGroup {
+    fn async_mean(&self) -> Option<Arc<dyn AsyncMean<Cuda>>> {
+        umgen_ops::external::AVAILABLE.then(|| Arc::new(self.shared.clone()) as Arc<dyn AsyncMean<Cuda>>)
+    }
     fn all_reduce_mean(&mut self, t: Tensor<Cuda, 1>) -> Result<Tensor<Cuda, 1>> {
         self.counted("all-reduce", |g| {
-            g.out_of_place(t, |comm, i, o| {
-                comm.all_reduce(i, o, &ReduceOp::Avg)
-                    .map(|_| ())
-                    .map_err(|e| format!("all-reduce: {e:?}"))
+            // SAFETY: `out_of_place` passes live buffers of `n` floats.
+            g.out_of_place(t, |comm, i, o, n| unsafe {
+                comm.all_reduce(i, o, n, ncclRedOp_t::ncclAvg)
             })
         })
     }
     fn broadcast(&mut self, t: Tensor<Cuda, 1>) -> Result<Tensor<Cuda, 1>> {
         self.counted("broadcast", |g| {
-            g.out_of_place(t, |comm, i, o| {
-                comm.broadcast(Some(i), o, 0)
-                    .map(|_| ())
-                    .map_err(|e| format!("broadcast: {e:?}"))
-            })
+            // SAFETY: as above.
+            g.out_of_place(t, |comm, i, o, n| unsafe { comm.broadcast(i, o, n) })
         })
     }
 }
