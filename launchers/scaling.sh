@@ -2,7 +2,7 @@
 # Data-parallel scaling of the training step: `umgen bench train` on 1 GPU, then on K GPUs through
 # `umgen launch`, with the same per-rank batch; prints tokens/s and efficiency = tokens/s(K) / (K · tokens/s(1)).
 #
-#   launchers/scaling.sh configs/small.toml "1 2 4" --set train.batch_size=1
+#   launchers/scaling.sh configs/small.toml "1 2 4"     # the preset's own batch per rank (small: 4, paper: 1)
 #   DEVICE=cpu launchers/scaling.sh configs/tiny.toml "1 2" --steps 2 --warmup 1
 #
 # UMGEN (the binary), DEVICE (cuda or cpu) and MASTER_PORT may be set; extra arguments go to `bench train`.
