@@ -7,6 +7,7 @@ use crate::embed::FrameEmbedding;
 use crate::error::{BackboneError, Result};
 use crate::heads::Heads;
 use crate::layers::{LayerSizes, SelfBlock};
+use crate::ready::{oar_point, tar_point};
 use crate::spec::BackboneSpec;
 use crate::track::TrackProjection;
 use burn::module::{Module, Param};
@@ -210,7 +211,7 @@ impl<B: Backend> Backbone<B> {
         }
         let mut x = x + self.time.val().narrow(0, 0, t).reshape([1, t, 1, d]);
         for (i, blk) in self.tar.iter().enumerate() {
-            x = blk.forward(mark(ready, x, crate::ready::tar_point(i)), k);
+            x = blk.forward(mark(ready, x, tar_point(i)), k);
         }
         let h = umgen_ops::norm::layer_norm(&self.ln_tar, x, k);
         match track {
@@ -253,14 +254,14 @@ impl<B: Backend> Backbone<B> {
         )
     }
 
-    /// The TAR blocks.
-    pub(crate) fn tar_blocks(&self) -> &[TarBlock<B>] {
-        &self.tar
-    }
-
-    /// The OAR blocks.
-    pub(crate) fn oar_blocks(&self) -> &[SelfBlock<B>] {
-        &self.oar
+    /// The parameters whose gradients are complete at each ready point, indexed by point: TAR block
+    /// `i`'s at point `i`, then OAR block `j`'s at point `tar blocks + j`. Each block's parameters are
+    /// read only by operations on the block's marked input; the rest of the model (embeddings, ego
+    /// module, norms, heads) is at no point.
+    pub fn ready_groups(&self) -> Vec<Vec<burn::module::ParamId>> {
+        let tar = self.tar.iter().map(crate::ready::ids::<B, _>);
+        tar.chain(self.oar.iter().map(crate::ready::ids::<B, _>))
+            .collect()
     }
 
     /// Longest window of frames the TAR takes (rows of the frame embedding).
@@ -307,7 +308,7 @@ impl<B: Backend> Backbone<B> {
     fn oar_with(&self, w: Tensor<B, 3>, k: &Kernels, ready: Option<&ReadyPoints>) -> Tensor<B, 3> {
         let mut x = w;
         for (i, blk) in self.oar.iter().enumerate() {
-            x = blk.forward(mark(ready, x, self.oar_point(i)), true, k);
+            x = blk.forward(mark(ready, x, oar_point(self.tar.len(), i)), true, k);
         }
         umgen_ops::norm::layer_norm(&self.ln_oar, x, k)
     }
