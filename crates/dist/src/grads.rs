@@ -54,20 +54,33 @@ fn bucketed<B: Backend>(
     let mut parts: Vec<Option<Tensor<B, 1>>> = parts.into_iter().map(Some).collect();
     let mut out = Vec::with_capacity(sizes.len());
     for range in buckets(&sizes, bucket_bytes / 4) {
-        let mut chunk: Vec<Tensor<B, 1>> = range.clone().filter_map(|i| parts[i].take()).collect();
-        let flat = match chunk.len() {
-            0 => continue,
-            1 => chunk.swap_remove(0),
-            _ => Tensor::cat(chunk, 0),
-        };
-        let reduced = op(flat)?;
-        let mut offset = 0;
-        for i in range {
-            out.push(reduced.clone().narrow(0, offset, sizes[i]));
-            offset += sizes[i];
-        }
+        let chunk: Vec<Tensor<B, 1>> = range.filter_map(|i| parts[i].take()).collect();
+        out.extend(as_one(chunk, &mut op)?);
     }
     Ok(out)
+}
+
+/// Runs `op` on `parts` concatenated (one collective) and returns the result cut back into the parts'
+/// sizes.
+pub(crate) fn as_one<B: Backend>(
+    mut parts: Vec<Tensor<B, 1>>,
+    op: &mut impl FnMut(Tensor<B, 1>) -> Result<Tensor<B, 1>>,
+) -> Result<Vec<Tensor<B, 1>>> {
+    let sizes: Vec<usize> = parts.iter().map(|t| t.dims()[0]).collect();
+    let flat = match parts.len() {
+        0 => return Ok(parts),
+        1 => parts.swap_remove(0),
+        _ => Tensor::cat(parts, 0),
+    };
+    let reduced = op(flat)?;
+    let mut offset = 0;
+    Ok(sizes
+        .into_iter()
+        .map(|n| {
+            offset += n;
+            reduced.clone().narrow(0, offset - n, n)
+        })
+        .collect())
 }
 
 /// Averages `grads` over the ranks of `group`: gradients of `model`'s float parameters, in module order,

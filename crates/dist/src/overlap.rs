@@ -15,7 +15,7 @@
 //! starts the same collectives on buffers of the same length, in the same order.
 
 use crate::error::{DistError, Result};
-use crate::grads::{buckets, register, take_flat};
+use crate::grads::{as_one, buckets, register, take_flat};
 use crate::group::{AsyncMean, ProcessGroup};
 use burn::module::{AutodiffModule, ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;
@@ -223,14 +223,11 @@ impl<B: AutodiffBackend> Overlap<B> {
         }
         for (i, e) in st.entries.iter().enumerate() {
             if st.taken[i] && (e.take)(&mut grads).is_some() {
-                return Err(DistError::Collective {
-                    rank: group.rank(),
-                    op: "all-reduce",
-                    reason: format!(
-                        "parameter {} (shape {:?}) received gradient after its ready point had reduced it: the model reads it outside its block",
-                        e.id, e.shape
-                    ),
-                });
+                let why = format!(
+                    "parameter {} (shape {:?}) received gradient after its ready point had reduced it: the model reads it outside its block",
+                    e.id, e.shape
+                );
+                return Err(collective_error(group, &why));
             }
         }
         st.close_bucket();
@@ -259,18 +256,7 @@ impl<B: AutodiffBackend> Overlap<B> {
                 started.extend(b.parts.iter().cloned());
                 reduced.push(None);
             } else {
-                let sizes: Vec<usize> = b.parts.iter().map(|t| t.dims()[0]).collect();
-                let flat = match b.parts.len() {
-                    1 => b.parts[0].clone(),
-                    _ => Tensor::cat(b.parts.clone(), 0),
-                };
-                let flat = group.all_reduce_mean(flat)?;
-                let mut offset = 0;
-                let mut parts = Vec::with_capacity(sizes.len());
-                for n in sizes {
-                    parts.push(flat.clone().narrow(0, offset, n));
-                    offset += n;
-                }
+                let parts = as_one(b.parts.clone(), &mut |t| group.all_reduce_mean(t))?;
                 reduced.push(Some(parts));
             }
         }

@@ -55,20 +55,10 @@ fn write_table(out: &mut impl Write, source: &str, layout: &FrameLayout) -> std:
     writeln!(out, "fingerprint  {}", layout.fingerprint())?;
     writeln!(out)?;
     // Names and kinds as wide as the longest (a plug-in's kind may be longer than the built-ins').
-    let name_w = layout
-        .segments()
-        .iter()
-        .map(|s| s.modality.len())
-        .max()
-        .unwrap_or(0)
-        .max(12);
-    let kind_w = layout
-        .segments()
-        .iter()
-        .map(|s| s.kind.len())
-        .max()
-        .unwrap_or(0)
-        .max(8);
+    let widest =
+        |len: fn(&_) -> usize, least: usize| layout.segments().iter().map(len).max().unwrap_or(0).max(least);
+    let name_w = widest(|s| s.modality.len(), 12);
+    let kind_w = widest(|s| s.kind.len(), 8);
     writeln!(
         out,
         "{:<name_w$} {:<kind_w$} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>8} {:>7}  grid",

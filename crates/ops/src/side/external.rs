@@ -57,7 +57,6 @@ pub enum Outputs {
 
 #[derive(Debug)]
 struct Pass<W> {
-    inputs: usize,
     outputs: Outputs,
     work: W,
 }
@@ -83,25 +82,25 @@ impl<W: External> super::fusion::SidePass for Pass<W> {
             .iter()
             .map(|t| burn_cubecl::kernel::into_contiguous(handles.get_float_tensor::<Inner>(t)))
             .collect();
-        debug_assert_eq!(inputs.len(), self.inputs);
-        let outputs: Vec<Primitive> = match &self.outputs {
-            Outputs::Inputs => inputs.clone(),
-            Outputs::Fresh(lens) => match inputs.first() {
-                Some(like) => lens.iter().map(|&n| empty_f32(like, vec![n])).collect(),
-                None => Vec::new(),
-            },
-        };
+        // `external` registers no operation without inputs.
         let Some(like) = inputs.first().cloned() else {
             self.work.failed("an external operation without inputs".into());
-            return outputs;
+            return Vec::new();
         };
-        let (ins, outs) = (inputs.clone(), outputs.clone());
+        let outputs: Vec<Primitive> = match &self.outputs {
+            Outputs::Inputs => inputs.clone(),
+            Outputs::Fresh(lens) => lens.iter().map(|&n| empty_f32(&like, vec![n])).collect(),
+        };
+        let (ins, outs, probe) = (inputs, outputs.clone(), like.clone());
         let work = &self.work;
         let ran = on_device_thread(&like, LaunchThread::Device, move || {
             let (ins, outs) = match work.buffers() {
                 true => (buffers(&ins)?, buffers(&outs)?),
-                // The first input's pointer resolves cubecl's stream for it.
-                false => (buffers(&ins[..1])?.into_iter().take(0).collect(), Vec::new()),
+                false => {
+                    // Fetching one pointer resolves cubecl's stream for the caller.
+                    pointer(&probe)?;
+                    (Vec::new(), Vec::new())
+                }
             };
             let stream = current_stream()?;
             work.queue(stream, &ins, &outs)
@@ -144,11 +143,7 @@ pub fn external<W: External>(
         Outputs::Inputs => inputs.iter().map(|t| t.dims().to_vec()).collect(),
         Outputs::Fresh(lens) => lens.iter().map(|&n| vec![n]).collect(),
     };
-    let pass = Pass {
-        inputs: inputs.len(),
-        outputs,
-        work,
-    };
+    let pass = Pass { outputs, work };
     let prims = inputs.into_iter().map(|t| t.into_primitive().tensor()).collect();
     register_many(id, prims, shapes, pass)
         .into_iter()
