@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Data-parallel equivalence on one machine's GPUs: six steps of the tiny model in the linear regime
 # (train.eps = 1, lr 0.3: AdamW is then a momentum SGD, its update linear in the gradient), one rank at
-# batch 8 against the same global batch split over ranks and micro-batches; prints each run's largest
+# batch 8 against the same global batch split over ranks and micro-batches, and ranks that shard the
+# optimizer state (train.shard_optimizer) against the same ranks unsharded; prints each run's largest
 # parameter difference and relative L2 against the references (docs/training.md, "Equivalence").
 #
 #   launchers/dp-equivalence.sh                 # UMGEN=path/to/umgen (CUDA build), OUT=runs/equivalence
@@ -14,9 +15,10 @@ mkdir -p "$out"
 "$umgen" tokenize --config configs/tiny.toml --data data/sumo-sample --out "$out/tokens" --device "$devices"
 common=(--set "train.tokens=$out/tokens" --set train.steps=6 --set train.eps=1 --set train.lr=0.3
     --set train.warmup=0 --set train.checkpoint_every=6)
-run() { # NAME RANKS BATCH ACCUM
+run() { # NAME RANKS BATCH ACCUM [SHARD]
     local args=(train --config configs/tiny.toml "${common[@]}" --set "train.batch_size=$3"
-        --set "train.grad_accum=$4" --set "train.out_dir=$out/$1")
+        --set "train.grad_accum=$4" --set "train.out_dir=$out/$1"
+        --set "train.shard_optimizer=${5:-false}")
     rm -rf "${out:?}/$1"
     if [ "$2" = 1 ]; then
         "$umgen" "${args[@]}" --device cuda:0
@@ -29,7 +31,11 @@ run again 1 8 1
 run accum 1 4 2
 run ranks2 2 4 1
 run ranks2-accum 2 2 2
-[ "$gpus" -ge 4 ] && run ranks4 4 2 1
+run ranks2-sharded 2 4 1 true
+if [ "$gpus" -ge 4 ]; then
+    run ranks4 4 2 1
+    run ranks4-sharded 4 2 1 true
+fi
 python3 - "$out" <<'PY'
 import json, os, struct, sys
 import numpy as np
@@ -54,4 +60,7 @@ def compare(ref, names):
         print(f"  {name:14s} largest {worst:.1e}  relative L2 {rel:.1e}")
 compare("one", ["again", "accum", "ranks2", "ranks4"])
 compare("accum", ["ranks2", "ranks2-accum"])
+compare("ranks2", ["ranks2-sharded"])
+if os.path.isdir(f"{out}/ranks4"):
+    compare("ranks4", ["ranks4-sharded"])
 PY

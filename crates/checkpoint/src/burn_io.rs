@@ -8,12 +8,13 @@
 use crate::error::{CheckpointError, Result};
 use burn::module::{AutodiffModule, Module, ModuleMapper, Param, ParamId};
 use burn::optim::Optimizer;
-use burn::record::{BinBytesRecorder, FullPrecisionSettings, Recorder};
+use burn::record::{BinBytesRecorder, BurnRecord, FullPrecisionSettings, Record, Recorder};
 use burn::tensor::Tensor;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{DType, TensorData};
 use burn_store::{ModuleSnapshot, SafetensorsStore};
 use safetensors::{Dtype, tensor::TensorView};
+use std::collections::HashMap;
 
 /// FNV-1a: stable across runs, platforms and Rust versions.
 fn fnv1a(s: &str) -> u64 {
@@ -207,13 +208,59 @@ where
     M: AutodiffModule<B>,
     O: Optimizer<M, B>,
 {
-    let record = BinBytesRecorder::<FullPrecisionSettings>::default()
-        .load(bytes, device)
+    let record: BurnRecord<RecordItem<B, O::Record>, B> = decode(&bytes)?;
+    Ok(optim.load_record(O::Record::from_item(record.item, device)))
+}
+
+/// A burn binary record from `bytes`, as `BinBytesRecorder` reads them but with an error, not a panic,
+/// for bytes that are not one.
+fn decode<I: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<I> {
+    bincode::serde::decode_from_slice(bytes, bincode::config::standard())
+        .map(|(item, _)| item)
         .map_err(|e| CheckpointError::Weights {
             what: "optimizer state".into(),
+            reason: format!("not a burn binary record of this optimizer: {e}"),
+        })
+}
+
+/// One parameter's optimizer record as the bytes hold it (host memory).
+pub type RecordItem<B, T> = <T as Record<B>>::Item<FullPrecisionSettings>;
+
+/// The bytes [`optimizer_to_bytes`] writes for a record keyed by parameter id (as burn's optimizers keep
+/// theirs), from its entries already turned into items: a sharded optimizer's state, gathered one
+/// parameter at a time, need never be on one device whole.
+pub fn optimizer_items_to_bytes<B: Backend, T: Record<B>>(
+    items: impl IntoIterator<Item = (ParamId, RecordItem<B, T>)>,
+) -> Result<Vec<u8>> {
+    type Bytes = BinBytesRecorder<FullPrecisionSettings>;
+    let keyed: HashMap<String, RecordItem<B, T>> = items
+        .into_iter()
+        .map(|(id, item)| (id.serialize(), item))
+        .collect();
+    Recorder::<B>::save_item(&Bytes::default(), BurnRecord::<_, B>::new::<Bytes>(keyed), ()).map_err(|e| {
+        CheckpointError::Weights {
+            what: "optimizer state".into(),
             reason: e.to_string(),
-        })?;
-    Ok(optim.load_record(record))
+        }
+    })
+}
+
+/// The entries of the parameters that `keep` accepts, from bytes [`optimizer_to_bytes`] wrote (whether
+/// or not the optimizer that wrote them was sharded), collected into the optimizer's record type; the
+/// others never reach the device.
+pub fn optimizer_records_from_bytes<B: Backend, T: Record<B>, R: FromIterator<(ParamId, T)>>(
+    bytes: &[u8],
+    device: &B::Device,
+    keep: impl Fn(ParamId) -> bool,
+) -> Result<R> {
+    let record: BurnRecord<HashMap<String, RecordItem<B, T>>, B> = decode(bytes)?;
+    Ok(record
+        .item
+        .into_iter()
+        .map(|(key, item)| (ParamId::deserialize(&key), item))
+        .filter(|(id, _)| keep(*id))
+        .map(|(id, item)| (id, T::from_item(item, device)))
+        .collect())
 }
 
 #[cfg(test)]
@@ -272,6 +319,46 @@ mod tests {
             weights_to_bytes(&straight).unwrap() == weights_to_bytes(&resumed).unwrap(),
             "equal weights, equal bytes"
         );
+    }
+
+    #[test]
+    fn optimizer_state_goes_through_items_and_loads_in_part() {
+        type Entry = burn::optim::record::AdaptorRecord<burn::optim::AdamW, B>;
+        let dev = Default::default();
+        let mut o = AdamWConfig::new().init();
+        let m = step(step(net(&dev), &mut o), &mut o);
+        let whole: HashMap<ParamId, Entry> = o.to_record().into_iter().collect();
+        assert_eq!(whole.len(), 4);
+        // Entry by entry into items, then bytes: what `optimizer_to_bytes` reads back.
+        let items = whole
+            .clone()
+            .into_iter()
+            .map(|(id, r)| (id, r.into_item::<FullPrecisionSettings>()));
+        let bytes = optimizer_items_to_bytes::<B, Entry>(items).unwrap();
+        let (mut o1, mut o2) = (
+            optimizer_from_bytes(AdamWConfig::new().init(), bytes.clone(), &dev).unwrap(),
+            optimizer_from_bytes(AdamWConfig::new().init(), optimizer_to_bytes(&o).unwrap(), &dev).unwrap(),
+        );
+        let (a, b) = (step(m.clone(), &mut o1), step(m.clone(), &mut o2));
+        assert!(weights_to_bytes(&a).unwrap() == weights_to_bytes(&b).unwrap());
+        // In part: only the entries asked for, with their values.
+        let keep = [m.a.weight.id, m.b.bias.as_ref().unwrap().id];
+        let part: HashMap<ParamId, Entry> =
+            optimizer_records_from_bytes(&bytes, &dev, |id| keep.contains(&id)).unwrap();
+        assert_eq!(part.len(), 2);
+        for id in keep {
+            let (x, y) = (part[&id].clone(), whole[&id].clone());
+            let x = x.into_item::<FullPrecisionSettings>();
+            let y = y.into_item::<FullPrecisionSettings>();
+            assert_eq!(
+                format!("{:?}", serde_json::to_value(&x).unwrap()),
+                format!("{:?}", serde_json::to_value(&y).unwrap())
+            );
+        }
+        let garbage = optimizer_records_from_bytes::<B, Entry, Vec<_>>(&[1, 2, 3], &dev, |_| true);
+        assert!(garbage.is_err());
+        let err = optimizer_from_bytes(AdamWConfig::new().init::<B, Net<B>>(), vec![9; 5], &dev).err();
+        assert!(err.is_some_and(|e| e.to_string().contains("optimizer state")));
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! `umgen launch` on the CPU: 2 and 3 ranks over TCP end with the parameters of one rank training on the
-//! same global batch (the backbone, and a VQ tokenizer with its moving-average codebook); a killed or
-//! stopped rank makes the launcher fail within the timeout.
+//! same global batch (the backbone, and a VQ tokenizer with its moving-average codebook); ranks that
+//! shard the optimizer state end with the unsharded run's weights; a killed or stopped rank makes the
+//! launcher fail within the timeout.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
@@ -144,6 +145,52 @@ fn ranks_over_tcp_match_one_rank_on_the_same_global_batch() {
     let out = launch(&cfg, &["--resume"]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(weights(&dir.path().join("limited")) == a);
+}
+
+/// `train.shard_optimizer`: 2 and 3 ranks that each step their share of the parameters end with the
+/// weights of the unsharded run to the bit; a sharded run stopped by a time limit resumes exactly; and
+/// checkpoints pass between sharded and unsharded runs (the gathered moments are the unsharded ones, or
+/// the resumed run would drift).
+#[test]
+fn a_sharded_optimizer_steps_and_resumes_as_an_unsharded_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 40).unwrap();
+    let train = |world: usize, name: &str, batch: usize, sharded: bool, extra: &[&str]| {
+        let cfg = config(dir.path(), &data, name, 8, batch);
+        let mut args = launch_args(world);
+        args.extend(["train".into(), "--config".into(), cfg.display().to_string()]);
+        args.extend(["--set".into(), format!("train.shard_optimizer={sharded}")]);
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let out = umgen(&args.iter().map(String::as_str).collect::<Vec<_>>());
+        let log = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{name}: {log}");
+        assert_eq!(
+            log.contains(&format!("optimizer state sharded over {world} ranks")),
+            sharded,
+            "{name}: {log}"
+        );
+        weights(&dir.path().join(name))
+    };
+    for (world, batch) in [(2, 3), (3, 2)] {
+        let plain = train(world, &format!("plain{world}"), batch, false, &[]);
+        let sharded = train(world, &format!("sharded{world}"), batch, true, &[]);
+        assert!(
+            sharded == plain,
+            "{world} ranks: sharded weights equal the unsharded ones"
+        );
+    }
+    let reference = weights(&dir.path().join("plain2"));
+    // Stopped at step 1 (a checkpoint), then resumed: sharded → sharded, sharded → unsharded, and
+    // unsharded → sharded.
+    for (name, first, then) in [("ss", true, true), ("su", true, false), ("us", false, true)] {
+        train(2, name, 3, first, &["--time-limit", "1e-6"]);
+        assert!(dir.path().join(name).join("checkpoints/step-000000001").exists());
+        let resumed = train(2, name, 3, then, &["--resume"]);
+        assert!(
+            resumed == reference,
+            "{name}: a resumed run repeats the uninterrupted one"
+        );
+    }
 }
 
 /// Starts a long 2-rank run and returns the launcher and the pid of rank 1.

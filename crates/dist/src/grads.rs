@@ -28,11 +28,17 @@ fn shapes<B: AutodiffBackend, M: AutodiffModule<B>>(model: &M) -> Vec<(ParamId, 
 
 /// Index ranges of `sizes` grouped into buckets of at least `bucket_elems` (the last may be smaller).
 pub(crate) fn buckets(sizes: &[usize], bucket_elems: usize) -> Vec<std::ops::Range<usize>> {
+    buckets_of(sizes, bucket_elems, usize::MAX)
+}
+
+/// Index ranges of `sizes`, in order, each summing to at least `elems` or holding `count` entries (the
+/// last may hold less).
+pub(crate) fn buckets_of(sizes: &[usize], elems: usize, count: usize) -> Vec<std::ops::Range<usize>> {
     let mut out = Vec::new();
     let (mut start, mut acc) = (0, 0);
     for (i, s) in sizes.iter().enumerate() {
         acc += s;
-        if acc >= bucket_elems.max(1) {
+        if acc >= elems.max(1) || i + 1 - start >= count.max(1) {
             out.push(start..i + 1);
             start = i + 1;
             acc = 0;
@@ -155,8 +161,8 @@ pub(crate) fn register<B: AutodiffBackend>(
 }
 
 /// Replaces float parameters, in module order, with given flat values.
-struct Replace<B: AutodiffBackend> {
-    values: std::vec::IntoIter<Tensor<B::InnerBackend, 1>>,
+pub(crate) struct Replace<B: AutodiffBackend> {
+    pub(crate) values: std::vec::IntoIter<Tensor<B::InnerBackend, 1>>,
 }
 
 impl<B: AutodiffBackend> ModuleMapper<B> for Replace<B> {
@@ -193,7 +199,7 @@ pub fn broadcast_module<B: AutodiffBackend, M: AutodiffModule<B>>(
     }
     let mut flat = Flat::<B> { values: Vec::new() };
     model.visit(&mut flat);
-    let values = bucketed(flat.values, bucket_bytes, |t| group.broadcast(t))?;
+    let values = bucketed(flat.values, bucket_bytes, |t| group.broadcast(t, 0))?;
     Ok(model.map(&mut Replace::<B> {
         values: values.into_iter(),
     }))
@@ -214,7 +220,7 @@ pub fn same_on_all_ranks<B: Backend>(
     // Two 24-bit halves: exact in f32.
     let halves = [(value >> 24) as f32, (value & 0xff_ffff) as f32];
     let mine = Tensor::<B, 1>::from_floats(halves, device);
-    let first = group.broadcast(mine.clone())?;
+    let first = group.broadcast(mine.clone(), 0)?;
     let spread = group.all_reduce_mean((mine - first.clone()).abs().sum())?;
     let spread = spread.into_data().iter::<f64>().next().unwrap_or(0.0);
     let rank0: Vec<f64> = first.into_data().iter::<f64>().collect();
@@ -244,17 +250,22 @@ pub fn rank0_decides<B: Backend>(
         return Ok(stop);
     }
     let flag = Tensor::<B, 1>::from_floats([f32::from(u8::from(stop))], device);
-    let first = group.broadcast(flag)?.into_data();
+    let first = group.broadcast(flag, 0)?.into_data();
     Ok(first.iter::<f64>().next().unwrap_or(0.0) > 0.5)
 }
 
 #[cfg(test)]
 mod tests {
-    use super::buckets;
+    use super::{buckets, buckets_of};
 
     #[test]
     fn buckets_cover_every_tensor_once() {
         assert_eq!(buckets(&[4, 4, 4, 10, 1], 8), vec![0..2, 2..4, 4..5]);
+        assert_eq!(
+            buckets_of(&[4, 4, 4, 10, 1], 8, 1),
+            vec![0..1, 1..2, 2..3, 3..4, 4..5]
+        );
+        assert_eq!(buckets_of(&[1, 1, 1, 1, 9], 100, 2), vec![0..2, 2..4, 4..5]);
         assert_eq!(buckets(&[100], 8), vec![0..1]);
         assert_eq!(buckets(&[], 8), Vec::<std::ops::Range<usize>>::new());
         assert_eq!(buckets(&[1, 1, 1], 0), vec![0..1, 1..2, 2..3]);

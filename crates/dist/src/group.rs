@@ -3,6 +3,7 @@
 use crate::error::{DistError, Result};
 use crate::session::Session;
 use burn::tensor::backend::Backend;
+use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Tensor, TensorData};
 use std::sync::Arc;
 
@@ -25,25 +26,29 @@ pub trait Group {
 pub trait ProcessGroup<B: Backend>: Group {
     /// The element-wise mean over ranks; every rank receives bit-identical values.
     fn all_reduce_mean(&mut self, t: Tensor<B, 1>) -> Result<Tensor<B, 1>>;
-    /// Rank 0's values, on every rank.
-    fn broadcast(&mut self, t: Tensor<B, 1>) -> Result<Tensor<B, 1>>;
-    /// A handle that starts averages without waiting, where this group has one (NCCL); `None` where each
-    /// collective completes before it returns (TCP, a single rank).
-    fn async_mean(&self) -> Option<Arc<dyn AsyncMean<B>>> {
+    /// Rank `root`'s values, on every rank (the others' values only give the length).
+    fn broadcast(&mut self, t: Tensor<B, 1>, root: usize) -> Result<Tensor<B, 1>>;
+    /// A handle that starts collectives without waiting, where this group has one (NCCL); `None` where
+    /// each collective completes before it returns (TCP, a single rank).
+    fn async_collective(&self) -> Option<Arc<dyn AsyncCollective<B>>> {
         None
     }
 }
 
-/// Averages over ranks that start without the host waiting for the device: each is queued behind the
-/// work that produces its input and runs beside the work queued after it. Every rank must start the same
-/// averages in the same order with tensors of the same length.
-pub trait AsyncMean<B: Backend>: Send + Sync {
+/// Collectives that start without the host waiting for the device: each is queued behind the work that
+/// produces its input and runs beside the work queued after it. They take a backend's tensors of any
+/// shape as they lie (primitives: no reshape to queue for each), packed `f32`. Every rank must start the
+/// same collectives in the same order with tensors of the same shapes.
+pub trait AsyncCollective<B: Backend>: Send + Sync {
     /// Starts the element-wise mean over ranks of each tensor of a bucket, as one launch. The results
-    /// may be read only through what [`AsyncMean::settle`] returns for them.
-    fn start_mean(&self, bucket: Vec<Tensor<B, 1>>) -> Result<Vec<Tensor<B, 1>>>;
-    /// The results of started averages, ordered so that whatever reads them runs after the collectives
-    /// (and the failure of any started collective).
-    fn settle(&self, started: Vec<Tensor<B, 1>>) -> Result<Vec<Tensor<B, 1>>>;
+    /// may be read only through what [`AsyncCollective::settle`] returns for them.
+    fn start_mean(&self, bucket: Vec<FloatTensor<B>>) -> Result<Vec<FloatTensor<B>>>;
+    /// Starts, as one launch, the copy of each tensor of a bucket from its rank in `roots` (one per
+    /// tensor) to every rank; read the results as those of [`AsyncCollective::start_mean`].
+    fn start_broadcast(&self, bucket: Vec<FloatTensor<B>>, roots: &[usize]) -> Result<Vec<FloatTensor<B>>>;
+    /// The results of started collectives, ordered so that whatever reads them runs after the
+    /// collectives (and the failure of any started collective).
+    fn settle(&self, started: Vec<FloatTensor<B>>) -> Result<Vec<FloatTensor<B>>>;
 }
 
 /// The group of a lone process: every collective is the identity.
@@ -70,7 +75,7 @@ impl<B: Backend> ProcessGroup<B> for Single {
     fn all_reduce_mean(&mut self, t: Tensor<B, 1>) -> Result<Tensor<B, 1>> {
         Ok(t)
     }
-    fn broadcast(&mut self, t: Tensor<B, 1>) -> Result<Tensor<B, 1>> {
+    fn broadcast(&mut self, t: Tensor<B, 1>, _root: usize) -> Result<Tensor<B, 1>> {
         Ok(t)
     }
 }
@@ -158,10 +163,18 @@ impl<B: Backend> ProcessGroup<B> for TcpGroup {
         let n = v.len();
         Ok(Tensor::from_data(TensorData::new(v, [n]), &device))
     }
-    fn broadcast(&mut self, t: Tensor<B, 1>) -> Result<Tensor<B, 1>> {
+    fn broadcast(&mut self, t: Tensor<B, 1>, root: usize) -> Result<Tensor<B, 1>> {
         let device = t.device();
-        let mut v = to_host(t, self.session.rank(), "broadcast")?;
-        self.collective("broadcast", &mut v, |r, b| r.broadcast(b, 0))?;
+        let (rank, world) = (self.session.rank(), self.session.world_size());
+        if root >= world {
+            return Err(DistError::Collective {
+                rank,
+                op: "broadcast",
+                reason: format!("root {root} of {world} ranks"),
+            });
+        }
+        let mut v = to_host(t, rank, "broadcast")?;
+        self.collective("broadcast", &mut v, |r, b| r.broadcast(b, root))?;
         let n = v.len();
         Ok(Tensor::from_data(TensorData::new(v, [n]), &device))
     }

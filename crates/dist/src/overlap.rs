@@ -5,7 +5,7 @@
 //! each point completes. [`Overlap`] is the hook: when the backward pass passes a point it takes those
 //! gradients out of the backward pass's container (adding what earlier accumulation micro-steps left),
 //! and once a bucket's worth has gathered it starts the bucket's all-reduce. On a group that can start
-//! a collective without waiting ([`AsyncMean`], NCCL) the all-reduce is queued on its own stream behind
+//! a collective without waiting ([`AsyncCollective`], NCCL) the all-reduce is queued on its own stream behind
 //! the kernels that produced the bucket, and the backward pass's remaining kernels run beside it; other
 //! groups reduce the gathered buckets in the same order after the backward pass. [`Overlap::finish`]
 //! reduces the parameters no point completed (the embeddings, heads and norms around the blocks),
@@ -16,11 +16,12 @@
 
 use crate::error::{DistError, Result};
 use crate::grads::{as_one, buckets, register, take_flat};
-use crate::group::{AsyncMean, ProcessGroup};
+use crate::group::{AsyncCollective, ProcessGroup};
 use burn::module::{AutodiffModule, ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;
-use burn::tensor::Tensor;
 use burn::tensor::backend::AutodiffBackend;
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{Tensor, TensorPrimitive};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use umgen_ops::ready::{ReadyHook, ReadyPoints};
@@ -74,7 +75,7 @@ struct State<B: AutodiffBackend> {
     buckets: Vec<Bucket<B>>,
     bucket_elems: usize,
     device: burn::tensor::Device<Inner<B>>,
-    starter: Option<Arc<dyn AsyncMean<Inner<B>>>>,
+    starter: Option<Arc<dyn AsyncCollective<Inner<B>>>>,
     /// The first failure of a started collective (reported by [`Overlap::finish`]).
     error: Option<DistError>,
 }
@@ -109,8 +110,8 @@ impl<B: AutodiffBackend> State<B> {
         let (params, parts): (Vec<usize>, Vec<_>) = std::mem::take(&mut self.gathered).into_iter().unzip();
         self.gathered_elems = 0;
         let (parts, started) = match (&self.starter, &self.error) {
-            (Some(s), None) => match s.start_mean(parts.clone()) {
-                Ok(t) => (t, true),
+            (Some(s), None) => match s.start_mean(parts.iter().cloned().map(raw).collect()) {
+                Ok(t) => (t.into_iter().map(typed).collect(), true),
                 Err(e) => {
                     self.error = Some(e);
                     (parts, false)
@@ -187,7 +188,7 @@ impl<B: AutodiffBackend> Overlap<B> {
             buckets: Vec::new(),
             bucket_elems: (bucket_bytes / 4).max(1),
             device: model.devices().into_iter().next().unwrap_or_default(),
-            starter: group.async_mean(),
+            starter: group.async_collective(),
             error: None,
             entries,
         };
@@ -261,7 +262,12 @@ impl<B: AutodiffBackend> Overlap<B> {
             }
         }
         let mut settled = match (&st.starter, started.is_empty()) {
-            (Some(s), false) => s.settle(started)?.into_iter(),
+            (Some(s), false) => s
+                .settle(started.into_iter().map(raw).collect())?
+                .into_iter()
+                .map(typed)
+                .collect::<Vec<_>>()
+                .into_iter(),
             _ => Vec::new().into_iter(),
         };
         let mut out = GradientsParams::new();
@@ -280,6 +286,16 @@ impl<B: AutodiffBackend> Overlap<B> {
         }
         Ok(out)
     }
+}
+
+/// A flat tensor as the started collectives take it.
+fn raw<B: burn::tensor::backend::Backend>(t: Tensor<B, 1>) -> FloatTensor<B> {
+    t.into_primitive().tensor()
+}
+
+/// A started collective's flat result as a tensor.
+fn typed<B: burn::tensor::backend::Backend>(t: FloatTensor<B>) -> Tensor<B, 1> {
+    Tensor::from_primitive(TensorPrimitive::Float(t))
 }
 
 fn collective_error<B: burn::tensor::backend::Backend>(

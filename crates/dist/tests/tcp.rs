@@ -11,8 +11,8 @@ use burn::tensor::{Tensor, TensorData};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use umgen_dist::{
-    DistEnv, Group, ProcessGroup, Session, SessionOptions, TcpGroup, all_reduce_grads, broadcast_module,
-    same_on_all_ranks,
+    DistEnv, Group, ProcessGroup, Session, SessionOptions, Shards, TcpGroup, all_reduce_grads,
+    broadcast_module, same_on_all_ranks,
 };
 
 type B = Flex;
@@ -88,15 +88,16 @@ fn all_reduce_and_broadcast_match_a_direct_computation() {
         for n in [1usize, 3, 4, 1001] {
             let out = on_ranks(world, move |r, mut g| {
                 let mean = host(g.all_reduce_mean(tensor(values(r, n))).unwrap());
-                let bcast = host(g.broadcast(tensor(values(r, n))).unwrap());
+                let bcast = host(g.broadcast(tensor(values(r, n)), 0).unwrap());
+                let last = host(g.broadcast(tensor(values(r, n)), world - 1).unwrap());
                 g.barrier().unwrap();
                 g.finish();
-                (mean, bcast)
+                (mean, (bcast, last))
             });
             let want: Vec<f64> = (0..n)
                 .map(|i| (0..world).map(|r| f64::from(values(r, n)[i])).sum::<f64>() / world as f64)
                 .collect();
-            for (r, (mean, bcast)) in out.iter().enumerate() {
+            for (r, (mean, (bcast, last))) in out.iter().enumerate() {
                 for (a, b) in mean.iter().zip(&want) {
                     assert!(
                         (f64::from(*a) - b).abs() < 1e-4,
@@ -105,6 +106,7 @@ fn all_reduce_and_broadcast_match_a_direct_computation() {
                 }
                 assert_eq!(mean, &out[0].0, "bit-identical on every rank");
                 assert_eq!(bcast, &values(0, n), "rank 0's values");
+                assert_eq!(last, &values(world - 1, n), "the last rank's values");
             }
         }
     }
@@ -155,6 +157,83 @@ fn bucketed_gradients_are_the_mean_of_the_ranks_gradients() {
             (got - want).abs() < 1e-4 * want.abs().max(1.0),
             "{k}: {got} vs {want}"
         );
+    }
+}
+
+#[test]
+fn a_sharded_step_takes_each_parameter_from_its_owner() {
+    // Eight parameters of five sizes over three ranks; rank-dependent values, so the result tells which
+    // rank each parameter came from.
+    let model = |r: usize| {
+        let dev = Default::default();
+        [(6, 5), (3, 3), (5, 1), (2, 7)]
+            .map(|(i, o)| LinearConfig::new(i, o).init::<AB>(&dev))
+            .to_vec()
+            .map(&mut Fill { rank: r, k: 0 })
+    };
+    let flat = |m: &Vec<Linear<AB>>| -> Vec<Vec<f32>> {
+        m.iter()
+            .flat_map(|l| {
+                [
+                    host(l.weight.val().inner().flatten(0, 1)),
+                    host(l.bias.as_ref().unwrap().val().inner()),
+                ]
+            })
+            .collect()
+    };
+    let world = 3;
+    let out = on_ranks(world, move |r, mut g| {
+        let m = model(r);
+        let shards = Shards::plan::<AB, _>(&m, r, world);
+        let owners: Vec<usize> = m
+            .iter()
+            .flat_map(|l| [l.weight.id, l.bias.as_ref().unwrap().id])
+            .map(|id| shards.owner(id).unwrap())
+            .collect();
+        let m = shards.gather::<AB, _>(m, &mut g).unwrap();
+        let grad = m[0].weight.val().is_require_grad();
+        g.finish();
+        (flat(&m), owners, grad)
+    });
+    let owners = &out[0].1;
+    let mut used: Vec<usize> = owners.clone();
+    used.sort_unstable();
+    used.dedup();
+    assert_eq!(used, vec![0, 1, 2], "every rank owns a share: {owners:?}");
+    for (r, (values, o, grad)) in out.iter().enumerate() {
+        assert_eq!(o, owners, "rank {r} plans the same owners");
+        assert!(grad, "parameters stay trainable");
+        for (k, v) in values.iter().enumerate() {
+            assert_eq!(
+                v,
+                &flat(&model(owners[k]))[k],
+                "rank {r}, parameter {k}: its owner's values"
+            );
+        }
+    }
+}
+
+/// Sets float parameter `k` (module order) of rank `rank` to `1000·rank + 100·k + 0.5·i`.
+struct Fill {
+    rank: usize,
+    k: usize,
+}
+
+impl burn::module::ModuleMapper<AB> for Fill {
+    fn map_float<const D: usize>(
+        &mut self,
+        p: burn::module::Param<Tensor<AB, D>>,
+    ) -> burn::module::Param<Tensor<AB, D>> {
+        let base = 1000.0 * self.rank as f32 + 100.0 * self.k as f32;
+        self.k += 1;
+        p.map(|t| {
+            let shape = t.shape();
+            let n = shape.num_elements();
+            let v: Vec<f32> = (0..n).map(|i| base + 0.5 * i as f32).collect();
+            Tensor::<AB, 1>::from_data(TensorData::new(v, [n]), &t.device())
+                .reshape(shape)
+                .require_grad()
+        })
     }
 }
 

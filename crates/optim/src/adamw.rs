@@ -21,7 +21,7 @@ use burn::optim::{
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{Tensor, TensorPrimitive};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::marker::PhantomData;
 
 /// AdamW's hyper-parameters: burn's `AdamWConfig` without AMSGrad, cautious weight decay or per-tensor
@@ -78,10 +78,13 @@ pub struct FusedAdamW<M: AutodiffModule<B>, B: AutodiffBackend> {
     settings: AdamWSettings,
     records: AdamWRecord<M, B>,
     kernels: Option<MultiTensor<B::InnerBackend>>,
-    /// The module path of each parameter that had a gradient in the last step, in slot order.
+    /// The module path of each parameter that had a gradient in the last step, in module order (the
+    /// norm's: owned or not).
     names: Vec<String>,
-    /// How many of the last step's [`Stepped::parts`] each slot has, in slot order.
+    /// How many of the last step's [`Stepped::parts`] each of those gradients has.
     spans: Vec<usize>,
+    /// The parameters this optimizer updates (all when `None`), [`FusedAdamW::set_owned`].
+    owned: Option<HashSet<ParamId>>,
     module: PhantomData<M>,
 }
 
@@ -94,8 +97,21 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
             kernels: None,
             names: Vec::new(),
             spans: Vec::new(),
+            owned: None,
             module: PhantomData,
         }
+    }
+
+    /// Updates only the parameters in `owned` from now on (all of them with `None`): optimizer-state
+    /// sharding, where each rank updates its share and another copies the result to all. The other
+    /// parameters' gradients still enter the global norm that clipping and the skip guard read (in module
+    /// order, so the norm is the unsharded one), but their values stay as they are and they get no
+    /// moments; moments already held for them are dropped, so that their memory is freed.
+    pub fn set_owned(&mut self, owned: Option<HashSet<ParamId>>) {
+        if let Some(keep) = &owned {
+            self.records.retain(|id, _| keep.contains(id));
+        }
+        self.owned = owned;
     }
 
     /// Steps through `kernels` from now on (`None`: tensor by tensor, with burn's AdamW).
@@ -191,21 +207,26 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
         let mut gather = Gather::<M, B> {
             grads,
             records: &mut self.records,
+            owned: self.owned.as_ref(),
             ids: Vec::new(),
             slots: Vec::new(),
+            all: Vec::new(),
             path: Vec::new(),
             names: (self.names.is_empty() && clip.is_some()).then(Vec::new),
         };
         module.visit(&mut gather);
         let Gather {
-            ids, slots, names, ..
+            ids,
+            slots,
+            all,
+            names,
+            ..
         } = gather;
         if let Some(names) = names {
             self.names = names;
         }
-        let norm = clip
-            .as_ref()
-            .and_then(|_| self.norm(&slots.iter().map(|s| s.grad.clone()).collect::<Vec<_>>()));
+        let norm = clip.as_ref().and_then(|_| self.norm(&all));
+        drop(all);
         let guarded = match (&norm, clip) {
             (Some(norm), Some((max_norm, guard))) => {
                 self.spans.clone_from(&norm.spans);
@@ -266,13 +287,17 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> Optimizer<M, B> for FusedAdamW<M,
     }
 }
 
-/// Collects the slot of every parameter that has a gradient, taking its state out of the records.
+/// Collects the slot of every parameter that has a gradient (and is owned, when only some are), taking its
+/// state out of the records.
 struct Gather<'a, M: AutodiffModule<B>, B: AutodiffBackend> {
     grads: GradAdaptor,
     records: &'a mut AdamWRecord<M, B>,
+    owned: Option<&'a HashSet<ParamId>>,
     /// Each slot's parameter and step number.
     ids: Vec<(ParamId, usize)>,
     slots: Vec<AdamWSlot<B::InnerBackend>>,
+    /// Every gradient, owned or not, in module order: what the norm adds up.
+    all: Vec<FloatTensor<B::InnerBackend>>,
     /// The module path being visited.
     path: Vec<String>,
     /// Each slot's module path, when asked for (once: they do not change between steps).
@@ -295,6 +320,11 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> ModuleVisitor<B> for Gather<'_, M
         if let Some(names) = self.names.as_mut() {
             names.push(self.path.join("."));
         }
+        let grad = grad.into_primitive().tensor();
+        self.all.push(grad.clone());
+        if self.owned.is_some_and(|o| !o.contains(&param.id)) {
+            return;
+        }
         let tensor = param.val().inner().to_device(&device);
         let state = self.records.remove(&param.id).map(|r| {
             let s: AdamWState<B::InnerBackend, D> = r.into_state();
@@ -304,7 +334,7 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> ModuleVisitor<B> for Gather<'_, M
         self.ids.push((param.id, time));
         self.slots.push(AdamWSlot {
             param: tensor.into_primitive().tensor(),
-            grad: grad.into_primitive().tensor(),
+            grad,
             moments: state.map(|s| {
                 let raw = |t: Tensor<B::InnerBackend, D>| t.into_primitive().tensor();
                 (raw(s.moment_1), raw(s.moment_2))

@@ -265,3 +265,51 @@ fn a_non_finite_guard_or_gradient_skips_the_step() {
         assert_ne!(weights(&s.module), before.0);
     }
 }
+
+/// Two optimizers that each update half of the parameters (optimizer-state sharding), their halves put
+/// together after every step, against one that updates all: the same norm and the same weights to the
+/// bit, with clipping active, and each keeps moments for its own half only.
+#[test]
+fn shares_of_the_parameters_step_as_the_whole_does() {
+    for kernels in [None, Some(declining_kernels()), Some(reference_kernels())] {
+        let mut x = net();
+        let ids = |l: &Linear<B>| [l.weight.id, l.bias.as_ref().map_or(l.weight.id, |b| b.id)];
+        let (first, second) = (ids(&x.a), ids(&x.b));
+        let mut whole = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels.clone());
+        let mut halves = [first, second].map(|own| {
+            let mut o = FusedAdamW::<Net<B>, B>::new(SETTINGS).with_kernels(kernels.clone());
+            o.set_owned(Some(own.into_iter().collect()));
+            o
+        });
+        for step in 0..3 {
+            let g = grads(&x, step);
+            let s = whole.step_clipped(1e-2, x.clone(), g, 0.05, None);
+            let [s0, s1] =
+                [0, 1].map(|k| halves[k].step_clipped(1e-2, x.clone(), grads(&x, step), 0.05, None));
+            assert_eq!(s.norm.clone().into_data(), s0.norm.into_data(), "step {step}");
+            assert_eq!(s.norm.into_data(), s1.norm.into_data(), "step {step}");
+            // A half leaves the other half's weights as they were.
+            assert_eq!(s0.module.b.weight.val().into_data(), x.b.weight.val().into_data());
+            assert_eq!(s1.module.a.weight.val().into_data(), x.a.weight.val().into_data());
+            let joined = Net {
+                a: s0.module.a,
+                b: s1.module.b,
+            };
+            assert_eq!(weights(&joined), weights(&s.module), "step {step}");
+            x = joined;
+        }
+        let held = |o: &FusedAdamW<Net<B>, B>| {
+            o.to_record()
+                .keys()
+                .copied()
+                .collect::<std::collections::BTreeSet<_>>()
+        };
+        assert_eq!(held(&halves[0]), first.into_iter().collect());
+        assert_eq!(held(&halves[1]), second.into_iter().collect());
+        assert_eq!(held(&whole).len(), 4);
+        // Taking a share of an optimizer that held every moment drops the others'.
+        whole.set_owned(Some(second.into_iter().collect()));
+        assert_eq!(held(&whole), second.into_iter().collect());
+        assert_eq!(moments(&whole, second[0]), moments(&halves[1], second[0]));
+    }
+}

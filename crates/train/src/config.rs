@@ -66,6 +66,10 @@ pub struct TrainConfig {
     pub split: String,
     /// Size of a gradient all-reduce bucket in MiB (data-parallel runs).
     pub bucket_mib: f64,
+    /// Share AdamW's state out among the ranks of a data-parallel run (ZeRO stage 1): each rank keeps the
+    /// moments of about 1/world of the parameters, updates those and sends them to the others. Steps and
+    /// checkpoints are the same as without it; a run may resume with it on or off.
+    pub shard_optimizer: bool,
     /// The kernel choices (`[train.kernels]`, [`Kernels`]): which kernels run the products, the attention,
     /// the norms, GELU, the cross-entropy and AdamW on CUDA, on which stream and from which thread, the
     /// tiled attention's block size, and activation checkpointing. They change speed and memory, not
@@ -120,6 +124,7 @@ impl Default for TrainConfig {
             data: None,
             split: "train".into(),
             bucket_mib: 25.0,
+            shard_optimizer: false,
             kernels: Kernels::default(),
             nonfinite: NonFinite::default(),
             max_skipped_steps: 10,
@@ -283,6 +288,8 @@ impl TrainConfig {
                 "tokens",
                 "data",
                 "bucket_mib",
+                // Every parameter steps to the same bits, sharded or not (`umgen_dist::Shards`).
+                "shard_optimizer",
                 // Same products on other kernels, streams or threads, in other blocks, recomputed or kept:
                 // rounding differs, the run does not (each choice in `Kernels`' docs).
                 "kernels",

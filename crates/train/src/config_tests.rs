@@ -47,6 +47,10 @@ fn kernel_settings_parse_are_checked_and_resuming_may_change_them() {
     assert_eq!(all.loss_options().expect("valid").kernels, k);
     // Kernel choices leave a run's identity alone, so a run may resume under others.
     assert_eq!(default.identity(), all.identity());
+    // So does sharding the optimizer state, which steps every parameter to the same bits.
+    let sharded = parse(r#"{"shard_optimizer": true}"#).expect("shard_optimizer");
+    assert!(sharded.shard_optimizer);
+    assert_eq!(default.identity(), sharded.identity());
     // A setting that changes the run still does.
     let lr = parse(r#"{"lr": 0.5}"#).expect("lr");
     assert_ne!(default.identity(), lr.identity());

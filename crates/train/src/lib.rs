@@ -19,6 +19,7 @@ mod guard;
 mod losses;
 mod run;
 mod sampler;
+mod shard;
 mod trainer;
 
 pub use config::{NonFinite, TrainConfig};

@@ -18,7 +18,7 @@ use umgen_checkpoint::burn_io::{
     weights_to_bytes,
 };
 use umgen_data::{TokenSet, Window};
-use umgen_dist::{Overlap, ProcessGroup, broadcast_module, rank0_decides, same_on_all_ranks};
+use umgen_dist::{Overlap, ProcessGroup, Shards, broadcast_module, rank0_decides, same_on_all_ranks};
 use umgen_metrics::MetricLog;
 use umgen_optim::{FusedAdamW, Schedule};
 
@@ -74,8 +74,9 @@ fn mix(seed: u64, step: u64) -> u64 {
 /// Data parallel over `group`: every rank starts from rank 0's parameters, reads its own slice of each
 /// step's samples, and averages gradients (in buckets of `bucket_mib`) once per step, during the last
 /// accumulation micro-step's backward pass, each block's bucket as soon as that pass has completed it
-/// ([`Overlap`]); clipping and AdamW then run identically on every rank. Only rank 0 writes
-/// metrics and checkpoints. Resuming with another world size restores weights and optimizer state, but
+/// ([`Overlap`]); clipping and AdamW then run identically on every rank, or, with
+/// `train.shard_optimizer`, each rank updates its share of the parameters and sends them to the others
+/// ([`Shards`]; checkpoints hold the whole state either way). Only rank 0 writes metrics and checkpoints. Resuming with another world size restores weights and optimizer state, but
 /// the global batch and the data order from there on differ from the original run (a warning says so).
 pub fn train<B: AutodiffBackend>(
     run: &RunSpec,
@@ -122,6 +123,23 @@ pub fn train<B: AutodiffBackend>(
     let mut model = stable_param_ids(Backbone::<B>::new(&run.backbone, &run.spec, device)?);
     let mut optim = FusedAdamW::<_, B>::new(settings)
         .with_kernels(umgen_ops::adamw::kernels::<B::InnerBackend>(&tc.kernels));
+    let shards = (tc.shard_optimizer && world > 1).then(|| Shards::plan::<B, _>(&model, rank, world));
+    if let Some(s) = &shards {
+        optim.set_owned(Some(s.owned()));
+        if lead {
+            let total: usize = s.loads().iter().sum();
+            tracing::info!(
+                "optimizer state sharded over {world} ranks: rank 0 updates {:.1} M of {:.1} M parameters (shares {})",
+                s.loads()[0] as f64 / 1e6,
+                total as f64 / 1e6,
+                s.loads()
+                    .iter()
+                    .map(|n| format!("{:.1} M", *n as f64 / 1e6))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
+    }
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
     let mut step = 0u64;
     let mut last_ckpt = None;
@@ -150,7 +168,11 @@ pub fn train<B: AutodiffBackend>(
                 l.file("model.safetensors")?.to_vec(),
                 "backbone checkpoint",
             )?;
-            optim = optimizer_from_bytes::<B, _, _>(optim, l.file("optimizer.bin")?.to_vec(), device)?;
+            let bytes = l.file("optimizer.bin")?;
+            optim = match &shards {
+                Some(s) => crate::shard::load_share(optim, bytes, device, s)?,
+                None => optimizer_from_bytes::<B, _, _>(optim, bytes.to_vec(), device)?,
+            };
             step = l.manifest.step;
             let saved_world = l.manifest.meta["world_size"].as_u64().unwrap_or(1);
             if saved_world != world as u64 && lead {
@@ -175,6 +197,13 @@ pub fn train<B: AutodiffBackend>(
         group,
         step,
         "the step this run starts from (ranks need train.out_dir on a shared file system)",
+        device,
+    )?;
+    // Every rank must take part in a sharded step's exchanges, or none.
+    same_on_all_ranks(
+        group,
+        u64::from(tc.shard_optimizer),
+        "train.shard_optimizer",
         device,
     )?;
     if lead {
@@ -235,7 +264,10 @@ pub fn train<B: AutodiffBackend>(
         let losses = step_losses(&parts);
         let guarded = guard.values(losses.clone().slice(0..1));
         let stepped = optim.step_clipped(lr, model, grads, tc.grad_clip, guarded);
-        model = stepped.module;
+        model = match &shards {
+            Some(s) => s.gather::<B, _>(stepped.module, group)?,
+            None => stepped.module,
+        };
         let grad_norm = stepped.norm;
         guard.observe(stepped.skipped, losses, grad_norm.clone(), stepped.parts);
         step += 1;
@@ -299,6 +331,11 @@ pub fn train<B: AutodiffBackend>(
                 "no checkpoint at step {step}: the step was skipped (its loss or gradient norm is not finite)"
             );
         }
+        // A sharded optimizer's state comes to rank 0 from every rank.
+        let gathered = match (&shards, due) {
+            (Some(s), true) => crate::shard::gathered_bytes(&optim, &model, s, group)?,
+            _ => None,
+        };
         if due && lead && !skipping {
             let meta =
                 serde_json::json!({"identity": run.identity(), "config": run.config, "world_size": world});
@@ -309,7 +346,10 @@ pub fn train<B: AutodiffBackend>(
                     message: format!("the weights of `{name}` hold values that are not finite"),
                 });
             }
-            let o = optimizer_to_bytes::<B, _, _>(&optim)?;
+            let o = match gathered {
+                Some(o) => o,
+                None => optimizer_to_bytes::<B, _, _>(&optim)?,
+            };
             last_ckpt = Some(ckpts.save(
                 KIND,
                 step,

@@ -12,7 +12,7 @@ use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::{Backbone, BackboneSpec, Kernels, LossOptions};
 use umgen::backbone_spec;
-use umgen::dist::{DistEnv, Overlap, broadcast_module};
+use umgen::dist::{DistEnv, Overlap, ProcessGroup, Shards, broadcast_module};
 use umgen::optim::FusedAdamW;
 
 /// The median of `times` (the upper one of an even count), `None` for none.
@@ -45,6 +45,19 @@ fn random_tokens<B: AutodiffBackend>(
         }
     }
     Tensor::from_data(TensorData::new(ids, [b, f, spec.n]), dev)
+}
+
+/// Every rank's `value` (each rank's own, in rank order), on rank 0 and the others.
+fn per_rank<B: Backend>(
+    group: &mut dyn ProcessGroup<B>,
+    value: f64,
+    device: &B::Device,
+) -> anyhow::Result<Vec<f64>> {
+    let (rank, world) = (group.rank(), group.world_size());
+    let mut mine = vec![0.0f32; world];
+    mine[rank] = value as f32;
+    let mean = group.all_reduce_mean(Tensor::from_floats(mine.as_slice(), device))?;
+    Ok(mean.into_data().iter::<f64>().map(|m| m * world as f64).collect())
 }
 
 /// Measures.
@@ -135,6 +148,9 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             .collect();
         let mut optim = FusedAdamW::<_, B>::new(tc.adamw_settings()?)
             .with_kernels(umgen::ops::adamw::kernels::<Inner<B>>(&tc.kernels));
+        // `train.shard_optimizer`: each rank steps its share and sends it to the others, as in a run.
+        let shards = (tc.shard_optimizer && world > 1).then(|| Shards::plan::<B, _>(&model, env.rank, world));
+        optim.set_owned(shards.as_ref().map(Shards::owned));
         let batch = random_tokens::<B>(&spec, b, f, &dev);
         let mut times = Vec::new();
         let mut by_turn = vec![Vec::new(); turns];
@@ -225,6 +241,9 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             model = optim
                 .step_clipped(tc.lr, model, grads, tc.grad_clip, Some(guard))
                 .module;
+            if let Some(s) = &shards {
+                model = s.gather::<B, _>(model, group.as_mut())?;
+            }
             lap(3)?;
             // Wait for the step's work on the device before reading the clock.
             let queued = t0.elapsed().as_secs_f64();
@@ -250,6 +269,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                 by_turn[turn].push(took);
             }
         }
+        let lives = per_rank::<Inner<B>>(group.as_mut(), live as f64 / (1u64 << 30) as f64, &dev)?;
         group.barrier()?;
         group.finish();
         let phases = phases.map(median);
@@ -262,7 +282,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         let calls = (per_step(0), per_step(1));
         (
             median(times),
-            (peak, live),
+            (peak, live, lives),
             group.backend(),
             (phases, host, calls),
             first,
@@ -360,8 +380,13 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
     if world > 1 {
         writeln!(
             out,
-            "ranks         {world} ({backend}), gradient buckets of {:.0} MiB",
-            tc.bucket_mib
+            "ranks         {world} ({backend}), gradient buckets of {:.0} MiB, optimizer state {}",
+            tc.bucket_mib,
+            if tc.shard_optimizer {
+                "sharded (train.shard_optimizer)"
+            } else {
+                "on every rank"
+            }
         )?;
     }
     writeln!(
@@ -457,12 +482,23 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         flops / 1e12,
         flops / median / 1e12,
     )?;
-    let (peak, live) = peak;
+    let (peak, live, lives) = peak;
     if peak > 0 {
         let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+        let ranks = match lives.len() {
+            0 | 1 => String::new(),
+            _ => format!(
+                "; live by rank: {} GiB",
+                lives
+                    .iter()
+                    .map(|g| format!("{g:.2}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        };
         writeln!(
             out,
-            "peak memory   {:.2} GiB reserved, {:.2} GiB live after the forward pass (first and synced steps)",
+            "peak memory   {:.2} GiB reserved, {:.2} GiB live after the forward pass (first and synced steps){ranks}",
             gib(peak),
             gib(live)
         )?;

@@ -77,11 +77,18 @@ impl Comm {
         .map_err(|e| format!("all-reduce: {e:?}"))
     }
 
-    /// Queues rank 0's `n` floats of `input` into every rank's `output`.
+    /// Queues rank `root`'s `n` floats of `input` into every rank's `output`.
     ///
     /// # Safety
     /// As [`Comm::all_reduce`].
-    pub(crate) unsafe fn broadcast(&self, input: u64, output: u64, n: usize) -> Result<(), String> {
+    pub(crate) unsafe fn broadcast(
+        &self,
+        input: u64,
+        output: u64,
+        n: usize,
+        root: usize,
+    ) -> Result<(), String> {
+        let root = i32::try_from(root).map_err(|_| format!("broadcast root {root}"))?;
         // SAFETY: the caller's contract.
         unsafe {
             result::broadcast(
@@ -89,7 +96,7 @@ impl Comm {
                 output as *mut _,
                 n,
                 sys::ncclDataType_t::ncclFloat32,
-                0,
+                root,
                 self.raw,
                 self.cu_stream(),
             )

@@ -4,8 +4,9 @@
 //! work on the host: they resolve the fusion tensor (running the queued kernels that produce it), wait for
 //! cubecl's stream (`client.sync()`), run the NCCL call on the group's stream and wait for it before burn
 //! touches the result; they serve the occasional small exchange (losses, flags, the first broadcast).
-//! Gradients go through [`AsyncMean`] (`started.rs`): queued in cubecl's stream order and ordered with the
-//! NCCL stream by CUDA events, with no host wait. Collectives are out of place into a freshly allocated
+//! Gradients, and the parameters a sharded optimizer updates, go through [`AsyncCollective`]
+//! (`started.rs`): queued in cubecl's stream order and ordered with the NCCL stream by CUDA events, with
+//! no host wait. Collectives are out of place into a freshly allocated
 //! tensor, so NCCL never writes into a buffer that autodiff may share between gradients.
 #![allow(unsafe_code)]
 
@@ -13,7 +14,7 @@ mod comm;
 mod started;
 
 use crate::error::{DistError, Result};
-use crate::group::{AsyncMean, Group, ProcessGroup};
+use crate::group::{AsyncCollective, Group, ProcessGroup};
 use crate::session::Session;
 use crate::watchdog::Watchdog;
 use burn::backend::Cuda;
@@ -182,8 +183,9 @@ impl Group for NcclGroup {
 }
 
 impl ProcessGroup<Cuda> for NcclGroup {
-    fn async_mean(&self) -> Option<Arc<dyn AsyncMean<Cuda>>> {
-        umgen_ops::external::AVAILABLE.then(|| Arc::new(self.shared.clone()) as Arc<dyn AsyncMean<Cuda>>)
+    fn async_collective(&self) -> Option<Arc<dyn AsyncCollective<Cuda>>> {
+        umgen_ops::external::AVAILABLE
+            .then(|| Arc::new(self.shared.clone()) as Arc<dyn AsyncCollective<Cuda>>)
     }
     fn all_reduce_mean(&mut self, t: Tensor<Cuda, 1>) -> Result<Tensor<Cuda, 1>> {
         self.counted("all-reduce", |g| {
@@ -193,10 +195,17 @@ impl ProcessGroup<Cuda> for NcclGroup {
             })
         })
     }
-    fn broadcast(&mut self, t: Tensor<Cuda, 1>) -> Result<Tensor<Cuda, 1>> {
+    fn broadcast(&mut self, t: Tensor<Cuda, 1>, root: usize) -> Result<Tensor<Cuda, 1>> {
+        let (rank, world) = (self.session.rank(), self.session.world_size());
+        if root >= world {
+            return Err(DistError::Nccl {
+                rank,
+                reason: format!("broadcast from rank {root} of {world}"),
+            });
+        }
         self.counted("broadcast", |g| {
             // SAFETY: as above.
-            g.out_of_place(t, |comm, i, o, n| unsafe { comm.broadcast(i, o, n) })
+            g.out_of_place(t, |comm, i, o, n| unsafe { comm.broadcast(i, o, n, root) })
         })
     }
 }

@@ -1,15 +1,16 @@
-//! Averages that start without the host waiting ([`AsyncMean`] for NCCL): each is an external operation
-//! on burn-fusion's stream (`umgen_ops::external`) that, where cubecl's stream has queued the bucket's
-//! producers, records an event there, makes the NCCL stream wait for it, queues the all-reduce and records
-//! its end. Settling makes cubecl's stream wait for those ends, so the backward pass's kernels queued
+//! Collectives that start without the host waiting ([`AsyncCollective`] for NCCL): each is an external
+//! operation on burn-fusion's stream (`umgen_ops::external`) that, where cubecl's stream has queued the
+//! bucket's producers, records an event there, makes the NCCL stream wait for it, queues the bucket's
+//! all-reduces (gradients) or broadcasts (a sharded optimizer's parameters) and records their end. Settling makes cubecl's stream wait for those ends, so the backward pass's kernels queued
 //! between a start and the settle run beside the collective.
 #![allow(unsafe_code)]
 
 use super::comm::Comm;
 use crate::error::{DistError, Result};
-use crate::group::AsyncMean;
+use crate::group::AsyncCollective;
 use burn::backend::Cuda;
-use burn::tensor::Tensor;
+use burn::tensor::TensorMetadata;
+use burn::tensor::ops::FloatTensor;
 use cudarc::driver::{result as cu, sys as cus};
 use cudarc::nccl::{result as nccl_result, sys};
 use std::sync::{Arc, Mutex};
@@ -59,7 +60,7 @@ impl Shared {
         match failed {
             Some(reason) => Err(DistError::Nccl {
                 rank: self.rank,
-                reason: format!("a started all-reduce: {reason}"),
+                reason: format!("a started collective: {reason}"),
             }),
             None => Ok(()),
         }
@@ -71,9 +72,18 @@ fn event() -> std::result::Result<cus::CUevent, String> {
         .map_err(|e| format!("cuEventCreate: {e:?}"))
 }
 
-/// The all-reduce of one bucket.
+/// What a started bucket does to each of its tensors.
+#[derive(Clone, Debug)]
+enum Kind {
+    /// The mean over ranks.
+    Mean,
+    /// The values of the rank given per tensor.
+    Broadcast(Vec<usize>),
+}
+
+/// The collective of one bucket.
 #[derive(Clone)]
-struct Start(Arc<Shared>);
+struct Start(Arc<Shared>, Kind);
 
 impl std::fmt::Debug for Start {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -83,6 +93,13 @@ impl std::fmt::Debug for Start {
 
 impl External for Start {
     fn queue(&self, stream: usize, inputs: &[Buffer], outputs: &[Buffer]) -> std::result::Result<(), String> {
+        let roots = match &self.1 {
+            Kind::Broadcast(roots) if roots.len() != inputs.len() => {
+                return Err(format!("{} roots for {} tensors", roots.len(), inputs.len()));
+            }
+            Kind::Broadcast(roots) => Some(roots),
+            Kind::Mean => None,
+        };
         if inputs.len() != outputs.len() || inputs.iter().zip(outputs).any(|(i, o)| i.len != o.len) {
             return Err(format!(
                 "{} inputs into {} outputs of other lengths",
@@ -107,7 +124,11 @@ impl External for Start {
             let reduced = inputs
                 .iter()
                 .zip(outputs)
-                .try_for_each(|(i, o)| comm.all_reduce(i.ptr, o.ptr, i.len, sys::ncclRedOp_t::ncclAvg));
+                .enumerate()
+                .try_for_each(|(k, (i, o))| match roots {
+                    Some(roots) => comm.broadcast(i.ptr, o.ptr, i.len, roots[k]),
+                    None => comm.all_reduce(i.ptr, o.ptr, i.len, sys::ncclRedOp_t::ncclAvg),
+                });
             let ended = nccl_result::group_end().map_err(|e| format!("ncclGroupEnd: {e:?}"));
             reduced?;
             ended?;
@@ -173,28 +194,45 @@ impl External for Settle {
     }
 }
 
-impl AsyncMean<Cuda> for Arc<Shared> {
-    fn start_mean(&self, bucket: Vec<Tensor<Cuda, 1>>) -> Result<Vec<Tensor<Cuda, 1>>> {
-        self.check()?;
-        if bucket.is_empty() {
-            return Ok(bucket);
-        }
-        if let Some(t) = bucket.iter().find(|t| t.dtype() != burn::tensor::DType::F32) {
-            return Err(DistError::Nccl {
-                rank: self.rank,
-                reason: format!("gradients are reduced in f32, not {:?}", t.dtype()),
-            });
-        }
-        let lens = bucket.iter().map(|t| t.dims()[0]).collect();
-        Ok(external(
-            "umgen_nccl_all_reduce",
-            bucket,
-            Outputs::Fresh(lens),
-            Start(self.clone()),
-        ))
+/// Queues `kind` on each tensor of `bucket` as one launch, into fresh tensors.
+fn start(
+    shared: &Arc<Shared>,
+    name: &'static str,
+    bucket: Vec<FloatTensor<Cuda>>,
+    kind: Kind,
+) -> Result<Vec<FloatTensor<Cuda>>> {
+    shared.check()?;
+    if bucket.is_empty() {
+        return Ok(bucket);
+    }
+    if let Some(t) = bucket.iter().find(|t| t.dtype() != burn::tensor::DType::F32) {
+        return Err(DistError::Nccl {
+            rank: shared.rank,
+            reason: format!("{name}: tensors are exchanged in f32, not {:?}", t.dtype()),
+        });
+    }
+    Ok(external(name, bucket, Outputs::Like, Start(shared.clone(), kind)))
+}
+
+impl AsyncCollective<Cuda> for Arc<Shared> {
+    fn start_mean(&self, bucket: Vec<FloatTensor<Cuda>>) -> Result<Vec<FloatTensor<Cuda>>> {
+        start(self, "umgen_nccl_all_reduce", bucket, Kind::Mean)
     }
 
-    fn settle(&self, started: Vec<Tensor<Cuda, 1>>) -> Result<Vec<Tensor<Cuda, 1>>> {
+    fn start_broadcast(
+        &self,
+        bucket: Vec<FloatTensor<Cuda>>,
+        roots: &[usize],
+    ) -> Result<Vec<FloatTensor<Cuda>>> {
+        start(
+            self,
+            "umgen_nccl_broadcast",
+            bucket,
+            Kind::Broadcast(roots.to_vec()),
+        )
+    }
+
+    fn settle(&self, started: Vec<FloatTensor<Cuda>>) -> Result<Vec<FloatTensor<Cuda>>> {
         self.check()?;
         if started.is_empty() {
             return Ok(started);

@@ -1,11 +1,12 @@
 use super::Overlap;
 use crate::error::Result;
-use crate::group::{AsyncMean, Group, ProcessGroup};
+use crate::group::{AsyncCollective, Group, ProcessGroup};
 use burn::backend::{Autodiff, Flex};
 use burn::module::{Module, Param, ParamId};
 use burn::optim::{GradientsAccumulator, GradientsParams};
 use burn::tensor::backend::Backend;
-use burn::tensor::{Tensor, TensorData};
+use burn::tensor::ops::FloatTensor;
+use burn::tensor::{Tensor, TensorData, TensorMetadata, TensorPrimitive};
 use std::sync::{Arc, Mutex};
 use umgen_ops::ready::ReadyPoints;
 
@@ -100,11 +101,11 @@ impl ProcessGroup<I> for Recorder {
         self.calls.push(t.dims()[0]);
         Ok(t.add_scalar(1.0))
     }
-    fn broadcast(&mut self, t: Tensor<I, 1>) -> Result<Tensor<I, 1>> {
+    fn broadcast(&mut self, t: Tensor<I, 1>, _root: usize) -> Result<Tensor<I, 1>> {
         Ok(t)
     }
-    fn async_mean(&self) -> Option<Arc<dyn AsyncMean<I>>> {
-        self.starts.clone().map(|s| s as Arc<dyn AsyncMean<I>>)
+    fn async_collective(&self) -> Option<Arc<dyn AsyncCollective<I>>> {
+        self.starts.clone().map(|s| s as Arc<dyn AsyncCollective<I>>)
     }
 }
 
@@ -190,15 +191,22 @@ struct Starts {
     returned: Mutex<bool>,
 }
 
-impl AsyncMean<I> for Starts {
-    fn start_mean(&self, bucket: Vec<Tensor<I, 1>>) -> Result<Vec<Tensor<I, 1>>> {
+impl AsyncCollective<I> for Starts {
+    fn start_mean(&self, bucket: Vec<FloatTensor<I>>) -> Result<Vec<FloatTensor<I>>> {
         let during = !*self.returned.lock().expect("lock");
-        let n: usize = bucket.iter().map(|t| t.dims()[0]).sum();
+        let n: usize = bucket.iter().map(|t| t.shape().num_elements()).sum();
         let when = if during { "during" } else { "after" };
         self.log.lock().expect("lock").push(format!("start {n} {when}"));
-        Ok(bucket.into_iter().map(|t| t.add_scalar(1.0)).collect())
+        let plus_one = |t| Tensor::<I, 1>::from_primitive(TensorPrimitive::Float(t)).add_scalar(1.0);
+        Ok(bucket
+            .into_iter()
+            .map(|t| plus_one(t).into_primitive().tensor())
+            .collect())
     }
-    fn settle(&self, started: Vec<Tensor<I, 1>>) -> Result<Vec<Tensor<I, 1>>> {
+    fn start_broadcast(&self, _: Vec<FloatTensor<I>>, _: &[usize]) -> Result<Vec<FloatTensor<I>>> {
+        panic!("gradients are averaged, not copied")
+    }
+    fn settle(&self, started: Vec<FloatTensor<I>>) -> Result<Vec<FloatTensor<I>>> {
         self.log
             .lock()
             .expect("lock")

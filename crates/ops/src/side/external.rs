@@ -7,7 +7,8 @@ use super::fusion::{Handles, Inner, Primitive, empty_f32, register_many};
 use super::{on_device_thread, pointer};
 use crate::kernels::LaunchThread;
 use burn::backend::Cuda;
-use burn::tensor::{Tensor, TensorPrimitive};
+use burn::tensor::TensorMetadata;
+use burn::tensor::ops::FloatTensor;
 use burn_ir::CustomOpIr;
 
 /// Whether this build can hand external work cubecl's stream (the vendored cubecl-cuda's `last_stream`,
@@ -51,6 +52,8 @@ pub trait External: Send + Sync + std::fmt::Debug + 'static {
 pub enum Outputs {
     /// Fresh packed `f32` tensors of these lengths.
     Fresh(Vec<usize>),
+    /// Fresh packed `f32` tensors of the inputs' shapes.
+    Like,
     /// The inputs themselves (work that only orders streams).
     Inputs,
 }
@@ -90,6 +93,10 @@ impl<W: External> super::fusion::SidePass for Pass<W> {
         let outputs: Vec<Primitive> = match &self.outputs {
             Outputs::Inputs => inputs.clone(),
             Outputs::Fresh(lens) => lens.iter().map(|&n| empty_f32(&like, vec![n])).collect(),
+            Outputs::Like => inputs
+                .iter()
+                .map(|t| empty_f32(&like, t.meta.shape().iter().copied().collect()))
+                .collect(),
         };
         let (ins, outs, probe) = (inputs, outputs.clone(), like.clone());
         let work = &self.work;
@@ -126,27 +133,25 @@ fn current_stream() -> Result<usize, String> {
     Err("built against an unpatched cubecl-cuda (no `last_stream`; vendor/README.md)".into())
 }
 
-/// Registers `work` on burn-fusion's stream with `inputs` (flat tensors, at least one) and returns its
-/// outputs; the work runs when burn-fusion reaches it ([`External::queue`]). Without inputs nothing is
-/// registered: the work is told it failed and there are no outputs.
+/// Registers `work` on burn-fusion's stream with `inputs` (tensors of any shape, at least one) and
+/// returns its outputs; the work runs when burn-fusion reaches it ([`External::queue`]). Without inputs
+/// nothing is registered: the work is told it failed and there are no outputs.
 pub fn external<W: External>(
     id: &'static str,
-    inputs: Vec<Tensor<Cuda, 1>>,
+    inputs: Vec<FloatTensor<Cuda>>,
     outputs: Outputs,
     work: W,
-) -> Vec<Tensor<Cuda, 1>> {
+) -> Vec<FloatTensor<Cuda>> {
     if inputs.is_empty() {
         work.failed(format!("{id}: an external operation without inputs"));
         return Vec::new();
     }
     let shapes: Vec<Vec<usize>> = match &outputs {
-        Outputs::Inputs => inputs.iter().map(|t| t.dims().to_vec()).collect(),
+        Outputs::Inputs | Outputs::Like => inputs
+            .iter()
+            .map(|t| t.shape().iter().copied().collect())
+            .collect(),
         Outputs::Fresh(lens) => lens.iter().map(|&n| vec![n]).collect(),
     };
-    let pass = Pass { outputs, work };
-    let prims = inputs.into_iter().map(|t| t.into_primitive().tensor()).collect();
-    register_many(id, prims, shapes, pass)
-        .into_iter()
-        .map(|p| Tensor::from_primitive(TensorPrimitive::Float(p)))
-        .collect()
+    register_many(id, inputs, shapes, Pass { outputs, work })
 }
