@@ -12,6 +12,8 @@
 
 mod env;
 mod error;
+#[cfg(test)]
+mod fake;
 mod grads;
 mod group;
 #[cfg(feature = "cuda")]

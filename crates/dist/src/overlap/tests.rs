@@ -1,13 +1,11 @@
 use super::Overlap;
-use crate::error::Result;
-use crate::group::{AsyncCollective, Group, ProcessGroup};
+use crate::fake::{Fake, Starts};
 use burn::backend::{Autodiff, Flex};
 use burn::module::{Module, Param, ParamId};
 use burn::optim::{GradientsAccumulator, GradientsParams};
 use burn::tensor::backend::Backend;
-use burn::tensor::ops::FloatTensor;
-use burn::tensor::{Tensor, TensorData, TensorMetadata, TensorPrimitive};
-use std::sync::{Arc, Mutex};
+use burn::tensor::{Tensor, TensorData};
+use std::sync::Arc;
 use umgen_ops::ready::ReadyPoints;
 
 type AD = Autodiff<Flex>;
@@ -71,44 +69,6 @@ fn values(g: &mut GradientsParams, n: &Net<AD>) -> Vec<Vec<f32>> {
     ]
 }
 
-/// A group of 2 ranks that records each collective's length and, as "mean", adds one (the test can tell
-/// reduced values from unreduced ones); with `starts`, a group that starts averages.
-#[derive(Default)]
-struct Recorder {
-    calls: Vec<usize>,
-    starts: Option<Arc<Starts>>,
-}
-
-impl Group for Recorder {
-    fn rank(&self) -> usize {
-        0
-    }
-    fn world_size(&self) -> usize {
-        2
-    }
-    fn barrier(&mut self) -> Result<()> {
-        Ok(())
-    }
-    fn finish(&mut self) {}
-    fn backend(&self) -> &'static str {
-        "recorder"
-    }
-}
-
-impl ProcessGroup<I> for Recorder {
-    fn all_reduce_mean(&mut self, t: Tensor<I, 1>) -> Result<Tensor<I, 1>> {
-        assert!(self.starts.is_none(), "gradients go through the started averages");
-        self.calls.push(t.dims()[0]);
-        Ok(t.add_scalar(1.0))
-    }
-    fn broadcast(&mut self, t: Tensor<I, 1>, _root: usize) -> Result<Tensor<I, 1>> {
-        Ok(t)
-    }
-    fn async_collective(&self) -> Option<Arc<dyn AsyncCollective<I>>> {
-        self.starts.clone().map(|s| s as Arc<dyn AsyncCollective<I>>)
-    }
-}
-
 /// Two micro-steps, plain: what the overlapped step must reproduce (plus one per element from the
 /// recorder's "mean").
 fn plain(n: &Net<AD>) -> Vec<Vec<f32>> {
@@ -132,7 +92,7 @@ fn buckets_close_at_points_in_backward_order_and_gradients_match_the_plain_step(
         &n,
         GradientsParams::from_grads::<AD, _>(loss(&n, [1.0, 2.0, 3.0], None).backward(), &n),
     );
-    let mut group = Recorder::default();
+    let mut group = Fake::default();
     // One float a bucket: each point closes its own.
     let step = Overlap::<AD>::new(&n, &groups(&n), acc.grads(), &group, 4);
     let grads = loss(&n, [-1.0, 0.5, 2.0], Some(&step.points())).backward();
@@ -156,7 +116,7 @@ fn buckets_close_at_points_in_backward_order_and_gradients_match_the_plain_step(
 #[test]
 fn one_large_bucket_holds_everything_in_one_collective() {
     let n = net();
-    let mut group = Recorder::default();
+    let mut group = Fake::default();
     let step = Overlap::<AD>::new(&n, &groups(&n), GradientsParams::new(), &group, 1 << 20);
     let grads = loss(&n, [1.0, 2.0, 3.0], Some(&step.points())).backward();
     step.finish(grads, &mut group).expect("finish");
@@ -168,7 +128,7 @@ fn one_large_bucket_holds_everything_in_one_collective() {
 #[test]
 fn a_parameter_read_outside_its_block_is_named() {
     let n = net();
-    let mut group = Recorder::default();
+    let mut group = Fake::default();
     // `a` declared in block 1, but read before it (in block 0).
     let points = vec![vec![], vec![n.b.id, n.a.id]];
     let step = Overlap::<AD>::new(&n, &points, GradientsParams::new(), &group, 4);
@@ -184,44 +144,13 @@ fn a_parameter_read_outside_its_block_is_named() {
     );
 }
 
-/// Starts recorded with whether the backward pass had returned, and settles.
-#[derive(Default)]
-struct Starts {
-    log: Mutex<Vec<String>>,
-    returned: Mutex<bool>,
-}
-
-impl AsyncCollective<I> for Starts {
-    fn start_mean(&self, bucket: Vec<FloatTensor<I>>) -> Result<Vec<FloatTensor<I>>> {
-        let during = !*self.returned.lock().expect("lock");
-        let n: usize = bucket.iter().map(|t| t.shape().num_elements()).sum();
-        let when = if during { "during" } else { "after" };
-        self.log.lock().expect("lock").push(format!("start {n} {when}"));
-        let plus_one = |t| Tensor::<I, 1>::from_primitive(TensorPrimitive::Float(t)).add_scalar(1.0);
-        Ok(bucket
-            .into_iter()
-            .map(|t| plus_one(t).into_primitive().tensor())
-            .collect())
-    }
-    fn start_broadcast(&self, _: Vec<FloatTensor<I>>, _: &[usize]) -> Result<Vec<FloatTensor<I>>> {
-        panic!("gradients are averaged, not copied")
-    }
-    fn settle(&self, started: Vec<FloatTensor<I>>) -> Result<Vec<FloatTensor<I>>> {
-        self.log
-            .lock()
-            .expect("lock")
-            .push(format!("settle {}", started.len()));
-        Ok(started)
-    }
-}
-
 #[test]
 fn a_group_that_can_start_averages_starts_them_during_the_backward_pass() {
     let n = net();
     let starts = Arc::new(Starts::default());
-    let mut group = Recorder {
-        calls: Vec::new(),
+    let mut group = Fake {
         starts: Some(starts.clone()),
+        ..Fake::default()
     };
     let step = Overlap::<AD>::new(&n, &groups(&n), GradientsParams::new(), &group, 4);
     let grads = loss(&n, [1.0, 2.0, 3.0], Some(&step.points())).backward();
@@ -254,7 +183,7 @@ fn a_group_that_can_start_averages_starts_them_during_the_backward_pass() {
 #[test]
 fn points_kept_past_the_step_do_not_stop_it() {
     let n = net();
-    let mut group = Recorder::default();
+    let mut group = Fake::default();
     let step = Overlap::<AD>::new(&n, &groups(&n), GradientsParams::new(), &group, 4);
     // The caller keeps the points (and so the hook) alive past `finish`.
     let points = step.points();

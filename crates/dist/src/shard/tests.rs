@@ -1,12 +1,10 @@
 use super::Shards;
-use crate::error::Result;
-use crate::group::{AsyncCollective, Group, ProcessGroup};
+use crate::fake::{Fake, Starts};
 use burn::backend::{Autodiff, Flex};
 use burn::module::{Module, Param, ParamId};
 use burn::tensor::backend::Backend;
-use burn::tensor::ops::FloatTensor;
-use burn::tensor::{Tensor, TensorData, TensorMetadata, TensorPrimitive};
-use std::sync::{Arc, Mutex};
+use burn::tensor::{Tensor, TensorData};
+use std::sync::Arc;
 
 type AD = Autodiff<Flex>;
 type I = Flex;
@@ -91,78 +89,6 @@ fn net(shift: f32) -> Net<AD> {
     }
 }
 
-/// Rank 1 of 2, whose started broadcasts keep its own tensors and fill another root's with
-/// `1000 · (root + 1)`; records each start's roots and the settles.
-#[derive(Default)]
-struct Starts {
-    log: Mutex<Vec<String>>,
-}
-
-impl AsyncCollective<I> for Starts {
-    fn start_mean(&self, _: Vec<FloatTensor<I>>) -> Result<Vec<FloatTensor<I>>> {
-        panic!("a parameter all-gather averages nothing")
-    }
-    fn start_broadcast(&self, bucket: Vec<FloatTensor<I>>, roots: &[usize]) -> Result<Vec<FloatTensor<I>>> {
-        let shapes: Vec<String> = bucket
-            .iter()
-            .map(|t| format!("{:?}", t.shape().to_vec()))
-            .collect();
-        self.log
-            .lock()
-            .expect("lock")
-            .push(format!("broadcast {roots:?} {}", shapes.join(" ")));
-        let other = |t: FloatTensor<I>, r: usize| {
-            let t = Tensor::<I, 1>::from_primitive(TensorPrimitive::Float(t));
-            t.zeros_like()
-                .add_scalar(1000.0 * (r + 1) as f32)
-                .into_primitive()
-                .tensor()
-        };
-        Ok(bucket
-            .into_iter()
-            .zip(roots)
-            .map(|(t, &r)| if r == 1 { t } else { other(t, r) })
-            .collect())
-    }
-    fn settle(&self, started: Vec<FloatTensor<I>>) -> Result<Vec<FloatTensor<I>>> {
-        self.log
-            .lock()
-            .expect("lock")
-            .push(format!("settle {}", started.len()));
-        Ok(started)
-    }
-}
-
-struct Starter(Arc<Starts>);
-
-impl Group for Starter {
-    fn rank(&self) -> usize {
-        1
-    }
-    fn world_size(&self) -> usize {
-        2
-    }
-    fn barrier(&mut self) -> Result<()> {
-        Ok(())
-    }
-    fn finish(&mut self) {}
-    fn backend(&self) -> &'static str {
-        "starter"
-    }
-}
-
-impl ProcessGroup<I> for Starter {
-    fn all_reduce_mean(&mut self, _: Tensor<I, 1>) -> Result<Tensor<I, 1>> {
-        panic!("a parameter all-gather averages nothing")
-    }
-    fn broadcast(&mut self, _: Tensor<I, 1>, _: usize) -> Result<Tensor<I, 1>> {
-        panic!("a group that starts collectives copies parameters through them")
-    }
-    fn async_collective(&self) -> Option<Arc<dyn AsyncCollective<I>>> {
-        Some(self.0.clone() as Arc<dyn AsyncCollective<I>>)
-    }
-}
-
 fn host(t: Tensor<I, 1>) -> Vec<f32> {
     t.into_data().to_vec::<f32>().unwrap_or_default()
 }
@@ -176,8 +102,15 @@ fn a_group_that_starts_collectives_gathers_in_buckets_and_settles_once() {
         .map(|i| shards.owner(i).unwrap_or(9))
         .to_vec();
     assert_eq!(roots, vec![1, 0, 1]);
-    let starts = Arc::new(Starts::default());
-    let mut group = Starter(starts.clone());
+    let starts = Arc::new(Starts {
+        rank: 1,
+        ..Starts::default()
+    });
+    let mut group = Fake {
+        rank: 1,
+        starts: Some(starts.clone()),
+        ..Fake::default()
+    };
     // Buckets of at least 5 floats: [a, b], then [c], each tensor as it lies.
     let out = shards.gather_in::<AD, _>(n, &mut group, 20, 9).expect("gather");
     assert_eq!(
