@@ -7,6 +7,7 @@ mod bench_allreduce;
 mod bench_generate;
 mod bench_generate_burn;
 pub mod bench_train;
+mod bench_train_settings;
 mod contexts;
 mod data;
 mod doctor;
