@@ -191,6 +191,18 @@ fn a_sharded_optimizer_steps_and_resumes_as_an_unsharded_one() {
             "{name}: a resumed run repeats the uninterrupted one"
         );
     }
+    // One rank has nothing to share, and says so.
+    let one = config(dir.path(), &data, "one", 2, 6);
+    let out = umgen(&[
+        "train",
+        "--config",
+        one.to_str().unwrap(),
+        "--set",
+        "train.shard_optimizer=true",
+    ]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{log}");
+    assert!(log.contains("one rank has nothing to share"), "{log}");
 }
 
 /// Starts a long 2-rank run and returns the launcher and the pid of rank 1.

@@ -124,6 +124,11 @@ pub fn train<B: AutodiffBackend>(
     let mut optim = FusedAdamW::<_, B>::new(settings)
         .with_kernels(umgen_ops::adamw::kernels::<B::InnerBackend>(&tc.kernels));
     let shards = (tc.shard_optimizer && world > 1).then(|| Shards::plan::<B, _>(&model, rank, world));
+    if tc.shard_optimizer && world == 1 {
+        tracing::info!(
+            "train.shard_optimizer: one rank has nothing to share, the optimizer state stays whole"
+        );
+    }
     if let Some(s) = &shards {
         optim.set_owned(Some(s.owned()));
         if lead {
