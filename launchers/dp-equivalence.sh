@@ -2,8 +2,9 @@
 # Data-parallel equivalence on one machine's GPUs: six steps of the tiny model in the linear regime
 # (train.eps = 1, lr 0.3: AdamW is then a momentum SGD, its update linear in the gradient), one rank at
 # batch 8 against the same global batch split over ranks and micro-batches, and ranks that shard the
-# optimizer state (train.shard_optimizer) against the same ranks unsharded; prints each run's largest
-# parameter difference and relative L2 against the references (docs/training.md, "Equivalence").
+# optimizer state (train.shard_optimizer) against the same ranks unsharded, also across a stop and a
+# resume that turns sharding off; prints each run's largest parameter difference and relative L2 against
+# the references (docs/training.md, "Equivalence").
 #
 #   launchers/dp-equivalence.sh                 # UMGEN=path/to/umgen (CUDA build), OUT=runs/equivalence
 set -euo pipefail
@@ -15,11 +16,11 @@ mkdir -p "$out"
 "$umgen" tokenize --config configs/tiny.toml --data data/sumo-sample --out "$out/tokens" --device "$devices"
 common=(--set "train.tokens=$out/tokens" --set train.steps=6 --set train.eps=1 --set train.lr=0.3
     --set train.warmup=0 --set train.checkpoint_every=6)
-run() { # NAME RANKS BATCH ACCUM [SHARD]
+run() { # NAME RANKS BATCH ACCUM [SHARD [train args...]]
     local args=(train --config configs/tiny.toml "${common[@]}" --set "train.batch_size=$3"
         --set "train.grad_accum=$4" --set "train.out_dir=$out/$1"
-        --set "train.shard_optimizer=${5:-false}")
-    rm -rf "${out:?}/$1"
+        --set "train.shard_optimizer=${5:-false}" "${@:6}")
+    [[ " ${*:6} " == *" --resume "* ]] || rm -rf "${out:?}/$1"
     if [ "$2" = 1 ]; then
         "$umgen" "${args[@]}" --device cuda:0
     else
@@ -32,6 +33,9 @@ run accum 1 4 2
 run ranks2 2 4 1
 run ranks2-accum 2 2 2
 run ranks2-sharded 2 4 1 true
+# Stopped after step 1 with sharding on, resumed with it off: the checkpoint holds the whole state.
+run ranks2-resumed 2 4 1 true --time-limit 1e-6
+run ranks2-resumed 2 4 1 false --resume
 if [ "$gpus" -ge 4 ]; then
     run ranks4 4 2 1
     run ranks4-sharded 4 2 1 true
@@ -60,7 +64,7 @@ def compare(ref, names):
         print(f"  {name:14s} largest {worst:.1e}  relative L2 {rel:.1e}")
 compare("one", ["again", "accum", "ranks2", "ranks4"])
 compare("accum", ["ranks2", "ranks2-accum"])
-compare("ranks2", ["ranks2-sharded"])
+compare("ranks2", ["ranks2-sharded", "ranks2-resumed"])
 if os.path.isdir(f"{out}/ranks4"):
     compare("ranks4", ["ranks4-sharded"])
 PY
