@@ -8,7 +8,7 @@
 use crate::error::{CheckpointError, Result};
 use burn::module::{AutodiffModule, Module, ModuleMapper, Param, ParamId};
 use burn::optim::Optimizer;
-use burn::record::{BinBytesRecorder, BurnRecord, FullPrecisionSettings, Record, Recorder};
+use burn::record::{BinBytesRecorder, BurnRecord, FullPrecisionSettings, Record};
 use burn::tensor::Tensor;
 use burn::tensor::backend::{AutodiffBackend, Backend};
 use burn::tensor::{DType, TensorData};
@@ -193,12 +193,7 @@ where
     M: AutodiffModule<B>,
     O: Optimizer<M, B>,
 {
-    BinBytesRecorder::<FullPrecisionSettings>::default()
-        .record(optim.to_record(), ())
-        .map_err(|e| CheckpointError::Weights {
-            what: "optimizer state".into(),
-            reason: e.to_string(),
-        })
+    encode::<B, _>(optim.to_record().into_item::<FullPrecisionSettings>())
 }
 
 /// Restores an optimizer's state from bytes.
@@ -212,6 +207,16 @@ where
     Ok(optim.load_record(O::Record::from_item(record.item, device)))
 }
 
+/// `item` as the bytes of a burn binary record, as `BinBytesRecorder` writes them but with an error, not
+/// a panic, should encoding fail.
+fn encode<B: Backend, I: serde::Serialize>(item: I) -> Result<Vec<u8>> {
+    let record = BurnRecord::<_, B>::new::<BinBytesRecorder<FullPrecisionSettings>>(item);
+    bincode::serde::encode_to_vec(record, bincode::config::standard()).map_err(|e| CheckpointError::Weights {
+        what: "optimizer state".into(),
+        reason: e.to_string(),
+    })
+}
+
 /// A burn binary record from `bytes`, as `BinBytesRecorder` reads them but with an error, not a panic,
 /// for bytes that are not one.
 fn decode<I: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<I> {
@@ -223,7 +228,7 @@ fn decode<I: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<I> {
         })
 }
 
-/// One parameter's optimizer record as the bytes hold it (host memory).
+/// What the bytes hold of a record `T` (its item, in host memory).
 pub type RecordItem<B, T> = <T as Record<B>>::Item<FullPrecisionSettings>;
 
 /// The bytes [`optimizer_to_bytes`] writes for a record keyed by parameter id (as burn's optimizers keep
@@ -232,17 +237,11 @@ pub type RecordItem<B, T> = <T as Record<B>>::Item<FullPrecisionSettings>;
 pub fn optimizer_items_to_bytes<B: Backend, T: Record<B>>(
     items: impl IntoIterator<Item = (ParamId, RecordItem<B, T>)>,
 ) -> Result<Vec<u8>> {
-    type Bytes = BinBytesRecorder<FullPrecisionSettings>;
     let keyed: HashMap<String, RecordItem<B, T>> = items
         .into_iter()
         .map(|(id, item)| (id.serialize(), item))
         .collect();
-    Recorder::<B>::save_item(&Bytes::default(), BurnRecord::<_, B>::new::<Bytes>(keyed), ()).map_err(|e| {
-        CheckpointError::Weights {
-            what: "optimizer state".into(),
-            reason: e.to_string(),
-        }
-    })
+    encode::<B, _>(keyed)
 }
 
 /// The entries of the parameters that `keep` accepts, from bytes [`optimizer_to_bytes`] wrote (whether

@@ -20,7 +20,7 @@ impl<B: AutodiffBackend> ModuleVisitor<B> for Shapes {
     }
 }
 
-fn shapes<B: AutodiffBackend, M: AutodiffModule<B>>(model: &M) -> Vec<(ParamId, Vec<usize>)> {
+pub(crate) fn shapes<B: AutodiffBackend, M: AutodiffModule<B>>(model: &M) -> Vec<(ParamId, Vec<usize>)> {
     let mut v = Shapes { params: Vec::new() };
     model.visit(&mut v);
     v.params
@@ -178,8 +178,9 @@ impl<B: AutodiffBackend> ModuleMapper<B> for Replace<B> {
     }
 }
 
-struct Flat<B: AutodiffBackend> {
-    values: Vec<Tensor<B::InnerBackend, 1>>,
+/// Float parameters' flat values, in module order.
+pub(crate) struct Flat<B: AutodiffBackend> {
+    pub(crate) values: Vec<Tensor<B::InnerBackend, 1>>,
 }
 
 impl<B: AutodiffBackend> ModuleVisitor<B> for Flat<B> {

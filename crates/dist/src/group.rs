@@ -122,6 +122,18 @@ impl TcpGroup {
     }
 }
 
+/// An error naming `root` unless it is one of the `world` ranks (a broadcast's source).
+pub(crate) fn root_in_range(root: usize, rank: usize, world: usize) -> Result<()> {
+    match root < world {
+        true => Ok(()),
+        false => Err(DistError::Collective {
+            rank,
+            op: "broadcast",
+            reason: format!("root {root} of {world} ranks"),
+        }),
+    }
+}
+
 fn to_host<B: Backend>(t: Tensor<B, 1>, rank: usize, op: &'static str) -> Result<Vec<f32>> {
     t.into_data()
         .convert::<f32>()
@@ -165,14 +177,8 @@ impl<B: Backend> ProcessGroup<B> for TcpGroup {
     }
     fn broadcast(&mut self, t: Tensor<B, 1>, root: usize) -> Result<Tensor<B, 1>> {
         let device = t.device();
-        let (rank, world) = (self.session.rank(), self.session.world_size());
-        if root >= world {
-            return Err(DistError::Collective {
-                rank,
-                op: "broadcast",
-                reason: format!("root {root} of {world} ranks"),
-            });
-        }
+        let rank = self.session.rank();
+        root_in_range(root, rank, self.session.world_size())?;
         let mut v = to_host(t, rank, "broadcast")?;
         self.collective("broadcast", &mut v, |r, b| r.broadcast(b, root))?;
         let n = v.len();

@@ -10,7 +10,7 @@
 //! parameter to the same bits as an unsharded one (docs/decisions/013-sharded-optimizer-state.md).
 
 use crate::error::{DistError, Result};
-use crate::grads::{Replace, as_one, buckets_of};
+use crate::grads::{Flat, Replace, as_one, buckets_of, shapes};
 use crate::group::ProcessGroup;
 use burn::module::{AutodiffModule, ModuleMapper, ModuleVisitor, Param, ParamId};
 use burn::tensor::backend::AutodiffBackend;
@@ -30,28 +30,10 @@ pub struct Shards {
     loads: Vec<usize>,
 }
 
-/// Float parameters in module order: ids and element counts.
-struct Sizes(Vec<(ParamId, usize)>);
-
-impl<B: AutodiffBackend> ModuleVisitor<B> for Sizes {
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<B, D>>) {
-        self.0.push((param.id, param.val().shape().num_elements()));
-    }
-}
-
 /// A bucket of parameter copies holds at least this much (unless the parameters run out)...
 const COPY_BUCKET_BYTES: usize = 256 << 20;
 /// ... and at most this many tensors (one NCCL group each).
 const COPY_BUCKET_TENSORS: usize = 256;
-
-/// Float parameters' flat values, in module order.
-struct Values<B: AutodiffBackend>(Vec<Tensor<Inner<B>, 1>>);
-
-impl<B: AutodiffBackend> ModuleVisitor<B> for Values<B> {
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<B, D>>) {
-        self.0.push(param.val().inner().flatten::<1>(0, D - 1));
-    }
-}
 
 /// Float parameters' values as they lie (the backend's primitives), in module order.
 struct Raw<B: AutodiffBackend>(Vec<FloatTensor<Inner<B>>>);
@@ -80,13 +62,19 @@ impl<B: AutodiffBackend> ModuleMapper<B> for ReplaceRaw<B> {
     }
 }
 
+/// Float parameters in module order: ids and element counts.
+fn sizes<B: AutodiffBackend, M: AutodiffModule<B>>(model: &M) -> Vec<(ParamId, usize)> {
+    shapes::<B, M>(model)
+        .into_iter()
+        .map(|(id, shape)| (id, shape.iter().product()))
+        .collect()
+}
+
 impl Shards {
     /// The plan for `model`'s parameters over `world` ranks, as seen by `rank`: every rank that plans the
     /// same model gets the same owners.
     pub fn plan<B: AutodiffBackend, M: AutodiffModule<B>>(model: &M, rank: usize, world: usize) -> Self {
-        let mut sizes = Sizes(Vec::new());
-        model.visit(&mut sizes);
-        Self::from_sizes(&sizes.0, rank, world)
+        Self::from_sizes(&sizes::<B, M>(model), rank, world)
     }
 
     /// The plan for parameters of the given sizes (module order breaks ties, then the lower rank).
@@ -173,10 +161,8 @@ impl Shards {
             );
             return Err(self.error(group, why));
         }
-        let mut sizes = Sizes(Vec::new());
-        model.visit(&mut sizes);
+        let sizes = sizes::<B, M>(&model);
         let roots = sizes
-            .0
             .iter()
             .map(|(id, _)| {
                 self.owner(*id).ok_or_else(|| {
@@ -185,7 +171,7 @@ impl Shards {
                 })
             })
             .collect::<Result<Vec<usize>>>()?;
-        let elems: Vec<usize> = sizes.0.iter().map(|(_, n)| *n).collect();
+        let elems: Vec<usize> = sizes.iter().map(|(_, n)| *n).collect();
         let ranges = buckets_of(&elems, bucket_bytes / 4, max_tensors);
         if let Some(starter) = group.async_collective() {
             let mut raw = Raw::<B>(Vec::new());
@@ -197,11 +183,14 @@ impl Shards {
                 started.extend(starter.start_broadcast(chunk, &roots[range])?);
             }
             let values = starter.settle(started)?;
-            return self.put(model, values, group, |values| ReplaceRaw::<B> { values });
+            self.all_back(values.len(), elems.len(), group)?;
+            return Ok(model.map(&mut ReplaceRaw::<B> {
+                values: values.into_iter(),
+            }));
         }
-        let mut flat = Values::<B>(Vec::new());
+        let mut flat = Flat::<B> { values: Vec::new() };
         model.visit(&mut flat);
-        let mut parts: Vec<Option<Tensor<Inner<B>, 1>>> = flat.0.into_iter().map(Some).collect();
+        let mut parts: Vec<Option<Tensor<Inner<B>, 1>>> = flat.values.into_iter().map(Some).collect();
         let mut out: Vec<Option<Tensor<Inner<B>, 1>>> = vec![None; parts.len()];
         for root in 0..self.world {
             let mine: Vec<usize> = (0..parts.len()).filter(|&i| roots[i] == root).collect();
@@ -215,25 +204,24 @@ impl Shards {
                 }
             }
         }
-        let values = out.into_iter().flatten().collect();
-        self.put(model, values, group, |values| Replace::<B> { values })
+        let values: Vec<_> = out.into_iter().flatten().collect();
+        self.all_back(values.len(), elems.len(), group)?;
+        Ok(model.map(&mut Replace::<B> {
+            values: values.into_iter(),
+        }))
     }
 
-    /// `model` with its parameters replaced, in module order, by `values` (all of them).
-    fn put<B: AutodiffBackend, M: AutodiffModule<B>, T, R: ModuleMapper<B>>(
+    /// An error unless `got` values came back for the model's `want` parameters.
+    fn all_back<B: burn::tensor::backend::Backend>(
         &self,
-        model: M,
-        values: Vec<T>,
-        group: &dyn ProcessGroup<Inner<B>>,
-        mapper: impl FnOnce(std::vec::IntoIter<T>) -> R,
-    ) -> Result<M> {
-        let mut count = Sizes(Vec::new());
-        model.visit(&mut count);
-        if values.len() != count.0.len() {
-            let why = format!("{} of {} parameters came back", values.len(), count.0.len());
-            return Err(self.error(group, why));
+        got: usize,
+        want: usize,
+        group: &dyn ProcessGroup<B>,
+    ) -> Result<()> {
+        match got == want {
+            true => Ok(()),
+            false => Err(self.error(group, format!("{got} of {want} parameters came back"))),
         }
-        Ok(model.map(&mut mapper(values.into_iter())))
     }
 
     fn error<B: burn::tensor::backend::Backend>(

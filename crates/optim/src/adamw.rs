@@ -226,6 +226,7 @@ impl<M: AutodiffModule<B>, B: AutodiffBackend> FusedAdamW<M, B> {
             self.names = names;
         }
         let norm = clip.as_ref().and_then(|_| self.norm(&all));
+        // The gradients of parameters another rank updates are needed no further.
         drop(all);
         let guarded = match (&norm, clip) {
             (Some(norm), Some((max_norm, guard))) => {

@@ -76,8 +76,9 @@ fn mix(seed: u64, step: u64) -> u64 {
 /// accumulation micro-step's backward pass, each block's bucket as soon as that pass has completed it
 /// ([`Overlap`]); clipping and AdamW then run identically on every rank, or, with
 /// `train.shard_optimizer`, each rank updates its share of the parameters and sends them to the others
-/// ([`Shards`]; checkpoints hold the whole state either way). Only rank 0 writes metrics and checkpoints. Resuming with another world size restores weights and optimizer state, but
-/// the global batch and the data order from there on differ from the original run (a warning says so).
+/// ([`Shards`]; checkpoints hold the whole state either way). Only rank 0 writes metrics and checkpoints.
+/// Resuming with another world size restores weights and optimizer state, but the global batch and the
+/// data order from there on differ from the original run (a warning says so).
 pub fn train<B: AutodiffBackend>(
     run: &RunSpec,
     tokens: &TokenSet,
@@ -129,21 +130,15 @@ pub fn train<B: AutodiffBackend>(
             "train.shard_optimizer: one rank has nothing to share, the optimizer state stays whole"
         );
     }
-    if let Some(s) = &shards {
-        optim.set_owned(Some(s.owned()));
-        if lead {
-            let total: usize = s.loads().iter().sum();
-            tracing::info!(
-                "optimizer state sharded over {world} ranks: rank 0 updates {:.1} M of {:.1} M parameters (shares {})",
-                s.loads()[0] as f64 / 1e6,
-                total as f64 / 1e6,
-                s.loads()
-                    .iter()
-                    .map(|n| format!("{:.1} M", *n as f64 / 1e6))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
-        }
+    optim.set_owned(shards.as_ref().map(Shards::owned));
+    if let (Some(s), true) = (&shards, lead) {
+        let total: usize = s.loads().iter().sum();
+        let millions = |n: &usize| format!("{:.1} M", *n as f64 / 1e6);
+        tracing::info!(
+            "optimizer state sharded over {world} ranks: {} of {:.1} M parameters a rank",
+            s.loads().iter().map(millions).collect::<Vec<_>>().join(", "),
+            total as f64 / 1e6,
+        );
     }
     let ckpts = CheckpointDir::new(out.join("checkpoints"), tc.keep_checkpoints);
     let mut step = 0u64;
@@ -246,20 +241,21 @@ pub fn train<B: AutodiffBackend>(
             let picks = sampler.batch(step, micro, tc.grad_accum, tc.batch_size, rank, world);
             let batch = load_batch::<B>(tokens, &windows, &picks, f, tc.gap, n, device)?;
             let scale = tc.grad_accum as f64;
-            if world > 1 && micro + 1 == tc.grad_accum {
+            let losses = if world > 1 && micro + 1 == tc.grad_accum {
                 // The last micro-step's backward pass starts each block's all-reduce as it completes
                 // the block's gradients (the earlier micro-steps' added); the others communicate nothing.
                 let overlap = Overlap::<B>::new(&model, &model.ready_groups(), acc.grads(), &*group, bucket);
                 let losses = model.loss_marked(batch, loss_options, Some(&overlap.points()))?;
                 reduced = Some(overlap.finish(losses.total.clone().div_scalar(scale).backward(), group)?);
-                parts.push(losses);
+                losses
             } else {
                 let losses = model.loss_with(batch, loss_options)?;
                 let grads =
                     GradientsParams::from_grads(losses.total.clone().div_scalar(scale).backward(), &model);
                 acc.accumulate(&model, grads);
-                parts.push(losses);
-            }
+                losses
+            };
+            parts.push(losses);
         }
         let grads = match reduced {
             Some(g) => g,

@@ -6,8 +6,8 @@
 //! touches the result; they serve the occasional small exchange (losses, flags, the first broadcast).
 //! Gradients, and the parameters a sharded optimizer updates, go through [`AsyncCollective`]
 //! (`started.rs`): queued in cubecl's stream order and ordered with the NCCL stream by CUDA events, with
-//! no host wait. Collectives are out of place into a freshly allocated
-//! tensor, so NCCL never writes into a buffer that autodiff may share between gradients.
+//! no host wait. Collectives are out of place into a freshly allocated tensor, so NCCL never writes into
+//! a buffer that autodiff may share between gradients.
 #![allow(unsafe_code)]
 
 mod comm;
@@ -196,13 +196,7 @@ impl ProcessGroup<Cuda> for NcclGroup {
         })
     }
     fn broadcast(&mut self, t: Tensor<Cuda, 1>, root: usize) -> Result<Tensor<Cuda, 1>> {
-        let (rank, world) = (self.session.rank(), self.session.world_size());
-        if root >= world {
-            return Err(DistError::Nccl {
-                rank,
-                reason: format!("broadcast from rank {root} of {world}"),
-            });
-        }
+        crate::group::root_in_range(root, self.session.rank(), self.session.world_size())?;
         self.counted("broadcast", |g| {
             // SAFETY: as above.
             g.out_of_place(t, |comm, i, o, n| unsafe { comm.broadcast(i, o, n, root) })

@@ -1,8 +1,9 @@
 //! Collectives that start without the host waiting ([`AsyncCollective`] for NCCL): each is an external
 //! operation on burn-fusion's stream (`umgen_ops::external`) that, where cubecl's stream has queued the
 //! bucket's producers, records an event there, makes the NCCL stream wait for it, queues the bucket's
-//! all-reduces (gradients) or broadcasts (a sharded optimizer's parameters) and records their end. Settling makes cubecl's stream wait for those ends, so the backward pass's kernels queued
-//! between a start and the settle run beside the collective.
+//! all-reduces (gradients) or broadcasts (a sharded optimizer's parameters) and records their end.
+//! Settling makes cubecl's stream wait for those ends, so the backward pass's kernels queued between a
+//! start and the settle run beside the collective.
 #![allow(unsafe_code)]
 
 use super::comm::Comm;

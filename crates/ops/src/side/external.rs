@@ -50,8 +50,6 @@ pub trait External: Send + Sync + std::fmt::Debug + 'static {
 /// What an external operation outputs.
 #[derive(Debug, Clone)]
 pub enum Outputs {
-    /// Fresh packed `f32` tensors of these lengths.
-    Fresh(Vec<usize>),
     /// Fresh packed `f32` tensors of the inputs' shapes.
     Like,
     /// The inputs themselves (work that only orders streams).
@@ -92,7 +90,6 @@ impl<W: External> super::fusion::SidePass for Pass<W> {
         };
         let outputs: Vec<Primitive> = match &self.outputs {
             Outputs::Inputs => inputs.clone(),
-            Outputs::Fresh(lens) => lens.iter().map(|&n| empty_f32(&like, vec![n])).collect(),
             Outputs::Like => inputs
                 .iter()
                 .map(|t| empty_f32(&like, t.meta.shape().iter().copied().collect()))
@@ -146,12 +143,10 @@ pub fn external<W: External>(
         work.failed(format!("{id}: an external operation without inputs"));
         return Vec::new();
     }
-    let shapes: Vec<Vec<usize>> = match &outputs {
-        Outputs::Inputs | Outputs::Like => inputs
-            .iter()
-            .map(|t| t.shape().iter().copied().collect())
-            .collect(),
-        Outputs::Fresh(lens) => lens.iter().map(|&n| vec![n]).collect(),
-    };
+    // Either kind of output has the inputs' shapes.
+    let shapes: Vec<Vec<usize>> = inputs
+        .iter()
+        .map(|t| t.shape().iter().copied().collect())
+        .collect();
     register_many(id, inputs, shapes, Pass { outputs, work })
 }
