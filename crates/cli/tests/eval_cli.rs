@@ -259,4 +259,58 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         &["--recorded-ego", "rand-s3/v0:0"],
     );
     refused(&["--from-scratch"], "1", &["--recorded-ego", "--from-scratch"]);
+
+    // --recorded map,image: the generated frames hold the clip's own map and image codes of those frames,
+    // the codes that a context of the same clip reaching over them is tokenized to.
+    let tokens = |out: &str, args: &[&str]| -> Vec<Vec<u64>> {
+        let out = fx.dir.path().join(out);
+        let mut all = vec![
+            "generate",
+            "--bundle",
+            bf16_dir.to_str().unwrap(),
+            "--frames",
+            "2",
+        ];
+        all.extend(args);
+        all.extend(["--out", out.to_str().unwrap()]);
+        ok(umgen(&all));
+        let t = json(out.join("tokens.json"));
+        serde_json::from_value(t["scenes"][0].clone()).unwrap()
+    };
+    let given = tokens(
+        "gen-given",
+        &["--context", &one, "--recorded", "map", "--recorded", "image,ego"],
+    );
+    let real = tokens("gen-real", &["--context", &format!("{sample}:rand-s3/v0:0:4")]);
+    let layout = umgen::Bundle::open(&bf16_dir).unwrap().manifest.layout;
+    let segments = layout["segments"].as_array().unwrap();
+    for name in ["map", "image", "ego"] {
+        let seg = segments.iter().find(|s| s["modality"] == name).unwrap();
+        let at = seg["offset"].as_u64().unwrap() as usize;
+        let span = at..at + seg["tokens"].as_u64().unwrap() as usize;
+        for f in 2..4 {
+            assert_eq!(given[f][span.clone()], real[f][span.clone()], "{name}, frame {f}");
+        }
+    }
+    let drawn = tokens("gen-drawn", &["--context", &one, "--seed", "3"]);
+    assert_ne!(drawn[2..], real[2..4], "the model alone draws the clip's frames");
+    let run = umgen(&[
+        "generate",
+        "--bundle",
+        bf16_dir.to_str().unwrap(),
+        "--context",
+        &one,
+        "--recorded",
+        "lights",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&run.stderr).to_string();
+    assert!(!run.status.success());
+    assert!(
+        err.contains(
+            "--recorded lights: `lights` is none of this model's modalities, ego, map, agent, image"
+        ),
+        "{err}"
+    );
 }

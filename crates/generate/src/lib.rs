@@ -23,7 +23,9 @@ pub use boxes::GroupBoxes;
 pub use control::{AgentControl, Control, EgoControl};
 pub use device_draw::DeviceTopK;
 pub use error::{GenerateError, Result};
-pub use rollout::{DEFAULT_PASS_FRAMES, DEFAULT_UNIFORM_BLOCK, FrameControl, Generator, TokenGroups};
+pub use rollout::{
+    DEFAULT_PASS_FRAMES, DEFAULT_UNIFORM_BLOCK, FrameControl, Generator, GivenSegment, TokenGroups,
+};
 pub use sampling::Sampling;
 
 /// What makes frames: the burn decoder ([`Generator`]) or the engine ([`engine::Engine`]).

@@ -6,7 +6,7 @@
 use crate::device_draw::DeviceTopK;
 use crate::error::{GenerateError, Result};
 use crate::rules::{Allowed, FrameRules, Rules, allowed, check_frame};
-pub use crate::rules::{FrameControl, TokenGroups};
+pub use crate::rules::{FrameControl, GivenSegment, TokenGroups};
 use crate::sampling::Sampling;
 use burn::module::Module;
 use burn::tensor::backend::Backend;
@@ -109,7 +109,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                 Slot::Content(s, i) => {
                     let forced = matches!((&spec.action, action),
                         (Some(a), Some(act)) if a.segment == s && i < act[0].len());
-                    !forced && rules.placed[p].is_none() && rules.free(p)
+                    !forced && !rules.set_by_caller(p) && rules.free(p)
                 }
                 _ => false,
             })
@@ -193,6 +193,8 @@ impl<'a, B: Backend> Generator<'a, B> {
                         }
                     } else if let Some(id) = rules.placed[p] {
                         out.iter_mut().for_each(|r| r[p] = id);
+                    } else if let Some(ids) = &rules.given[p] {
+                        out.iter_mut().zip(ids).for_each(|(r, &id)| r[p] = id);
                     } else if drawn_on_device[p] {
                         let logits = self.model.logits_at(s, o, false);
                         let width = self.sampling[s].draw_width(logits.dims()[1]);
@@ -242,7 +244,7 @@ impl<'a, B: Backend> Generator<'a, B> {
                 && let g = &rules.groups[*gi]
                 && *j + 1 == g.size
                 && let Some(spec) = &g.boxes
-                && !(*start..=p).any(|q| rules.placed[q].is_some())
+                && !(*start..=p).any(|q| rules.set_by_caller(q))
             {
                 for (b, row) in out.iter_mut().enumerate() {
                     if row[*start] == g.pad {

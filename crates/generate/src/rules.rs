@@ -23,6 +23,18 @@ pub struct FrameControl {
     /// Runs of token groups that must each come out whole (agent slots: all pad, or values then a
     /// category).
     pub groups: Vec<TokenGroups>,
+    /// Whole segments given for each scene (a modality as each context clip recorded it), placed
+    /// instead of drawn: the tokens after them react, as to [`FrameControl::tokens`].
+    pub given: Vec<GivenSegment>,
+}
+
+/// The content tokens of one segment for every scene of the batch.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GivenSegment {
+    /// The segment, by its index in the layout.
+    pub segment: usize,
+    /// Per scene, the segment's content ids in order.
+    pub ids: Vec<Vec<u32>>,
 }
 
 /// `count` groups of `size` tokens from position `first`. A group's first token is a value or pad; after a
@@ -49,6 +61,8 @@ pub struct TokenGroups {
 pub(crate) struct Rules<'a> {
     /// Per position: the id placed by the caller, for every scene.
     pub(crate) placed: &'a [Option<u32>],
+    /// Per position: the ids given by the caller, one per scene.
+    pub(crate) given: &'a [Option<Vec<u32>>],
     /// Per position: drawn ids must be below this.
     pub(crate) limits: &'a [Option<usize>],
     /// Per position: the pad id a kept agent redraws, and which scenes keep.
@@ -66,6 +80,12 @@ impl Rules<'_> {
     /// host never reads such a position while the frame is decoded).
     pub(crate) fn free(&self, p: usize) -> bool {
         self.limits[p].is_none() && self.group[p].is_none() && self.keep[p].is_none()
+    }
+
+    /// Whether the caller set position `p` (for every scene, or one id per scene): nothing is drawn there,
+    /// and a group holding it is the caller's (the new-agent rule never drops it).
+    pub(crate) fn set_by_caller(&self, p: usize) -> bool {
+        self.placed[p].is_some() || self.given[p].is_some()
     }
 }
 
@@ -139,6 +159,8 @@ pub(crate) fn check_frame(
 pub(crate) struct FrameRules {
     /// Per position: the id placed by the caller.
     pub(crate) placed: Vec<Option<u32>>,
+    /// Per position: the ids given by the caller, one per scene.
+    pub(crate) given: Vec<Option<Vec<u32>>>,
     /// Per position: drawn ids must be below this.
     pub(crate) limits: Vec<Option<usize>>,
     /// Per position: the pad id a kept agent redraws, and which scenes keep.
@@ -170,6 +192,7 @@ impl FrameRules {
                 }
             }
         }
+        let given = given_ids(spec, slots, m, control, &placed)?;
         let mut limits = vec![None; n];
         for &(p, lim) in &control.below {
             if p >= n || lim == 0 {
@@ -215,6 +238,7 @@ impl FrameRules {
             .collect();
         Ok(Self {
             placed,
+            given,
             limits,
             keep,
             group,
@@ -222,15 +246,88 @@ impl FrameRules {
         })
     }
 
+    /// Whether the caller set position `p` ([`Rules::set_by_caller`]).
+    pub(crate) fn set_by_caller(&self, p: usize) -> bool {
+        self.placed[p].is_some() || self.given[p].is_some()
+    }
+
     /// The rules as the decoders read them.
     pub(crate) fn view<'a>(&'a self, groups: &'a [TokenGroups]) -> Rules<'a> {
         Rules {
             newborn: &self.newborn,
             placed: &self.placed,
+            given: &self.given,
             limits: &self.limits,
             keep: &self.keep,
             group: &self.group,
             groups,
         }
     }
+}
+
+/// Per position, the ids `control.given` sets for each of the `m` scenes; refuses an unknown or repeated
+/// segment, the ego action's segment (given as [`FrameControl::action`], which also replaces the ego
+/// module's prediction), a wrong number of scenes or tokens, ids outside the vocabulary, and positions
+/// that `control.tokens` also places.
+fn given_ids(
+    spec: &BackboneSpec,
+    slots: &[Slot],
+    m: usize,
+    control: &FrameControl,
+    placed: &[Option<u32>],
+) -> Result<Vec<Option<Vec<u32>>>> {
+    let mut given: Vec<Option<Vec<u32>>> = vec![None; slots.len()];
+    for (k, g) in control.given.iter().enumerate() {
+        let bad = |why: String| GenerateError::Settings(format!("given segment {}: {why}", g.segment));
+        let seg = spec
+            .segments
+            .get(g.segment)
+            .ok_or_else(|| bad(format!("this layout has {} segments", spec.segments.len())))?;
+        let label = &seg.label;
+        if control.given[..k].iter().any(|o| o.segment == g.segment) {
+            return Err(bad(format!("`{label}` is given twice")));
+        }
+        if spec.action.as_ref().is_some_and(|a| a.segment == g.segment) {
+            return Err(bad(format!(
+                "`{label}` is the ego action: give it as the frame's action, which also replaces the ego module's prediction"
+            )));
+        }
+        if g.ids.len() != m {
+            return Err(bad(format!(
+                "`{label}` given for {} scenes, the batch has {m}",
+                g.ids.len()
+            )));
+        }
+        if let Some((b, row)) = g.ids.iter().enumerate().find(|(_, r)| r.len() != seg.tokens) {
+            return Err(bad(format!(
+                "`{label}` of scene {b} has {} tokens, the segment {}",
+                row.len(),
+                seg.tokens
+            )));
+        }
+        if let Some((b, id)) = g
+            .ids
+            .iter()
+            .enumerate()
+            .find_map(|(b, r)| r.iter().find(|&&id| id as usize >= seg.vocab).map(|&id| (b, id)))
+        {
+            return Err(bad(format!(
+                "`{label}` of scene {b} holds id {id}, outside its {} ids",
+                seg.vocab
+            )));
+        }
+        for (p, slot) in slots.iter().enumerate() {
+            if let Slot::Content(s, i) = *slot
+                && s == g.segment
+            {
+                if placed[p].is_some() {
+                    return Err(bad(format!(
+                        "`{label}` is given, and a token is also placed at its position {p}"
+                    )));
+                }
+                given[p] = Some(g.ids.iter().map(|r| r[i]).collect());
+            }
+        }
+    }
+    Ok(given)
 }

@@ -8,7 +8,7 @@
 
 use umgen_backbone::{ActionSpec, AlignSpec, Backbone, BackboneSpec, Slot, TrackSpec};
 use umgen_generate::engine::{Engine, EngineSettings, HostExec};
-use umgen_generate::{FrameControl, Generator, GroupBoxes, Sampling, TokenGroups};
+use umgen_generate::{FrameControl, Generator, GivenSegment, GroupBoxes, Sampling, TokenGroups};
 
 mod common;
 use common::{F, config, seeded, seg};
@@ -98,9 +98,22 @@ fn groups() -> TokenGroups {
     }
 }
 
-/// Frame `k`'s control: groups; keep the slots alive in each scene's newest frame; a placed token and a
-/// limit; the action forced on even frames.
+/// The map's content ids (positions 6..12) given to scene `s` on odd frames `k`: other ids in each scene,
+/// and the id the even frames place at position 8 and one below the limit at 11.
+fn given_map(s: usize, k: usize) -> Vec<u32> {
+    (6..12)
+        .map(|p| match p {
+            8 => 3,
+            11 => ((s + k) % 5) as u32,
+            _ => ((p * 5 + s * 7 + k) % 12) as u32,
+        })
+        .collect()
+}
+
+/// Frame `k`'s control: groups; keep the slots alive in each scene's newest frame; a limit; the action
+/// forced on even frames; a placed token on even frames, the whole map given per scene on odd ones.
 fn control(history: &[Vec<Vec<u32>>], k: usize) -> FrameControl {
+    let odd = k % 2 == 1;
     let keep = (14..26)
         .filter(|p| (p - 14) % 6 == 0)
         .map(|p| {
@@ -115,10 +128,17 @@ fn control(history: &[Vec<Vec<u32>>], k: usize) -> FrameControl {
         action: k
             .is_multiple_of(2)
             .then(|| vec![vec![(3 + k) as u32 % 16, 7, 9]; history.len()]),
-        tokens: vec![(8, 3)],
+        tokens: if odd { Vec::new() } else { vec![(8, 3)] },
         below: vec![(11, 5)],
         keep,
         groups: vec![groups()],
+        given: match odd {
+            true => vec![GivenSegment {
+                segment: 1,
+                ids: (0..history.len()).map(|s| given_map(s, k)).collect(),
+            }],
+            false => Vec::new(),
+        },
     }
 }
 
@@ -170,6 +190,15 @@ fn greedy_frames_are_the_burn_decoders() {
     let mut e = engine(&m, Sampling::greedy(), 3, 0, 64);
     let ours = roll(&history, 4, |h, c| e.next_frame(h, c).unwrap());
     assert_eq!(ours, burn);
+    for (s, scene) in ours.iter().enumerate() {
+        for k in [1, 3] {
+            assert_eq!(
+                scene[4 + k][6..12],
+                given_map(s, k),
+                "scene {s}, frame {k}: the given map"
+            );
+        }
+    }
     assert_eq!(e.new_agents(), g.new_agents(), "new agents tested and dropped");
     assert!(e.new_agents().0 > 0, "the rollout tests no new agent");
     // The window pass a scene at a time draws the same frames.
@@ -200,6 +229,9 @@ fn sampled_frames_keep_the_rules_and_repeat_with_their_seed() {
     };
     let a = run(5, smp);
     assert_eq!(a, run(5, smp), "same seed, same frames");
+    for (s, scene) in a.iter().enumerate() {
+        assert_eq!(scene[5][6..12], given_map(s, 1), "scene {s}: the given map");
+    }
     assert_ne!(a, run(6, smp), "another seed, other frames");
     let all = Sampling {
         top_k: 0,

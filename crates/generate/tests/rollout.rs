@@ -5,7 +5,7 @@
 
 use burn::tensor::{Int, Tensor, TensorData};
 use umgen_backbone::{ActionSpec, Backbone, BackboneSpec, Kernels, Slot, TrackSpec};
-use umgen_generate::{FrameControl, Generator, Sampling};
+use umgen_generate::{FrameControl, Generator, GivenSegment, Sampling};
 
 mod common;
 use common::{F, config, seeded, seg};
@@ -314,6 +314,47 @@ fn forced_actions_initial_scenes_and_bad_settings() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("2 sampling settings for 3 modalities"), "{e}");
+}
+
+#[test]
+fn given_segments_come_out_per_scene_and_bad_ones_are_refused() {
+    let m = model();
+    let history = [vec![frame(&m, 2)], vec![frame(&m, 3)]];
+    // The map's 6 content ids (positions 6..12), other ones in each scene.
+    let map = |s: u32| (0..6).map(|i| (i * 5 + s * 7) % 12).collect::<Vec<u32>>();
+    let given = |segment, ids| FrameControl {
+        given: vec![GivenSegment { segment, ids }],
+        ..Default::default()
+    };
+    for seed in 0..3 {
+        let mut g = unfiltered(&m, seed);
+        let f = g.next_frame(&history, &given(1, vec![map(0), map(1)])).unwrap();
+        assert_eq!(
+            (&f[0][6..12], &f[1][6..12]),
+            (&map(0)[..], &map(1)[..]),
+            "seed {seed}"
+        );
+    }
+    let mut g = unfiltered(&m, 0);
+    let mut refused = |c: FrameControl| g.next_frame(&history, &c).unwrap_err().to_string();
+    let e = refused(given(0, vec![vec![1, 2, 3]; 2]));
+    assert!(e.contains("`ego` is the ego action"), "{e}");
+    let e = refused(given(1, vec![map(0)]));
+    assert!(e.contains("given for 1 scenes, the batch has 2"), "{e}");
+    let e = refused(given(1, vec![map(0), vec![1, 2]]));
+    assert!(e.contains("`map` of scene 1 has 2 tokens, the segment 6"), "{e}");
+    let e = refused(given(1, vec![map(0), vec![0, 0, 12, 0, 0, 0]]));
+    assert!(e.contains("scene 1 holds id 12, outside its 12 ids"), "{e}");
+    let e = refused(given(7, vec![map(0), map(1)]));
+    assert!(e.contains("given segment 7: this layout has 3 segments"), "{e}");
+    let mut twice = given(1, vec![map(0), map(1)]);
+    twice.given.push(twice.given[0].clone());
+    let e = refused(twice);
+    assert!(e.contains("`map` is given twice"), "{e}");
+    let mut both = given(1, vec![map(0), map(1)]);
+    both.tokens = vec![(7, 1)];
+    let e = refused(both);
+    assert!(e.contains("a token is also placed at its position 7"), "{e}");
 }
 
 #[test]

@@ -51,6 +51,13 @@ pub struct GenerateArgs {
     /// set no ego action.
     #[arg(long)]
     pub recorded_ego: bool,
+    /// Place these modalities (layout labels, comma-separated or repeated: `--recorded lights`,
+    /// `--recorded map,image`) as each context clip recorded them after its context, instead of drawing
+    /// them: the rest of each frame is generated given them (the agents given the real traffic lights,
+    /// say). The clips need `--frames` more frames after their context. The ego action's modality is
+    /// `--recorded-ego`; the agents' cannot be combined with a control file's agents.
+    #[arg(long, value_name = "MODALITY")]
+    pub recorded: Vec<String>,
     /// Frames of history the TAR sees (older ones slide out); default: the history the model was trained
     /// on (`train.frames`), at most 20 and `backbone.max_frames`.
     #[arg(long)]

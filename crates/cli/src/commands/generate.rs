@@ -9,7 +9,7 @@ use std::path::Path;
 use umgen::backbone::Backbone;
 use umgen::checkpoint::burn_io::weights_from_bytes;
 use umgen::generate::engine::EngineSettings;
-use umgen::generate::{Control, FrameControl, Generator, NextFrame, Sampling};
+use umgen::generate::{Control, FrameControl, Generator, GivenSegment, NextFrame, Sampling};
 use umgen::scene::SceneClip;
 use umgen::{Bundle, backbone_spec};
 
@@ -45,23 +45,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         .iter()
         .map(|c| registry.tokenize_clip(&c.clip))
         .collect::<Result<Vec<_>, _>>()?;
-    let recorded = match a.recorded_ego {
-        true => {
-            anyhow::ensure!(
-                control.ego.is_empty(),
-                "--recorded-ego and the control file's [[ego]] entries both set the ego action"
-            );
-            let ids: Vec<(&str, &str)> = contexts
-                .iter()
-                .map(|c| (c.data.as_str(), c.id.as_str()))
-                .collect();
-            let n = context_rows.first().map_or(0, Vec::len);
-            Some(super::recorded::recorded_actions(
-                &ids, n, a.frames, &registry, &spec,
-            )?)
-        }
-        false => None,
-    };
+    let recorded = super::recorded::modalities(a, &contexts, &context_rows, &control, &registry, &spec)?;
     // Scene s continues context s / --scenes (each context's scenes are consecutive).
     let total = a.scenes * contexts.len().max(1);
     let context_of = |s: usize| (!contexts.is_empty()).then_some(s / a.scenes);
@@ -94,7 +78,8 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         control: &control,
         bins,
         agents: &agents,
-        recorded: recorded.as_ref(),
+        recorded: &recorded,
+        action_segment: spec.action.as_ref().map(|x| x.segment),
         groups: &groups,
     };
     let mut history: Vec<Vec<Vec<u32>>> = (0..total)
@@ -191,6 +176,9 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         .iter()
         .map(|c| serde_json::json!({"data": c.data, "clip": c.id, "frames": n_context}))
         .collect();
+    let recorded_labels = super::recorded::labels(a, &spec);
+    let ego = super::recorded::action_label(&spec);
+    let recorded_ego = recorded_labels.iter().any(|l| Some(l.as_str()) == ego);
     std::fs::write(
         a.out.join("meta.json"),
         serde_json::to_vec_pretty(&serde_json::json!({
@@ -207,7 +195,8 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             "draw": if engine { "engine" } else if on_device { "device" } else { "host" },
             "new_agents": {"tested": new_tested, "dropped": new_dropped},
             "interval": interval,
-            "recorded_ego": a.recorded_ego,
+            "recorded_ego": recorded_ego,
+            "recorded": recorded_labels,
         }))?,
     )?;
     super::scenes::draw(
@@ -234,7 +223,9 @@ struct Plan<'a> {
     control: &'a Control,
     bins: Option<[(f64, f64, u32); 3]>,
     agents: &'a Option<super::agents::AgentSlots>,
-    recorded: Option<&'a Vec<Vec<Vec<u32>>>>,
+    recorded: &'a [super::recorded::Recorded],
+    /// The ego action's segment: a recorded one replaces the ego module's action.
+    action_segment: Option<usize>,
     groups: &'a [umgen::generate::TokenGroups],
 }
 
@@ -270,16 +261,30 @@ impl Plan<'_> {
                     Default::default()
                 }
             };
-            let action = match self.recorded {
-                Some(r) => Some((0..total).map(|s| r[s / a.scenes][k].clone()).collect()),
+            let per_scene = |r: &super::recorded::Recorded| -> Vec<Vec<u32>> {
+                (0..total).map(|s| r.blocks[s / a.scenes][k].clone()).collect()
+            };
+            let action_segment = self.action_segment;
+            let action = match self.recorded.iter().find(|r| Some(r.segment) == action_segment) {
+                Some(r) => Some(per_scene(r)),
                 None => forced.map(|(ids, _)| vec![ids; total]),
             };
+            let given = self
+                .recorded
+                .iter()
+                .filter(|r| Some(r.segment) != action_segment)
+                .map(|r| GivenSegment {
+                    segment: r.segment,
+                    ids: per_scene(r),
+                })
+                .collect();
             let fc = FrameControl {
                 action,
                 tokens: placed,
                 below,
                 keep,
                 groups: self.groups.to_vec(),
+                given,
             };
             let frame_start = std::time::Instant::now();
             let next = g.next_frame(history, &fc)?;

@@ -223,6 +223,11 @@ impl<X: Exec> Engine<X> {
                     } else if let Some(id) = rules.placed[p] {
                         r.known = 1;
                         fill(&mut tok, id);
+                    } else if let Some(ids) = &rules.given[p] {
+                        r.known = 1;
+                        for (b, &id) in ids[g0..g0 + gs].iter().enumerate() {
+                            tok[b * n + p] = id as i32;
+                        }
                     }
                     if let Some(lim) = rules.limits[p] {
                         r.limit = i32::try_from(lim).unwrap_or(i32::MAX);
@@ -236,7 +241,7 @@ impl<X: Exec> Engine<X> {
                         r.finish = i32::from(
                             j + 1 == g.size
                                 && g.boxes.is_some()
-                                && !(start..=p).any(|q| rules.placed[q].is_some()),
+                                && !(start..=p).any(|q| rules.set_by_caller(q)),
                         );
                     }
                     if let Some((pad, _)) = &rules.keep[p] {
