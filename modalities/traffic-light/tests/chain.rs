@@ -177,6 +177,46 @@ fn the_plugin_binary_trains_exports_generates_evaluates_and_draws_lights() {
         );
     }
 
+    // `--recorded lights`: the generated frames hold SUMO's lights of those frames, so that the agents
+    // are drawn given the real lights.
+    lights(&[
+        "generate",
+        "--bundle",
+        &t("bundle"),
+        "--contexts",
+        &format!("{data}:test:2:{CONTEXT}"),
+        "--frames",
+        "2",
+        "--recorded",
+        "lights",
+        "--recorded-ego",
+        "--out",
+        &t("gen-recorded"),
+    ]);
+    let tokens = read_json(&tmp.path().join("gen-recorded/tokens.json"));
+    let recorded_meta = read_json(&tmp.path().join("gen-recorded/meta.json"));
+    assert_eq!(recorded_meta["recorded"], serde_json::json!(["lights", "ego"]));
+    let scenes: Vec<Vec<Vec<u32>>> = serde_json::from_value(tokens["scenes"].clone()).unwrap();
+    let mut given = 0;
+    for (s, rows) in scenes.iter().enumerate() {
+        let clip = recorded_meta["contexts"][s]["clip"].as_str().unwrap();
+        let real = ds
+            .read_window(ds.find_clip(clip).unwrap(), CONTEXT, 2, 1)
+            .unwrap();
+        for (row, want) in rows[CONTEXT..].iter().zip(&real.frames) {
+            let mut decoded = Frame::default();
+            registry.detokenize(row, &mut decoded).unwrap();
+            let (got, want) = (heads(&decoded), heads(want));
+            assert_eq!(got.len(), want.len().min(8), "{clip}");
+            for (g, w) in got.iter().zip(&want) {
+                assert_eq!(g[3], w[3], "{clip}: a recorded state placed in a generated frame");
+                assert!((g[0] - w[0]).abs() <= 0.5 + 1e-4 && (g[1] - w[1]).abs() <= 0.5 + 1e-4);
+                given += 1;
+            }
+        }
+    }
+    assert!(given > 0, "no head given");
+
     lights(&[
         "eval",
         "--generated",
