@@ -220,6 +220,10 @@ pub struct VizArgs {
     /// Which generated scene (with `--generated`).
     #[arg(long, default_value_t = 0)]
     pub scene: usize,
+    /// With `--generated`: the bundle to decode its tokens with, in place of the one its `meta.json`
+    /// names (an output brought from another machine); it must have the layout the tokens were drawn in.
+    #[arg(long, value_name = "DIR", requires = "generated")]
+    pub bundle: Option<PathBuf>,
     /// Clip id, or `first`.
     #[arg(long, default_value = "first")]
     pub clip: String,

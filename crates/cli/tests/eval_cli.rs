@@ -260,6 +260,48 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     );
     refused(&["--from-scratch"], "1", &["--recorded-ego", "--from-scratch"]);
 
+    // An output brought from another machine: the bundle meta.json names is not here. `--bundle` gives
+    // one of the same layout; tokens drawn in another layout are refused, naming both.
+    let moved = fx.dir.path().join("gen-moved");
+    std::fs::create_dir_all(&moved).unwrap();
+    for f in ["meta.json", "tokens.json", "scenes.json"] {
+        std::fs::copy(forced.join(f), moved.join(f)).unwrap();
+    }
+    let mut meta = json(moved.join("meta.json"));
+    meta["bundle"] = "/nowhere/bundle".into();
+    std::fs::write(moved.join("meta.json"), meta.to_string()).unwrap();
+    let eval_moved = |bundle: Option<&str>| {
+        let mut args = vec![
+            "eval",
+            "--generated",
+            moved.to_str().unwrap(),
+            "--reference",
+            sample,
+        ];
+        args.extend(["--stride", "50"]);
+        args.extend(bundle.map(|b| ["--bundle", b]).into_iter().flatten());
+        umgen(&args)
+    };
+    let run = eval_moved(None);
+    let err = String::from_utf8_lossy(&run.stderr).to_string();
+    assert!(!run.status.success() && err.contains("/nowhere/bundle"), "{err}");
+    ok(eval_moved(Some(bf16_dir.to_str().unwrap())));
+    assert_eq!(
+        json(moved.join("eval/report.json"))["horizon"],
+        recorded["horizon"],
+        "the same tokens decoded with a bundle of the same layout"
+    );
+    let mut tokens = json(moved.join("tokens.json"));
+    tokens["fingerprint"] = "0".repeat(64).into();
+    std::fs::write(moved.join("tokens.json"), tokens.to_string()).unwrap();
+    let run = eval_moved(Some(bf16_dir.to_str().unwrap()));
+    let err = String::from_utf8_lossy(&run.stderr).to_string();
+    assert!(!run.status.success(), "tokens of another layout evaluated");
+    assert!(
+        err.contains(&format!("drawn with the layout {}", "0".repeat(64))),
+        "{err}"
+    );
+
     // --recorded map,image: the generated frames hold the clip's own map and image codes of those frames,
     // the codes that a context of the same clip reaching over them is tokenized to.
     let tokens = |out: &str, args: &[&str]| -> Vec<Vec<u64>> {

@@ -170,6 +170,10 @@ pub struct EvalArgs {
     /// Use every n-th frame of the reference split.
     #[arg(long, default_value_t = 10)]
     pub stride: usize,
+    /// The bundle to decode the tokens with, in place of the one `meta.json` names (an output brought
+    /// from another machine); it must have the layout the tokens were drawn in.
+    #[arg(long, value_name = "DIR")]
+    pub bundle: Option<PathBuf>,
 }
 
 /// `MODALITY=K` of `--top-k-of`.

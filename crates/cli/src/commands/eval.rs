@@ -68,7 +68,7 @@ fn model_agent_errors(
 
 /// Evaluates.
 pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
-    let (meta, bundle, registry) = super::scenes::open_output(&a.generated, kinds)?;
+    let (meta, bundle, registry) = super::scenes::open_output(&a.generated, a.bundle.as_deref(), kinds)?;
     // The agents' bins, for the baseline a token model could reach.
     let grid = AgentSlots::of(&bundle, &registry)?;
     let mut off_grid = 0usize;

@@ -14,14 +14,28 @@ pub fn read_json(dir: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
     serde_json::from_slice(&bytes).with_context(|| p.display().to_string())
 }
 
-/// A `umgen generate` output directory: its `meta.json`, the bundle it names and that bundle's modalities.
+/// A `umgen generate` output directory: its `meta.json`, the bundle it names (or `bundle`, which must have
+/// the layout its tokens were drawn in) and that bundle's modalities.
 pub fn open_output(
     dir: &Path,
+    bundle: Option<&Path>,
     kinds: &crate::Kinds,
 ) -> anyhow::Result<(serde_json::Value, Bundle, ModalityRegistry)> {
     let meta = read_json(dir, "meta.json")?;
-    let bundle_dir = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
-    let (bundle, registry) = Bundle::open_with(Path::new(bundle_dir), &kinds.catalog()?)?;
+    let named = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
+    let bundle_dir = bundle.unwrap_or(Path::new(named));
+    let (bundle, registry) = Bundle::open_with(bundle_dir, &kinds.catalog()?)
+        .with_context(|| format!("the bundle of {} (--bundle names another)", dir.display()))?;
+    // Tokens are only read right with the layout they were drawn in.
+    let tokens = read_json(dir, "tokens.json")?;
+    let drawn = tokens["fingerprint"].as_str().unwrap_or("(none recorded)");
+    anyhow::ensure!(
+        drawn == bundle.manifest.fingerprint,
+        "{}: its tokens were drawn with the layout {drawn}, the bundle {} has the layout {}",
+        dir.display(),
+        bundle_dir.display(),
+        bundle.manifest.fingerprint
+    );
     Ok((meta, bundle, registry))
 }
 
