@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use umgen::Bundle;
 use umgen::data::{Dataset, LightState};
-use umgen::modality::ModalityCatalog;
+use umgen::modality::{ModalityCatalog, ModalityRegistry};
 use umgen::scene::{Extra, Frame, SceneClip};
 use umgen_modality_traffic_light::{KIND, TrafficLight, colour};
 
@@ -85,6 +85,40 @@ fn sample_subset(dir: &Path, train: usize) -> PathBuf {
     out
 }
 
+/// Checks that the rows `frames` of every scene of the `umgen generate` output `output` decode to the heads
+/// SUMO recorded in those frames of the scene's clip (states exactly, positions within half a bin, at most
+/// the modality's 8), and counts the heads compared by state.
+fn sumo_heads(
+    registry: &ModalityRegistry,
+    ds: &Dataset,
+    output: &Path,
+    frames: std::ops::Range<usize>,
+) -> [usize; 4] {
+    let tokens = read_json(&output.join("tokens.json"));
+    let meta = read_json(&output.join("meta.json"));
+    let scenes: Vec<Vec<Vec<u32>>> = serde_json::from_value(tokens["scenes"].clone()).unwrap();
+    assert_eq!(scenes.len(), 2);
+    let mut compared = [0usize; 4];
+    for (s, rows) in scenes.iter().enumerate() {
+        let clip = meta["contexts"][s]["clip"].as_str().unwrap();
+        let real = ds
+            .read_window(ds.find_clip(clip).unwrap(), frames.start, frames.len(), 1)
+            .unwrap();
+        for (row, want) in rows[frames.clone()].iter().zip(&real.frames) {
+            let mut decoded = Frame::default();
+            assert_eq!(registry.detokenize(row, &mut decoded).unwrap().malformed, 0);
+            let (got, want) = (heads(&decoded), heads(want));
+            assert_eq!(got.len(), want.len().min(8), "{clip}");
+            for (g, w) in got.iter().zip(&want) {
+                assert_eq!(g[3], w[3], "{clip}: decoded state against SUMO's");
+                assert!((g[0] - w[0]).abs() <= 0.5 + 1e-4 && (g[1] - w[1]).abs() <= 0.5 + 1e-4);
+                compared[g[3] as usize] += 1;
+            }
+        }
+    }
+    compared
+}
+
 fn catalog() -> ModalityCatalog {
     let mut catalog = umgen::builtin_catalog().unwrap();
     catalog.add(KIND, TrafficLight::factory).unwrap();
@@ -126,42 +160,22 @@ fn the_plugin_binary_trains_exports_generates_evaluates_and_draws_lights() {
         .to_string();
     assert!(err.contains("traffic_light"), "{err}");
 
-    lights(&[
-        "generate",
-        "--bundle",
-        &t("bundle"),
-        "--contexts",
-        &format!("{data}:test:2:{CONTEXT}"),
-        "--frames",
-        "2",
-        "--out",
-        &t("gen"),
-    ]);
+    // Two frames after 4 of context, for 2 test clips.
+    let generate = |out: &str, extra: &[&str]| {
+        let (bundle, contexts) = (t("bundle"), format!("{data}:test:2:{CONTEXT}"));
+        let mut args = vec!["generate", "--bundle", &bundle, "--contexts", &contexts];
+        args.extend(["--frames", "2"]);
+        args.extend(extra);
+        let out = t(out);
+        args.extend(["--out", out.as_str()]);
+        lights(&args);
+    };
+    generate("gen", &[]);
     // The context rows decode to SUMO's recorded heads: the states exactly, positions within half a bin.
     let (_, registry) = Bundle::open_with(&tmp.path().join("bundle"), &catalog()).unwrap();
     let ds = Dataset::open(Path::new(&data)).unwrap();
-    let tokens = read_json(&tmp.path().join("gen/tokens.json"));
     let meta = read_json(&tmp.path().join("gen/meta.json"));
-    let scenes: Vec<Vec<Vec<u32>>> = serde_json::from_value(tokens["scenes"].clone()).unwrap();
-    assert_eq!(scenes.len(), 2);
-    let mut compared = [0usize; 4];
-    for (s, rows) in scenes.iter().enumerate() {
-        let clip = meta["contexts"][s]["clip"].as_str().unwrap();
-        let real = ds
-            .read_window(ds.find_clip(clip).unwrap(), 0, CONTEXT, 1)
-            .unwrap();
-        for (row, want) in rows[..CONTEXT].iter().zip(&real.frames) {
-            let mut decoded = Frame::default();
-            assert_eq!(registry.detokenize(row, &mut decoded).unwrap().malformed, 0);
-            let (got, want) = (heads(&decoded), heads(want));
-            assert_eq!(got.len(), want.len().min(8), "{clip}");
-            for (g, w) in got.iter().zip(&want) {
-                assert_eq!(g[3], w[3], "{clip}: decoded state against SUMO's");
-                assert!((g[0] - w[0]).abs() <= 0.5 + 1e-4 && (g[1] - w[1]).abs() <= 0.5 + 1e-4);
-                compared[g[3] as usize] += 1;
-            }
-        }
-    }
+    let compared = sumo_heads(&registry, &ds, &tmp.path().join("gen"), 0..CONTEXT);
     assert!(
         compared[LightState::Red as usize] > 0 && compared[LightState::Green as usize] > 0,
         "{compared:?}"
@@ -179,43 +193,16 @@ fn the_plugin_binary_trains_exports_generates_evaluates_and_draws_lights() {
 
     // `--recorded lights`: the generated frames hold SUMO's lights of those frames, so that the agents
     // are drawn given the real lights.
-    lights(&[
-        "generate",
-        "--bundle",
-        &t("bundle"),
-        "--contexts",
-        &format!("{data}:test:2:{CONTEXT}"),
-        "--frames",
-        "2",
-        "--recorded",
-        "lights",
-        "--recorded-ego",
-        "--out",
-        &t("gen-recorded"),
-    ]);
-    let tokens = read_json(&tmp.path().join("gen-recorded/tokens.json"));
+    generate("gen-recorded", &["--recorded", "lights", "--recorded-ego"]);
     let recorded_meta = read_json(&tmp.path().join("gen-recorded/meta.json"));
     assert_eq!(recorded_meta["recorded"], serde_json::json!(["lights", "ego"]));
-    let scenes: Vec<Vec<Vec<u32>>> = serde_json::from_value(tokens["scenes"].clone()).unwrap();
-    let mut given = 0;
-    for (s, rows) in scenes.iter().enumerate() {
-        let clip = recorded_meta["contexts"][s]["clip"].as_str().unwrap();
-        let real = ds
-            .read_window(ds.find_clip(clip).unwrap(), CONTEXT, 2, 1)
-            .unwrap();
-        for (row, want) in rows[CONTEXT..].iter().zip(&real.frames) {
-            let mut decoded = Frame::default();
-            registry.detokenize(row, &mut decoded).unwrap();
-            let (got, want) = (heads(&decoded), heads(want));
-            assert_eq!(got.len(), want.len().min(8), "{clip}");
-            for (g, w) in got.iter().zip(&want) {
-                assert_eq!(g[3], w[3], "{clip}: a recorded state placed in a generated frame");
-                assert!((g[0] - w[0]).abs() <= 0.5 + 1e-4 && (g[1] - w[1]).abs() <= 0.5 + 1e-4);
-                given += 1;
-            }
-        }
-    }
-    assert!(given > 0, "no head given");
+    let given = sumo_heads(
+        &registry,
+        &ds,
+        &tmp.path().join("gen-recorded"),
+        CONTEXT..CONTEXT + 2,
+    );
+    assert!(given.iter().sum::<usize>() > 0, "no head given");
 
     lights(&[
         "eval",
