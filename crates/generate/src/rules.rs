@@ -246,11 +246,6 @@ impl FrameRules {
         })
     }
 
-    /// Whether the caller set position `p` ([`Rules::set_by_caller`]).
-    pub(crate) fn set_by_caller(&self, p: usize) -> bool {
-        self.placed[p].is_some() || self.given[p].is_some()
-    }
-
     /// The rules as the decoders read them.
     pub(crate) fn view<'a>(&'a self, groups: &'a [TokenGroups]) -> Rules<'a> {
         Rules {

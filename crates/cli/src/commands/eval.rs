@@ -68,7 +68,12 @@ fn model_agent_errors(
 
 /// Evaluates.
 pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
-    let (meta, bundle, registry) = super::scenes::open_output(&a.generated, a.bundle.as_deref(), kinds)?;
+    let super::scenes::Output {
+        meta,
+        tokens,
+        bundle,
+        registry,
+    } = super::scenes::open_output(&a.generated, a.bundle.as_deref(), kinds)?;
     // The agents' bins, for the baseline a token model could reach.
     let grid = AgentSlots::of(&bundle, &registry)?;
     let mut off_grid = 0usize;
@@ -215,7 +220,6 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     let horizon = super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, split_clips, dt)?;
     report["horizon"] = horizon;
     if let Some(view) = super::scenes::map_view(&bundle)? {
-        let tokens = super::scenes::read_json(&a.generated, "tokens.json")?;
         let map =
             super::eval_map::map_consistency(&view, &registry, &tokens, &scenes, &contexts, per, &ds, dt)?;
         report["map"] = map.into();

@@ -176,9 +176,11 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         .iter()
         .map(|c| serde_json::json!({"data": c.data, "clip": c.id, "frames": n_context}))
         .collect();
-    let recorded_labels = super::recorded::labels(a, &spec);
-    let ego = super::recorded::action_label(&spec);
-    let recorded_ego = recorded_labels.iter().any(|l| Some(l.as_str()) == ego);
+    let recorded_labels: Vec<&str> = recorded
+        .iter()
+        .map(|r| spec.segments[r.segment].label.as_str())
+        .collect();
+    let recorded_ego = recorded.iter().any(|r| Some(r.segment) == plan.action_segment);
     std::fs::write(
         a.out.join("meta.json"),
         serde_json::to_vec_pretty(&serde_json::json!({

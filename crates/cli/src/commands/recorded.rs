@@ -13,7 +13,7 @@ use umgen::generate::Control;
 use umgen::modality::ModalityRegistry;
 
 /// The layout label of the ego action's segment, if the model has one.
-pub(super) fn action_label(spec: &BackboneSpec) -> Option<&str> {
+fn action_label(spec: &BackboneSpec) -> Option<&str> {
     spec.action
         .as_ref()
         .map(|x| spec.segments[x.segment].label.as_str())
@@ -21,7 +21,7 @@ pub(super) fn action_label(spec: &BackboneSpec) -> Option<&str> {
 
 /// The modalities `--recorded` (comma-separated or repeated) and `--recorded-ego` name, each once, in the
 /// order given (`--recorded-ego` names the ego action's modality).
-pub(super) fn labels(a: &GenerateArgs, spec: &BackboneSpec) -> Vec<String> {
+fn labels(a: &GenerateArgs, spec: &BackboneSpec) -> Vec<String> {
     let ego = a
         .recorded_ego
         .then(|| action_label(spec).unwrap_or("ego").to_string());

@@ -14,13 +14,21 @@ pub fn read_json(dir: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
     serde_json::from_slice(&bytes).with_context(|| p.display().to_string())
 }
 
-/// A `umgen generate` output directory: its `meta.json`, the bundle it names (or `bundle`, which must have
-/// the layout its tokens were drawn in) and that bundle's modalities.
-pub fn open_output(
-    dir: &Path,
-    bundle: Option<&Path>,
-    kinds: &crate::Kinds,
-) -> anyhow::Result<(serde_json::Value, Bundle, ModalityRegistry)> {
+/// A `umgen generate` output directory, opened by [`open_output`].
+pub struct Output {
+    /// Its `meta.json`.
+    pub meta: serde_json::Value,
+    /// Its `tokens.json`.
+    pub tokens: serde_json::Value,
+    /// The bundle that decodes the tokens.
+    pub bundle: Bundle,
+    /// That bundle's modalities.
+    pub registry: ModalityRegistry,
+}
+
+/// A `umgen generate` output directory: its `meta.json` and `tokens.json`, the bundle `meta.json` names
+/// (or `bundle`, which must have the layout the tokens were drawn in) and that bundle's modalities.
+pub fn open_output(dir: &Path, bundle: Option<&Path>, kinds: &crate::Kinds) -> anyhow::Result<Output> {
     let meta = read_json(dir, "meta.json")?;
     let named = meta["bundle"].as_str().context("meta.json: no `bundle`")?;
     let bundle_dir = bundle.unwrap_or(Path::new(named));
@@ -36,7 +44,12 @@ pub fn open_output(
         bundle_dir.display(),
         bundle.manifest.fingerprint
     );
-    Ok((meta, bundle, registry))
+    Ok(Output {
+        meta,
+        tokens,
+        bundle,
+        registry,
+    })
 }
 
 /// Decodes generated rows into frames, integrating the ego pose from `start` by each decoded action.

@@ -75,8 +75,12 @@ pub fn run(a: &VizArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
 
 /// A scene of `umgen generate`'s output: its token rows decoded with the bundle it names.
 fn generated(a: &VizArgs, dir: &std::path::Path, kinds: &crate::Kinds) -> anyhow::Result<()> {
-    let (meta, bundle, registry) = super::scenes::open_output(dir, a.bundle.as_deref(), kinds)?;
-    let tokens = super::scenes::read_json(dir, "tokens.json")?;
+    let super::scenes::Output {
+        meta,
+        tokens,
+        bundle,
+        registry,
+    } = super::scenes::open_output(dir, a.bundle.as_deref(), kinds)?;
     let scenes = tokens["scenes"].as_array().context("tokens.json: no `scenes`")?;
     let scene = scenes.get(a.scene).with_context(|| {
         format!(

@@ -183,6 +183,7 @@ impl<X: Exec> Engine<X> {
     ) -> Result<()> {
         let lay = &self.lay;
         let (n, spec) = (lay.n, &lay.spec);
+        let view = rules.view(&control.groups);
         // Each run's first group index, and the capacities this frame needs.
         let mut group_base = Vec::with_capacity(control.groups.len());
         let mut total = 0;
@@ -241,7 +242,7 @@ impl<X: Exec> Engine<X> {
                         r.finish = i32::from(
                             j + 1 == g.size
                                 && g.boxes.is_some()
-                                && !(start..=p).any(|q| rules.set_by_caller(q)),
+                                && !(start..=p).any(|q| view.set_by_caller(q)),
                         );
                     }
                     if let Some((pad, _)) = &rules.keep[p] {
