@@ -155,6 +155,11 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     ] {
         assert!((0.0..=1.0).contains(&rate.as_f64().unwrap()), "{horizon}");
     }
+    // SUMO's vehicles drive on its lanes: their centres in world coordinates lie on the drivable area.
+    assert!(
+        real["vehicle_off_road_rate"].as_f64().unwrap() < 0.02,
+        "real vehicles off the road: {real}"
+    );
     assert!(
         real["heading_motion_median_deg"].as_f64().unwrap() < 10.0,
         "real agents drive where they head: {real}"

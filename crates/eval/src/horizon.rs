@@ -10,7 +10,7 @@ use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
 use serde::Serialize;
 use std::collections::HashMap;
-use umgen_scene::{Frame, wrap_angle};
+use umgen_scene::{AgentCategory, Frame, wrap_angle};
 
 /// Speed (m/s) above which an agent counts as moving, for the heading–motion angle: below it a velocity's
 /// direction is mostly noise of the data (or of the velocity bins).
@@ -32,6 +32,12 @@ pub struct SceneStats {
     /// Agents tested against a map, and those off its drivable area.
     on_map: usize,
     off_road: usize,
+    /// The same for vehicles alone: pedestrians walk off the drivable area, vehicles do not.
+    vehicles_on_map: usize,
+    vehicles_off_road: usize,
+    /// Vehicles tested against a map in the frame they entered, and those off its drivable area.
+    entering_on_map: usize,
+    entering_off_road: usize,
     /// Frames tested against a map, and those whose ego is off its drivable area.
     ego_on_map: usize,
     ego_off_road: usize,
@@ -86,6 +92,12 @@ pub struct Summary {
     /// Fraction of agents whose centre is off the drivable area (lanes, connectors, intersections) of
     /// the scene's map; `None` without maps.
     pub off_road_rate: Option<f64>,
+    /// The same for vehicles alone (pedestrians walk beside the roads, so a change of the pedestrian
+    /// share moves `off_road_rate` without any vehicle leaving the road); `None` without maps.
+    pub vehicle_off_road_rate: Option<f64>,
+    /// Of the vehicles entering (in the frame they entered), the fraction whose centre is off the
+    /// drivable area: where a generated scene places its new vehicles. `None` without maps or entries.
+    pub entering_off_road_rate: Option<f64>,
     /// Fraction of frames whose ego is off the drivable area of the scene's map: agents are placed
     /// relative to the ego, so an ego that leaves the road carries them off it too.
     pub ego_off_road_rate: Option<f64>,
@@ -114,6 +126,8 @@ impl SceneStats {
             let (hit, n) = colliding(agents);
             self.collision_rates.push(hit as f64 / n as f64);
         }
+        // Per agent, whether it is a vehicle off the road (for the entering ones below).
+        let mut vehicle_off = Vec::with_capacity(agents.len());
         for a in agents {
             let speed = a.vx.hypot(a.vy);
             self.speeds.push(speed);
@@ -121,10 +135,17 @@ impl SceneStats {
                 let angle = wrap_angle(a.heading - a.vy.atan2(a.vx)).abs();
                 self.heading_motion.push(angle.to_degrees());
             }
-            if let Some(d) = drivable {
+            let vehicle = a.category == AgentCategory::Vehicle;
+            let off = drivable.map(|d| !d.contains(global_position(&frame.ego, a)));
+            if let Some(off) = off {
                 self.on_map += 1;
-                self.off_road += usize::from(!d.contains(global_position(&frame.ego, a)));
+                self.off_road += usize::from(off);
+                if vehicle {
+                    self.vehicles_on_map += 1;
+                    self.vehicles_off_road += usize::from(off);
+                }
             }
+            vehicle_off.push(off.filter(|_| vehicle));
         }
         let Some(before) = before else {
             return;
@@ -135,13 +156,17 @@ impl SceneStats {
             .map(|a| (a.track_id, global_velocity(&before.ego, a)))
             .collect();
         let mut stayed = 0;
-        for a in agents {
+        for (a, off) in agents.iter().zip(vehicle_off) {
             if let Some(v0) = earlier.get(&a.track_id) {
                 stayed += 1;
                 let v1 = global_velocity(&frame.ego, a);
                 self.accelerations.push((v1[0] - v0[0]).hypot(v1[1] - v0[1]) / dt);
             } else {
                 self.entry_speeds.push(a.vx.hypot(a.vy));
+                if let Some(off) = off {
+                    self.entering_on_map += 1;
+                    self.entering_off_road += usize::from(off);
+                }
             }
         }
         self.transitions += 1;
@@ -159,6 +184,7 @@ impl SceneStats {
             distribution[c] += 1.0 / frames as f64;
         }
         let per_s = |n: usize| (self.seconds > 0.0).then(|| n as f64 / self.seconds);
+        let share = |n: usize, of: usize| (of > 0).then(|| n as f64 / of as f64);
         let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
         let counts: Vec<f64> = self.counts.iter().map(|&c| c as f64).collect();
         Summary {
@@ -168,9 +194,10 @@ impl SceneStats {
             entries_per_s: per_s(self.entries),
             exits_per_s: per_s(self.exits),
             collision_rate: mean(&self.collision_rates),
-            off_road_rate: (self.on_map > 0).then(|| self.off_road as f64 / self.on_map as f64),
-            ego_off_road_rate: (self.ego_on_map > 0)
-                .then(|| self.ego_off_road as f64 / self.ego_on_map as f64),
+            off_road_rate: share(self.off_road, self.on_map),
+            vehicle_off_road_rate: share(self.vehicles_off_road, self.vehicles_on_map),
+            entering_off_road_rate: share(self.entering_off_road, self.entering_on_map),
+            ego_off_road_rate: share(self.ego_off_road, self.ego_on_map),
             heading_motion_median_deg: median(&self.heading_motion),
             speed: Spread::of(&self.speeds),
             acceleration: Spread::of(&self.accelerations),
@@ -222,14 +249,13 @@ mod tests {
             ..RoadNetwork::default()
         };
         let road = Drivable::new(&network);
-        // Frame 1: agents 1 (moving along +x, heading along it), 2 (parked, off the road at y = 20).
-        let f1 = frame(
-            0.0,
-            vec![
-                agent(1, 10.0, 0.0, 10.0, 0.0, 0.0),
-                agent(2, 0.0, 20.0, 0.0, 0.0, 1.0),
-            ],
-        );
+        // Frame 1: agents 1 (moving along +x, heading along it), 2 (a pedestrian standing off the road at
+        // y = 20).
+        let walker = Agent {
+            category: AgentCategory::Pedestrian,
+            ..agent(2, 0.0, 20.0, 0.0, 0.0, 1.0)
+        };
+        let f1 = frame(0.0, vec![agent(1, 10.0, 0.0, 10.0, 0.0, 0.0), walker]);
         // Frame 2, 0.5 s later, the ego turned left by 90°: agent 1 is now at ego (0, -10)... with the same
         // global velocity (+x) plus 1 m/s of +y: in the turned ego frame (-)x-global is -y-ego. Agent 2
         // left; agents 3 and 4 entered and overlap; agent 3 drives 30° off its heading.
@@ -259,6 +285,10 @@ mod tests {
         // Off road: agent 2 (y = 20); in frame 2 the ego looks along +y, so ego (30, 0) is global (0, 30)
         // and (31, 0) is (0, 31): off; ego (0, -15) is global (15, 0): on.
         assert_eq!(r.off_road_rate, Some(3.0 / 5.0));
+        // Vehicles alone: agents 3 and 4 of the 4 vehicles (the pedestrian left out).
+        assert_eq!(r.vehicle_off_road_rate, Some(2.0 / 4.0));
+        // Entering vehicles: agents 3 and 4 of frame 2, both off.
+        assert_eq!(r.entering_off_road_rate, Some(1.0));
         // Both egos stand at the origin, on the road; one moved to y = 50 is off it.
         assert_eq!(r.ego_off_road_rate, Some(0.0));
         let mut off = f1.clone();
@@ -280,6 +310,52 @@ mod tests {
         // Agents 3 (5 m/s) and 4 (standing) entered in frame 2.
         let e = r.entry_speed.unwrap();
         assert_eq!((e.mean, e.p50, e.p90), (2.5, 2.5, 4.5));
+    }
+
+    #[test]
+    fn where_vehicles_enter() {
+        let network = RoadNetwork {
+            lanes: vec![vec![[-100.0, -5.0], [100.0, -5.0], [100.0, 5.0], [-100.0, 5.0]]],
+            ..RoadNetwork::default()
+        };
+        let road = Drivable::new(&network);
+        let walker = |id, y| Agent {
+            category: AgentCategory::Pedestrian,
+            ..agent(id, 0.0, y, 0.0, 0.0, 0.0)
+        };
+        // Vehicle 1 stays on the road and walker 2 beside it; then vehicle 3 enters on the road, vehicle 4
+        // and walker 5 beside it, and vehicle 1 leaves the road.
+        let f1 = frame(0.0, vec![agent(1, 0.0, 0.0, 0.0, 0.0, 0.0), walker(2, 8.0)]);
+        let f2 = frame(
+            0.0,
+            vec![
+                agent(1, 0.0, 7.0, 0.0, 0.0, 0.0),
+                walker(2, 8.0),
+                agent(3, 20.0, 0.0, 0.0, 0.0, 0.0),
+                agent(4, 40.0, 9.0, 0.0, 0.0, 0.0),
+                walker(5, -9.0),
+            ],
+        );
+        let mut s = SceneStats::default();
+        s.add(&f1, None, 0.5, Some(&road));
+        s.add(&f2, Some(&f1), 0.5, Some(&road));
+        let r = s.summary();
+        assert_eq!(
+            r.entering_off_road_rate,
+            Some(1.0 / 2.0),
+            "vehicle 4 of vehicles 3 and 4"
+        );
+        assert_eq!(
+            r.vehicle_off_road_rate,
+            Some(2.0 / 4.0),
+            "vehicle 1 in frame 2 and vehicle 4"
+        );
+        assert_eq!(r.off_road_rate, Some(5.0 / 7.0));
+        // Without a map, nothing is known of the road.
+        let mut blind = SceneStats::default();
+        blind.add(&f1, None, 0.5, None);
+        blind.add(&f2, Some(&f1), 0.5, None);
+        assert_eq!(blind.summary().entering_off_road_rate, None);
     }
 
     #[test]
