@@ -8,8 +8,10 @@
 //! For the recorded clips, every pair of consecutive frames of the split counts, with the lights SUMO
 //! recorded. For a generated output, every pair of consecutive generated frames of every scene counts,
 //! against the lights SUMO recorded at the same time of the context clip (`generate --recorded-ego` keeps
-//! the ego on its recorded path, so those lights stand where the generated agents see them); a model with
-//! the traffic-light modality is also measured against the lights it generated itself. Prints a Markdown
+//! the ego on its recorded path, so those lights stand where the generated agents see them): all of them,
+//! and the nearest to the ego that the modality tokenizes (the only ones a model with the modality is
+//! shown, e.g. with `generate --recorded ego,lights`); a model with the traffic-light modality is also
+//! measured against the lights it generated itself. Prints a Markdown
 //! table: crossings, crossings on red, their share, red approaches (a vehicle within 20 m behind a red
 //! line) and red crossings per approach; and for such a model, how its lights agree with SUMO's (the stop
 //! lines of the 8 nearest recorded heads, a generated line at each, the same state).
@@ -50,10 +52,12 @@ fn recorded(lights: &TrafficLight, data: &Path, split: &str) -> Result<(Crossing
     Ok((total, pairs))
 }
 
-/// What one `umgen generate` output measures: crossings against SUMO's lights; for a model with lights,
-/// crossings against its own and how its lights agree with SUMO's; the frame pairs.
+/// What one `umgen generate` output measures: crossings against SUMO's lights, all of them and the
+/// nearest ones that the modality tokenizes; for a model with lights, crossings against its own and how
+/// its lights agree with SUMO's; the frame pairs.
 struct Generated {
     sumo: Crossings,
+    nearest: Crossings,
     own: Option<(Crossings, Agreement)>,
     pairs: usize,
 }
@@ -71,7 +75,12 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
     let tokens = read_json(&dir.join("tokens.json"))?;
     let scenes: Vec<SceneClip> = serde_json::from_value(read_json(&dir.join("scenes.json"))?)?;
     let mut opened: HashMap<String, Dataset> = HashMap::new();
-    let (mut sumo, mut own, mut pairs) = (Crossings::default(), Crossings::default(), 0);
+    let (mut sumo, mut nearest, mut own, mut pairs) = (
+        Crossings::default(),
+        Crossings::default(),
+        Crossings::default(),
+        0,
+    );
     let mut agree = Agreement::default();
     // A model with the modality decodes its lights into every frame; one without has none.
     let key = &lights.config().key;
@@ -96,7 +105,9 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
         let real = ds.read_window(index, 0, n + g, 1)?.frames;
         for k in 1..g {
             let (prev, next) = (&scene.frames[k - 1], &scene.frames[k]);
-            sumo.add(&step(lights, &real[n + k - 1], prev, next)?);
+            let at = &real[n + k - 1];
+            sumo.add(&step(lights, at, prev, next)?);
+            nearest.add(&crossings(prev, next, &nearest_lines(lights, at)?));
             if has_own {
                 own.add(&step(lights, prev, prev, next)?);
                 agree.add(
@@ -109,6 +120,7 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
     }
     Ok(Generated {
         sumo,
+        nearest,
         own: has_own.then_some((own, agree)),
         pairs,
     })
@@ -155,6 +167,8 @@ fn main() -> Result<(), Error> {
             "{}",
             row(&format!("{name} (SUMO's lights)"), &g.sumo, g.pairs)
         )?;
+        let nearest = format!("{name} (SUMO's {} nearest heads)", lights.config().count);
+        writeln!(out, "{}", row(&nearest, &g.nearest, g.pairs))?;
         if let Some((own, agree)) = g.own {
             writeln!(out, "{}", row(&format!("{name} (its own lights)"), &own, g.pairs))?;
             agreements.push((name, agree));

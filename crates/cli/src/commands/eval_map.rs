@@ -2,12 +2,14 @@
 //! map decoded from the generated map codes with the map rendered from the context clip's road network at
 //! the generated ego pose, cells pooled over the frames as the tokenizer's own evaluation pools them
 //! ([`IouCounter`]). The context frames give the reference: their real codes decoded against the map at
-//! their real poses, what the map tokenizer alone keeps.
+//! their real poses, what the map tokenizer alone keeps. Beside it, how the frame's vehicles sit on the
+//! map its own codes draw (all of them, and those entering the frame): a scene that places vehicles off
+//! its own roads is inconsistent whatever the real road does.
 
 use anyhow::Context;
 use umgen::data::Dataset;
 use umgen::modality::{Modality, ModalityRegistry, Segment};
-use umgen::scene::{Frame, MapRaster, Pose2, RoadNetwork, SceneClip};
+use umgen::scene::{Agent, AgentCategory, Frame, MapLayer, MapRaster, RoadNetwork, SceneClip};
 use umgen::tokenizer_vq::IouCounter;
 use umgen_eval::horizon::second_of;
 use umgen_render::MapView;
@@ -17,14 +19,74 @@ use umgen_render::MapView;
 struct Pooled {
     iou: IouCounter,
     frames: usize,
+    /// Vehicles inside the raster, and those whose centre's cell no drivable layer covers.
+    vehicles: usize,
+    vehicles_off: usize,
+    /// The same for vehicles absent from the frame before.
+    entering: usize,
+    entering_off: usize,
 }
 
 impl Pooled {
-    /// `{"frames", "iou": [per layer], "f1_within_1px": [per layer]}`.
+    /// `{"frames", "iou": [per layer], "f1_within_1px": [per layer], "vehicles_off_map",
+    /// "entering_off_map"}`.
     fn json(&self) -> serde_json::Value {
         let f1: Vec<Option<f64>> = self.iou.near().iter().map(|n| n.map(|n| n.f1)).collect();
-        serde_json::json!({"frames": self.frames, "iou": self.iou.iou(), "f1_within_1px": f1})
+        let share = |n: usize, of: usize| (of > 0).then(|| n as f64 / of as f64);
+        serde_json::json!({
+            "frames": self.frames,
+            "iou": self.iou.iou(),
+            "f1_within_1px": f1,
+            "vehicles_off_map": share(self.vehicles_off, self.vehicles),
+            "entering_off_map": share(self.entering_off, self.entering),
+        })
     }
+
+    /// Counts the vehicles of `agents` against the drivable `channels` of `map` (decoded with `view`);
+    /// those not in `before` (when known) also as entering. Vehicles outside the raster are left out.
+    fn add_vehicles(
+        &mut self,
+        view: &MapView,
+        map: &MapRaster,
+        channels: &[usize],
+        agents: &[Agent],
+        before: Option<&[Agent]>,
+    ) {
+        for a in agents.iter().filter(|a| a.category == AgentCategory::Vehicle) {
+            let Some(on) = on_drivable(view, map, channels, [a.x, a.y]) else {
+                continue;
+            };
+            let off = usize::from(!on);
+            self.vehicles += 1;
+            self.vehicles_off += off;
+            if before.is_some_and(|b| !b.iter().any(|o| o.track_id == a.track_id)) {
+                self.entering += 1;
+                self.entering_off += off;
+            }
+        }
+    }
+}
+
+/// The channels of the layers vehicles drive on (lanes, intersections, lane connectors) in `view`.
+fn drivable_channels(view: &MapView) -> Vec<usize> {
+    let drivable = [MapLayer::Lane, MapLayer::Intersection, MapLayer::LaneConnector];
+    (0..view.layers.len())
+        .filter(|&i| drivable.contains(&view.layers[i]))
+        .collect()
+}
+
+/// Whether the cell of `map` holding the ego-frame point `p` is set in one of `channels`; `None` outside
+/// the raster.
+fn on_drivable(view: &MapView, map: &MapRaster, channels: &[usize], p: [f64; 2]) -> Option<bool> {
+    let [col, row] = view.ego_to_pixel(p).map(f64::floor);
+    let inside = |v: f64, n: usize| (0.0..n as f64).contains(&v).then_some(v as usize);
+    let (row, col) = (inside(row, map.height)?, inside(col, map.width)?);
+    let plane = map.height * map.width;
+    Some(channels.iter().any(|&c| {
+        map.data
+            .get(c * plane + row * map.width + col)
+            .is_some_and(|&v| v > 127)
+    }))
 }
 
 /// The cells of a raster as the map modality reads them: set above 127.
@@ -36,13 +98,15 @@ fn cells(r: &MapRaster) -> Vec<f32> {
 type MapCodes<'a> = (&'a dyn Modality, &'a Segment);
 
 /// Decodes the map codes of `row` (the other modalities are not decoded) and adds the map, against
-/// `network` rendered at `pose`, to `pooled`; false when the codes decode to no map raster.
+/// `network` rendered at the pose of `frame`, to `pooled`, with the vehicles of `frame` on it (entering
+/// ones against `before`, the frame before it); false when the codes decode to no map raster.
 fn add_frame(
     (map, seg): MapCodes<'_>,
     view: &MapView,
     row: &[u32],
     network: &RoadNetwork,
-    pose: &Pose2,
+    frame: &Frame,
+    before: Option<&Frame>,
     pooled: &mut Pooled,
 ) -> anyhow::Result<bool> {
     let codes = row.get(seg.content()).with_context(|| {
@@ -58,7 +122,7 @@ fn add_frame(
     let Some(decoded) = f.map else {
         return Ok(false);
     };
-    let rendered = view.render(network, pose);
+    let rendered = view.render(network, &frame.ego.pose2());
     let shape = |r: &MapRaster| [r.channels, r.height, r.width];
     anyhow::ensure!(
         shape(&decoded) == shape(&rendered),
@@ -69,6 +133,8 @@ fn add_frame(
     let [c, h, w] = shape(&rendered);
     pooled.iou.add(c, [h, w], &cells(&decoded), &cells(&rendered));
     pooled.frames += 1;
+    let before = before.map(|b| &b.agents[..]);
+    pooled.add_vehicles(view, &decoded, &drivable_channels(view), &frame.agents, before);
     Ok(true)
 }
 
@@ -115,15 +181,9 @@ pub(super) fn map_consistency(
         };
         let first = c * per;
         // The context rows are the real frames' codes, the same in each of the context's scenes.
-        for (row, f) in rows[first][..n_context].iter().zip(&real.frames) {
-            without += usize::from(!add_frame(
-                map,
-                view,
-                row,
-                &network,
-                &f.ego.pose2(),
-                &mut context,
-            )?);
+        for (k, (row, f)) in rows[first][..n_context].iter().zip(&real.frames).enumerate() {
+            let before = k.checked_sub(1).map(|j| &real.frames[j]);
+            without += usize::from(!add_frame(map, view, row, &network, f, before, &mut context)?);
         }
         for s in first..first + per {
             for (k, (row, f)) in rows[s][n_context..].iter().zip(&scenes[s].frames).enumerate() {
@@ -131,15 +191,9 @@ pub(super) fn map_consistency(
                 if seconds.len() < second {
                     seconds.resize_with(second, Pooled::default);
                 }
-                let pose = f.ego.pose2();
-                without += usize::from(!add_frame(
-                    map,
-                    view,
-                    row,
-                    &network,
-                    &pose,
-                    &mut seconds[second - 1],
-                )?);
+                let before = k.checked_sub(1).map(|j| &scenes[s].frames[j]);
+                let pooled = &mut seconds[second - 1];
+                without += usize::from(!add_frame(map, view, row, &network, f, before, pooled)?);
             }
         }
     }
@@ -160,4 +214,64 @@ pub(super) fn map_consistency(
         "context": context.json(),
         "seconds": rows,
     })))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use umgen::scene::Pose2;
+    use umgen_eval::collision::bev_box;
+
+    fn agent(id: u64, category: AgentCategory, x: f64, y: f64) -> Agent {
+        Agent {
+            track_id: id,
+            category,
+            ..bev_box(x, y, 0.0, 4.0, 2.0)
+        }
+    }
+
+    /// The map renderer draws a road along global x, 4 m wide; vehicles are tested against the raster
+    /// it draws at the ego pose, so the pixel lookup must agree with the renderer's own placement.
+    #[test]
+    fn vehicles_on_the_map_their_codes_draw() {
+        let network = RoadNetwork {
+            lanes: vec![vec![[-200.0, -2.0], [200.0, -2.0], [200.0, 2.0], [-200.0, 2.0]]],
+            ..RoadNetwork::default()
+        };
+        let view = MapView {
+            extent_m: 128.0,
+            size: [64, 64],
+            layers: MapLayer::ALL.to_vec(),
+        };
+        let channels = drivable_channels(&view);
+        assert_eq!(channels.len(), 3, "lane, intersection, lane connector");
+        let (car, walker) = (AgentCategory::Vehicle, AgentCategory::Pedestrian);
+        // The ego on the road facing along it.
+        let map = view.render(&network, &Pose2::new(0.0, 0.0, 0.0));
+        let before = [agent(1, car, 10.0, 0.0), agent(2, walker, 10.0, 20.0)];
+        let now = [
+            agent(1, car, 12.0, 0.0),    // stays, on the road
+            agent(3, car, -30.0, 10.0),  // enters beside the road
+            agent(4, car, 40.0, 0.5),    // enters on it
+            agent(5, car, 70.0, 0.0),    // outside the raster: not counted
+            agent(6, walker, 0.0, -9.0), // a pedestrian: not counted
+        ];
+        let mut p = Pooled::default();
+        p.add_vehicles(&view, &map, &channels, &now, Some(&before));
+        assert_eq!((p.vehicles, p.vehicles_off), (3, 1));
+        assert_eq!((p.entering, p.entering_off), (2, 1));
+        // Without the frame before, nothing counts as entering.
+        let mut first = Pooled::default();
+        first.add_vehicles(&view, &map, &channels, &now, None);
+        assert_eq!((first.vehicles, first.entering), (3, 0));
+        let j = first.json();
+        assert_eq!(j["vehicles_off_map"].as_f64(), Some(1.0 / 3.0));
+        assert!(j["entering_off_map"].is_null(), "{j}");
+        // The ego turned left across the road: its x is global y, its y global −x. (0, −20) lies on the
+        // road 20 m along global x; (20, 0) lies 20 m off it.
+        let turned = view.render(&network, &Pose2::new(0.0, 0.0, std::f64::consts::FRAC_PI_2));
+        let on = |p: [f64; 2]| on_drivable(&view, &turned, &channels, p);
+        assert_eq!((on([0.0, -20.0]), on([20.0, 0.0])), (Some(true), Some(false)));
+        assert_eq!(on([0.0, 64.5]), None, "beyond the raster's edge");
+    }
 }

@@ -206,11 +206,17 @@ pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Resul
         "\n## Map at the generated pose\n\nPer layer, the IoU of the map decoded from the map codes with the map \
          rendered from the context clip's road network at the frame's ego pose, cells pooled over the frames, with \
          the F1 within one pixel in brackets. The context frames hold real codes at real poses: what the \
-         tokenizer keeps.\n"
+         tokenizer keeps. Off the map: the fraction of vehicles whose centre falls on a cell of the map their \
+         own frame's codes decode to that no lane, intersection or lane connector covers, of all and of \
+         those entering.\n"
     )?;
     let names: Vec<&str> = layers.iter().filter_map(|l| l.as_str()).collect();
-    writeln!(md, "| second | frames | {} |", names.join(" | "))?;
-    writeln!(md, "|---|---|{}", "---|".repeat(names.len()))?;
+    writeln!(
+        md,
+        "| second | frames | {} | vehicles off the map | entering off it |",
+        names.join(" | ")
+    )?;
+    writeln!(md, "|---|---|{}---|---|", "---|".repeat(names.len()))?;
     let line = |md: &mut String, label: String, r: &serde_json::Value| {
         let ious: Vec<String> = (0..names.len())
             .map(|i| match r["f1_within_1px"][i].as_f64() {
@@ -218,7 +224,14 @@ pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Resul
                 None => num(&r["iou"][i]),
             })
             .collect();
-        writeln!(md, "| {label} | {} | {} |", r["frames"], ious.join(" | "))
+        writeln!(
+            md,
+            "| {label} | {} | {} | {} | {} |",
+            r["frames"],
+            ious.join(" | "),
+            num(&r["vehicles_off_map"]),
+            num(&r["entering_off_map"])
+        )
     };
     line(md, "context".into(), &map["context"])?;
     for r in rows {
