@@ -259,10 +259,15 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         assert!(!run.status.success(), "{args:?} ran");
         assert!(wants.iter().all(|w| err.contains(w)), "{err}");
     };
+    // The sample's clip rand-s3/v0:0 holds 40 frames: 2 of context leave 38 to generate.
     refused(
         &["--context", &one],
         "100000",
-        &["--recorded-ego", "rand-s3/v0:0"],
+        &[
+            "--recorded-ego: clip `rand-s3/v0:0`",
+            "has 40 frames, 2 of context and 100000 to generate need 100002",
+            "(1 of the 1 contexts end too soon; --frames 38 fits every one)",
+        ],
     );
     refused(&["--from-scratch"], "1", &["--recorded-ego", "--from-scratch"]);
 

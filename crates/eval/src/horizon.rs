@@ -241,14 +241,18 @@ mod tests {
         }
     }
 
+    /// A road 10 m wide along x through the origin.
+    fn road() -> Drivable {
+        Drivable::new(&RoadNetwork {
+            lanes: vec![vec![[-100.0, -5.0], [100.0, -5.0], [100.0, 5.0], [-100.0, 5.0]]],
+            ..RoadNetwork::default()
+        })
+    }
+
     #[test]
     fn entries_exits_collisions_angles_and_accelerations() {
         use std::f64::consts::FRAC_PI_2;
-        let network = RoadNetwork {
-            lanes: vec![vec![[-100.0, -5.0], [100.0, -5.0], [100.0, 5.0], [-100.0, 5.0]]],
-            ..RoadNetwork::default()
-        };
-        let road = Drivable::new(&network);
+        let road = road();
         // Frame 1: agents 1 (moving along +x, heading along it), 2 (a pedestrian standing off the road at
         // y = 20).
         let walker = Agent {
@@ -314,11 +318,7 @@ mod tests {
 
     #[test]
     fn where_vehicles_enter() {
-        let network = RoadNetwork {
-            lanes: vec![vec![[-100.0, -5.0], [100.0, -5.0], [100.0, 5.0], [-100.0, 5.0]]],
-            ..RoadNetwork::default()
-        };
-        let road = Drivable::new(&network);
+        let road = road();
         let walker = |id, y| Agent {
             category: AgentCategory::Pedestrian,
             ..agent(id, 0.0, y, 0.0, 0.0, 0.0)

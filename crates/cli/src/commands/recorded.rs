@@ -131,6 +131,8 @@ pub(super) fn recorded(
         .collect();
     // Contexts usually come from one dataset: open each once, not once per clip.
     let mut opened: Vec<(&str, Dataset)> = Vec::new();
+    // Per context: its dataset in `opened`, its clip there and the clip's frames.
+    let mut clips = Vec::with_capacity(contexts.len());
     for &(data, id) in contexts {
         let at = match opened.iter().position(|(d, _)| *d == data) {
             Some(i) => i,
@@ -141,14 +143,28 @@ pub(super) fn recorded(
         };
         let ds = &opened[at].1;
         let index = ds.find_clip(id)?;
-        let have = ds.clips()[index].frames;
-        let need = context_frames + frames;
-        anyhow::ensure!(
-            have >= need,
+        clips.push((at, index, ds.clips()[index].frames));
+    }
+    // Every clip that ends too soon at once, and what would fit them all: the first error is then the
+    // last.
+    let need = context_frames + frames;
+    let short: Vec<usize> = (0..clips.len()).filter(|&i| clips[i].2 < need).collect();
+    if let Some(&first) = short.first() {
+        let ((data, id), have) = (contexts[first], clips[first].2);
+        let fewest = clips.iter().map(|c| c.2).min().unwrap_or(have);
+        let fit = match fewest.checked_sub(context_frames).filter(|&n| n > 0) {
+            Some(n) => format!("--frames {n} fits every one"),
+            None => format!("the shortest holds nothing past the {context_frames} frames of context"),
+        };
+        anyhow::bail!(
             "{flag}: clip `{id}` of {data} has {have} frames, {context_frames} of context and {frames} \
-             to generate need {need}"
+             to generate need {need} ({} of the {} contexts end too soon; {fit})",
+            short.len(),
+            contexts.len()
         );
-        let clip = ds.read_window(index, 0, need, 1)?;
+    }
+    for (&(_, id), &(at, index, _)) in contexts.iter().zip(&clips) {
+        let clip = opened[at].1.read_window(index, 0, need, 1)?;
         for (r, l) in out.iter_mut().zip(labels) {
             let blocks = registry
                 .get(l)?
