@@ -88,10 +88,19 @@ impl ModalityRegistry {
 
     /// Decodes one frame row into `frame`, each modality writing its own part.
     pub fn detokenize(&self, row: &[u32], frame: &mut Frame) -> Result<DecodeReport> {
+        self.detokenize_except(row, frame, &[])
+    }
+
+    /// [`detokenize`](Self::detokenize) without the modalities of the kinds `skip`, whose parts of
+    /// `frame` stay as they were: for callers that drop those parts anyway (a VQ decoder is most of a
+    /// frame's decoding time).
+    pub fn detokenize_except(&self, row: &[u32], frame: &mut Frame, skip: &[&str]) -> Result<DecodeReport> {
         let blocks = self.layout()?.split(row)?;
         let mut report = DecodeReport::default();
         for (m, block) in self.modalities.iter().zip(blocks) {
-            report.malformed += m.detokenize(block, frame)?.malformed;
+            if !skip.contains(&m.spec().kind.as_str()) {
+                report.malformed += m.detokenize(block, frame)?.malformed;
+            }
         }
         Ok(report)
     }

@@ -44,6 +44,7 @@ pub use umgen_dist as dist;
 pub use umgen_generate as generate;
 pub use umgen_modality as modality;
 pub use umgen_modality_agent as modality_agent;
+pub use umgen_modality_image as modality_image;
 pub use umgen_modality_map as modality_map;
 pub use umgen_ops as ops;
 pub use umgen_optim as optim;

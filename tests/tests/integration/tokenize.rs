@@ -85,6 +85,18 @@ fn a_dataset_tokenizes_reads_back_and_decodes() {
         clip.frames[0].agents.len(),
         "agents decode slot by slot"
     );
+    // Without the rasters' kinds, the same frame less its map and image.
+    let mut light = umgen::scene::Frame::default();
+    registry
+        .detokenize_except(&rows[..layout.len()], &mut light, &["map", "image"])
+        .unwrap();
+    assert!(light.map.is_none() && light.image.is_none());
+    let stripped = umgen::scene::Frame {
+        map: None,
+        image: None,
+        ..frame.clone()
+    };
+    assert_eq!(light, stripped);
     // A cache made for this layout is refused by another one.
     let other = UmgenConfig::from_toml_str("[layout]\norder = [\"ego\"]")
         .unwrap()

@@ -59,12 +59,23 @@ pub fn decode(
     start: &Frame,
     interval: f64,
 ) -> anyhow::Result<(SceneClip, u64)> {
+    decode_except(registry, rows, start, interval, &[])
+}
+
+/// [`decode`] without the modalities of the kinds `skip` (their parts of each frame stay empty).
+pub fn decode_except(
+    registry: &ModalityRegistry,
+    rows: &[Vec<u32>],
+    start: &Frame,
+    interval: f64,
+    skip: &[&str],
+) -> anyhow::Result<(SceneClip, u64)> {
     let mut frames = Vec::with_capacity(rows.len());
     let mut prev = start.clone();
     let mut malformed = 0;
     for row in rows {
         let mut f = Frame::default();
-        malformed += registry.detokenize(row, &mut f)?.malformed;
+        malformed += registry.detokenize_except(row, &mut f, skip)?.malformed;
         f.time = prev.time + interval;
         f.ego = prev.ego.advance(&f.action, interval);
         prev = f.clone();
