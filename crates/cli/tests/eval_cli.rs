@@ -30,18 +30,23 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         |p: PathBuf| -> serde_json::Value { serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap() };
     let sample = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data/sumo-sample");
     let sample = sample.to_str().unwrap();
-    let run_gen = |out: &str, contexts: &[&str]| {
+    // Two frames generated into `out` under the scratch directory, with `args` (contexts, options).
+    let generate = |out: &str, args: &[&str]| -> PathBuf {
         let out = fx.dir.path().join(out);
-        let mut args = vec![
+        let mut all = vec![
             "generate",
             "--bundle",
             bf16_dir.to_str().unwrap(),
             "--frames",
             "2",
         ];
-        args.extend(contexts);
-        args.extend(["--out", out.to_str().unwrap()]);
-        ok(umgen(&args));
+        all.extend(args);
+        all.extend(["--out", out.to_str().unwrap()]);
+        ok(umgen(&all));
+        out
+    };
+    let run_gen = |out: &str, contexts: &[&str]| {
+        let out = generate(out, contexts);
         let dir = out.to_str().unwrap();
         ok(umgen(&[
             "eval",
@@ -316,18 +321,7 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     // --recorded map,image: the generated frames hold the clip's own map and image codes of those frames,
     // the codes that a context of the same clip reaching over them is tokenized to.
     let tokens = |out: &str, args: &[&str]| -> Vec<Vec<u64>> {
-        let out = fx.dir.path().join(out);
-        let mut all = vec![
-            "generate",
-            "--bundle",
-            bf16_dir.to_str().unwrap(),
-            "--frames",
-            "2",
-        ];
-        all.extend(args);
-        all.extend(["--out", out.to_str().unwrap()]);
-        ok(umgen(&all));
-        let t = json(out.join("tokens.json"));
+        let t = json(generate(out, args).join("tokens.json"));
         serde_json::from_value(t["scenes"][0].clone()).unwrap()
     };
     let given = tokens(
