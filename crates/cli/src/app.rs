@@ -93,14 +93,21 @@ impl App {
     }
 }
 
-/// The `main` of `umgen` and of the developer tools built on it: sets up logging (`verbose`) and the CUDA
-/// kernel cache, runs `command`, and turns its error into one line on stderr and a failing exit code.
+/// The `main` of `umgen` and of the developer tools built on it: sets up logging (`verbose`), the CUDA
+/// kernel cache and memory pool, runs `command`, and turns its error into one line on stderr and a failing
+/// exit code.
 pub fn run_main(verbose: u8, command: impl FnOnce() -> anyhow::Result<()>) -> ExitCode {
     crate::logging::init(verbose);
     #[cfg(feature = "cuda")]
     if let Some(dir) = crate::device::init_kernel_cache() {
         tracing::debug!("compiled CUDA kernels are kept in {}", dir.display());
     }
+    #[cfg(feature = "cuda")]
+    let command = || {
+        let layout = crate::memory_pool::init()?;
+        tracing::debug!("CUDA memory pool: {layout}");
+        command()
+    };
     match command() {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {

@@ -10,6 +10,8 @@ pub use device::*;
 pub use runtime::*;
 /// umgen: see `compute::server::last_stream`.
 pub use compute::{last_stream, launches};
+/// umgen: what `set_memory_configuration` is built from.
+pub use cubecl_runtime::memory_management::{MemoryConfiguration, MemoryPoolOptions, PoolType};
 
 #[cfg(feature = "ptx-wmma")]
 pub(crate) type WmmaCompiler = cubecl_cpp::cuda::mma::PtxWmmaCompiler;

@@ -44,9 +44,23 @@ pub struct RuntimeOptions {
 #[derive(Debug, Clone)]
 pub struct CudaRuntime;
 
+/// umgen: the memory pools of the devices started from now on (`set_memory_configuration`).
+static MEMORY_CONFIG: std::sync::Mutex<Option<MemoryConfiguration>> = std::sync::Mutex::new(None);
+
+/// umgen: lays out the memory pools of every device started after this call (cubecl's default
+/// otherwise). A device's server fixes its pools when it starts, which burn does on the device's first
+/// use, so call this before any CUDA work.
+pub fn set_memory_configuration(config: MemoryConfiguration) {
+    *MEMORY_CONFIG.lock().unwrap_or_else(|e| e.into_inner()) = Some(config);
+}
+
 impl DeviceService for CudaServer {
     fn init(device_id: cubecl_common::device::DeviceId) -> Self {
-        let options = RuntimeOptions::default();
+        // umgen: the pools `set_memory_configuration` chose, if any.
+        let memory_config = MEMORY_CONFIG.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let options = RuntimeOptions {
+            memory_config: memory_config.unwrap_or_default(),
+        };
         let device = CudaDevice::from_id(device_id);
 
         // To get the supported WMMA features, and memory properties, we have to initialize the server immediately.

@@ -407,9 +407,10 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                     .join(", ")
             ),
         };
+        let pool = crate::memory_pool::applied().map_or(String::new(), |l| format!(", pool {l}"));
         writeln!(
             out,
-            "peak memory   {:.2} GiB reserved, {:.2} GiB live after the forward pass (first and synced steps){ranks}",
+            "peak memory   {:.2} GiB reserved, {:.2} GiB live after the forward pass (first and synced steps){ranks}{pool}",
             gib(peak),
             gib(live)
         )?;

@@ -122,6 +122,17 @@ mod gpu {
                 "kernels  not kept between runs (UMGEN_KERNEL_CACHE=off, or no home directory)"
             )?,
         }
+        match crate::memory_pool::PoolLayout::from_env() {
+            Ok(layout) => writeln!(
+                out,
+                "memory   pool layout {layout} (UMGEN_MEMORY_POOL=pages:MIB sets the largest shared page, =cubecl \
+                 cubecl's own layout)"
+            )?,
+            Err(e) => {
+                problems += 1;
+                writeln!(out, "memory   {e:#}")?;
+            }
+        }
         if cfg!(feature = "autotune") {
             writeln!(
                 out,
