@@ -93,7 +93,10 @@ fn the_variable_names_what_it_refuses() {
         PoolLayout::Pages { largest: 64 * MIB }
     );
     assert_eq!(PoolLayout::Cubecl.pools(), None);
-    assert_eq!(PoolLayout::default(), PoolLayout::Cubecl);
+    assert_eq!(
+        PoolLayout::default().to_string(),
+        format!("pages:{DEFAULT_LARGEST_PAGE_MIB}")
+    );
     assert_eq!(PoolLayout::Pages { largest: GIB }.to_string(), "pages:1024");
     for (value, says) in [
         ("sliced", "expected `cubecl` or `pages:MIB`"),
