@@ -154,7 +154,8 @@ impl std::fmt::Display for PoolLayout {
 /// The layout [`init`] applied in this process, if it ran.
 static APPLIED: std::sync::OnceLock<PoolLayout> = std::sync::OnceLock::new();
 
-/// The layout of this process's CUDA devices: `None` before [`init`] (or without CUDA).
+/// The layout [`init`] gave this process's CUDA devices: `None` before it (devices then start with
+/// cubecl's own) or without CUDA.
 pub fn applied() -> Option<PoolLayout> {
     APPLIED.get().copied()
 }
@@ -162,8 +163,11 @@ pub fn applied() -> Option<PoolLayout> {
 /// Applies `UMGEN_MEMORY_POOL` to every CUDA device this process starts; call before any CUDA work.
 #[cfg(feature = "cuda")]
 pub fn init() -> anyhow::Result<PoolLayout> {
-    let layout = apply(PoolLayout::from_env()?);
     // A second call (a tool running two commands) keeps the first layout: devices already started keep it.
+    if let Some(layout) = applied() {
+        return Ok(layout);
+    }
+    let layout = apply(PoolLayout::from_env()?);
     Ok(*APPLIED.get_or_init(|| layout))
 }
 

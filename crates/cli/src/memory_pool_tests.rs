@@ -2,11 +2,10 @@ use super::*;
 
 const GIB: u64 = 1 << 30;
 
-fn pages(mib: u64) -> Vec<Pool> {
-    PoolLayout::parse(&format!("pages:{mib}"))
-        .unwrap()
+fn pages(mib: u64) -> anyhow::Result<Vec<Pool>> {
+    PoolLayout::parse(&format!("pages:{mib}"))?
         .pools()
-        .unwrap()
+        .context("a pages layout has pools")
 }
 
 /// Sizes from a byte to 1 TiB: powers of two and the points between them.
@@ -18,9 +17,9 @@ fn sizes() -> impl Iterator<Item = u64> {
 }
 
 #[test]
-fn every_tensor_finds_a_pool_and_no_sliced_page_passes_the_largest() {
+fn every_tensor_finds_a_pool_and_no_sliced_page_passes_the_largest() -> anyhow::Result<()> {
     for mib in [32, 256, 1024, 8192] {
-        let pools = pages(mib);
+        let pools = pages(mib)?;
         let largest = mib * MIB;
         for size in sizes() {
             let pool = pool_for(&pools, size).unwrap_or_else(|| panic!("pages:{mib}: no pool for {size} B"));
@@ -46,13 +45,14 @@ fn every_tensor_finds_a_pool_and_no_sliced_page_passes_the_largest() {
             }
         }
     }
+    Ok(())
 }
 
 #[test]
-fn small_tensors_share_small_pages_as_in_cubecl() {
+fn small_tensors_share_small_pages_as_in_cubecl() -> anyhow::Result<()> {
     // cubecl's geometry from a 1 GiB page: pages of 256, 64 and 16 MiB holding slices of at most a
     // half, a quarter and an eighth of them.
-    let pools = pages(1024);
+    let pools = pages(1024)?;
     assert_eq!(
         pools[..5],
         [
@@ -83,13 +83,14 @@ fn small_tensors_share_small_pages_as_in_cubecl() {
         pool_for(&pools, 3 * GIB / 2),
         Some(Pool::Exclusive { max_alloc: 2 * GIB })
     );
+    Ok(())
 }
 
 #[test]
-fn the_variable_names_what_it_refuses() {
-    assert_eq!(PoolLayout::parse("cubecl").unwrap(), PoolLayout::Cubecl);
+fn the_variable_names_what_it_refuses() -> anyhow::Result<()> {
+    assert_eq!(PoolLayout::parse("cubecl")?, PoolLayout::Cubecl);
     assert_eq!(
-        PoolLayout::parse(" pages:64 ").unwrap(),
+        PoolLayout::parse(" pages:64 ")?,
         PoolLayout::Pages { largest: 64 * MIB }
     );
     assert_eq!(PoolLayout::Cubecl.pools(), None);
@@ -105,7 +106,11 @@ fn the_variable_names_what_it_refuses() {
         ("pages:16", "power of two from 32"),
         ("pages:131072", "to 65536"),
     ] {
-        let err = PoolLayout::parse(value).unwrap_err().to_string();
+        let Err(err) = PoolLayout::parse(value) else {
+            panic!("{value} was accepted");
+        };
+        let err = err.to_string();
         assert!(err.contains(value.trim()) && err.contains(says), "{value}: {err}");
     }
+    Ok(())
 }

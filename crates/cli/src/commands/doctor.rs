@@ -122,17 +122,14 @@ mod gpu {
                 "kernels  not kept between runs (UMGEN_KERNEL_CACHE=off, or no home directory)"
             )?,
         }
-        match crate::memory_pool::PoolLayout::from_env() {
-            Ok(layout) => writeln!(
-                out,
-                "memory   pool layout {layout} (UMGEN_MEMORY_POOL=pages:MIB sets the largest shared page, =cubecl \
-                 cubecl's own layout)"
-            )?,
-            Err(e) => {
-                problems += 1;
-                writeln!(out, "memory   {e:#}")?;
-            }
-        }
+        // `run_main` applied UMGEN_MEMORY_POOL before this command (refusing a bad value); the layout in
+        // effect can differ from the variable's (cubecl's own in a build without the patched cubecl-cuda).
+        let layout = crate::memory_pool::applied().unwrap_or(crate::memory_pool::PoolLayout::Cubecl);
+        writeln!(
+            out,
+            "memory   pool layout {layout} (UMGEN_MEMORY_POOL=pages:MIB sets the largest shared page, =cubecl \
+             cubecl's own layout)"
+        )?;
         if cfg!(feature = "autotune") {
             writeln!(
                 out,
