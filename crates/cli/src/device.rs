@@ -156,6 +156,29 @@ pub fn device_thread(device: Device) -> [(u64, f64); 2] {
     }
 }
 
+/// The peak of the device memory in use (live tensors with their padding, bytes) at the allocations made
+/// since the last call, then measures again from 0 if `measure`, else stops (the vendored cubecl-cuda's
+/// `peak_in_use`; vendor/README.md). Work queued but not yet run by cubecl's device thread is not counted:
+/// sync the backend first. 0 on the CPU, when it was not measuring, or without the vendored cubecl.
+pub fn peak_in_use(device: Device, measure: bool) -> u64 {
+    match device {
+        Device::Cpu => 0,
+        #[cfg(all(feature = "cuda", feature = "patched-cubecl"))]
+        Device::Cuda(i) => {
+            use burn::cubecl::Runtime;
+            let dev = burn::backend::cuda::CudaDevice::new(i);
+            burn::cubecl::cuda::CudaRuntime::client(&dev)
+                .exclusive(move || burn::cubecl::cuda::peak_in_use(measure))
+                .unwrap_or(0)
+        }
+        #[cfg(not(all(feature = "cuda", feature = "patched-cubecl")))]
+        Device::Cuda(_) => {
+            let _ = measure;
+            0
+        }
+    }
+}
+
 /// Bytes the device's memory pool holds now (0 on the CPU or when unknown).
 pub fn memory_in_use(device: Device) -> u64 {
     memory(device).reserved

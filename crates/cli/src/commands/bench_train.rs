@@ -165,12 +165,16 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         // so that its cost is reported apart and split by phase.
         let mut first = [0.0f64; 4];
         let (mut peak, mut live) = (0u64, 0u64);
+        // The live set's peak in each phase of the last warmup step (synced after each phase), read at
+        // every allocation: too slow for a timed step.
+        let mut peaks = [0u64; 4];
         let sync = || B::sync(&dev).map_err(|e| anyhow::anyhow!("device sync: {e:?}"));
         // Timed steps first, then (with --phases) as many steps with a sync after every phase.
         let phase_steps = if a.phases { a.steps } else { 0 };
         for i in 0..a.warmup + a.steps + phase_steps {
             let split = i >= a.warmup + a.steps;
-            let synced = split || i == 0;
+            let probe = a.warmup >= 1 && i + 1 == a.warmup;
+            let synced = split || i == 0 || probe;
             let turn = hooks.before_step(i)?;
             let kernels = match by_turn_kernels.get(turn) {
                 Some((k, adamw)) if turns > 1 => {
@@ -183,6 +187,10 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                 counts[0] = crate::device::device_thread(device);
                 hooks.timed(true)?;
             }
+            if probe {
+                // The previous step ended with a sync: nothing of it is left to allocate.
+                crate::device::peak_in_use(device, true);
+            }
             let mut mark = Instant::now();
             let t0 = mark;
             let mut lap = |k: usize| -> anyhow::Result<()> {
@@ -192,10 +200,13 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                     if k == 0 {
                         live = live.max(crate::device::memory(device).in_use);
                     }
+                    if probe {
+                        peaks[k] = crate::device::peak_in_use(device, k + 1 < peaks.len());
+                    }
                     let s = mark.elapsed().as_secs_f64();
                     if i == 0 {
                         first[k] = s;
-                    } else {
+                    } else if split {
                         phases[k].push(s);
                     }
                     mark = Instant::now();
@@ -282,7 +293,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         let calls = (per_step(0), per_step(1));
         (
             median(times),
-            (peak, live, lives),
+            (peak, live, lives, peaks),
             group.backend(),
             (phases, host, calls),
             first,
@@ -393,7 +404,7 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
         flops / 1e12,
         flops / median / 1e12,
     )?;
-    let (peak, live, lives) = peak;
+    let (peak, live, lives, peaks) = peak;
     if peak > 0 {
         let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
         let ranks = match lives.len() {
@@ -414,6 +425,16 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
             gib(peak),
             gib(live)
         )?;
+        if let Some(top) = peaks.iter().copied().max().filter(|&p| p > 0) {
+            let [f, b, g, o] = peaks.map(gib);
+            writeln!(
+                out,
+                "live at peak  {:.2} GiB (forward {f:.2}, backward {b:.2}, gradients {g:.2}, optimizer {o:.2}; \
+                 step {}, read at every allocation)",
+                gib(top),
+                a.warmup
+            )?;
+        }
     } else {
         writeln!(out, "peak memory   not measured on this device")?;
     }

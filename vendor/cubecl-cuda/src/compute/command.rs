@@ -100,7 +100,13 @@ impl<'a> Command<'a> {
     /// * `Err(IoError)` - If the allocation fails.
     #[cfg_attr(feature = "tracing", tracing::instrument(level = "trace", skip(self)))]
     pub fn reserve(&mut self, size: u64) -> Result<ManagedMemoryHandle, IoError> {
-        let handle = self.streams.current().memory_management_gpu.reserve(size)?;
+        let memory = &mut self.streams.current().memory_management_gpu;
+        let handle = memory.reserve(size)?;
+        // umgen: the peak of the memory in use, while it is measured (`peak_in_use`).
+        super::server::note_in_use(|| {
+            let usage = memory.memory_usage();
+            usage.bytes_in_use + usage.bytes_padding
+        });
 
         Ok(handle)
     }

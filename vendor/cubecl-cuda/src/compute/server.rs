@@ -1175,6 +1175,34 @@ pub fn launches() -> (u64, f64) {
     (n, ns as f64 * 1e-9)
 }
 
+std::thread_local! {
+    /// umgen: whether [`peak_in_use`] is measuring, and the peak so far (bytes).
+    static PEAK_IN_USE: core::cell::Cell<(bool, u64)> = const { core::cell::Cell::new((false, 0)) };
+}
+
+/// umgen: after an allocation on the calling thread, raises the peak to the pool's memory in use
+/// (`in_use`, read only while [`peak_in_use`] measures: it walks every page of the pool).
+pub(crate) fn note_in_use(in_use: impl FnOnce() -> u64) {
+    PEAK_IN_USE.with(|p| {
+        let (on, peak) = p.get();
+        if on {
+            p.set((on, peak.max(in_use())));
+        }
+    });
+}
+
+/// umgen: the peak of the device memory in use (bytes held by live tensors, with their padding) at the
+/// allocations the calling thread (cubecl's device thread, where allocations run) made since the last
+/// call, 0 if it was not measuring; then measures from 0 again if `measure`, else stops. Memory in use
+/// only grows at an allocation, so this is the true peak of the pool's live set over that time.
+pub fn peak_in_use(measure: bool) -> u64 {
+    PEAK_IN_USE.with(|p| {
+        let (on, peak) = p.get();
+        p.set((measure, 0));
+        if on { peak } else { 0 }
+    })
+}
+
 /// umgen: the CUDA stream of the last command the calling thread resolved (null if none): on the device
 /// thread, right after a `get_resource` made for a caller's stream, the stream that caller's work is queued
 /// on, so that work from another library (cuBLAS) can be queued on it in order.
