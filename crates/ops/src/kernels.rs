@@ -44,6 +44,10 @@ pub struct Kernels {
     /// (activation checkpointing, [`crate::recompute`]): the step keeps one activation per layer instead
     /// of about twenty, for one more forward pass of those layers.
     pub recompute: bool,
+    /// The format a recomputed layer keeps its input in: `operand` (the products' format, bf16 under the
+    /// bf16 presets: half the memory of the f32 residual stream) or `f32` (the stream's own, so that the
+    /// backward pass recomputes exactly the forward pass's activations).
+    pub recompute_input: RecomputeInput,
     /// What computes the layer norms on CUDA: `fused` (one CUDA C kernel per pass) or `burn` (burn's
     /// decomposition).
     pub norm: NormKernel,
@@ -84,6 +88,7 @@ impl Kernels {
         attention_step: DEFAULT_STEP,
         attention_block_mib: BLOCK_BYTES >> 20,
         recompute: false,
+        recompute_input: RecomputeInput::Operand,
         norm: NormKernel::Fused,
         gelu: GeluKernel::Fused,
         xent: XentKernel::Fused,
@@ -160,6 +165,19 @@ pub enum AttentionKernel {
     /// speed.
     #[default]
     Flash2,
+}
+
+/// The format a recomputed layer keeps its input in (`train.kernels.recompute_input`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RecomputeInput {
+    /// The products' format (bf16 under the bf16 presets): the layer norm that opens the layer is the
+    /// recomputation's only reader of the input, and what it feeds the products is rounded to that format
+    /// anyway. The default.
+    #[default]
+    Operand,
+    /// f32, the residual stream's own format.
+    F32,
 }
 
 /// What computes the training layer norms on CUDA (`train.kernels.norm`); the CPU always runs the decomposition.
@@ -268,7 +286,8 @@ mod tests {
                 d.xent,
                 d.adamw,
                 d.stream,
-                d.launch_thread
+                d.launch_thread,
+                d.recompute_input
             ),
             (
                 MatmulKernel::default(),
@@ -278,7 +297,8 @@ mod tests {
                 XentKernel::default(),
                 AdamWChoice::default(),
                 KernelStream::default(),
-                LaunchThread::default()
+                LaunchThread::default(),
+                RecomputeInput::default()
             )
         );
     }

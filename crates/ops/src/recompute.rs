@@ -17,7 +17,7 @@ mod math;
 use crate::dispatch::same;
 use crate::format::Precision;
 use crate::format::float;
-use crate::kernels::Kernels;
+use crate::kernels::{Kernels, RecomputeInput};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -29,7 +29,7 @@ use burn::module::Param;
 use burn::nn::{LayerNorm, Linear};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{Distribution, Tensor};
+use burn::tensor::{Distribution, FloatDType, Tensor};
 use math::{LayerBackend, Lin, Mask, Masks, Norm, Setting, Weights};
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -104,7 +104,8 @@ const PARENTS: usize = 15;
 #[derive(Debug)]
 struct Recompute;
 
-/// What the operation keeps for its backward pass: the input, the parameters (handles to the tensors the
+/// What the operation keeps for its backward pass: the input (in the format
+/// `train.kernels.recompute_input` names), the parameters (handles to the tensors the
 /// model holds anyway), the settings and the dropout masks.
 #[derive(Debug, Clone)]
 struct Kept<I: LayerBackend> {
@@ -120,7 +121,9 @@ impl<I: LayerBackend> Backward<I, PARENTS> for Recompute {
     fn backward(self, ops: Ops<Self::State, PARENTS>, grads: &mut Gradients, _: &mut Checkpointer) {
         let dy = float::<I, 3>(grads.consume::<I>(&ops.node));
         let k = ops.state;
-        let (dx, dw) = math::backward(&k.weights, k.setting, &k.masks, k.x, dy);
+        // The input widened back from the format it was kept in (`train.kernels.recompute_input`).
+        let x = k.x.cast(FloatDType::F32);
+        let (dx, dw) = math::backward(&k.weights, k.setting, &k.masks, x, dy);
         let [input, params @ ..] = ops.parents;
         if let Some(node) = input {
             grads.register::<I>(node.id, dx.into_primitive().tensor());
@@ -224,14 +227,19 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         attn: draw_mask(&xi, parts.attn_dropout),
         mlp: draw_mask(&xi, parts.mlp_dropout),
     };
-    let y = math::forward(&weights, setting, &masks, xi.clone())
+    let kept = match kernels.recompute_input {
+        RecomputeInput::Operand => parts.precision.operand_dtype(),
+        RecomputeInput::F32 => FloatDType::F32,
+    };
+    let kept_x = xi.clone().cast(kept);
+    let y = math::forward(&weights, setting, &masks, xi)
         .into_primitive()
         .tensor();
     let prep = Recompute.prepare::<C>(parents).compute_bound().stateful();
     let out = match prep {
         OpsKind::Tracked(prep) => prep.finish(
             Kept {
-                x: xi,
+                x: kept_x,
                 weights,
                 setting,
                 masks,

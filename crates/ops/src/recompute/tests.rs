@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::format::Precision;
-use crate::kernels::Kernels;
+use crate::kernels::{Kernels, RecomputeInput};
 use burn::backend::Flex;
 use burn::module::{Module, ModuleMapper, ModuleVisitor};
 use burn::nn::{LayerNormConfig, LinearConfig};
@@ -227,4 +227,50 @@ fn a_layer_without_biases_is_handed_back() {
     let back = recomputed::<Flex, NoCheckpointing>(&blk.parts(), x.clone(), false, None, &Kernels::DEFAULT)
         .expect_err("the operation takes layers with biases only");
     assert_eq!(back.into_data(), x.into_data());
+}
+
+/// Under bf16 products the layer keeps its input in bf16 (`recompute_input = "operand"`): its gradients
+/// are exactly those of a layer that kept the bf16-rounded input in f32, and differ from keeping the input
+/// itself; the forward pass reads the input unrounded either way.
+#[test]
+fn a_layer_under_bf16_products_keeps_its_input_rounded_to_bf16() {
+    let dev = Default::default();
+    let blk = layer(16, 2);
+    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let rounded = x.clone().cast(FloatDType::BF16).cast(FloatDType::F32);
+    assert!(
+        rel(rounded.clone(), x.clone()) > 0.0,
+        "the input has bits bf16 drops"
+    );
+    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let keeping = |input| {
+        move |b: &TestLayer<A>, x: Tensor<A, 3>| {
+            let parts = LayerParts {
+                precision: Precision::Bf16Linear,
+                ..b.parts()
+            };
+            let kernels = Kernels {
+                recompute_input: input,
+                ..Kernels::default()
+            };
+            recomputed::<Flex, NoCheckpointing>(&parts, x, true, None, &kernels).expect("a layer with biases")
+        }
+    };
+    let (y, dx, dp) = run(&blk, &x, &r, keeping(RecomputeInput::Operand));
+    let (_, dx_rounded, dp_rounded) = run(&blk, &rounded, &r, keeping(RecomputeInput::F32));
+    let (y_f32, dx_f32, _) = run(&blk, &x, &r, keeping(RecomputeInput::F32));
+    assert_eq!(
+        y.into_data(),
+        y_f32.into_data(),
+        "the forward pass reads the input as it is"
+    );
+    assert_eq!(dx.clone().into_data(), dx_rounded.into_data());
+    for (i, (a, b)) in dp.into_iter().zip(dp_rounded).enumerate() {
+        assert_eq!(a.into_data(), b.into_data(), "parameter {i}");
+    }
+    let e = rel(dx, dx_f32);
+    assert!(
+        e > 0.0 && e < 2e-2,
+        "input gradient against the f32-kept input: {e}"
+    );
 }
