@@ -7,8 +7,8 @@ use burn::nn::{Dropout, DropoutConfig, Embedding, EmbeddingConfig, Linear, Linea
 use burn::tensor::backend::Backend;
 use burn::tensor::{Distribution, Int, Tensor, TensorData};
 use umgen_ops::Kernels;
-use umgen_ops::gelu::gelu_mlp;
 use umgen_ops::linear::linear;
+use umgen_ops::mlp::gelu_mlp;
 
 /// One segment's table: learnable rows (initialised from the modality's codebook when it has one, then
 /// projected to the embedding width).

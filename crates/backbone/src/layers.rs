@@ -6,13 +6,13 @@ use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, Linea
 use burn::tensor::activation::softmax;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, FloatDType, Tensor};
-use umgen_ops::Kernels;
 use umgen_ops::format::float_format;
-use umgen_ops::gelu::gelu_mlp;
 use umgen_ops::heads::{merge_heads, split_heads};
 use umgen_ops::linear::{linear, linear_in, linear_with};
+use umgen_ops::mlp::gelu_mlp;
 use umgen_ops::norm::layer_norm_operand;
 use umgen_ops::recompute::{LayerParts, recomputed_for};
+use umgen_ops::{KeptInputs, Kernels};
 
 /// `Linear(d → r·d), GELU, Linear(r·d → d)`, dropout on the output.
 #[derive(Module, Debug)]
@@ -356,10 +356,16 @@ impl<B: Backend> CrossBlock<B> {
         mask: Option<Tensor<B, 4, Bool>>,
         k: &Kernels,
     ) -> Tensor<B, 3> {
+        // Every layer of a stack reads the same context: its norm keeps that tensor as it is rather than a
+        // copy of it in the products' format per layer (`kept_inputs`).
+        let kc = Kernels {
+            kept_inputs: KeptInputs::F32,
+            ..*k
+        };
         let x = x.clone()
             + self.attn.forward(
                 layer_norm_operand(&self.ln_q, x, self.attn.precision, k),
-                layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision, k),
+                layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision, &kc),
                 mask,
                 false,
                 k,

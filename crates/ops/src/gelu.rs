@@ -27,7 +27,7 @@ use crate::format::float;
 use crate::format::float_format;
 pub use crate::kernels::GeluKernel;
 use crate::kernels::Kernels;
-use crate::linear::{linear, linear_with};
+use crate::linear::linear;
 use crate::matmul::Written;
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -134,21 +134,6 @@ pub fn linear_gelu<B: Backend, const D: usize>(
     op(y, bias.val()).reshape(dims)
 }
 
-/// An MLP, `out(gelu(fc(x)))`, with [`linear_gelu`]'s hidden activation: where that is bf16, the second
-/// product writes the activation's gradient in bf16 too, the format the bias + GELU kernel's backward
-/// pass reads (as PyTorch's autocast does).
-pub fn gelu_mlp<B: Backend, const D: usize>(
-    fc: &Linear<B>,
-    out: &Linear<B>,
-    x: Tensor<B, D>,
-    p: Precision,
-    k: &Kernels,
-) -> Tensor<B, D> {
-    let h = linear_gelu(fc, x, p, k);
-    let dx = float_format(h.dtype());
-    linear_with(out, h, p, dx, k)
-}
-
 /// The format of the MLP's first product where [`inner_forward`] reads it: the activation's
 /// (the products' operand format, [`Precision::operand_dtype`]) for [`GeluKernel::Fused`], f32 for burn's
 /// operations.
@@ -191,10 +176,10 @@ pub(crate) fn inner_backward<I: FusedGelu>(
 }
 
 /// The operation on `B`: the product `[rows, n]` and the bias in, `[rows, n]` out (in the product's format).
-type GeluOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>) -> Tensor<B, 2>;
+pub(crate) type GeluOp<B> = fn(Tensor<B, 2>, Tensor<B, 1>) -> Tensor<B, 2>;
 
 /// The custom operation when `B` is a training backend and `k` chooses [`GeluKernel::Fused`].
-fn tracked<B: Backend>(k: &Kernels) -> Option<GeluOp<B>> {
+pub(crate) fn tracked<B: Backend>(k: &Kernels) -> Option<GeluOp<B>> {
     if k.gelu == GeluKernel::Burn {
         return None;
     }

@@ -44,13 +44,19 @@ pub struct Kernels {
     /// (activation checkpointing, [`crate::recompute`]): the step keeps one activation per layer instead
     /// of about twenty, for one more forward pass of those layers.
     pub recompute: bool,
-    /// The format a recomputed layer keeps its input in: `operand` (the products' format, bf16 under the
-    /// bf16 presets: half the memory of the f32 residual stream) or `f32` (the stream's own, so that the
-    /// backward pass recomputes exactly the forward pass's activations).
-    pub recompute_input: RecomputeInput,
+    /// The format the backward pass keeps the residual stream in where a layer norm is its only reader
+    /// there (the inputs of recomputed layers, and of layer norms whose output feeds products): `operand`
+    /// (the products' format, bf16 under the bf16 presets: half the memory of the f32 stream) or `f32`
+    /// (the stream's own, so that the backward pass reads exactly what the forward pass did).
+    pub kept_inputs: KeptInputs,
     /// What computes the layer norms on CUDA: `fused` (one CUDA C kernel per pass) or `burn` (burn's
     /// decomposition).
     pub norm: NormKernel,
+    /// Recompute each MLP's activation `gelu(x · W + b)` in the second product's backward pass from the
+    /// first product's output, which the bias + GELU keeps anyway, instead of keeping it (with `gelu =
+    /// "fused"` and the named products; [`crate::mlp`]): one `[rows, 4d]` tensor less per MLP for
+    /// one more bias + GELU pass. The gradients are the same bit for bit.
+    pub recompute_gelu: bool,
     /// What computes the MLPs' bias + GELU: `fused` (one operation per pass writing the activation in the
     /// next product's format; on CUDA one CUDA C kernel) or `burn` (burn's bias add and GELU in f32).
     pub gelu: GeluKernel,
@@ -88,8 +94,9 @@ impl Kernels {
         attention_step: DEFAULT_STEP,
         attention_block_mib: BLOCK_BYTES >> 20,
         recompute: false,
-        recompute_input: RecomputeInput::Operand,
+        kept_inputs: KeptInputs::Operand,
         norm: NormKernel::Fused,
+        recompute_gelu: true,
         gelu: GeluKernel::Fused,
         xent: XentKernel::Fused,
         adamw: AdamWChoice::Fused,
@@ -167,13 +174,12 @@ pub enum AttentionKernel {
     Flash2,
 }
 
-/// The format a recomputed layer keeps its input in (`train.kernels.recompute_input`).
+/// The format the backward pass keeps layer norms' inputs in (`train.kernels.kept_inputs`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
-pub enum RecomputeInput {
-    /// The products' format (bf16 under the bf16 presets): the layer norm that opens the layer is the
-    /// recomputation's only reader of the input, and what it feeds the products is rounded to that format
-    /// anyway. The default.
+pub enum KeptInputs {
+    /// The products' format (bf16 under the bf16 presets): a layer norm's backward pass is the only reader
+    /// of its input, and what the norm feeds the products is rounded to that format anyway. The default.
     #[default]
     Operand,
     /// f32, the residual stream's own format.
@@ -287,7 +293,7 @@ mod tests {
                 d.adamw,
                 d.stream,
                 d.launch_thread,
-                d.recompute_input
+                d.kept_inputs
             ),
             (
                 MatmulKernel::default(),
@@ -298,7 +304,7 @@ mod tests {
                 AdamWChoice::default(),
                 KernelStream::default(),
                 LaunchThread::default(),
-                RecomputeInput::default()
+                KeptInputs::default()
             )
         );
     }

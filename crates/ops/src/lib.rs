@@ -35,6 +35,7 @@ pub mod kernels;
 pub mod linear;
 pub mod lookup;
 pub mod matmul;
+pub mod mlp;
 pub mod norm;
 pub mod ready;
 pub mod recompute;
@@ -47,7 +48,7 @@ pub mod tiled;
 pub mod xent;
 
 pub use format::Precision;
-pub use kernels::Kernels;
+pub use kernels::{KeptInputs, Kernels};
 #[cfg(feature = "cuda")]
 pub use side::external;
 #[cfg(feature = "cuda")]

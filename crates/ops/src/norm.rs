@@ -8,7 +8,8 @@
 //! are [`FusedNorm`]'s: on CUDA, one kernel each (umgen-cuda's `kernels/train/norm.cu`, one warp a row); on the CPU, the same
 //! decomposition ([`forward_decomposed`], [`backward_decomposed`]), which CUDA also runs for
 //! rows over 1,024 wide (counted by [`fallbacks`]). The operation keeps only its
-//! input (which the residual stream keeps anyway), the rows' means and `1/σ`. Where the output feeds
+//! input, the rows' means and `1/σ`; where its output feeds products, the input in their format
+//! (`train.kernels.kept_inputs`). Where the output feeds
 //! products only, [`layer_norm_operand`] writes it in the products' format (bf16 under mixed precision),
 //! so that no f32 copy is written and cast.
 
@@ -17,8 +18,8 @@ mod cuda;
 
 use crate::dispatch::{Fallbacks, same};
 use crate::format::float;
-use crate::kernels::Kernels;
 pub use crate::kernels::NormKernel;
+use crate::kernels::{KeptInputs, Kernels};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -199,7 +200,9 @@ impl<I: FusedNorm> Backward<I, 3> for Norm {
         // A product that read a bf16 output may hand back a bf16 gradient (burn's matmul does).
         let dy = float::<I, 2>(grads.consume::<I>(&ops.node)).cast(FloatDType::F32);
         let ([x, mean, rstd, gamma], k) = ops.state;
-        let (dx, dgamma, dbeta) = I::norm_backward(dy, float(x), float(mean), float(rstd), float(gamma), &k);
+        // The input widened back from the format it was kept in (`train.kernels.kept_inputs`).
+        let x = float::<I, 2>(x).cast(FloatDType::F32);
+        let (dx, dgamma, dbeta) = I::norm_backward(dy, x, float(mean), float(rstd), float(gamma), &k);
         let [x_node, gamma_node, beta_node] = ops.parents;
         // Only for parents that ask (a frozen norm, an untracked input).
         if let Some(node) = x_node {
@@ -242,8 +245,17 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
         .stateful()
     {
         OpsKind::Tracked(prep) => {
+            // An output that feeds products only (`layer_norm_operand`) is rounded to their format: the
+            // input kept in that format too costs the backward pass no more than that rounding.
+            let x = match k.kept_inputs {
+                KeptInputs::Operand if out != FloatDType::F32 => float::<I, 2>(x.primitive.clone())
+                    .cast(out)
+                    .into_primitive()
+                    .tensor(),
+                _ => x.primitive.clone(),
+            };
             let kept = [
-                x.primitive.clone(),
+                x,
                 mean.into_primitive().tensor(),
                 rstd.into_primitive().tensor(),
                 gamma.primitive.clone(),

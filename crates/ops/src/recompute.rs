@@ -17,7 +17,7 @@ mod math;
 use crate::dispatch::same;
 use crate::format::Precision;
 use crate::format::float;
-use crate::kernels::{Kernels, RecomputeInput};
+use crate::kernels::{KeptInputs, Kernels};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -105,7 +105,7 @@ const PARENTS: usize = 15;
 struct Recompute;
 
 /// What the operation keeps for its backward pass: the input (in the format
-/// `train.kernels.recompute_input` names), the parameters (handles to the tensors the
+/// `train.kernels.kept_inputs` names), the parameters (handles to the tensors the
 /// model holds anyway), the settings and the dropout masks.
 #[derive(Debug, Clone)]
 struct Kept<I: LayerBackend> {
@@ -121,7 +121,7 @@ impl<I: LayerBackend> Backward<I, PARENTS> for Recompute {
     fn backward(self, ops: Ops<Self::State, PARENTS>, grads: &mut Gradients, _: &mut Checkpointer) {
         let dy = float::<I, 3>(grads.consume::<I>(&ops.node));
         let k = ops.state;
-        // The input widened back from the format it was kept in (`train.kernels.recompute_input`).
+        // The input widened back from the format it was kept in (`train.kernels.kept_inputs`).
         let x = k.x.cast(FloatDType::F32);
         let (dx, dw) = math::backward(&k.weights, k.setting, &k.masks, x, dy);
         let [input, params @ ..] = ops.parents;
@@ -227,9 +227,9 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         attn: draw_mask(&xi, parts.attn_dropout),
         mlp: draw_mask(&xi, parts.mlp_dropout),
     };
-    let kept = match kernels.recompute_input {
-        RecomputeInput::Operand => parts.precision.operand_dtype(),
-        RecomputeInput::F32 => FloatDType::F32,
+    let kept = match kernels.kept_inputs {
+        KeptInputs::Operand => parts.precision.operand_dtype(),
+        KeptInputs::F32 => FloatDType::F32,
     };
     let kept_x = xi.clone().cast(kept);
     let y = math::forward(&weights, setting, &masks, xi)

@@ -1,5 +1,6 @@
 use super::*;
 use crate::kernels::Kernels;
+use crate::mlp::gelu_mlp;
 use burn::backend::Flex;
 use burn::nn::LinearConfig;
 use burn::tensor::Distribution;
@@ -196,4 +197,39 @@ fn forward_matches_burns_and_the_bias_gradient_sums_the_columns() {
     let bias = Tensor::<Flex, 1>::random([10], Distribution::Normal(0.0, 1.0), &dev);
     let (d, db) = backward_decomposed(dh, y, bias);
     assert!(rel(&values(db), &values(d.sum_dim(0).reshape([10]))) < 1e-5);
+}
+
+/// With `recompute_gelu` the second product's backward pass recomputes the activation (counted) and gives
+/// the same output and gradients, bit for bit, as keeping it, in f32 and bf16; without it nothing is
+/// recomputed.
+#[test]
+fn a_recomputed_activation_gives_the_kept_ones_gradients_exactly() {
+    let dev = Default::default();
+    let fc = LinearConfig::new(8, 32).init::<A>(&dev);
+    let out = LinearConfig::new(32, 8).init::<A>(&dev);
+    let x = Tensor::<A, 3>::random([2, 5, 8], Distribution::Normal(0.0, 1.0), &dev).require_grad();
+    let r = Tensor::<A, 3>::random([2, 5, 8], Distribution::Normal(0.0, 1.0), &dev);
+    let run = |p, recompute_gelu| {
+        let k = Kernels { recompute_gelu, ..K };
+        let before = crate::mlp::recomputed();
+        let y = gelu_mlp(&fc, &out, x.clone(), p, &k);
+        let g = (y.clone() * r.clone()).sum().backward();
+        let bias = |l: &Linear<A>| l.bias.as_ref().expect("bias").val().grad(&g).expect("db");
+        let values = [
+            values(y.inner()),
+            values(x.grad(&g).expect("dx")),
+            values(fc.weight.val().grad(&g).expect("fc dw")),
+            values(out.weight.val().grad(&g).expect("out dw")),
+            values(bias(&fc)),
+            values(bias(&out)),
+        ];
+        (values, crate::mlp::recomputed() - before)
+    };
+    for p in [Precision::F32, Precision::Bf16] {
+        let (kept, none) = run(p, false);
+        let (recomputed, once) = run(p, true);
+        assert_eq!(none, 0, "{p:?}: recomputed with recompute_gelu off");
+        assert!(once >= 1, "{p:?}: the recomputing path was not taken");
+        assert_eq!(recomputed, kept, "{p:?}");
+    }
 }

@@ -1,5 +1,5 @@
 use super::*;
-use crate::kernels::Kernels;
+use crate::kernels::{KeptInputs, Kernels};
 use burn::backend::{Autodiff, Flex};
 use burn::module::{Module, Param};
 use burn::nn::LayerNormConfig;
@@ -125,4 +125,42 @@ fn decomposed_passes_match_a_hand_computed_row() {
         1e-6,
         "dbeta",
     );
+}
+
+/// A norm whose output feeds bf16 products keeps its input in bf16 (`kept_inputs = "operand"`): its
+/// input gradient is the backward pass's on the bf16-rounded input with the forward pass's statistics
+/// (from the unrounded input), and differs from keeping the input in f32.
+#[test]
+fn a_norm_feeding_bf16_products_keeps_its_input_in_bf16() {
+    let dev = Default::default();
+    let ln = norm(24, true, &dev);
+    let x = Tensor::<Flex, 2>::random([64, 24], Distribution::Normal(0.0, 2.0), &dev);
+    let dy = Tensor::<Flex, 2>::random([64, 24], Distribution::Normal(0.0, 1.0), &dev);
+    let input_grad = |kept| {
+        let x = Tensor::<A, 2>::from_inner(x.clone()).require_grad();
+        let k = Kernels {
+            kept_inputs: kept,
+            ..Kernels::default()
+        };
+        let y = layer_norm_operand(&ln, x.clone(), crate::format::Precision::Bf16Linear, &k);
+        let grads = (y.cast(FloatDType::F32) * Tensor::from_inner(dy.clone()))
+            .sum()
+            .backward();
+        x.grad(&grads).expect("dx")
+    };
+    let gamma = ln.gamma.val().inner();
+    let beta = ln.beta.as_ref().expect("a shift").val().inner();
+    let (_, mean, rstd) = forward_decomposed(x.clone(), gamma.clone(), beta, LN_EPS, FloatDType::F32);
+    let bf16 = |t: Tensor<Flex, 2>| t.cast(FloatDType::BF16).cast(FloatDType::F32);
+    // The output's gradient reaches the norm through its bf16 output: rounded to bf16 either way.
+    let (rounded, dy) = (bf16(x.clone()), bf16(dy.clone()));
+    let (expected, _, _) =
+        backward_decomposed(dy.clone(), rounded, mean.clone(), rstd.clone(), gamma.clone());
+    let kept_bf16 = input_grad(KeptInputs::Operand);
+    assert_eq!(kept_bf16.clone().into_data(), expected.into_data());
+    let kept_f32 = input_grad(KeptInputs::F32);
+    let (exact, _, _) = backward_decomposed(dy, x, mean, rstd, gamma);
+    assert_eq!(kept_f32.into_data(), exact.clone().into_data());
+    let err = (kept_bf16 - exact.clone()).abs().max().into_scalar() / exact.abs().max().into_scalar();
+    assert!(err > 0.0 && err < 2e-2, "bf16-kept input against f32: {err}");
 }

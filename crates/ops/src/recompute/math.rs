@@ -354,7 +354,7 @@ pub fn backward<I: LayerBackend>(
     let (p, k) = (s.precision, &s.kernels);
     let (_, f) = run(w, s, masks, x);
     let d_out = drop(&masks.mlp, dy.clone());
-    // The activation's gradient in its own format (bf16 with the bf16 presets), as `gelu::gelu_mlp` has it.
+    // The activation's gradient in its own format (bf16 with the bf16 presets), as `mlp::gelu_mlp` has it.
     let act_format = float_format(f.act.dtype());
     let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p, act_format, k);
     let d_act = d_act.reshape(f.hidden.dims());

@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::format::Precision;
-use crate::kernels::{Kernels, RecomputeInput};
+use crate::kernels::{KeptInputs, Kernels};
 use burn::backend::Flex;
 use burn::module::{Module, ModuleMapper, ModuleVisitor};
 use burn::nn::{LayerNormConfig, LinearConfig};
@@ -229,7 +229,7 @@ fn a_layer_without_biases_is_handed_back() {
     assert_eq!(back.into_data(), x.into_data());
 }
 
-/// Under bf16 products the layer keeps its input in bf16 (`recompute_input = "operand"`): its gradients
+/// Under bf16 products the layer keeps its input in bf16 (`kept_inputs = "operand"`): its gradients
 /// are exactly those of a layer that kept the bf16-rounded input in f32, and differ from keeping the input
 /// itself; the forward pass reads the input unrounded either way.
 #[test]
@@ -250,15 +250,15 @@ fn a_layer_under_bf16_products_keeps_its_input_rounded_to_bf16() {
                 ..b.parts()
             };
             let kernels = Kernels {
-                recompute_input: input,
+                kept_inputs: input,
                 ..Kernels::default()
             };
             recomputed::<Flex, NoCheckpointing>(&parts, x, true, None, &kernels).expect("a layer with biases")
         }
     };
-    let (y, dx, dp) = run(&blk, &x, &r, keeping(RecomputeInput::Operand));
-    let (_, dx_rounded, dp_rounded) = run(&blk, &rounded, &r, keeping(RecomputeInput::F32));
-    let (y_f32, dx_f32, _) = run(&blk, &x, &r, keeping(RecomputeInput::F32));
+    let (y, dx, dp) = run(&blk, &x, &r, keeping(KeptInputs::Operand));
+    let (_, dx_rounded, dp_rounded) = run(&blk, &rounded, &r, keeping(KeptInputs::F32));
+    let (y_f32, dx_f32, _) = run(&blk, &x, &r, keeping(KeptInputs::F32));
     assert_eq!(
         y.into_data(),
         y_f32.into_data(),
