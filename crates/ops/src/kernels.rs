@@ -6,6 +6,7 @@
 //! within the kernels' rounding. The CPU ignores every choice but `recompute` and `attention_block_mib`
 //! (its tiled attention's blocks); CUDA reads them all.
 
+use burn::tensor::FloatDType;
 use serde::{Deserialize, Serialize};
 
 mod side_sync;
@@ -184,6 +185,17 @@ pub enum KeptInputs {
     Operand,
     /// f32, the residual stream's own format.
     F32,
+}
+
+impl KeptInputs {
+    /// The format an input is kept in whose layer norm feeds products in `operand` (f32 where the norm's
+    /// output is f32: nothing rounds it).
+    pub fn format(self, operand: FloatDType) -> FloatDType {
+        match self {
+            Self::Operand => operand,
+            Self::F32 => FloatDType::F32,
+        }
+    }
 }
 
 /// What computes the training layer norms on CUDA (`train.kernels.norm`); the CPU always runs the decomposition.

@@ -18,8 +18,8 @@ mod cuda;
 
 use crate::dispatch::{Fallbacks, same};
 use crate::format::float;
+use crate::kernels::Kernels;
 pub use crate::kernels::NormKernel;
-use crate::kernels::{KeptInputs, Kernels};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -247,13 +247,10 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
         OpsKind::Tracked(prep) => {
             // An output that feeds products only (`layer_norm_operand`) is rounded to their format: the
             // input kept in that format too costs the backward pass no more than that rounding.
-            let x = match k.kept_inputs {
-                KeptInputs::Operand if out != FloatDType::F32 => float::<I, 2>(x.primitive.clone())
-                    .cast(out)
-                    .into_primitive()
-                    .tensor(),
-                _ => x.primitive.clone(),
-            };
+            let x = float::<I, 2>(x.primitive.clone())
+                .cast(k.kept_inputs.format(out))
+                .into_primitive()
+                .tensor();
             let kept = [
                 x,
                 mean.into_primitive().tensor(),

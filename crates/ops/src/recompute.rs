@@ -17,7 +17,7 @@ mod math;
 use crate::dispatch::same;
 use crate::format::Precision;
 use crate::format::float;
-use crate::kernels::{KeptInputs, Kernels};
+use crate::kernels::Kernels;
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -227,11 +227,9 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         attn: draw_mask(&xi, parts.attn_dropout),
         mlp: draw_mask(&xi, parts.mlp_dropout),
     };
-    let kept = match kernels.kept_inputs {
-        KeptInputs::Operand => parts.precision.operand_dtype(),
-        KeptInputs::F32 => FloatDType::F32,
-    };
-    let kept_x = xi.clone().cast(kept);
+    let kept_x = xi
+        .clone()
+        .cast(kernels.kept_inputs.format(parts.precision.operand_dtype()));
     let y = math::forward(&weights, setting, &masks, xi)
         .into_primitive()
         .tensor();
