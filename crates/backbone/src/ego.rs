@@ -2,7 +2,8 @@
 //! current environment (CA_env), and predict the next frame's action tokens.
 
 use crate::config::Precision;
-use crate::layers::{CrossBlock, LayerSizes};
+use crate::cross::CrossBlock;
+use crate::layers::LayerSizes;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::backend::Backend;

@@ -1,4 +1,5 @@
-//! Transformer layers: pre-norm self- and cross-attention blocks with GELU MLPs.
+//! Transformer layers: pre-norm self-attention blocks with GELU MLPs, and the attention and MLP that
+//! `crate::cross`'s cross-attention blocks share.
 
 use crate::config::Precision;
 use burn::module::Module;
@@ -6,21 +7,21 @@ use burn::nn::{Dropout, DropoutConfig, LayerNorm, LayerNormConfig, Linear, Linea
 use burn::tensor::activation::softmax;
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, FloatDType, Tensor};
+use umgen_ops::Kernels;
 use umgen_ops::format::float_format;
 use umgen_ops::heads::{merge_heads, split_heads};
 use umgen_ops::linear::{linear, linear_in, linear_with};
 use umgen_ops::mlp::gelu_mlp;
 use umgen_ops::norm::layer_norm_operand;
 use umgen_ops::recompute::{LayerParts, recomputed_for};
-use umgen_ops::{KeptInputs, Kernels};
 
 /// `Linear(d → r·d), GELU, Linear(r·d → d)`, dropout on the output.
 #[derive(Module, Debug)]
 pub struct Mlp<B: Backend> {
-    fc: Linear<B>,
-    proj: Linear<B>,
-    drop: Dropout,
-    precision: Precision,
+    pub(crate) fc: Linear<B>,
+    pub(crate) proj: Linear<B>,
+    pub(crate) drop: Dropout,
+    pub(crate) precision: Precision,
 }
 
 impl<B: Backend> Mlp<B> {
@@ -45,12 +46,12 @@ impl<B: Backend> Mlp<B> {
 /// attention operation (fused on backends that have a kernel).
 #[derive(Module, Debug)]
 pub struct MultiHead<B: Backend> {
-    q: Linear<B>,
-    kv: Linear<B>,
-    proj: Linear<B>,
-    drop: Dropout,
-    heads: usize,
-    precision: Precision,
+    pub(crate) q: Linear<B>,
+    pub(crate) kv: Linear<B>,
+    pub(crate) proj: Linear<B>,
+    pub(crate) drop: Dropout,
+    pub(crate) heads: usize,
+    pub(crate) precision: Precision,
 }
 
 impl<B: Backend> MultiHead<B> {
@@ -185,11 +186,11 @@ pub struct LayerSizes {
 }
 
 impl LayerSizes {
-    fn attention<B: Backend>(&self, dev: &B::Device) -> MultiHead<B> {
+    pub(crate) fn attention<B: Backend>(&self, dev: &B::Device) -> MultiHead<B> {
         MultiHead::new(self.d, self.heads, self.dropout, self.precision, dev)
     }
 
-    fn mlp<B: Backend>(&self, dev: &B::Device) -> Mlp<B> {
+    pub(crate) fn mlp<B: Backend>(&self, dev: &B::Device) -> Mlp<B> {
         Mlp::new(self.d, self.ratio * self.d, self.dropout, self.precision, dev)
     }
 }
@@ -291,6 +292,7 @@ impl<B: Backend> SelfBlock<B> {
     pub(crate) fn parts(&self) -> LayerParts<'_, B> {
         LayerParts {
             ln1: &self.ln1,
+            ln_ctx: None,
             q: &self.attn.q,
             kv: &self.attn.kv,
             proj: &self.attn.proj,
@@ -302,78 +304,6 @@ impl<B: Backend> SelfBlock<B> {
             attn_dropout: self.attn.drop.prob,
             mlp_dropout: self.mlp.drop.prob,
         }
-    }
-}
-
-/// A pre-norm cross-attention layer: `x + attn(ln(x), ln(ctx))`, then `x + mlp(ln(x))`.
-#[derive(Module, Debug)]
-pub struct CrossBlock<B: Backend> {
-    ln_q: LayerNorm<B>,
-    ln_ctx: LayerNorm<B>,
-    attn: MultiHead<B>,
-    ln2: LayerNorm<B>,
-    mlp: Mlp<B>,
-}
-
-impl<B: Backend> CrossBlock<B> {
-    /// A layer of `sizes`.
-    pub fn new(sizes: LayerSizes, dev: &B::Device) -> Self {
-        Self {
-            ln_q: LayerNormConfig::new(sizes.d).init(dev),
-            ln_ctx: LayerNormConfig::new(sizes.d).init(dev),
-            attn: sizes.attention(dev),
-            ln2: LayerNormConfig::new(sizes.d).init(dev),
-            mlp: sizes.mlp(dev),
-        }
-    }
-
-    /// The queries' and the context's norms, the attention, the MLP's norm and its two layers.
-    #[allow(clippy::type_complexity)]
-    pub(crate) fn parts(
-        &self,
-    ) -> (
-        &LayerNorm<B>,
-        &LayerNorm<B>,
-        &MultiHead<B>,
-        &LayerNorm<B>,
-        (&Linear<B>, &Linear<B>),
-    ) {
-        (
-            &self.ln_q,
-            &self.ln_ctx,
-            &self.attn,
-            &self.ln2,
-            (&self.mlp.fc, &self.mlp.proj),
-        )
-    }
-
-    /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]` with an optional mask (true = hidden), with the
-    /// kernels `k`.
-    pub fn forward(
-        &self,
-        x: Tensor<B, 3>,
-        ctx: Tensor<B, 3>,
-        mask: Option<Tensor<B, 4, Bool>>,
-        k: &Kernels,
-    ) -> Tensor<B, 3> {
-        // Every layer of a stack reads the same context: its norm keeps that tensor as it is rather than a
-        // copy of it in the products' format per layer (`kept_inputs`).
-        let kc = Kernels {
-            kept_inputs: KeptInputs::F32,
-            ..*k
-        };
-        let x = x.clone()
-            + self.attn.forward(
-                layer_norm_operand(&self.ln_q, x, self.attn.precision, k),
-                layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision, &kc),
-                mask,
-                false,
-                k,
-            );
-        x.clone()
-            + self
-                .mlp
-                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision, k), k)
     }
 }
 

@@ -26,6 +26,7 @@
 
 mod ama;
 mod config;
+mod cross;
 mod decode;
 mod ego;
 mod embed;
@@ -43,12 +44,13 @@ pub mod track;
 
 pub use ama::align;
 pub use config::{BackboneConfig, Precision};
+pub use cross::CrossBlock;
 pub use decode::{OarCache, Slot, VanillaAr};
 pub use ego::{EgoModule, EgoSizes};
 pub use embed::FrameEmbedding;
 pub use error::{BackboneError, Result};
 pub use heads::Heads;
-pub use layers::{CrossBlock, LayerSizes, Mlp, MultiHead, SelfBlock};
+pub use layers::{LayerSizes, Mlp, MultiHead, SelfBlock};
 pub use logits::ForcedLogits;
 pub use losses::{LossOptions, Losses};
 pub use model::{Backbone, TarBlock};

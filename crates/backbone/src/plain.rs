@@ -2,10 +2,11 @@
 //! burn (`umgen_generate::engine`) builds its buffers from. Linear weights keep burn's layout, `[d_in][d_out]`
 //! row-major, with `y = x·W + b`.
 
+use crate::cross::CrossBlock;
 use crate::ego::EgoModule;
 use crate::embed::FrameEmbedding;
 use crate::heads::Heads;
-use crate::layers::{CrossBlock, MultiHead, SelfBlock};
+use crate::layers::{MultiHead, SelfBlock};
 use crate::model::Backbone;
 use crate::spec::BackboneSpec;
 use burn::module::Param;

@@ -1,11 +1,14 @@
-//! Activation checkpointing of the self-attention layers (`train.kernels.recompute`).
+//! Activation checkpointing of the attention layers (`train.kernels.recompute`).
 //!
 //! A training step keeps about twenty activations of a layer's width for each layer's backward pass;
 //! `paper` (72 self-attention layers over 20 × 2,199 tokens of width 768) needs more than an H200 holds.
 //! With recomputation on, each self-attention layer ([`LayerParts`]: the OAR layers and both halves of every TAR block) runs as one
 //! custom autodiff operation that keeps only its input (and dropout masks, when dropout is on) and
 //! recomputes its activations in the backward pass, as PyTorch's `torch.utils.checkpoint` does for the
-//! reference. The cost is one more forward pass of those layers per step.
+//! reference. The cost is one more forward pass of those layers per step. The cross-attention layers
+//! without a mask (the ego module's layers over each frame's environment, [`recomputed_cross_for`]) do
+//! the same: each keeps its queries' input and the context every layer of the stack shares, where it
+//! would keep its own normalised context and keys and values (about 0.2 GiB a layer of `paper`).
 //!
 //! The backward pass is written out by hand in `recompute/math.rs` (burn 0.21 cannot run autodiff inside
 //! a backward step; `math.rs` says why). Like the other training operations it exists for the autodiff backends this
@@ -19,6 +22,7 @@ use crate::format::Precision;
 use crate::format::float;
 use crate::kernels::Kernels;
 use burn::backend::Autodiff;
+use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
     BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
@@ -45,8 +49,10 @@ pub fn layers_recomputed() -> u64 {
 /// borrowed from the model that holds them.
 #[derive(Debug)]
 pub struct LayerParts<'a, B: Backend> {
-    /// The attention's layer norm.
+    /// The attention's layer norm (of the queries, in a cross-attention layer).
     pub ln1: &'a LayerNorm<B>,
+    /// A cross-attention layer's norm of its context; `None` in a self-attention layer.
+    pub ln_ctx: Option<&'a LayerNorm<B>>,
     /// The queries' projection.
     pub q: &'a Linear<B>,
     /// The keys' and values' projection, keys' columns first.
@@ -79,6 +85,13 @@ pub type LayerFn<B> =
 /// The layer's output, or its input handed back (`Err`) for a layer the operation does not take.
 pub type Taken<B> = Result<Tensor<B, 3>, Tensor<B, 3>>;
 
+/// A cross-attention layer without a mask applied to queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]`
+/// (`parts.ln_ctx` set); `Err((x, ctx))` hands both back for a layer the operation does not take.
+pub type CrossFn<B> = fn(&LayerParts<'_, B>, Tensor<B, 3>, Tensor<B, 3>, &Kernels) -> CrossTaken<B>;
+
+/// The layer's output, or its inputs handed back (`Err`).
+pub type CrossTaken<B> = Result<Tensor<B, 3>, (Tensor<B, 3>, Tensor<B, 3>)>;
+
 /// The recomputing layer as a function on `B`, when `k` turns recomputation on and `B` is an autodiff
 /// backend this workspace trains on; `None` otherwise.
 pub fn recomputed_for<B: Backend>(k: &Kernels) -> Option<LayerFn<B>> {
@@ -91,6 +104,18 @@ pub fn recomputed_for<B: Backend>(k: &Kernels) -> Option<LayerFn<B>> {
     found
 }
 
+/// The recomputing cross-attention layer as a function on `B`, under the same conditions as
+/// [`recomputed_for`].
+pub fn recomputed_cross_for<B: Backend>(k: &Kernels) -> Option<CrossFn<B>> {
+    if !k.recompute {
+        return None;
+    }
+    let found = on_cross::<B, burn::backend::Flex>();
+    #[cfg(feature = "cuda")]
+    let found = found.or_else(on_cross::<B, burn::backend::Cuda>);
+    found
+}
+
 /// [`recomputed`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
 fn on<B: Backend, I: LayerBackend>() -> Option<LayerFn<B>> {
     let plain: LayerFn<Autodiff<I, NoCheckpointing>> = recomputed::<I, NoCheckpointing>;
@@ -98,8 +123,19 @@ fn on<B: Backend, I: LayerBackend>() -> Option<LayerFn<B>> {
     same(plain).or_else(|| same(balanced))
 }
 
+/// [`recomputed_cross`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+fn on_cross<B: Backend, I: LayerBackend>() -> Option<CrossFn<B>> {
+    let plain: CrossFn<Autodiff<I, NoCheckpointing>> = recomputed_cross::<I, NoCheckpointing>;
+    let balanced: CrossFn<Autodiff<I, BalancedCheckpointing>> = recomputed_cross::<I, BalancedCheckpointing>;
+    same(plain).or_else(|| same(balanced))
+}
+
 /// Parents of the operation: the input, then the parameters in [`Weights`]' order.
 const PARENTS: usize = 15;
+
+/// Parents of the cross-attention operation: the queries' input, the context, then the parameters in
+/// [`Weights`]' order (the context's norm among them).
+const CROSS_PARENTS: usize = 18;
 
 #[derive(Debug)]
 struct Recompute;
@@ -115,24 +151,70 @@ struct Kept<I: LayerBackend> {
     masks: Masks<I>,
 }
 
+impl<I: LayerBackend> Kept<I> {
+    /// The gradients of the input (and the context `ctx`, if any) and of the parameters, each with the
+    /// id of the parent it belongs to, from the output's gradient `dy`.
+    fn gradients(
+        self,
+        ctx: Option<Tensor<I, 3>>,
+        dy: Tensor<I, 3>,
+    ) -> (Tensor<I, 3>, Option<Tensor<I, 3>>, math::WeightGrads<I>) {
+        // The input widened back from the format it was kept in (`train.kernels.kept_inputs`).
+        let x = self.x.cast(FloatDType::F32);
+        math::backward(&self.weights, self.setting, &self.masks, (x, ctx), dy)
+    }
+}
+
+/// Registers each gradient for its parent, skipping parents that need none.
+fn register<I: LayerBackend>(
+    grads: &mut Gradients,
+    parents: impl IntoIterator<Item = Option<NodeId>>,
+    values: impl IntoIterator<Item = FloatTensor<I>>,
+) {
+    for (node, g) in parents.into_iter().zip(values) {
+        if let Some(id) = node {
+            grads.register::<I>(id, g);
+        }
+    }
+}
+
 impl<I: LayerBackend> Backward<I, PARENTS> for Recompute {
     type State = Kept<I>;
 
     fn backward(self, ops: Ops<Self::State, PARENTS>, grads: &mut Gradients, _: &mut Checkpointer) {
         let dy = float::<I, 3>(grads.consume::<I>(&ops.node));
-        let k = ops.state;
-        // The input widened back from the format it was kept in (`train.kernels.kept_inputs`).
-        let x = k.x.cast(FloatDType::F32);
-        let (dx, dw) = math::backward(&k.weights, k.setting, &k.masks, x, dy);
-        let [input, params @ ..] = ops.parents;
-        if let Some(node) = input {
-            grads.register::<I>(node.id, dx.into_primitive().tensor());
-        }
-        for (node, g) in params.into_iter().zip(dw) {
-            if let Some(node) = node {
-                grads.register::<I>(node.id, g.tensor());
-            }
-        }
+        let (dx, _, dw) = ops.state.gradients(None, dy);
+        let values = std::iter::once(dx.into_primitive().tensor()).chain(dw.into_iter().map(|g| g.tensor()));
+        register::<I>(
+            grads,
+            ops.parents.iter().map(|n| n.as_ref().map(|n| n.id)),
+            values,
+        );
+    }
+}
+
+#[derive(Debug)]
+struct RecomputeCross;
+
+impl<I: LayerBackend> Backward<I, CROSS_PARENTS> for RecomputeCross {
+    /// What [`Recompute`] keeps, and the context as the caller holds it (one tensor for every layer of
+    /// a stack, so not cast).
+    type State = (Kept<I>, Tensor<I, 3>);
+
+    fn backward(self, ops: Ops<Self::State, CROSS_PARENTS>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let dy = float::<I, 3>(grads.consume::<I>(&ops.node));
+        let (kept, ctx) = ops.state;
+        let (dx, dctx, dw) = kept.gradients(Some(ctx), dy);
+        let values = [Some(dx), dctx]
+            .into_iter()
+            .flatten()
+            .map(|t| t.into_primitive().tensor())
+            .chain(dw.into_iter().map(|g| g.tensor()));
+        register::<I>(
+            grads,
+            ops.parents.iter().map(|n| n.as_ref().map(|n| n.id)),
+            values,
+        );
     }
 }
 
@@ -175,16 +257,28 @@ fn weights<I: LayerBackend, C: CheckpointStrategy>(
     parts: &LayerParts<'_, Autodiff<I, C>>,
 ) -> Option<(Weights<I>, Tracked<I, C>)> {
     let (ln1, a) = norm(parts.ln1)?;
+    let (ln_ctx, ctx) = match parts.ln_ctx {
+        Some(n) => {
+            let (n, t) = norm(n)?;
+            (Some(n), Some(t))
+        }
+        None => (None, None),
+    };
     let (q, b) = lin(parts.q)?;
     let (kv, c) = lin(parts.kv)?;
     let (proj, d) = lin(parts.proj)?;
     let (ln2, e) = norm(parts.ln2)?;
     let (fc, f) = lin(parts.fc)?;
     let (out, g) = lin(parts.out)?;
-    let tracked = [a, b, c, d, e, f, g].into_iter().flatten().collect();
+    let tracked = [Some(a), ctx, Some(b), Some(c), Some(d), Some(e), Some(f), Some(g)]
+        .into_iter()
+        .flatten()
+        .flatten()
+        .collect();
     Some((
         Weights {
             ln1,
+            ln_ctx,
             q,
             kv,
             proj,
@@ -197,7 +291,7 @@ fn weights<I: LayerBackend, C: CheckpointStrategy>(
 }
 
 /// The layer on `Autodiff<I, C>` as one operation that keeps only its input; `Err(x)` for a layer without
-/// biases (every layer the backbone builds has them).
+/// biases (every layer the backbone builds has them) or with a context's norm.
 fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
     parts: &LayerParts<'_, Autodiff<I, C>>,
     x: Tensor<Autodiff<I, C>, 3>,
@@ -205,7 +299,7 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
     over_time: Option<(usize, usize)>,
     kernels: &Kernels,
 ) -> Taken<Autodiff<I, C>> {
-    let Some((weights, tracked)) = weights(parts) else {
+    let Some((weights, tracked)) = weights(parts).filter(|_| parts.ln_ctx.is_none()) else {
         return Err(x);
     };
     let x = x.into_primitive().tensor();
@@ -213,6 +307,64 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         0 => x.node.clone(),
         i => tracked[i - 1].node.clone(),
     });
+    let (kept, y) = start(
+        parts,
+        weights,
+        float(x.primitive),
+        None,
+        (causal, over_time),
+        kernels,
+    );
+    let out = match Recompute.prepare::<C>(parents).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => prep.finish(kept, y),
+        OpsKind::UnTracked(prep) => prep.finish(y),
+    };
+    Ok(float(out))
+}
+
+/// The cross-attention layer on `Autodiff<I, C>` as one operation that keeps only its queries' input and
+/// the context; `Err((x, ctx))` for a layer without biases or without a context's norm.
+fn recomputed_cross<I: LayerBackend, C: CheckpointStrategy>(
+    parts: &LayerParts<'_, Autodiff<I, C>>,
+    x: Tensor<Autodiff<I, C>, 3>,
+    ctx: Tensor<Autodiff<I, C>, 3>,
+    kernels: &Kernels,
+) -> CrossTaken<Autodiff<I, C>> {
+    let Some((weights, tracked)) = weights(parts).filter(|_| parts.ln_ctx.is_some()) else {
+        return Err((x, ctx));
+    };
+    let (x, ctx) = (x.into_primitive().tensor(), ctx.into_primitive().tensor());
+    let parents = std::array::from_fn(|i| match i {
+        0 => x.node.clone(),
+        1 => ctx.node.clone(),
+        i => tracked[i - 2].node.clone(),
+    });
+    let ci = float::<I, 3>(ctx.primitive);
+    let (kept, y) = start(
+        parts,
+        weights,
+        float(x.primitive),
+        Some(ci.clone()),
+        (false, None),
+        kernels,
+    );
+    let out = match RecomputeCross.prepare::<C>(parents).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => prep.finish((kept, ci), y),
+        OpsKind::UnTracked(prep) => prep.finish(y),
+    };
+    Ok(float(out))
+}
+
+/// Both operations' forward pass on the inner backend, for input `x` (and a cross-attention layer's
+/// context `ctx`) with (`causal`, `over_time`): what the backward pass keeps, and the output.
+fn start<I: LayerBackend, C: CheckpointStrategy>(
+    parts: &LayerParts<'_, Autodiff<I, C>>,
+    weights: Weights<I>,
+    x: Tensor<I, 3>,
+    ctx: Option<Tensor<I, 3>>,
+    (causal, over_time): (bool, Option<(usize, usize)>),
+    kernels: &Kernels,
+) -> (Kept<I>, FloatTensor<I>) {
     let setting = Setting {
         heads: parts.heads,
         causal,
@@ -222,31 +374,23 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         kernels: *kernels,
     };
     RUN.fetch_add(1, Ordering::Relaxed);
-    let xi = float::<I, 3>(x.primitive);
     let masks = Masks {
-        attn: draw_mask(&xi, parts.attn_dropout),
-        mlp: draw_mask(&xi, parts.mlp_dropout),
+        attn: draw_mask(&x, parts.attn_dropout),
+        mlp: draw_mask(&x, parts.mlp_dropout),
     };
-    let kept_x = xi
+    let kept_x = x
         .clone()
         .cast(kernels.kept_inputs.format(parts.precision.operand_dtype()));
-    let y = math::forward(&weights, setting, &masks, xi)
+    let y = math::forward(&weights, setting, &masks, x, ctx)
         .into_primitive()
         .tensor();
-    let prep = Recompute.prepare::<C>(parents).compute_bound().stateful();
-    let out = match prep {
-        OpsKind::Tracked(prep) => prep.finish(
-            Kept {
-                x: kept_x,
-                weights,
-                setting,
-                masks,
-            },
-            y,
-        ),
-        OpsKind::UnTracked(prep) => prep.finish(y),
+    let kept = Kept {
+        x: kept_x,
+        weights,
+        setting,
+        masks,
     };
-    Ok(float(out))
+    (kept, y)
 }
 
 /// A dropout keep-mask for an output shaped like `x`, drawn as burn's `Dropout` draws it on an autodiff

@@ -85,7 +85,7 @@ pub(super) fn write(
         "recompute     {}",
         if tc.kernels.recompute {
             format!(
-                "on: {} self-attention layer passes kept only their input",
+                "on: {} layer passes (self-attention, and cross-attention without a mask) kept only their inputs",
                 umgen::ops::recompute::layers_recomputed()
             )
         } else {

@@ -1,47 +1,35 @@
-//! A self-attention layer's forward and backward passes written out on a backend without autodiff.
+//! A pre-norm attention layer's forward and backward passes written out on a backend without autodiff: a
+//! self-attention layer, or a cross-attention layer whose keys and values come from a context of its own
+//! (`x + attn(ln1(x), ln_ctx(ctx))`, then the MLP).
 //!
-//! [`super`] keeps only a layer's input for the backward pass and recomputes the rest there. burn 0.21
+//! [`super`] keeps only a layer's inputs for the backward pass and recomputes the rest there. burn 0.21
 //! cannot run that recomputation under autodiff: a backward pass started inside another one deadlocks on
 //! the graph client's locks (`GraphMutexClient::backward` locks every graph when it cleans up, the outer
 //! one included). So the layer's gradients are derived here by hand, with the same kernels as the
 //! autodiff path (the named matmul, the fused or tiled attention, the MLP's bias + GELU) and the same casts for
 //! [`Precision::Bf16`], so that both paths give the same numbers to rounding.
 
-use crate::flash::{FusedAttention, merge_kv};
+mod pieces;
+
+use crate::flash::merge_kv;
 use crate::format::Precision;
 use crate::format::{float_format, operand};
-use crate::gelu::{FusedGelu, inner_backward, inner_forward, inner_product_dtype};
+use crate::gelu::{inner_backward, inner_forward, inner_product_dtype};
 use crate::heads::{merge_heads, split_heads};
 use crate::kernels::Kernels;
-use crate::matmul::{NamedMatmul, product, product_in};
-use crate::norm::FusedNorm;
-use crate::temporal::TemporalAttention;
 use crate::tiled::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
-use burn::tensor::{Bool, FloatDType, Tensor, TensorPrimitive};
+use burn::tensor::{FloatDType, Tensor, TensorPrimitive};
+pub use pieces::{LayerBackend, Lin, Mask, Norm};
+use pieces::{Stats, drop, linear, linear_grad, linear_in, norm, norm_grad, product_grad, unbiased};
 
-/// What both passes need from the inner backend: the attention (over positions and over time), matmul,
-/// layer-norm and bias + GELU kernels.
-pub trait LayerBackend: FusedAttention + TemporalAttention + NamedMatmul + FusedNorm + FusedGelu {}
-impl<B: FusedAttention + TemporalAttention + NamedMatmul + FusedNorm + FusedGelu> LayerBackend for B {}
-
-/// A layer norm's scale and shift.
-#[derive(Debug, Clone)]
-pub struct Norm<I: LayerBackend> {
-    pub gamma: Tensor<I, 1>,
-    pub beta: Tensor<I, 1>,
-}
-
-/// A linear layer's weight `[in, out]` and bias `[out]`.
-#[derive(Debug, Clone)]
-pub struct Lin<I: LayerBackend> {
-    pub w: Tensor<I, 2>,
-    pub b: Tensor<I, 1>,
-}
-
-/// The parameters of `SelfBlock`, in the order of the operation's parents and of [`WeightGrads`].
+/// The parameters of `SelfBlock` or `CrossBlock`, in the order of the operation's parents and of
+/// [`WeightGrads`].
 #[derive(Debug, Clone)]
 pub struct Weights<I: LayerBackend> {
+    /// The norm of the queries (and, in a self-attention layer, of the keys and values).
     pub ln1: Norm<I>,
+    /// A cross-attention layer's norm of its context; `None` in a self-attention layer.
+    pub ln_ctx: Option<Norm<I>>,
     pub q: Lin<I>,
     pub kv: Lin<I>,
     pub proj: Lin<I>,
@@ -51,7 +39,7 @@ pub struct Weights<I: LayerBackend> {
 }
 
 /// One gradient per parameter, in the same order as the parameters.
-pub type WeightGrads<I> = [TensorPrimitive<I>; 14];
+pub type WeightGrads<I> = Vec<TensorPrimitive<I>>;
 
 /// Shape-independent settings of the layer.
 #[derive(Debug, Clone, Copy)]
@@ -69,9 +57,6 @@ pub struct Setting {
     pub kernels: Kernels,
 }
 
-/// A dropout keep-mask (true = kept) and the scale of kept values, `1 / (1 − p)`.
-pub type Mask<I> = Option<(Tensor<I, 3, Bool>, f64)>;
-
 /// Dropout masks of the attention and MLP outputs.
 #[derive(Debug, Clone)]
 pub struct Masks<I: LayerBackend> {
@@ -79,19 +64,13 @@ pub struct Masks<I: LayerBackend> {
     pub mlp: Mask<I>,
 }
 
-/// `x` through dropout with `mask`.
-fn drop<I: LayerBackend>(mask: &Mask<I>, x: Tensor<I, 3>) -> Tensor<I, 3> {
-    match mask {
-        Some((m, scale)) => x * m.clone().float().mul_scalar(*scale),
-        None => x,
-    }
-}
-
 /// What the backward pass reads of the forward pass.
 struct Saved<I: LayerBackend> {
     x: Tensor<I, 3>,
     stats1: Stats<I>,
     n1: Tensor<I, 3>,
+    /// A cross-attention layer's context, its norm's statistics and the normalised context.
+    ctx: Option<(Tensor<I, 3>, Stats<I>, Tensor<I, 3>)>,
     attn: Attn<I>,
     merged: Tensor<I, 3>,
     x1: Tensor<I, 3>,
@@ -110,116 +89,6 @@ enum Attn<I: LayerBackend> {
     /// Each position over its own frames: queries `[b, t, n, d]`, keys and values `[b, t, n, 2d]`, the
     /// output and the log-sum-exp.
     OverTime([Tensor<I, 4>; 4]),
-}
-
-/// A layer norm's row means and `1/√(var + ε)`, `[rows]`.
-type Stats<I> = (Tensor<I, 1>, Tensor<I, 1>);
-
-/// `(x − mean) / √(var + ε) · γ + β` over the last axis ([`FusedNorm`]'s kernels) in the products' format
-/// under `p` (it feeds products only), with the rows' statistics.
-fn norm<I: LayerBackend>(
-    x: Tensor<I, 3>,
-    n: &Norm<I>,
-    eps: f64,
-    p: Precision,
-    k: &Kernels,
-) -> (Tensor<I, 3>, Stats<I>) {
-    let [b, l, d] = x.dims();
-    let out = p.operand_dtype();
-    let (y, mean, rstd) = I::norm_forward(
-        x.reshape([b * l, d]),
-        n.gamma.clone(),
-        n.beta.clone(),
-        eps,
-        out,
-        k,
-    );
-    (y.reshape([b, l, d]), (mean, rstd))
-}
-
-/// Gradients of a layer norm's input, scale and shift from its output's gradient `dy`.
-fn norm_grad<I: LayerBackend>(
-    x: Tensor<I, 3>,
-    (mean, rstd): Stats<I>,
-    n: &Norm<I>,
-    dy: Tensor<I, 3>,
-    k: &Kernels,
-) -> (Tensor<I, 3>, Tensor<I, 1>, Tensor<I, 1>) {
-    let [b, l, d] = x.dims();
-    let flat = |t: Tensor<I, 3>| t.reshape([b * l, d]);
-    let (dx, dgamma, dbeta) = I::norm_backward(flat(dy), flat(x), mean, rstd, n.gamma.clone(), k);
-    (dx.reshape([b, l, d]), dgamma, dbeta)
-}
-
-/// `x · w` `[b · l, n]` with the product in `p`'s format (as `precision::linear` on the named kernel),
-/// written in `out`.
-fn unbiased<I: LayerBackend>(
-    x: Tensor<I, 3>,
-    l: &Lin<I>,
-    p: Precision,
-    out: FloatDType,
-    k: &Kernels,
-) -> Tensor<I, 2> {
-    let [b, len, inner] = x.dims();
-    product_in(
-        operand(x.reshape([b * len, inner]), p),
-        operand(l.w.clone(), p),
-        out,
-        k,
-    )
-}
-
-/// `x · w + b` with the product in `p`'s format.
-fn linear<I: LayerBackend>(x: Tensor<I, 3>, l: &Lin<I>, p: Precision, k: &Kernels) -> Tensor<I, 3> {
-    linear_in(x, l, p, FloatDType::F32, k)
-}
-
-/// [`linear`] written in `format` (as `precision::linear_in`): the product, then the bias added in it.
-fn linear_in<I: LayerBackend>(
-    x: Tensor<I, 3>,
-    l: &Lin<I>,
-    p: Precision,
-    format: FloatDType,
-    k: &Kernels,
-) -> Tensor<I, 3> {
-    let [b, len, _] = x.dims();
-    let n = l.w.dims()[1];
-    unbiased(x, l, p, format, k).reshape([b, len, n]) + l.b.clone().cast(format).unsqueeze::<3>()
-}
-
-/// Gradients of a linear layer's input (in `dx`), weight and bias (as `matmul.rs`'s operation computes
-/// them).
-fn linear_grad<I: LayerBackend>(
-    x: Tensor<I, 3>,
-    l: &Lin<I>,
-    dy: Tensor<I, 3>,
-    p: Precision,
-    dx: FloatDType,
-    k: &Kernels,
-) -> (Tensor<I, 3>, Tensor<I, 2>, Tensor<I, 1>) {
-    let [b, len, _] = x.dims();
-    let n = dy.dims()[2];
-    // The bias's sum and the products' bf16 operand in one pass (as `rows::add_for`), where a cast and
-    // then the sum read `dy` twice.
-    let (dy2, db) = crate::rows::sum_cast(dy.reshape([b * len, n]), p.operand_dtype());
-    let (dx, dw) = product_grad(x, l, dy2, p, dx, k);
-    (dx, dw, db)
-}
-
-/// Gradients of a product's input (in `dx`) and weight from its output's gradient `dy` `[b · l, n]`.
-fn product_grad<I: LayerBackend>(
-    x: Tensor<I, 3>,
-    l: &Lin<I>,
-    dy: Tensor<I, 2>,
-    p: Precision,
-    dx: FloatDType,
-    k: &Kernels,
-) -> (Tensor<I, 3>, Tensor<I, 2>) {
-    let [b, len, inner] = x.dims();
-    let dy = operand(dy, p);
-    let dx = product_in(dy.clone(), operand(l.w.clone(), p).transpose(), dx, k).reshape([b, len, inner]);
-    let dw = product(operand(x.reshape([b * len, inner]), p).transpose(), dy, k);
-    (dx, dw)
 }
 
 /// Attention of `q` over `k`, `v` (already in the products' format): the output and each query's
@@ -270,14 +139,16 @@ fn attend_grad<I: LayerBackend>(
     }
 }
 
-/// The layer for input `x` `[b, l, d]` up to its last product: the residual stream after the attention
-/// half, and what the backward pass reads (the MLP's activation among it). The backward pass needs nothing
-/// of the output product, so only [`forward`] runs it.
+/// The layer for input `x` `[b, l, d]` (and a cross-attention layer's context `ctx` `[b, lk, d]`) up to its
+/// last product: the residual stream after the attention half, and what the backward pass reads (the
+/// MLP's activation among it). The backward pass needs nothing of the output product, so only [`forward`]
+/// runs it.
 fn run<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
     masks: &Masks<I>,
     x: Tensor<I, 3>,
+    ctx: Option<Tensor<I, 3>>,
 ) -> (Tensor<I, 3>, Saved<I>) {
     let (p, k) = (s.precision, &s.kernels);
     // The normalised inputs and the merged attention output feed products only: in their format once here
@@ -290,8 +161,22 @@ fn run<I: LayerBackend>(
         None => p.attention().operand_dtype(),
         Some(_) => FloatDType::F32,
     };
+    let ctx = match (ctx, &w.ln_ctx) {
+        (Some(c), Some(ln)) => {
+            let (nc, stats) = norm(c.clone(), ln, s.eps, p, k);
+            Some((c, stats, nc))
+        }
+        _ => None,
+    };
     let q = linear_in(n1.clone(), &w.q, p, qkv_format, k);
-    let kv = linear_in(n1.clone(), &w.kv, p, qkv_format, k);
+    let kv_in = ctx.as_ref().map_or_else(|| n1.clone(), |(_, _, nc)| nc.clone());
+    let kv = match &ctx {
+        // As `MultiHead::forward` has them: in f32 with the bias, then rounded once to the attention's
+        // format (written in it by the product and rounded again after the bias, a stack's context
+        // gradient came out twice as far from f32's as the autodiff path's).
+        Some(_) => operand(linear_in(kv_in, &w.kv, p, FloatDType::F32, k), p.attention()),
+        None => linear_in(kv_in, &w.kv, p, qkv_format, k),
+    };
     let [b, len, d] = q.dims();
     let (attn, merged) = match s.over_time {
         None => {
@@ -320,6 +205,7 @@ fn run<I: LayerBackend>(
         x,
         stats1,
         n1,
+        ctx,
         attn,
         merged,
         x1: x1.clone(),
@@ -331,28 +217,30 @@ fn run<I: LayerBackend>(
     (x1, saved)
 }
 
-/// The layer's output for input `x` `[b, l, d]`.
+/// The layer's output for input `x` `[b, l, d]` (over the context `ctx` in a cross-attention layer).
 pub fn forward<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
     masks: &Masks<I>,
     x: Tensor<I, 3>,
+    ctx: Option<Tensor<I, 3>>,
 ) -> Tensor<I, 3> {
-    let (x1, f) = run(w, s, masks, x);
+    let (x1, f) = run(w, s, masks, x, ctx);
     x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision, &s.kernels))
 }
 
-/// The gradients of the input and of every parameter from the output's gradient `dy`, recomputing the
-/// forward pass from `x` with the forward pass's dropout masks.
+/// The gradients of the input, of a cross-attention layer's context and of every parameter from the
+/// output's gradient `dy`, recomputing the forward pass from `x` (and `ctx`) with the forward pass's
+/// dropout masks.
 pub fn backward<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
     masks: &Masks<I>,
-    x: Tensor<I, 3>,
+    (x, ctx): (Tensor<I, 3>, Option<Tensor<I, 3>>),
     dy: Tensor<I, 3>,
-) -> (Tensor<I, 3>, WeightGrads<I>) {
+) -> (Tensor<I, 3>, Option<Tensor<I, 3>>, WeightGrads<I>) {
     let (p, k) = (s.precision, &s.kernels);
-    let (_, f) = run(w, s, masks, x);
+    let (_, f) = run(w, s, masks, x, ctx);
     let d_out = drop(&masks.mlp, dy.clone());
     // The activation's gradient in its own format (bf16 with the bf16 presets), as `mlp::gelu_mlp` has it.
     let act_format = float_format(f.act.dtype());
@@ -384,26 +272,40 @@ pub fn backward<I: LayerBackend>(
         }
     };
     let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p, FloatDType::F32, k);
-    let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p, FloatDType::F32, k);
-    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1_q + dn1_kv, k);
-    let dx = dx1 + dx_norm;
     let one = |t: Tensor<I, 1>| t.into_primitive();
     let two = |t: Tensor<I, 2>| t.into_primitive();
-    let grads = [
-        one(d_ln1_g),
-        one(d_ln1_b),
-        two(d_q_w),
-        one(d_q_b),
-        two(d_kv_w),
-        one(d_kv_b),
-        two(d_proj_w),
-        one(d_proj_b),
-        one(d_ln2_g),
-        one(d_ln2_b),
-        two(d_fc_w),
-        one(d_fc_b),
-        two(d_out_w),
-        one(d_out_b),
-    ];
-    (dx, grads)
+    // The keys' and values' input: the normalised context of a cross-attention layer, else the queries'.
+    let (d_kv_w, d_kv_b, dn1, dctx) = match (f.ctx, &w.ln_ctx) {
+        (Some((c, stats, nc)), Some(ln)) => {
+            let (dnc, d_kv_w, d_kv_b) = linear_grad(nc, &w.kv, dkv, p, FloatDType::F32, k);
+            let (dctx, dg, db) = norm_grad(c, stats, ln, dnc, k);
+            (d_kv_w, d_kv_b, dn1_q, Some((dctx, [one(dg), one(db)])))
+        }
+        _ => {
+            let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p, FloatDType::F32, k);
+            (d_kv_w, d_kv_b, dn1_q + dn1_kv, None)
+        }
+    };
+    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1, k);
+    let dx = dx1 + dx_norm;
+    let (dctx, d_ln_ctx) = dctx.unzip();
+    let grads = [one(d_ln1_g), one(d_ln1_b)]
+        .into_iter()
+        .chain(d_ln_ctx.into_iter().flatten())
+        .chain([
+            two(d_q_w),
+            one(d_q_b),
+            two(d_kv_w),
+            one(d_kv_b),
+            two(d_proj_w),
+            one(d_proj_b),
+            one(d_ln2_g),
+            one(d_ln2_b),
+            two(d_fc_w),
+            one(d_fc_b),
+            two(d_out_w),
+            one(d_out_b),
+        ])
+        .collect();
+    (dx, dctx, grads)
 }

@@ -29,6 +29,7 @@ impl<B: Backend> TestLayer<B> {
     fn parts(&self) -> LayerParts<'_, B> {
         LayerParts {
             ln1: &self.ln1,
+            ln_ctx: None,
             q: &self.q,
             kv: &self.kv,
             proj: &self.proj,
@@ -192,8 +193,9 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
         over_time: None,
         kernels: Kernels::default(),
     };
-    let y1 = math::forward(&weights, setting, &masks, x.clone());
-    let (dx1, dp1) = math::backward(&weights, setting, &masks, x, r);
+    let y1 = math::forward(&weights, setting, &masks, x.clone(), None);
+    let (dx1, dctx, dp1) = math::backward(&weights, setting, &masks, (x, None), r);
+    assert!(dctx.is_none(), "a self-attention layer has no context");
     assert!(rel(y1, y0) < 1e-4);
     assert!(rel(dx1, dx0) < 1e-4);
     // Weights' order is the parameters' visiting order (ln1, attn q/kv/proj, ln2, mlp fc/proj).
