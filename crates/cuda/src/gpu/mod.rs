@@ -9,6 +9,7 @@
 
 mod compile;
 mod cubin;
+pub mod driver_pool;
 mod exec;
 mod launch;
 mod params;
