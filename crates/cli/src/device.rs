@@ -179,18 +179,6 @@ pub fn peak_in_use(device: Device, measure: bool) -> u64 {
     }
 }
 
-/// The CUDA driver's memory pool under cubecl's on `device`, in bytes: the most it has held from the
-/// device, and the most of that it handed out at once (`None` on the CPU or when unknown).
-pub fn driver_pool(device: Device) -> Option<(u64, u64)> {
-    match device {
-        Device::Cpu => None,
-        #[cfg(feature = "cuda")]
-        Device::Cuda(i) => umgen_cuda::gpu::driver_pool::read(i).map(|p| (p.reserved_high, p.used_high)),
-        #[cfg(not(feature = "cuda"))]
-        Device::Cuda(_) => None,
-    }
-}
-
 /// Bytes the device's memory pool holds now (0 on the CPU or when unknown).
 pub fn memory_in_use(device: Device) -> u64 {
     memory(device).reserved

@@ -6,19 +6,6 @@
 //! its live tensors. `pages:MIB` (the default, `pages:1024`) keeps cubecl's geometry below a largest sliced
 //! page of MIB and gives each larger tensor a page of its own, in buckets of doubling size; `cubecl` keeps
 //! cubecl's layout.
-//!
-//! Both keep every page they ever took: a page left free by one tensor waits for the next tensor of its
-//! bucket, so the pool holds 1.2–1.4× the step's live set (docs/decisions/014-memory-pool-layout.md).
-//! `driver:MIB` lets only tensors of up to MIB share pages, gives every larger one a page of its own within
-//! 9 % of its size, and before each reservation of more than MIB hands every free page back to the CUDA
-//! driver's stream-ordered pool (`cuMemFreeAsync`), which keeps that memory (its release threshold raised)
-//! and carves the next page of any size from it: what the device holds is then the driver pool's
-//! (`umgen_cuda::gpu::driver_pool`, printed by `umgen bench train`).
-//!
-//! A sliced pool of cubecl also takes any tensor within 20 % of its page size, alone in a page. Under
-//! cubecl's geometry, pages are powers of two, and so are a training step's tensors times a batch
-//! size: `small`'s `[70,368, 384]` bf16 activations (51.5 MiB) each take a 64 MiB page, its `[70,368,
-//! 1,536]` ones (206 MiB) a 256 MiB page, two f32 activations (2 × 103 MiB) another, each about 20 % empty.
 
 use anyhow::{Context, bail};
 
@@ -48,22 +35,7 @@ pub enum PoolLayout {
         /// The largest sliced page, in bytes.
         largest: u64,
     },
-    /// Tensors of up to `shared` bytes share pages of at most 8 × `shared` bytes (at least eight to a
-    /// page); each larger one gets a page of its own, within 9 % of its size; and before each reservation
-    /// of more than `shared` bytes the pool hands its free pages back to the driver's stream-ordered pool,
-    /// which serves the next page of any size from them.
-    Driver {
-        /// The largest tensor that shares a page, in bytes.
-        shared: u64,
-    },
 }
-
-/// Each bucket of tensors with a page of their own ends this factor above the last (2^(1/8)), so that a
-/// page left by one tensor serves the next of about its size.
-const BUCKET_STEP: f64 = 1.090_507_732_665_257_7;
-
-/// Exclusive buckets end on multiples of this (cubecl requires a multiple of the pool's alignment).
-const BUCKET_ROUNDING: u64 = 64 << 10;
 
 /// One pool of a layout; an allocation goes to the first pool that accepts it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -106,26 +78,18 @@ impl PoolLayout {
         }
     }
 
-    /// Parses `cubecl`, `pages:MIB` (MIB a power of two from 32 to 65536) or `driver:MIB` (a power of two
-    /// from 1 to 64).
+    /// Parses `cubecl` or `pages:MIB` (MIB a power of two from 32 to 65536).
     pub fn parse(value: &str) -> anyhow::Result<Self> {
         let value = value.trim();
         if value == "cubecl" {
             return Ok(Self::Cubecl);
         }
-        if let Some(mib) = value.strip_prefix("driver:") {
-            let mib = whole_mib(value, mib)?;
-            if !(1..=64).contains(&mib) || !mib.is_power_of_two() {
-                bail!("`{value}`: the largest shared tensor must be a power of two from 1 to 64 MiB");
-            }
-            return Ok(Self::Driver { shared: mib * MIB });
-        }
         let Some(mib) = value.strip_prefix("pages:") else {
-            bail!(
-                "`{value}`: expected `cubecl`, `pages:MIB` or `driver:MIB` (e.g. pages:{DEFAULT_LARGEST_PAGE_MIB})"
-            );
+            bail!("`{value}`: expected `cubecl` or `pages:MIB` (e.g. pages:{DEFAULT_LARGEST_PAGE_MIB})");
         };
-        let mib = whole_mib(value, mib)?;
+        let mib: u64 = mib
+            .parse()
+            .map_err(|_| anyhow::anyhow!("`{value}`: `{mib}` is not a whole number of MiB"))?;
         if !(32..=65536).contains(&mib) || !mib.is_power_of_two() {
             bail!("`{value}`: the largest page must be a power of two from 32 to 65536 MiB");
         }
@@ -134,10 +98,8 @@ impl PoolLayout {
 
     /// The pools in the order cubecl tries them; `None` for cubecl's own layout.
     pub fn pools(self) -> Option<Vec<Pool>> {
-        let largest = match self {
-            Self::Cubecl => return None,
-            Self::Pages { largest } => largest,
-            Self::Driver { shared } => return Some(fitted(shared)),
+        let Self::Pages { largest } = self else {
+            return None;
         };
         // cubecl's first pool: zero-byte tensors, which cannot take a slice.
         let mut pools = vec![Pool::Exclusive { max_alloc: 0 }];
@@ -167,38 +129,6 @@ impl PoolLayout {
     }
 }
 
-/// `value`'s MiB count `mib`, or an error naming both.
-fn whole_mib(value: &str, mib: &str) -> anyhow::Result<u64> {
-    mib.parse()
-        .map_err(|_| anyhow::anyhow!("`{value}`: `{mib}` is not a whole number of MiB"))
-}
-
-/// [`PoolLayout::Driver`]'s pools: sliced pages of 8 × `shared` bytes, a quarter of that, … down to 1 MiB,
-/// each holding tensors of at most an eighth of it; then a bucket of pages of their own for every
-/// [`BUCKET_STEP`] of size up to 1 TiB.
-fn fitted(shared: u64) -> Vec<Pool> {
-    let mut pools = vec![Pool::Exclusive { max_alloc: 0 }];
-    let mut sliced = Vec::new();
-    let mut page = 8 * shared;
-    while page >= MIB {
-        sliced.push(Pool::Sliced {
-            page,
-            max_slice: page / 8,
-        });
-        page /= 4;
-    }
-    pools.extend(sliced.into_iter().rev());
-    let mut max_alloc = shared;
-    while max_alloc < LARGEST_TENSOR {
-        let next = (max_alloc as f64 * BUCKET_STEP) as u64;
-        max_alloc = next
-            .next_multiple_of(BUCKET_ROUNDING)
-            .max(max_alloc + BUCKET_ROUNDING);
-        pools.push(Pool::Exclusive { max_alloc });
-    }
-    pools
-}
-
 /// The first of `pools` that takes a tensor of `size` bytes, as cubecl chooses it.
 pub fn pool_for(pools: &[Pool], size: u64) -> Option<Pool> {
     pools.iter().copied().find(|p| p.accepts(size))
@@ -217,7 +147,6 @@ impl std::fmt::Display for PoolLayout {
         match self {
             Self::Cubecl => write!(f, "cubecl"),
             Self::Pages { largest } => write!(f, "pages:{}", largest / MIB),
-            Self::Driver { shared } => write!(f, "driver:{}", shared / MIB),
         }
     }
 }
@@ -238,12 +167,12 @@ pub fn init() -> anyhow::Result<PoolLayout> {
     if let Some(layout) = applied() {
         return Ok(layout);
     }
-    let layout = apply(PoolLayout::from_env()?)?;
+    let layout = apply(PoolLayout::from_env()?);
     Ok(*APPLIED.get_or_init(|| layout))
 }
 
 #[cfg(feature = "cuda")]
-fn apply(layout: PoolLayout) -> anyhow::Result<PoolLayout> {
+fn apply(layout: PoolLayout) -> PoolLayout {
     #[cfg(feature = "patched-cubecl")]
     if let Some(pools) = layout.pools() {
         use burn::cubecl::cuda::{MemoryConfiguration, MemoryPoolOptions, PoolType};
@@ -265,20 +194,14 @@ fn apply(layout: PoolLayout) -> anyhow::Result<PoolLayout> {
             })
             .collect();
         burn::cubecl::cuda::set_memory_configuration(MemoryConfiguration::Custom { pool_options });
-        if let PoolLayout::Driver { shared } = layout {
-            // The driver's pool must keep what cubecl's hands back, or every synchronisation returns it
-            // to the device and the next page maps memory anew.
-            umgen_cuda::gpu::driver_pool::keep_freed_memory().with_context(|| format!("{VAR}={layout}"))?;
-            burn::cubecl::cuda::set_release_above(shared);
-        }
     }
     // `set_memory_configuration` is an API of the vendored cubecl-cuda (vendor/README.md).
     #[cfg(not(feature = "patched-cubecl"))]
     if layout != PoolLayout::Cubecl {
         tracing::warn!("{VAR}={layout} needs the patched cubecl-cuda; cubecl's own layout is used");
-        return Ok(PoolLayout::Cubecl);
+        return PoolLayout::Cubecl;
     }
-    Ok(layout)
+    layout
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ mod runtime;
 pub use device::*;
 pub use runtime::*;
 /// umgen: see `compute::server::last_stream`.
-pub use compute::{last_stream, launches, peak_in_use, set_release_above};
+pub use compute::{last_stream, launches, peak_in_use};
 /// umgen: what `set_memory_configuration` is built from.
 pub use cubecl_runtime::memory_management::{MemoryConfiguration, MemoryPoolOptions, PoolType};
 

@@ -435,15 +435,6 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                 a.warmup
             )?;
         }
-        if let Some((held, handed)) = crate::device::driver_pool(device) {
-            writeln!(
-                out,
-                "device pool   {:.2} GiB at most held from the device by the driver's pool under cubecl's, \
-                 {:.2} GiB of it handed to cubecl at once",
-                gib(held),
-                gib(handed)
-            )?;
-        }
     } else {
         writeln!(out, "peak memory   not measured on this device")?;
     }

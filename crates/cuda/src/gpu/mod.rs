@@ -9,7 +9,6 @@
 
 mod compile;
 mod cubin;
-pub mod driver_pool;
 mod exec;
 mod launch;
 mod params;

@@ -101,11 +101,6 @@ impl<'a> Command<'a> {
     #[cfg_attr(feature = "tracing", tracing::instrument(level = "trace", skip(self)))]
     pub fn reserve(&mut self, size: u64) -> Result<ManagedMemoryHandle, IoError> {
         let memory = &mut self.streams.current().memory_management_gpu;
-        // umgen: hand the free pages back to the driver first (`set_release_above`), so that a page this
-        // reservation needs comes from their memory instead of more of the device's.
-        if size > super::server::release_above() {
-            memory.cleanup(true);
-        }
         let handle = memory.reserve(size)?;
         // umgen: the peak of the memory in use, while it is measured (`peak_in_use`).
         super::server::note_in_use(|| {

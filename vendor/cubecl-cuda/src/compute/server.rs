@@ -1175,25 +1175,6 @@ pub fn launches() -> (u64, f64) {
     (n, ns as f64 * 1e-9)
 }
 
-/// umgen: reservations larger than this (bytes) first hand the pool's free pages back to the driver.
-static RELEASE_ABOVE: core::sync::atomic::AtomicU64 = core::sync::atomic::AtomicU64::new(u64::MAX);
-
-/// umgen: from now on, before each reservation of more than `bytes`, the memory pool of the stream
-/// reserving hands every free page back to the driver (`cuMemFreeAsync`, stream-ordered: the memory is
-/// reusable by the stream's later allocations at once) and frees every page whose slices are all free.
-/// The driver's pool then carves the next page of any size from that memory, where cubecl's pool would
-/// keep a free page for a tensor of its own size and take more of the device for the others. `u64::MAX`
-/// (the default) never does. Raise the release threshold of the device's default memory pool as well,
-/// or the driver hands the memory back to the device at the next synchronisation.
-pub fn set_release_above(bytes: u64) {
-    RELEASE_ABOVE.store(bytes, core::sync::atomic::Ordering::Relaxed);
-}
-
-/// umgen: see [`set_release_above`].
-pub(crate) fn release_above() -> u64 {
-    RELEASE_ABOVE.load(core::sync::atomic::Ordering::Relaxed)
-}
-
 std::thread_local! {
     /// umgen: whether [`peak_in_use`] is measuring, and the peak so far (bytes).
     static PEAK_IN_USE: core::cell::Cell<(bool, u64)> = const { core::cell::Cell::new((false, 0)) };
