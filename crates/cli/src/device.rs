@@ -179,19 +179,6 @@ pub fn peak_in_use(device: Device, measure: bool) -> u64 {
     }
 }
 
-/// The most device memory the pool's pages were mapped onto at once under `UMGEN_MEMORY_POOL=remap:MIB`
-/// (the vendored cubecl-cuda's `remapped_peak`), in bytes; 0 under other layouts, on the CPU or without
-/// the vendored cubecl.
-pub fn remapped_peak(device: Device) -> u64 {
-    match device {
-        Device::Cpu => 0,
-        #[cfg(all(feature = "cuda", feature = "patched-cubecl"))]
-        Device::Cuda(_) => burn::cubecl::cuda::remapped_peak(),
-        #[cfg(not(all(feature = "cuda", feature = "patched-cubecl")))]
-        Device::Cuda(_) => 0,
-    }
-}
-
 /// Bytes the device's memory pool holds now (0 on the CPU or when unknown).
 pub fn memory_in_use(device: Device) -> u64 {
     memory(device).reserved

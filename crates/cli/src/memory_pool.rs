@@ -6,21 +6,6 @@
 //! its live tensors. `pages:MIB` (the default, `pages:1024`) keeps cubecl's geometry below a largest sliced
 //! page of MIB and gives each larger tensor a page of its own, in buckets of doubling size; `cubecl` keeps
 //! cubecl's layout.
-//!
-//! Both keep every page they ever took: a page left free by one tensor waits for the next tensor of its
-//! bucket, so the pool holds 1.2–1.4× the step's live set (docs/decisions/014-memory-pool-layout.md).
-//! `remap:MIB` lets only tensors of up to MIB share pages and gives every larger one a page of its own
-//! within 9 % of its size, and maps each page's addresses onto physical memory that outlives the page
-//! (the vendored cubecl-cuda's `set_remapping`, vendor/README.md): a free page is kept for the next
-//! tensor of its size class as before, but when a tensor finds none and the free physical memory does
-//! not hold it, the pool hands every free page back and maps the new page onto their memory, whatever
-//! their sizes. The device then holds about the step's live set, in 2 MiB units
-//! (docs/decisions/014-memory-pool-layout.md); `umgen bench train` prints what the pages held.
-//!
-//! A sliced pool of cubecl also takes any tensor within 20 % of its page size, alone in a page. Under
-//! cubecl's geometry, pages are powers of two, and so are a training step's tensors times a batch
-//! size: `small`'s `[70,368, 384]` bf16 activations (51.5 MiB) each take a 64 MiB page, its `[70,368,
-//! 1,536]` ones (206 MiB) a 256 MiB page, two f32 activations (2 × 103 MiB) another, each about 20 % empty.
 
 use anyhow::{Context, bail};
 
@@ -50,21 +35,7 @@ pub enum PoolLayout {
         /// The largest sliced page, in bytes.
         largest: u64,
     },
-    /// Tensors of up to `shared` bytes share pages of at most 8 × `shared` bytes (at least eight to a
-    /// page); each larger one gets a page of its own, within 9 % of its size; pages are mapped onto
-    /// physical memory that a page of any size reuses once they are handed back.
-    Remap {
-        /// The largest tensor that shares a page, in bytes.
-        shared: u64,
-    },
 }
-
-/// Each bucket of tensors with a page of their own ends this factor above the last (2^(1/8)), so that a
-/// page left by one tensor serves the next of about its size.
-const BUCKET_STEP: f64 = 1.090_507_732_665_257_7;
-
-/// Exclusive buckets end on multiples of this (cubecl requires a multiple of the pool's alignment).
-const BUCKET_ROUNDING: u64 = 64 << 10;
 
 /// One pool of a layout; an allocation goes to the first pool that accepts it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -107,26 +78,18 @@ impl PoolLayout {
         }
     }
 
-    /// Parses `cubecl`, `pages:MIB` (MIB a power of two from 32 to 65536) or `remap:MIB` (a power of two
-    /// from 1 to 64).
+    /// Parses `cubecl` or `pages:MIB` (MIB a power of two from 32 to 65536).
     pub fn parse(value: &str) -> anyhow::Result<Self> {
         let value = value.trim();
         if value == "cubecl" {
             return Ok(Self::Cubecl);
         }
-        if let Some(mib) = value.strip_prefix("remap:") {
-            let mib = whole_mib(value, mib)?;
-            if !(1..=64).contains(&mib) || !mib.is_power_of_two() {
-                bail!("`{value}`: the largest shared tensor must be a power of two from 1 to 64 MiB");
-            }
-            return Ok(Self::Remap { shared: mib * MIB });
-        }
         let Some(mib) = value.strip_prefix("pages:") else {
-            bail!(
-                "`{value}`: expected `cubecl`, `pages:MIB` or `remap:MIB` (e.g. pages:{DEFAULT_LARGEST_PAGE_MIB})"
-            );
+            bail!("`{value}`: expected `cubecl` or `pages:MIB` (e.g. pages:{DEFAULT_LARGEST_PAGE_MIB})");
         };
-        let mib = whole_mib(value, mib)?;
+        let mib: u64 = mib
+            .parse()
+            .map_err(|_| anyhow::anyhow!("`{value}`: `{mib}` is not a whole number of MiB"))?;
         if !(32..=65536).contains(&mib) || !mib.is_power_of_two() {
             bail!("`{value}`: the largest page must be a power of two from 32 to 65536 MiB");
         }
@@ -135,10 +98,8 @@ impl PoolLayout {
 
     /// The pools in the order cubecl tries them; `None` for cubecl's own layout.
     pub fn pools(self) -> Option<Vec<Pool>> {
-        let largest = match self {
-            Self::Cubecl => return None,
-            Self::Pages { largest } => largest,
-            Self::Remap { shared } => return Some(fitted(shared)),
+        let Self::Pages { largest } = self else {
+            return None;
         };
         // cubecl's first pool: zero-byte tensors, which cannot take a slice.
         let mut pools = vec![Pool::Exclusive { max_alloc: 0 }];
@@ -168,38 +129,6 @@ impl PoolLayout {
     }
 }
 
-/// `value`'s MiB count `mib`, or an error naming both.
-fn whole_mib(value: &str, mib: &str) -> anyhow::Result<u64> {
-    mib.parse()
-        .map_err(|_| anyhow::anyhow!("`{value}`: `{mib}` is not a whole number of MiB"))
-}
-
-/// [`PoolLayout::Remap`]'s pools: sliced pages of 8 × `shared` bytes, a quarter of that, … down to 1 MiB,
-/// each holding tensors of at most an eighth of it; then a bucket of pages of their own for every
-/// [`BUCKET_STEP`] of size up to 1 TiB.
-fn fitted(shared: u64) -> Vec<Pool> {
-    let mut pools = vec![Pool::Exclusive { max_alloc: 0 }];
-    let mut sliced = Vec::new();
-    let mut page = 8 * shared;
-    while page >= MIB {
-        sliced.push(Pool::Sliced {
-            page,
-            max_slice: page / 8,
-        });
-        page /= 4;
-    }
-    pools.extend(sliced.into_iter().rev());
-    let mut max_alloc = shared;
-    while max_alloc < LARGEST_TENSOR {
-        let next = (max_alloc as f64 * BUCKET_STEP) as u64;
-        max_alloc = next
-            .next_multiple_of(BUCKET_ROUNDING)
-            .max(max_alloc + BUCKET_ROUNDING);
-        pools.push(Pool::Exclusive { max_alloc });
-    }
-    pools
-}
-
 /// The first of `pools` that takes a tensor of `size` bytes, as cubecl chooses it.
 pub fn pool_for(pools: &[Pool], size: u64) -> Option<Pool> {
     pools.iter().copied().find(|p| p.accepts(size))
@@ -218,7 +147,6 @@ impl std::fmt::Display for PoolLayout {
         match self {
             Self::Cubecl => write!(f, "cubecl"),
             Self::Pages { largest } => write!(f, "pages:{}", largest / MIB),
-            Self::Remap { shared } => write!(f, "remap:{}", shared / MIB),
         }
     }
 }
@@ -239,12 +167,12 @@ pub fn init() -> anyhow::Result<PoolLayout> {
     if let Some(layout) = applied() {
         return Ok(layout);
     }
-    let layout = apply(PoolLayout::from_env()?)?;
+    let layout = apply(PoolLayout::from_env()?);
     Ok(*APPLIED.get_or_init(|| layout))
 }
 
 #[cfg(feature = "cuda")]
-fn apply(layout: PoolLayout) -> anyhow::Result<PoolLayout> {
+fn apply(layout: PoolLayout) -> PoolLayout {
     #[cfg(feature = "patched-cubecl")]
     if let Some(pools) = layout.pools() {
         use burn::cubecl::cuda::{MemoryConfiguration, MemoryPoolOptions, PoolType};
@@ -266,15 +194,14 @@ fn apply(layout: PoolLayout) -> anyhow::Result<PoolLayout> {
             })
             .collect();
         burn::cubecl::cuda::set_memory_configuration(MemoryConfiguration::Custom { pool_options });
-        burn::cubecl::cuda::set_remapping(matches!(layout, PoolLayout::Remap { .. }));
     }
     // `set_memory_configuration` is an API of the vendored cubecl-cuda (vendor/README.md).
     #[cfg(not(feature = "patched-cubecl"))]
     if layout != PoolLayout::Cubecl {
         tracing::warn!("{VAR}={layout} needs the patched cubecl-cuda; cubecl's own layout is used");
-        return Ok(PoolLayout::Cubecl);
+        return PoolLayout::Cubecl;
     }
-    Ok(layout)
+    layout
 }
 
 #[cfg(test)]

@@ -10,8 +10,6 @@ pub use device::*;
 pub use runtime::*;
 /// umgen: see `compute::server::last_stream`.
 pub use compute::{last_stream, launches, peak_in_use};
-/// umgen: see `compute::storage::remap`.
-pub use compute::storage::remap::{remapped_peak, set_remapping};
 /// umgen: what `set_memory_configuration` is built from.
 pub use cubecl_runtime::memory_management::{MemoryConfiguration, MemoryPoolOptions, PoolType};
 

@@ -435,14 +435,6 @@ pub fn run_with(a: &BenchTrainArgs, kinds: &crate::Kinds, hooks: &mut dyn StepHo
                 a.warmup
             )?;
         }
-        let mapped = crate::device::remapped_peak(device);
-        if mapped > 0 {
-            writeln!(
-                out,
-                "device memory {:.2} GiB at most under the pool's remapped pages (what the device held)",
-                gib(mapped)
-            )?;
-        }
     } else {
         writeln!(out, "peak memory   not measured on this device")?;
     }

@@ -101,23 +101,7 @@ impl<'a> Command<'a> {
     #[cfg_attr(feature = "tracing", tracing::instrument(level = "trace", skip(self)))]
     pub fn reserve(&mut self, size: u64) -> Result<ManagedMemoryHandle, IoError> {
         let memory = &mut self.streams.current().memory_management_gpu;
-        // umgen: with remapped pages (`set_remapping`), the pool first tries without more device memory;
-        // if that fails, it hands every free page back (their memory serves pages of any size) and
-        // tries again, growing only then.
-        let handle = if memory.storage().remaps() {
-            memory.storage().allow_growth(false);
-            let first = memory.reserve(size);
-            let refused = memory.storage().allow_growth(true);
-            match first {
-                Err(_) if refused => {
-                    memory.cleanup(true);
-                    memory.reserve(size)?
-                }
-                other => other?,
-            }
-        } else {
-            memory.reserve(size)?
-        };
+        let handle = memory.reserve(size)?;
         // umgen: the peak of the memory in use, while it is measured (`peak_in_use`).
         super::server::note_in_use(|| {
             let usage = memory.memory_usage();

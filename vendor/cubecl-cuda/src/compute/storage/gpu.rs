@@ -9,8 +9,6 @@ use std::collections::HashMap;
 enum AllocationKind {
     Async,
     Sync,
-    /// umgen: a page of `remap` (its physical segments kept in `GpuStorage::pages`).
-    Mapped,
 }
 
 /// Buffer storage for NVIDIA GPUs.
@@ -23,11 +21,6 @@ pub struct GpuStorage {
     ptr_bindings: PtrBindings,
     stream: cudarc::driver::sys::CUstream,
     mem_alignment: usize,
-    /// umgen: the physical memory pages are mapped onto, under `remap::set_remapping`.
-    physical: Option<super::remap::Physical>,
-    pages: HashMap<StorageId, super::remap::Page>,
-    /// umgen: a mapping failed; new pages are allocated as upstream does.
-    remap_failed: bool,
 }
 
 /// A GPU memory resource allocated for CUDA using [`GpuStorage`].
@@ -55,54 +48,22 @@ impl GpuStorage {
     ///
     /// * `mem_alignment` - The memory alignment requirement in bytes.
     pub fn new(mem_alignment: usize, stream: cudarc::driver::sys::CUstream) -> Self {
-        // umgen: a storage that cannot read the device's mapping granularity allocates as upstream does.
-        let physical = super::remap::remapping()
-            .then(|| super::remap::Physical::new())
-            .and_then(|p| p.map_err(|e| eprintln!("umgen: remapped pages off: {e}")).ok());
         Self {
             memory: HashMap::new(),
             deallocations: Vec::new(),
             ptr_bindings: PtrBindings::new(),
             stream,
             mem_alignment,
-            physical,
-            pages: HashMap::new(),
-            remap_failed: false,
         }
-    }
-
-    /// umgen: with remapped pages, whether an allocation may create physical memory (else it fails when
-    /// the free memory does not hold it); returns whether one was refused since the last call.
-    pub fn allow_growth(&mut self, allow: bool) -> bool {
-        match self.physical.as_mut().filter(|_| !self.remap_failed) {
-            Some(p) => {
-                p.allow_growth = allow;
-                std::mem::take(&mut p.refused)
-            }
-            None => false,
-        }
-    }
-
-    /// umgen: whether pages are remapped.
-    pub fn remaps(&self) -> bool {
-        self.physical.is_some() && !self.remap_failed
     }
 
     /// Deallocates buffers marked for deallocation.
     ///
     /// This method processes all pending deallocations by freeing the associated GPU memory.
     fn perform_deallocations(&mut self) {
-        let (physical, pages, stream) = (&mut self.physical, &mut self.pages, self.stream);
         self.deallocations
             .drain(..)
-            .filter_map(|id| self.memory.remove(&id).map(|m| (id, m)))
-            .filter_map(|(id, m)| match (physical.as_mut(), pages.remove(&id)) {
-                (Some(physical), Some(page)) => {
-                    physical.release(page, stream);
-                    None
-                }
-                _ => Some(m),
-            })
+            .filter_map(|id| self.memory.remove(&id))
             // SAFETY: Each `ptr` was obtained from a prior `malloc_async` or `malloc_sync`
             // call and has not been freed yet. The deallocation method matches the allocation kind.
             .for_each(|(ptr, kind)| unsafe {
@@ -115,8 +76,6 @@ impl GpuStorage {
                             eprintln!("CUDA free error: {}", e);
                         }
                     }
-                    // Released above with its page.
-                    AllocationKind::Mapped => {}
                 }
             });
     }
@@ -187,7 +146,10 @@ impl ComputeStorage for GpuStorage {
     }
 
     fn get(&mut self, handle: &StorageHandle) -> Self::Resource {
-        let (ptr, _) = self.memory.get(&handle.id).expect("Storage handle not found");
+        let (ptr, _) = self
+            .memory
+            .get(&handle.id)
+            .expect("Storage handle not found");
 
         let offset = handle.offset();
         let size = handle.size();
@@ -200,30 +162,12 @@ impl ComputeStorage for GpuStorage {
         )
     }
 
-    #[cfg_attr(feature = "tracing", tracing::instrument(level = "trace", skip(self, size)))]
+    #[cfg_attr(
+        feature = "tracing",
+        tracing::instrument(level = "trace", skip(self, size))
+    )]
     fn alloc(&mut self, size: u64) -> Result<StorageHandle, IoError> {
         let id = StorageId::new();
-        // umgen: a page mapped onto the pool's physical memory (`remap`). If the driver refuses a
-        // mapping, this storage says why once and allocates as upstream does from then on.
-        if let Some(physical) = self.physical.as_mut().filter(|_| !self.remap_failed) {
-            match physical.map(size) {
-                Ok(Some(page)) => {
-                    self.memory.insert(id, (page.ptr, AllocationKind::Mapped));
-                    self.pages.insert(id, page);
-                    return Ok(StorageHandle::new(id, StorageUtilization { offset: 0, size }));
-                }
-                Ok(None) => {
-                    return Err(IoError::BufferTooBig {
-                        size,
-                        backtrace: BackTrace::capture(),
-                    });
-                }
-                Err(e) => {
-                    eprintln!("umgen: remapped pages off from now on: {e}");
-                    self.remap_failed = true;
-                }
-            }
-        }
         // SAFETY: Calling CUDA driver FFI to allocate device memory. First tries async
         // allocation on the stream; falls back to synchronous allocation if that fails.
         // The returned pointer is stored in `self.memory` and freed on deallocation.
@@ -250,7 +194,10 @@ impl ComputeStorage for GpuStorage {
         };
 
         self.memory.insert(id, (ptr, kind));
-        Ok(StorageHandle::new(id, StorageUtilization { offset: 0, size }))
+        Ok(StorageHandle::new(
+            id,
+            StorageUtilization { offset: 0, size },
+        ))
     }
 
     #[cfg_attr(feature = "tracing", tracing::instrument(level = "trace", skip(self)))]

@@ -1,3 +1,2 @@
 pub mod cpu;
 pub mod gpu;
-pub mod remap;
