@@ -1,6 +1,6 @@
 //! The pre-norm cross-attention layer of the ego module: queries over a context of their own.
 
-use crate::layers::{LayerSizes, Mlp, MultiHead};
+use crate::layers::{LayerSizes, Mlp, MultiHead, layer_parts};
 use burn::module::Module;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear};
 use burn::tensor::backend::Backend;
@@ -53,20 +53,7 @@ impl<B: Backend> CrossBlock<B> {
 
     /// The layer's parts, for the recomputing operation.
     fn recompute_parts(&self) -> LayerParts<'_, B> {
-        LayerParts {
-            ln1: &self.ln_q,
-            ln_ctx: Some(&self.ln_ctx),
-            q: &self.attn.q,
-            kv: &self.attn.kv,
-            proj: &self.attn.proj,
-            ln2: &self.ln2,
-            fc: &self.mlp.fc,
-            out: &self.mlp.proj,
-            heads: self.attn.heads,
-            precision: self.attn.precision,
-            attn_dropout: self.attn.drop.prob,
-            mlp_dropout: self.mlp.drop.prob,
-        }
+        layer_parts(&self.ln_q, Some(&self.ln_ctx), &self.attn, &self.ln2, &self.mlp)
     }
 
     /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]` with an optional mask (true = hidden), with the

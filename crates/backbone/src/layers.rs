@@ -20,7 +20,7 @@ use umgen_ops::recompute::{LayerParts, recomputed_for};
 pub struct Mlp<B: Backend> {
     pub(crate) fc: Linear<B>,
     pub(crate) proj: Linear<B>,
-    pub(crate) drop: Dropout,
+    drop: Dropout,
     pub(crate) precision: Precision,
 }
 
@@ -46,11 +46,11 @@ impl<B: Backend> Mlp<B> {
 /// attention operation (fused on backends that have a kernel).
 #[derive(Module, Debug)]
 pub struct MultiHead<B: Backend> {
-    pub(crate) q: Linear<B>,
-    pub(crate) kv: Linear<B>,
-    pub(crate) proj: Linear<B>,
-    pub(crate) drop: Dropout,
-    pub(crate) heads: usize,
+    q: Linear<B>,
+    kv: Linear<B>,
+    proj: Linear<B>,
+    drop: Dropout,
+    heads: usize,
     pub(crate) precision: Precision,
 }
 
@@ -290,20 +290,32 @@ impl<B: Backend> SelfBlock<B> {
 impl<B: Backend> SelfBlock<B> {
     /// The layer's parts, for the recomputing operation.
     pub(crate) fn parts(&self) -> LayerParts<'_, B> {
-        LayerParts {
-            ln1: &self.ln1,
-            ln_ctx: None,
-            q: &self.attn.q,
-            kv: &self.attn.kv,
-            proj: &self.attn.proj,
-            ln2: &self.ln2,
-            fc: &self.mlp.fc,
-            out: &self.mlp.proj,
-            heads: self.attn.heads,
-            precision: self.attn.precision,
-            attn_dropout: self.attn.drop.prob,
-            mlp_dropout: self.mlp.drop.prob,
-        }
+        layer_parts(&self.ln1, None, &self.attn, &self.ln2, &self.mlp)
+    }
+}
+
+/// The parts of a pre-norm layer for the recomputing operation: the attention's norm `ln1` (the queries'
+/// in a cross-attention layer, whose context has `ln_ctx`), the attention, the MLP's norm and the MLP.
+pub(crate) fn layer_parts<'a, B: Backend>(
+    ln1: &'a LayerNorm<B>,
+    ln_ctx: Option<&'a LayerNorm<B>>,
+    attn: &'a MultiHead<B>,
+    ln2: &'a LayerNorm<B>,
+    mlp: &'a Mlp<B>,
+) -> LayerParts<'a, B> {
+    LayerParts {
+        ln1,
+        ln_ctx,
+        q: &attn.q,
+        kv: &attn.kv,
+        proj: &attn.proj,
+        ln2,
+        fc: &mlp.fc,
+        out: &mlp.proj,
+        heads: attn.heads,
+        precision: attn.precision,
+        attn_dropout: attn.drop.prob,
+        mlp_dropout: mlp.drop.prob,
     }
 }
 

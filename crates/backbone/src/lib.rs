@@ -40,6 +40,8 @@ pub mod ordinal;
 mod plain;
 mod ready;
 mod spec;
+#[cfg(test)]
+mod testing;
 pub mod track;
 
 pub use ama::align;

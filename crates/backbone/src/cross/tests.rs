@@ -5,26 +5,13 @@
 
 use super::*;
 use crate::config::Precision;
-use burn::backend::autodiff::grads::Gradients;
-use burn::backend::{Autodiff, Flex};
-use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
-use burn::tensor::Distribution;
+use crate::testing::{A, normal, param_grads, rel, seeded};
+use burn::backend::Flex;
+use burn::module::Module;
 
-type A = Autodiff<Flex>;
-
-/// A layer whose parameters are all perturbed, so that a gradient formula that drops a norm's scale or
-/// shift (γ = 1, β = 0 at the start) cannot pass.
+/// A layer whose parameters are drawn from `seed` (`testing::seeded`: the same in every run, whatever
+/// other tests draw meanwhile).
 fn layer(d: usize, precision: Precision, seed: u64) -> CrossBlock<A> {
-    struct Noise;
-    impl ModuleMapper<A> for Noise {
-        fn map_float<const D: usize>(&mut self, param: Param<Tensor<A, D>>) -> Param<Tensor<A, D>> {
-            param.map(|t| {
-                let noisy = t.clone().inner() + t.inner().random_like(Distribution::Normal(0.0, 0.2));
-                Tensor::from_inner(noisy).require_grad()
-            })
-        }
-    }
-    Flex::seed(&Default::default(), seed);
     let sizes = LayerSizes {
         d,
         heads: 4,
@@ -32,29 +19,7 @@ fn layer(d: usize, precision: Precision, seed: u64) -> CrossBlock<A> {
         dropout: 0.0,
         precision,
     };
-    CrossBlock::new(sizes, &Default::default()).map(&mut Noise)
-}
-
-/// Every parameter gradient of `blocks` in `grads`, in visiting order.
-fn param_grads(blocks: &[CrossBlock<A>], grads: &Gradients) -> Vec<Tensor<Flex, 1>> {
-    struct Collect<'a>(&'a Gradients, Vec<Tensor<Flex, 1>>);
-    impl ModuleVisitor<A> for Collect<'_> {
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<A, D>>) {
-            let g = param.val().grad(self.0).expect("every parameter has a gradient");
-            self.1.push(g.flatten(0, D - 1));
-        }
-    }
-    let mut c = Collect(grads, Vec::new());
-    for b in blocks {
-        b.visit(&mut c);
-    }
-    c.1
-}
-
-/// Largest difference relative to the largest magnitude of `b`.
-fn rel<const D: usize>(a: Tensor<Flex, D>, b: Tensor<Flex, D>) -> f32 {
-    let scale = b.clone().abs().max().into_scalar().max(1e-12);
-    (a - b).abs().max().into_scalar() / scale
+    seeded(CrossBlock::new(sizes, &Default::default()), seed)
 }
 
 /// Output, the queries' and the context's gradients and the parameters' of `(stack(x, ctx) · r).sum()`,
@@ -78,7 +43,8 @@ fn run(
         .fold(x.clone(), |h, b| b.forward(h, ctx.clone(), None, k));
     let grads = (y.clone() * Tensor::from_inner(r.clone())).sum().backward();
     let (dx, dctx) = (x.grad(&grads).unwrap(), ctx.grad(&grads).unwrap());
-    (y.inner(), dx, dctx, param_grads(blocks, &grads))
+    let dp = blocks.iter().flat_map(|b| param_grads(b, &grads)).collect();
+    (y.inner(), dx, dctx, dp)
 }
 
 /// A stack of layers and its inputs: 3 queries over `lk` keys, and the output's weights.
@@ -91,16 +57,14 @@ struct Case {
 
 impl Case {
     fn new(layers: usize, lk: usize) -> Self {
-        let dev = Default::default();
         let blocks = (0..layers)
             .map(|i| layer(32, Precision::F32, 11 + i as u64))
             .collect();
-        let normal = |dims: [usize; 3]| Tensor::<Flex, 3>::random(dims, Distribution::Normal(0.0, 1.0), &dev);
         Self {
             blocks,
-            x: normal([2, 3, 32]),
-            ctx: normal([2, lk, 32]),
-            r: normal([2, 3, 32]),
+            x: normal([2, 3, 32], 1, 1.0, 0.0),
+            ctx: normal([2, lk, 32], 2, 1.0, 0.0),
+            r: normal([2, 3, 32], 3, 1.0, 0.0),
         }
     }
 
