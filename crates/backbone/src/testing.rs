@@ -52,9 +52,9 @@ pub fn normal<const D: usize>(dims: [usize; D], seed: u64, scale: f32, shift: f3
     Tensor::from_data(burn::tensor::TensorData::new(values, dims), &Default::default())
 }
 
-/// `m` with every parameter drawn from `seed` alone ([`normal`]), spread as burn's initialisation plus
-/// the noise of [`perturbed`] would spread them: norms' scales around 1, shifts, biases and weights
-/// around 0 with a spread of about 0.22 (so that no formula's scale or shift is the identity).
+/// `m` with every parameter drawn from `seed` alone ([`normal`]), spread about as burn's initialisation
+/// plus a noise of 0.2 would spread them: norms' scales around 1, shifts, biases and weights around 0
+/// with a spread of 0.22 (so that no formula's scale or shift is the identity).
 pub fn seeded<M: Module<A>>(m: M, seed: u64) -> M {
     struct Draw(u64);
     impl ModuleMapper<A> for Draw {

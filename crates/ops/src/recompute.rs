@@ -152,8 +152,8 @@ struct Kept<I: LayerBackend> {
 }
 
 impl<I: LayerBackend> Kept<I> {
-    /// The gradients of the input (and the context `ctx`, if any) and of the parameters, each with the
-    /// id of the parent it belongs to, from the output's gradient `dy`.
+    /// The gradients of the input, of the context `ctx` (if any) and of the parameters in [`Weights`]'
+    /// order, from the output's gradient `dy`.
     fn gradients(
         self,
         ctx: Option<Tensor<I, 3>>,

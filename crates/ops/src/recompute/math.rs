@@ -169,13 +169,12 @@ fn run<I: LayerBackend>(
         _ => None,
     };
     let q = linear_in(n1.clone(), &w.q, p, qkv_format, k);
-    let kv_in = ctx.as_ref().map_or_else(|| n1.clone(), |(_, _, nc)| nc.clone());
     let kv = match &ctx {
-        // As `MultiHead::forward` has them: in f32 with the bias, then rounded once to the attention's
-        // format (written in it by the product and rounded again after the bias, a stack's context
-        // gradient came out twice as far from f32's as the autodiff path's).
-        Some(_) => operand(linear_in(kv_in, &w.kv, p, FloatDType::F32, k), p.attention()),
-        None => linear_in(kv_in, &w.kv, p, qkv_format, k),
+        // From the normalised context as `MultiHead::forward` has them: in f32 with the bias, then rounded
+        // once to the attention's format (written in it by the product and rounded again after the bias,
+        // a stack's context gradient came out twice as far from f32's as the autodiff path's).
+        Some((_, _, nc)) => operand(linear_in(nc.clone(), &w.kv, p, FloatDType::F32, k), p.attention()),
+        None => linear_in(n1.clone(), &w.kv, p, qkv_format, k),
     };
     let [b, len, d] = q.dims();
     let (attn, merged) = match s.over_time {
