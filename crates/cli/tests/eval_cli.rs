@@ -248,6 +248,19 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
             "horizon {h}: {e} m recorded, {drawn} m drawn"
         );
     }
+    // The model against its hint: one step ahead and only with the recorded ego (the hint's bins are the
+    // real next ego frame's), every scored agent either on the hint's bins or moved off them.
+    let hint = &recorded["l2"][0]["hint"];
+    let share = |k: &str| hint[k].as_f64().unwrap_or(0.0);
+    assert!(hint["agents"].as_u64().unwrap() > 0, "{hint}");
+    assert!(
+        (share("followed") + share("departed") - 1.0).abs() < 1e-12,
+        "{hint}"
+    );
+    assert!(share("closer") + share("farther") <= 1.0 + 1e-12, "{hint}");
+    assert!(recorded["l2"][1]["hint"].is_null() && report["l2"][0]["hint"].is_null());
+    let md = std::fs::read_to_string(forced.join("eval/report.md")).unwrap();
+    assert!(md.contains("| agents | on the hint |"), "{md}");
     let out = fx.dir.path().join("gen-refused");
     let refused = |from: &[&str], frames: &str, wants: &[&str]| {
         let mut args = vec!["generate", "--bundle", bf16_dir.to_str().unwrap()];

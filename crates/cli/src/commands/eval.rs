@@ -7,11 +7,15 @@ use anyhow::Context;
 use umgen::data::Dataset;
 use umgen::scene::{Agent, Frame, SceneClip};
 use umgen_eval::collision::collision_rate;
+use umgen_eval::hint::HintUse;
 use umgen_eval::l2::{
     agent_errors, constant_acceleration_agents, constant_velocity_agents, ego_l2, median, on_grid, positions,
     quantile,
 };
 use umgen_eval::mmd::{Group, mmd};
+
+/// Two positions on the same bins: both are bin centres of one grid, so they differ by rounding alone.
+const SAME_BIN_M: f64 = 1e-6;
 
 /// MMD per attribute group between two agent sets.
 pub(super) fn mmd_groups(generated: &[&Agent], real: &[&Agent]) -> serde_json::Value {
@@ -155,6 +159,7 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
                 mut real_ca_binned,
             ] = std::array::from_fn::<AgentErrors, 6, _>(|_| AgentErrors::default());
             let (mut generated, mut real): (Vec<&Agent>, Vec<&Agent>) = (vec![], vec![]);
+            let mut hint_use = HintUse::default();
             for (c, t) in truths.iter().enumerate() {
                 let true_pos = positions(&t.poses[h - 1], &t.tracked[h - 1]);
                 for s in &scenes[c * per..(c + 1) * per] {
@@ -192,6 +197,17 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
                         on_bins.add(agent_errors(&on, &true_pos));
                     }
                 }
+                if h == 1
+                    && recorded_ego
+                    && let Some(g) = &grid
+                {
+                    // The hint on the bins the model names, in the real next ego frame it names them in.
+                    let hint = on_grid(&t.poses[0], &ca, |p| g.round_xy(p).0);
+                    for s in &scenes[c * per..(c + 1) * per] {
+                        let placed = positions(&t.poses[0], &s.frames[0].agents);
+                        hint_use.add(&HintUse::of(&placed, &hint, &true_pos, SAME_BIN_M));
+                    }
+                }
                 real.extend(t.agents[h - 1].iter());
             }
             let mut row = serde_json::json!({
@@ -205,6 +221,9 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             ca_binned.report("constant_acceleration_binned", &mut row);
             real_ca.report("real_state_constant_acceleration", &mut row);
             real_ca_binned.report("real_state_constant_acceleration_binned", &mut row);
+            if hint_use.agents > 0 {
+                row["hint"] = serde_json::to_value(hint_use.summary())?;
+            }
             l2_rows.push(row);
             mmd_rows.push(serde_json::json!({"frame": h, "mmd": mmd_groups(&generated, &real)}));
         }

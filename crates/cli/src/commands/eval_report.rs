@@ -103,7 +103,38 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
             ),
         ],
     )?;
+    hint_markdown(&mut md, rows)?;
     Ok(md)
+}
+
+/// One step ahead with the recorded ego: the agents the model kept on its hint's bins and those it moved
+/// off them (`hint` of the first row, when `eval` measured it).
+fn hint_markdown(md: &mut String, rows: &[serde_json::Value]) -> std::fmt::Result {
+    let Some(h) = rows.first().map(|r| &r["hint"]).filter(|h| h.is_object()) else {
+        return Ok(());
+    };
+    writeln!(
+        md,
+        "\nOne step ahead, the model against its hint (the binned constant-acceleration prediction above, \
+         which `backbone.track_accel` gives the model): the agents it placed on the hint's bins and those it \
+         moved off them, with their mean errors over agents (m) and, for the moved ones, the hint's error and \
+         whether moving brought them closer to the truth; the last column is the mean error had the model \
+         copied the hint for every agent.\n\n\
+         | agents | on the hint | error there | moved off | error | the hint's error | closer | farther | \
+         copying the hint everywhere |\n|---|---|---|---|---|---|---|---|---|"
+    )?;
+    let keys = [
+        "followed",
+        "followed_error",
+        "departed",
+        "departed_error",
+        "departed_hint_error",
+        "closer",
+        "farther",
+        "hint_error",
+    ];
+    let values: Vec<String> = keys.iter().map(|k| num(&h[*k])).collect();
+    writeln!(md, "| {} | {} |", h["agents"], values.join(" | "))
 }
 
 /// A table of the agents' mean, median and 90th percentile over the horizon for each predictor
