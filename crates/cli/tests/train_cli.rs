@@ -15,11 +15,86 @@ use umgen_tests::run_fixture::Fixture;
 /// Loss per step from `metrics.jsonl` (the last line of a step wins: a resumed run repeats steps after its
 /// checkpoint).
 fn losses(run: &Path) -> BTreeMap<u64, f64> {
-    let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
-    text.lines()
-        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-        .map(|v| (v["step"].as_u64().unwrap(), v["loss"].as_f64().unwrap()))
+    metric_lines(run)
+        .iter()
+        .filter_map(|v| Some((v["step"].as_u64()?, v["loss"].as_f64()?)))
         .collect()
+}
+
+/// Every line of `metrics.jsonl`: the training losses' and the validation losses' (`val/…`).
+fn metric_lines(run: &Path) -> Vec<serde_json::Value> {
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    text.lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+}
+
+#[test]
+fn validation_logs_held_out_losses_and_leaves_training_alone() {
+    let fx = Fixture::new().unwrap();
+    let plain = fx.config("plain", 6).unwrap();
+    ok(umgen(&["train", "--config", plain.to_str().unwrap()]));
+    let with = fx.config("val", 6).unwrap();
+    let val_args = |every: &'static str| {
+        [
+            "--set",
+            every,
+            "--set",
+            "train.val_split=\"train\"",
+            "--set",
+            "train.val_windows=3",
+        ]
+    };
+    let mut args = vec!["train", "--config", with.to_str().unwrap()];
+    args.extend(val_args("train.val_every=4"));
+    let log = ok(umgen(&args));
+    // Every 4 steps and after the last: steps 4 and 6, each with the total and its parts.
+    let val: Vec<serde_json::Value> = metric_lines(&fx.run_dir("val"))
+        .into_iter()
+        .filter(|v| v.get("val/loss").is_some())
+        .collect();
+    let steps: Vec<u64> = val.iter().map(|v| v["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [4, 6], "{val:?}");
+    for v in &val {
+        let at = |k: &str| v[k].as_f64().unwrap();
+        // The total is OAR + TAR + ego_loss_weight (1) · ego, as in training.
+        let sum = at("val/oar") + at("val/tar") + at("val/ego");
+        assert!((sum - at("val/loss")).abs() < 1e-4 * at("val/loss"), "{v}");
+        assert!(at("val/loss").is_finite() && at("val/loss") > 0.0, "{v}");
+    }
+    assert!(
+        log.contains("val/loss") && log.contains("3 windows of split `train`"),
+        "{log}"
+    );
+    // Validation reads the weights and changes nothing: the same losses and final weights as without it.
+    assert_eq!(losses(&fx.run_dir("plain")), losses(&fx.run_dir("val")));
+    let weights = |run: &str| {
+        std::fs::read(
+            fx.run_dir(run)
+                .join("checkpoints/step-000000006/model.safetensors"),
+        )
+        .unwrap()
+    };
+    assert!(weights("plain") == weights("val"), "the final weights differ");
+    // Nor does it belong to the run's identity: a run resumes under other validation settings.
+    let longer = fx.config("val", 8).unwrap();
+    let mut args = vec!["train", "--config", longer.to_str().unwrap(), "--resume"];
+    args.extend(val_args("train.val_every=1"));
+    ok(umgen(&args));
+    // A split without windows is refused by name before any step.
+    let mut args = vec![
+        "train",
+        "--config",
+        plain.to_str().unwrap(),
+        "--resume",
+        "--set",
+        "train.val_every=2",
+    ];
+    args.extend(["--set", "train.val_split=\"nowhere\""]);
+    let refused = umgen(&args);
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && err.contains("train.val_split = \"nowhere\""),
+        "{err}"
+    );
 }
 
 #[test]

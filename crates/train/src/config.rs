@@ -64,6 +64,15 @@ pub struct TrainConfig {
     pub data: Option<PathBuf>,
     /// Split to train on.
     pub split: String,
+    /// Steps between validation passes (0 = none): the losses of `val_windows` windows of `val_split`,
+    /// without dropout or `prior_drop`, logged as `val/loss`, `val/oar/agent`, … next to the training
+    /// losses, and after the last step. On a split of networks the run never trains on, they show when
+    /// what it learns stops carrying over.
+    pub val_every: u64,
+    /// Split the validation windows come from (tokenized into `tokens` beside the training split).
+    pub val_split: String,
+    /// Windows scored in each validation pass, spread evenly over the split.
+    pub val_windows: usize,
     /// Size of a gradient all-reduce bucket in MiB (data-parallel runs).
     pub bucket_mib: f64,
     /// Share AdamW's state out among the ranks of a data-parallel run (ZeRO stage 1): each rank keeps the
@@ -123,6 +132,9 @@ impl Default for TrainConfig {
             tokens: "runs/tokens".into(),
             data: None,
             split: "train".into(),
+            val_every: 0,
+            val_split: "test".into(),
+            val_windows: 64,
             bucket_mib: 25.0,
             shard_optimizer: false,
             kernels: Kernels::default(),
@@ -217,6 +229,12 @@ impl TrainConfig {
             };
             return Some((key, why));
         }
+        if self.val_every > 0 && self.val_windows == 0 {
+            return Some((
+                "val_windows",
+                "0 must be 1 or more while train.val_every is set".into(),
+            ));
+        }
         if self.max_skipped_steps == 0 {
             return Some((
                 "max_skipped_steps",
@@ -288,6 +306,10 @@ impl TrainConfig {
                 "tokens",
                 "data",
                 "bucket_mib",
+                // Validation reads the weights; it changes nothing a step does.
+                "val_every",
+                "val_split",
+                "val_windows",
                 // Every parameter steps to the same bits, sharded or not (`umgen_dist::Shards`).
                 "shard_optimizer",
                 // Same products on other kernels, streams or threads, in other blocks, recomputed or kept:

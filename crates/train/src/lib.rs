@@ -11,7 +11,8 @@
 //! the previous one; a checkpoint of another layout or configuration is refused with the differing keys,
 //! and a refused run leaves its directory untouched. A step whose loss or gradient norm is not finite is
 //! skipped on the device and reported when the losses are read (`guard`, `train.nonfinite`); no
-//! checkpoint is written from it. Metrics go to TensorBoard (`<out_dir>/tb`) and `<out_dir>/metrics.jsonl`.
+//! checkpoint is written from it. Metrics go to TensorBoard (`<out_dir>/tb`) and `<out_dir>/metrics.jsonl`,
+//! with the losses of another split's windows every `train.val_every` steps (`val/…`).
 
 mod config;
 mod error;
@@ -21,6 +22,7 @@ mod run;
 mod sampler;
 mod shard;
 mod trainer;
+mod validate;
 
 pub use config::{NonFinite, TrainConfig};
 pub use error::{Result, TrainError};

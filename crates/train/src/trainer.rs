@@ -5,9 +5,9 @@ use crate::guard::Guard;
 use crate::losses::{averaged_parts, step_losses};
 use crate::run::{RunSpec, claim_run_dir, describe_difference};
 use crate::sampler::Sampler;
+use crate::validate::{Validation, load_batch};
 use burn::optim::{GradientsAccumulator, GradientsParams};
 use burn::tensor::backend::AutodiffBackend;
-use burn::tensor::{Int, Tensor, TensorData};
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -17,7 +17,7 @@ use umgen_checkpoint::burn_io::{
     first_non_finite, optimizer_from_bytes, optimizer_to_bytes, stable_param_ids, weights_from_bytes,
     weights_to_bytes,
 };
-use umgen_data::{TokenSet, Window};
+use umgen_data::TokenSet;
 use umgen_dist::{Overlap, ProcessGroup, Shards, broadcast_module, rank0_decides, same_on_all_ranks};
 use umgen_metrics::MetricLog;
 use umgen_optim::{FusedAdamW, Schedule};
@@ -223,6 +223,12 @@ pub fn train<B: AutodiffBackend>(
         total: tc.steps,
         floor: tc.min_lr_ratio,
     };
+    // Rank 0 validates (the others go on to the next step's exchanges and wait there).
+    let validation = if lead {
+        Validation::new(tc, tokens, f)?
+    } else {
+        None
+    };
     let mut sampler = Sampler::new(windows.len(), tc.seed);
     let n = run.spec.n;
     let tokens_per_step = (tc.batch_size * tc.frames * n * tc.grad_accum * world) as f64;
@@ -358,6 +364,27 @@ pub fn train<B: AutodiffBackend>(
                 &[("model.safetensors", &w), ("optimizer.bin", &o)],
             )?);
         }
+        if let Some(v) = validation.as_ref().filter(|v| stop || v.due(step, tc.steps)) {
+            let values = v.losses(&model, tokens, loss_options, device)?;
+            let shown: Vec<String> = values.iter().map(|(k, x)| format!("{k} {x:.4}")).collect();
+            tracing::info!(
+                "step {step}: {} ({} windows of split `{}`)",
+                shown.join(", "),
+                v.len(),
+                tc.val_split
+            );
+            if let Some(log) = log.as_mut() {
+                log.log(
+                    step,
+                    &values.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>(),
+                )
+                .and_then(|()| log.flush())
+                .map_err(|error| TrainError::Metrics {
+                    path: out.clone(),
+                    error,
+                })?;
+            }
+        }
         if stop {
             if lead {
                 tracing::info!("stopped at step {step} of {}", tc.steps);
@@ -374,24 +401,4 @@ pub fn train<B: AutodiffBackend>(
         last_loss,
         checkpoint: last_ckpt,
     })
-}
-
-/// `[batch, f, N]` ids of the chosen windows.
-fn load_batch<B: AutodiffBackend>(
-    tokens: &TokenSet,
-    windows: &[Window],
-    picks: &[usize],
-    f: usize,
-    gap: usize,
-    n: usize,
-    device: &B::Device,
-) -> Result<Tensor<B, 3, Int>> {
-    let mut ids = Vec::with_capacity(picks.len() * f * n);
-    for &p in picks {
-        ids.extend(tokens.read(windows[p], f, gap)?.into_iter().map(i64::from));
-    }
-    Ok(Tensor::from_data(
-        TensorData::new(ids, [picks.len(), f, n]),
-        device,
-    ))
 }

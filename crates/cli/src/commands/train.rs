@@ -116,14 +116,27 @@ pub fn prepare(
         } else {
             vec![registry.clone()]
         };
-        let r = super::tokenize::with_progress(&registries, &data, &tc.tokens, Some(&tc.split), threads)?;
-        if r.written > 0 {
-            tracing::info!(
-                "{}: tokenized {} frames of {}",
-                tc.tokens.display(),
-                r.frames,
-                data_dir.display()
-            );
+        // The validation split (`train.val_every`) goes into the same cache; only rank 0 reads it.
+        let splits: Vec<&str> = std::iter::once(tc.split.as_str())
+            .chain((tc.val_every > 0 && tc.val_split != tc.split).then_some(tc.val_split.as_str()))
+            .collect();
+        for split in splits {
+            let registries = if split == tc.split {
+                registries.clone()
+            } else if tokens_missing(&data, &tc.tokens, Some(split))? > 0 {
+                super::tokenize::registries(config, &[device], threads, kinds)?
+            } else {
+                vec![registry.clone()]
+            };
+            let r = super::tokenize::with_progress(&registries, &data, &tc.tokens, Some(split), threads)?;
+            if r.written > 0 {
+                tracing::info!(
+                    "{}: tokenized {} frames of split `{split}` of {}",
+                    tc.tokens.display(),
+                    r.frames,
+                    data_dir.display()
+                );
+            }
         }
     }
     let tokens = TokenSet::open(&tc.tokens, layout.fingerprint()).with_context(|| {
