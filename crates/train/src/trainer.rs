@@ -9,7 +9,7 @@ use crate::validate::{Validation, load_batch};
 use burn::optim::{GradientsAccumulator, GradientsParams};
 use burn::tensor::backend::AutodiffBackend;
 use std::ops::ControlFlow;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 use umgen_backbone::Backbone;
 use umgen_checkpoint::CheckpointDir;
@@ -287,14 +287,7 @@ pub fn train<B: AutodiffBackend>(
             seconds = interval.elapsed().as_secs_f64() / (step - interval_from).max(1) as f64;
             (interval, interval_from) = (Instant::now(), step);
             v.push(("tokens_per_s".into(), tokens_per_step / seconds));
-            if let Some(log) = log.as_mut() {
-                log.log(step, &v.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>())
-                    .and_then(|()| log.flush())
-                    .map_err(|error| TrainError::Metrics {
-                        path: out.clone(),
-                        error,
-                    })?;
-            }
+            write_metrics(log.as_mut(), out, step, &v)?;
             let names: Vec<String> = v
                 .iter()
                 .take_while(|(k, _)| k != "lr")
@@ -373,17 +366,7 @@ pub fn train<B: AutodiffBackend>(
                 v.len(),
                 tc.val_split
             );
-            if let Some(log) = log.as_mut() {
-                log.log(
-                    step,
-                    &values.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>(),
-                )
-                .and_then(|()| log.flush())
-                .map_err(|error| TrainError::Metrics {
-                    path: out.clone(),
-                    error,
-                })?;
-            }
+            write_metrics(log.as_mut(), out, step, &values)?;
         }
         if stop {
             if lead {
@@ -400,5 +383,22 @@ pub fn train<B: AutodiffBackend>(
         first_loss,
         last_loss,
         checkpoint: last_ckpt,
+    })
+}
+
+/// Logs `values` at `step` into the run's metrics (rank 0 holds the log) and flushes them, so that a
+/// killed run keeps every line written.
+fn write_metrics(log: Option<&mut MetricLog>, out: &Path, step: u64, values: &[(String, f64)]) -> Result<()> {
+    let Some(log) = log else {
+        return Ok(());
+    };
+    log.log(
+        step,
+        &values.iter().map(|(k, x)| (k.as_str(), *x)).collect::<Vec<_>>(),
+    )
+    .and_then(|()| log.flush())
+    .map_err(|error| TrainError::Metrics {
+        path: out.to_path_buf(),
+        error,
     })
 }
