@@ -182,10 +182,13 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
                 let before_ego = t.before.as_ref().map_or(&t.last.ego, |(e, _)| e);
                 let ca_real =
                     constant_acceleration_agents(before_ego, real_before, &t.last.ego, real_last, dt, h);
-                for (predicted, errors, on_bins) in [
-                    (&cv, &mut cv_errors, &mut binned),
-                    (&ca, &mut ca_errors, &mut ca_binned),
-                    (&ca_real, &mut real_ca, &mut real_ca_binned),
+                // The binned constant-acceleration prediction is the model's hint, on the bins it names
+                // its agents in (the real next ego frame's).
+                let mut hint = None;
+                for (predicted, errors, on_bins, is_hint) in [
+                    (&cv, &mut cv_errors, &mut binned, false),
+                    (&ca, &mut ca_errors, &mut ca_binned, true),
+                    (&ca_real, &mut real_ca, &mut real_ca_binned, false),
                 ] {
                     errors.add(agent_errors(predicted, &true_pos));
                     if let Some(g) = &grid {
@@ -195,17 +198,18 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
                             q
                         });
                         on_bins.add(agent_errors(&on, &true_pos));
+                        if is_hint {
+                            hint = Some(on);
+                        }
                     }
                 }
                 if h == 1
                     && recorded_ego
-                    && let Some(g) = &grid
+                    && let Some(hint) = &hint
                 {
-                    // The hint on the bins the model names, in the real next ego frame it names them in.
-                    let hint = on_grid(&t.poses[0], &ca, |p| g.round_xy(p).0);
                     for s in &scenes[c * per..(c + 1) * per] {
                         let placed = positions(&t.poses[0], &s.frames[0].agents);
-                        hint_use.add(&HintUse::of(&placed, &hint, &true_pos, SAME_BIN_M));
+                        hint_use.add(&HintUse::of(&placed, hint, &true_pos, SAME_BIN_M));
                     }
                 }
                 real.extend(t.agents[h - 1].iter());

@@ -111,23 +111,21 @@ pub fn prepare(
         // Tokenize what is missing; finished shards are skipped.
         let data = Dataset::open(data_dir)?;
         let threads = super::tokenize::default_threads(&[device]);
-        let registries = if tokens_missing(&data, &tc.tokens, Some(&tc.split))? > 0 {
-            super::tokenize::registries(config, &[device], threads, kinds)?
-        } else {
-            vec![registry.clone()]
-        };
         // The validation split (`train.val_every`) goes into the same cache; only rank 0 reads it.
         let splits: Vec<&str> = std::iter::once(tc.split.as_str())
             .chain((tc.val_every > 0 && tc.val_split != tc.split).then_some(tc.val_split.as_str()))
             .collect();
+        let mut missing = 0;
+        for split in &splits {
+            missing += tokens_missing(&data, &tc.tokens, Some(split))?;
+        }
+        // One registry per thread (each loads the tokenizers) only where a split has frames to encode.
+        let registries = if missing > 0 {
+            super::tokenize::registries(config, &[device], threads, kinds)?
+        } else {
+            vec![registry.clone()]
+        };
         for split in splits {
-            let registries = if split == tc.split {
-                registries.clone()
-            } else if tokens_missing(&data, &tc.tokens, Some(split))? > 0 {
-                super::tokenize::registries(config, &[device], threads, kinds)?
-            } else {
-                vec![registry.clone()]
-            };
             let r = super::tokenize::with_progress(&registries, &data, &tc.tokens, Some(split), threads)?;
             if r.written > 0 {
                 tracing::info!(
