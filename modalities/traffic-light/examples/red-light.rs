@@ -12,7 +12,8 @@
 //! and the nearest to the ego that the modality tokenizes (the only ones a model with the modality is
 //! shown, e.g. with `generate --recorded ego,lights`); a model with the traffic-light modality is also
 //! measured against the lights it generated itself. Prints a Markdown
-//! table: crossings, crossings on red, their share, red approaches (a vehicle within 20 m behind a red
+//! table: crossings, crossings on red (and of those, the ones made above 5 m/s: driven through, not crept
+//! over while stopping), their share, red approaches (a vehicle within 20 m behind a red
 //! line) and red crossings per approach; and for such a model, how its lights agree with SUMO's (the stop
 //! lines of the 8 nearest recorded heads, a generated line at each, the same state).
 
@@ -21,7 +22,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use umgen::data::Dataset;
 use umgen::scene::{Frame, SceneClip};
-use umgen_modality_traffic_light::crossings::{Agreement, Crossings, StopLine, crossings, stop_lines};
+use umgen_modality_traffic_light::crossings::{
+    Agreement, Crossings, StopLine, THROUGH_MPS, crossings, stop_lines,
+};
 use umgen_modality_traffic_light::{TrafficLight, TrafficLightConfig};
 
 type Error = Box<dyn std::error::Error>;
@@ -129,9 +132,10 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
 fn row(name: &str, c: &Crossings, pairs: usize) -> String {
     let pct = |v: Option<f64>| v.map_or("–".into(), |v| format!("{:.1} %", 100.0 * v));
     format!(
-        "| {name} | {pairs} | {} | {} | {} | {} | {} |",
+        "| {name} | {pairs} | {} | {} | {} | {} | {} | {} |",
         c.total(),
         c.red,
+        c.red_through,
         pct(c.red_share()),
         c.red_approaches,
         pct(c.run_rate())
@@ -153,9 +157,9 @@ fn main() -> Result<(), Error> {
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
-        "| frames of | frame pairs | crossings | on red | share on red | red approaches | red run per approach |"
+        "| frames of | frame pairs | crossings | on red | on red above {THROUGH_MPS} m/s | share on red | red approaches | red run per approach |"
     )?;
-    writeln!(out, "|---|---|---|---|---|---|---|")?;
+    writeln!(out, "|---|---|---|---|---|---|---|---|")?;
     let (c, pairs) = recorded(&lights, &data, &split)?;
     writeln!(out, "{}", row(&format!("recorded `{split}`"), &c, pairs))?;
     let mut agreements = Vec::new();

@@ -15,6 +15,9 @@ const SAME_HEADING: f64 = 0.3;
 pub const HALF_LANE_M: f64 = 1.75;
 /// A vehicle farther behind a line than this (m) before the step did not cross it in one step.
 pub const MAX_APPROACH_M: f64 = 20.0;
+/// A vehicle crossing a red line faster than this (m/s, before the step) had not braked for it: it
+/// drove through, where a slower one may have crept over the line while stopping.
+pub const THROUGH_MPS: f64 = 5.0;
 
 /// One stop line in world coordinates and the state it shows.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -77,6 +80,8 @@ pub struct Crossings {
     pub off: u64,
     /// Lines showing red.
     pub red: u64,
+    /// Of `red`, those whose vehicle moved faster than [`THROUGH_MPS`] before the step.
+    pub red_through: u64,
     /// Lines showing yellow.
     pub yellow: u64,
     /// Lines showing green.
@@ -108,6 +113,7 @@ impl Crossings {
         self.red_approaches += o.red_approaches;
         self.off += o.off;
         self.red += o.red;
+        self.red_through += o.red_through;
         self.yellow += o.yellow;
         self.green += o.green;
     }
@@ -125,7 +131,8 @@ impl Crossings {
 /// The crossings from `prev` to `next` (consecutive frames): each vehicle in both (one track id) whose
 /// centre goes from behind a line of `lines` (the lines at `prev`, in world coordinates) to on or past
 /// it, within [`HALF_LANE_M`] of the heads where it crosses, counted under the line's state; and the red
-/// approaches before the step. Agent positions are in each frame's own ego frame (`Frame::ego`).
+/// approaches before the step. Agent positions are in each frame's own ego frame (`Frame::ego`); the
+/// speeds of red crossings are the vehicles' own velocities in `prev`.
 pub fn crossings(prev: &Frame, next: &Frame, lines: &[StopLine]) -> Crossings {
     let (p_ego, n_ego) = (prev.ego.pose2(), next.ego.pose2());
     let mut out = Crossings::default();
@@ -153,6 +160,9 @@ pub fn crossings(prev: &Frame, next: &Frame, lines: &[StopLine]) -> Crossings {
             let f = -s0 / (s1 - s0);
             if (d0 + f * (d1 - d0)).abs() <= HALF_LANE_M {
                 out.count(l.state);
+                if l.state == LightState::Red && a.vx.hypot(a.vy) > THROUGH_MPS {
+                    out.red_through += 1;
+                }
             }
         }
     }
@@ -263,6 +273,7 @@ mod tests {
             Crossings {
                 off: 0,
                 red: 1,
+                red_through: 0,
                 yellow: 0,
                 green: 1,
                 red_approaches: 2
@@ -270,6 +281,13 @@ mod tests {
         );
         assert_eq!(c.red_share(), Some(0.5));
         assert_eq!(c.run_rate(), Some(0.5));
+        // The vehicle's own velocity before the step decides: 6 m/s drove through, 4.9 m/s did not.
+        let mut fast = prev.clone();
+        fast.agents[0].vx = 6.0;
+        let mut slow = prev.clone();
+        slow.agents[0].vy = 4.9;
+        assert_eq!(crossings(&fast, &next, &lines).red_through, 1);
+        assert_eq!(crossings(&slow, &next, &lines).red_through, 0);
     }
 
     #[test]
