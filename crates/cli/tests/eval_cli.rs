@@ -175,6 +175,11 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         md.contains("## Over the horizon") && md.contains("\n| real | "),
         "{md}"
     );
+    assert!(
+        md.contains("| collision | onsets/s | onsets at speed into standing |"),
+        "{md}"
+    );
+    assert!(real["collision_onsets_per_s"].as_f64().unwrap() >= 0.0, "{real}");
     assert!(md.contains("| binned const. vel. mean |"), "{md}");
     assert!(md.contains("| vehicles off the map | entering off it |"), "{md}");
     assert!(md.contains("| binned const. acc. mean |"), "{md}");

@@ -61,6 +61,35 @@ pub fn colliding(agents: &[Agent]) -> (usize, usize) {
     (hit, agents.len())
 }
 
+/// Speeds (m/s) before the step of a collision driven at speed into a standing agent: one of the two
+/// slower than the first, the other faster than the second. Queued vehicles that close up touch at
+/// walking pace; a vehicle that did not brake for one standing ahead hits it above the second.
+pub const INTO_STANDING_M_S: (f64, f64) = (1.0, 5.0);
+
+/// Collisions that begin between two consecutive frames: pairs of agents (by `track_id`) present in
+/// both whose boxes overlap in `next` and did not in `prev`; and of them, those driven at speed into a
+/// standing agent ([`INTO_STANDING_M_S`], speeds in `prev`), which a generator that does not brake for
+/// what is ahead makes. Each frame's positions are in its own ego frame; overlap does not depend on the
+/// frame.
+pub fn collision_onsets(prev: &[Agent], next: &[Agent]) -> (usize, usize) {
+    let (standing, fast) = INTO_STANDING_M_S;
+    let before: std::collections::HashMap<u64, &Agent> = prev.iter().map(|a| (a.track_id, a)).collect();
+    let (mut onsets, mut into_standing) = (0, 0);
+    for (i, a) in next.iter().enumerate() {
+        for b in &next[i + 1..] {
+            let (Some(a0), Some(b0)) = (before.get(&a.track_id), before.get(&b.track_id)) else {
+                continue;
+            };
+            if overlap(a, b) && !overlap(a0, b0) {
+                onsets += 1;
+                let (va, vb) = (a0.vx.hypot(a0.vy), b0.vx.hypot(b0.vy));
+                into_standing += usize::from(va.min(vb) < standing && va.max(vb) > fast);
+            }
+        }
+    }
+    (onsets, into_standing)
+}
+
 /// Mean over frames (with agents) of the fraction of agents that collide; `None` without agents.
 pub fn collision_rate<'a>(frames: impl IntoIterator<Item = &'a [Agent]>) -> Option<f64> {
     let rates: Vec<f64> = frames
@@ -80,6 +109,40 @@ mod tests {
 
     fn car(x: f64, y: f64, heading: f64) -> Agent {
         bev_box(x, y, heading, 4.0, 2.0)
+    }
+
+    #[test]
+    fn collision_onsets_count_pairs_that_begin_to_overlap() {
+        let moving = |id: u64, x: f64, y: f64, vx: f64| Agent {
+            track_id: id,
+            vx,
+            ..car(x, y, 0.0)
+        };
+        // 1 runs at 10 m/s into 2, which stands; 3 and 4 drive side by side into each other; 5 and 6
+        // overlapped already; 7 is new and overlaps 1's new place (no onset: it has no frame before).
+        let prev = [
+            moving(1, 0.0, 0.0, 10.0),
+            moving(2, 6.0, 0.0, 0.0),
+            moving(3, 0.0, 10.0, 8.0),
+            moving(4, 0.0, 12.5, 8.0),
+            moving(5, 0.0, 20.0, 3.0),
+            moving(6, 3.0, 20.0, 3.0),
+        ];
+        let next = [
+            moving(1, 5.0, 0.0, 10.0),
+            moving(2, 6.0, 0.0, 0.0),
+            moving(3, 4.0, 10.0, 8.0),
+            moving(4, 4.0, 11.5, 8.0),
+            moving(5, 1.5, 20.0, 3.0),
+            moving(6, 4.5, 20.0, 3.0),
+            moving(7, 5.0, 1.0, 0.0),
+        ];
+        assert_eq!(collision_onsets(&prev, &next), (2, 1));
+        assert_eq!(collision_onsets(&next, &next), (0, 0));
+        // Closing up on the standing one at 4 m/s is not at speed.
+        let mut creeping = prev;
+        creeping[0].vx = 4.0;
+        assert_eq!(collision_onsets(&creeping, &next), (2, 0));
     }
 
     #[test]

@@ -1,11 +1,11 @@
 //! Scene statistics over a rollout's horizon, in the same terms for generated rollouts and real clips:
 //! agents per frame (mean and distribution), agents entering and leaving per second, the collision and
-//! off-road rates, how far moving agents' headings are from their direction of motion, the speed and
+//! off-road rates, the collisions that begin (and how many of them at speed into a standing agent), how far moving agents' headings are from their direction of motion, the speed and
 //! acceleration distributions, and how fast agents are when they enter. [`SceneStats`] gathers them frame
 //! by frame, each frame with the one before it in its sequence (entries, exits and accelerations need
 //! both); [`SceneStats::summary`] reports them.
 
-use crate::collision::colliding;
+use crate::collision::{colliding, collision_onsets};
 use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
 use serde::Serialize;
@@ -29,6 +29,9 @@ pub struct SceneStats {
     seconds: f64,
     /// Per frame with agents, the fraction that overlaps another.
     collision_rates: Vec<f64>,
+    /// Collisions begun between consecutive frames, and those driven at speed into a standing agent.
+    onsets: usize,
+    onsets_standing: usize,
     /// Agents tested against a map, and those off its drivable area.
     on_map: usize,
     off_road: usize,
@@ -89,6 +92,13 @@ pub struct Summary {
     pub exits_per_s: Option<f64>,
     /// Mean over frames with agents of the fraction that overlaps another (the authors' ratio).
     pub collision_rate: Option<f64>,
+    /// Collisions begun per second: pairs of agents whose boxes overlap in a frame and did not in the
+    /// one before.
+    pub collision_onsets_per_s: Option<f64>,
+    /// Of those, the fraction driven at speed into a standing agent
+    /// ([`crate::collision::INTO_STANDING_M_S`]: one below 1 m/s, the other above 5 m/s before the step).
+    /// `None` without onsets.
+    pub onsets_into_standing: Option<f64>,
     /// Fraction of agents whose centre is off the drivable area (lanes, connectors, intersections) of
     /// the scene's map; `None` without maps.
     pub off_road_rate: Option<f64>,
@@ -169,6 +179,9 @@ impl SceneStats {
                 }
             }
         }
+        let (onsets, standing) = collision_onsets(&before.agents, agents);
+        self.onsets += onsets;
+        self.onsets_standing += standing;
         self.transitions += 1;
         self.seconds += dt;
         self.entries += agents.len() - stayed;
@@ -194,6 +207,8 @@ impl SceneStats {
             entries_per_s: per_s(self.entries),
             exits_per_s: per_s(self.exits),
             collision_rate: mean(&self.collision_rates),
+            collision_onsets_per_s: per_s(self.onsets),
+            onsets_into_standing: share(self.onsets_standing, self.onsets),
             off_road_rate: share(self.off_road, self.on_map),
             vehicle_off_road_rate: share(self.vehicles_off_road, self.vehicles_on_map),
             entering_off_road_rate: share(self.entering_off_road, self.entering_on_map),
@@ -286,6 +301,11 @@ mod tests {
         );
         // Frame 2: agents 3 and 4 overlap (2 of 3); frame 1: none.
         assert_eq!(r.collision_rate, Some((0.0 + 2.0 / 3.0) / 2.0));
+        // They entered together, so no collision began between two frames of both.
+        assert_eq!(
+            (r.collision_onsets_per_s, r.onsets_into_standing),
+            (Some(0.0), None)
+        );
         // Off road: agent 2 (y = 20); in frame 2 the ego looks along +y, so ego (30, 0) is global (0, 30)
         // and (31, 0) is (0, 31): off; ego (0, -15) is global (15, 0): on.
         assert_eq!(r.off_road_rate, Some(3.0 / 5.0));
