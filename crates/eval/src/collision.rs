@@ -62,9 +62,10 @@ pub fn colliding(agents: &[Agent]) -> (usize, usize) {
 }
 
 /// Speeds (m/s) before the step of a collision driven at speed into a standing agent: one of the two
-/// slower than the first, the other faster than the second. Queued vehicles that close up touch at
-/// walking pace; a vehicle that did not brake for one standing ahead hits it above the second.
-pub const INTO_STANDING_M_S: (f64, f64) = (1.0, 5.0);
+/// slower than the first (not moving, as [`crate::horizon::MOVING_M_S`] has it), the other faster than
+/// the second. Queued vehicles that close up touch at walking pace; a vehicle that did not brake for one
+/// standing ahead hits it above the second.
+pub const INTO_STANDING_M_S: (f64, f64) = (crate::horizon::MOVING_M_S, 5.0);
 
 /// Collisions that begin between two consecutive frames: pairs of agents (by `track_id`) present in
 /// both whose boxes overlap in `next` and did not in `prev`; and of them, those driven at speed into a

@@ -1,7 +1,8 @@
 //! Scene statistics over a rollout's horizon, in the same terms for generated rollouts and real clips:
 //! agents per frame (mean and distribution), agents entering and leaving per second, the collision and
-//! off-road rates, the collisions that begin (and how many of them at speed into a standing agent), how far moving agents' headings are from their direction of motion, the speed and
-//! acceleration distributions, and how fast agents are when they enter. [`SceneStats`] gathers them frame
+//! off-road rates, the collisions that begin (and how many of them at speed into a standing agent), how
+//! far moving agents' headings are from their direction of motion, the speed and acceleration
+//! distributions, and how fast agents are when they enter. [`SceneStats`] gathers them frame
 //! by frame, each frame with the one before it in its sequence (entries, exits and accelerations need
 //! both); [`SceneStats::summary`] reports them.
 
@@ -96,8 +97,8 @@ pub struct Summary {
     /// one before.
     pub collision_onsets_per_s: Option<f64>,
     /// Of those, the fraction driven at speed into a standing agent
-    /// ([`crate::collision::INTO_STANDING_M_S`]: one below 1 m/s, the other above 5 m/s before the step).
-    /// `None` without onsets.
+    /// ([`crate::collision::INTO_STANDING_M_S`]: one below [`MOVING_M_S`], the other above 5 m/s before
+    /// the step). `None` without onsets.
     pub onsets_into_standing: Option<f64>,
     /// Fraction of agents whose centre is off the drivable area (lanes, connectors, intersections) of
     /// the scene's map; `None` without maps.
