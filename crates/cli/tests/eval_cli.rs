@@ -180,6 +180,16 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         "{md}"
     );
     assert!(real["collision_onsets_per_s"].as_f64().unwrap() >= 0.0, "{real}");
+    // SUMO's car-following model brakes for what stands ahead, and its queues drive off again.
+    assert!(
+        real["approach_braking"].as_f64().unwrap() > 0.8,
+        "real vehicles brake on the approach to a standing one: {real}"
+    );
+    assert!(real["starts_per_standing_s"].as_f64().unwrap() > 0.0, "{real}");
+    assert!(
+        md.contains("| approaches/s | braking on approach | starts/s |"),
+        "{md}"
+    );
     assert!(md.contains("| binned const. vel. mean |"), "{md}");
     assert!(md.contains("| vehicles off the map | entering off it |"), "{md}");
     assert!(md.contains("| binned const. acc. mean |"), "{md}");

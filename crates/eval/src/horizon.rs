@@ -2,10 +2,12 @@
 //! agents per frame (mean and distribution), agents entering and leaving per second, the collision and
 //! off-road rates, the collisions that begin (and how many of them at speed into a standing agent), how
 //! far moving agents' headings are from their direction of motion, the speed and acceleration
-//! distributions, and how fast agents are when they enter. [`SceneStats`] gathers them frame
+//! distributions, how fast agents are when they enter, how often they brake on the approach to a
+//! standing agent ([`crate::approach`]) and how soon standing agents drive off. [`SceneStats`] gathers them frame
 //! by frame, each frame with the one before it in its sequence (entries, exits and accelerations need
 //! both); [`SceneStats::summary`] reports them.
 
+use crate::approach::{ApproachRule, approaches};
 use crate::collision::{colliding, collision_onsets};
 use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
@@ -33,6 +35,12 @@ pub struct SceneStats {
     /// Collisions begun between consecutive frames, and those driven at speed into a standing agent.
     onsets: usize,
     onsets_standing: usize,
+    /// Approaches at speed to a standing agent ahead, and those that braked.
+    approaches: usize,
+    approaches_braked: usize,
+    /// Agents standing in a frame and present in the next, and those moving in the next.
+    standing: usize,
+    starts: usize,
     /// Agents tested against a map, and those off its drivable area.
     on_map: usize,
     off_road: usize,
@@ -100,6 +108,14 @@ pub struct Summary {
     /// ([`crate::collision::INTO_STANDING_M_S`]: one below [`MOVING_M_S`], the other above 5 m/s before
     /// the step). `None` without onsets.
     pub onsets_into_standing: Option<f64>,
+    /// Approaches per second: agents driving at speed towards a standing agent ahead in their lane
+    /// ([`ApproachRule`]'s defaults: above 5 m/s, less than 3 s away).
+    pub approaches_per_s: Option<f64>,
+    /// Of those, the fraction that slowed by at least 1 m/s² by the next frame. `None` without approaches.
+    pub approach_braking: Option<f64>,
+    /// Of the agents standing in a frame (below [`MOVING_M_S`]) and present in the next, the fraction
+    /// moving there (above it), per second: how soon a standing agent drives off. `None` without any.
+    pub starts_per_standing_s: Option<f64>,
     /// Fraction of agents whose centre is off the drivable area (lanes, connectors, intersections) of
     /// the scene's map; `None` without maps.
     pub off_road_rate: Option<f64>,
@@ -166,12 +182,17 @@ impl SceneStats {
             .iter()
             .map(|a| (a.track_id, global_velocity(&before.ego, a)))
             .collect();
+        let moving = |v: [f64; 2]| v[0].hypot(v[1]) > MOVING_M_S;
         let mut stayed = 0;
         for (a, off) in agents.iter().zip(vehicle_off) {
             if let Some(v0) = earlier.get(&a.track_id) {
                 stayed += 1;
                 let v1 = global_velocity(&frame.ego, a);
                 self.accelerations.push((v1[0] - v0[0]).hypot(v1[1] - v0[1]) / dt);
+                if !moving(*v0) {
+                    self.standing += 1;
+                    self.starts += usize::from(moving(v1));
+                }
             } else {
                 self.entry_speeds.push(a.vx.hypot(a.vy));
                 if let Some(off) = off {
@@ -183,10 +204,18 @@ impl SceneStats {
         let (onsets, standing) = collision_onsets(&before.agents, agents);
         self.onsets += onsets;
         self.onsets_standing += standing;
+        let (seen, braked) = approaches(&ApproachRule::default(), &before.agents, agents, dt);
+        self.approaches += seen;
+        self.approaches_braked += braked;
         self.transitions += 1;
         self.seconds += dt;
         self.entries += agents.len() - stayed;
         self.exits += before.agents.len() - stayed;
+    }
+
+    /// Mean seconds between the frames of the transitions.
+    fn step_s(&self) -> f64 {
+        self.seconds / self.transitions.max(1) as f64
     }
 
     /// The statistics gathered.
@@ -210,6 +239,9 @@ impl SceneStats {
             collision_rate: mean(&self.collision_rates),
             collision_onsets_per_s: per_s(self.onsets),
             onsets_into_standing: share(self.onsets_standing, self.onsets),
+            approaches_per_s: per_s(self.approaches),
+            approach_braking: share(self.approaches_braked, self.approaches),
+            starts_per_standing_s: share(self.starts, self.standing).map(|f| f / self.step_s()),
             off_road_rate: share(self.off_road, self.on_map),
             vehicle_off_road_rate: share(self.vehicles_off_road, self.vehicles_on_map),
             entering_off_road_rate: share(self.entering_off_road, self.entering_on_map),
@@ -230,161 +262,4 @@ pub fn second_of(h: usize, dt: f64) -> usize {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::collision::bev_box;
-    use umgen_scene::{Agent, EgoPose, RoadNetwork};
-
-    fn agent(id: u64, x: f64, y: f64, vx: f64, vy: f64, heading: f64) -> Agent {
-        Agent {
-            track_id: id,
-            vx,
-            vy,
-            ..bev_box(x, y, heading, 4.0, 2.0)
-        }
-    }
-
-    fn frame(heading: f64, agents: Vec<Agent>) -> Frame {
-        Frame {
-            ego: EgoPose {
-                x: 0.0,
-                y: 0.0,
-                heading,
-                speed: 0.0,
-            },
-            agents,
-            ..Frame::default()
-        }
-    }
-
-    /// A road 10 m wide along x through the origin.
-    fn road() -> Drivable {
-        Drivable::new(&RoadNetwork {
-            lanes: vec![vec![[-100.0, -5.0], [100.0, -5.0], [100.0, 5.0], [-100.0, 5.0]]],
-            ..RoadNetwork::default()
-        })
-    }
-
-    #[test]
-    fn entries_exits_collisions_angles_and_accelerations() {
-        use std::f64::consts::FRAC_PI_2;
-        let road = road();
-        // Frame 1: agents 1 (moving along +x, heading along it), 2 (a pedestrian standing off the road at
-        // y = 20).
-        let walker = Agent {
-            category: AgentCategory::Pedestrian,
-            ..agent(2, 0.0, 20.0, 0.0, 0.0, 1.0)
-        };
-        let f1 = frame(0.0, vec![agent(1, 10.0, 0.0, 10.0, 0.0, 0.0), walker]);
-        // Frame 2, 0.5 s later, the ego turned left by 90°: agent 1 is now at ego (0, -10)... with the same
-        // global velocity (+x) plus 1 m/s of +y: in the turned ego frame (-)x-global is -y-ego. Agent 2
-        // left; agents 3 and 4 entered and overlap; agent 3 drives 30° off its heading.
-        let a1 = agent(1, 0.0, -15.0, 1.0, -10.0, -FRAC_PI_2);
-        let f2 = frame(
-            FRAC_PI_2,
-            vec![
-                a1,
-                agent(3, 30.0, 0.0, 5.0, 0.0, 30f64.to_radians()),
-                agent(4, 31.0, 0.0, 0.0, 0.0, 0.0),
-            ],
-        );
-        let mut s = SceneStats::default();
-        s.add(&f1, None, 0.5, Some(&road));
-        s.add(&f2, Some(&f1), 0.5, Some(&road));
-        let r = s.summary();
-        assert_eq!(r.frames, 2);
-        assert_eq!(r.agents_mean, Some(2.5));
-        assert_eq!(r.agents_distribution, vec![0.0, 0.0, 0.5, 0.5]);
-        assert_eq!(
-            (r.entries_per_s, r.exits_per_s),
-            (Some(4.0), Some(2.0)),
-            "2 in and 1 out in 0.5 s"
-        );
-        // Frame 2: agents 3 and 4 overlap (2 of 3); frame 1: none.
-        assert_eq!(r.collision_rate, Some((0.0 + 2.0 / 3.0) / 2.0));
-        // They entered together, so no collision began between two frames of both.
-        assert_eq!(
-            (r.collision_onsets_per_s, r.onsets_into_standing),
-            (Some(0.0), None)
-        );
-        // Off road: agent 2 (y = 20); in frame 2 the ego looks along +y, so ego (30, 0) is global (0, 30)
-        // and (31, 0) is (0, 31): off; ego (0, -15) is global (15, 0): on.
-        assert_eq!(r.off_road_rate, Some(3.0 / 5.0));
-        // Vehicles alone: agents 3 and 4 of the 4 vehicles (the pedestrian left out).
-        assert_eq!(r.vehicle_off_road_rate, Some(2.0 / 4.0));
-        // Entering vehicles: agents 3 and 4 of frame 2, both off.
-        assert_eq!(r.entering_off_road_rate, Some(1.0));
-        // Both egos stand at the origin, on the road; one moved to y = 50 is off it.
-        assert_eq!(r.ego_off_road_rate, Some(0.0));
-        let mut off = f1.clone();
-        off.ego.y = 50.0;
-        s.add(&off, None, 0.5, Some(&road));
-        assert_eq!(s.summary().ego_off_road_rate, Some(1.0 / 3.0));
-        // Moving agents: 1 twice (0° and atan(1/10) ≈ 5.71° off), 3 (30°).
-        let m = r.heading_motion_median_deg.unwrap();
-        assert!((m - (1.0f64 / 10.0).atan().to_degrees()).abs() < 1e-9, "{m}");
-        // Agent 1's global velocity went from (10, 0) to (10, 1): 1 m/s in 0.5 s.
-        let a = r.acceleration.unwrap();
-        assert!((a.mean - 2.0).abs() < 1e-9 && a.p10 == a.p90, "{a:?}");
-        // Speeds 10, 0, √101, 5, 0: the 90th percentile lies 0.6 of the way from 10 to √101.
-        let p90 = r.speed.unwrap().p90;
-        assert!(
-            (p90 - (10.0 + 0.6 * (101f64.sqrt() - 10.0))).abs() < 1e-12,
-            "{p90}"
-        );
-        // Agents 3 (5 m/s) and 4 (standing) entered in frame 2.
-        let e = r.entry_speed.unwrap();
-        assert_eq!((e.mean, e.p50, e.p90), (2.5, 2.5, 4.5));
-    }
-
-    #[test]
-    fn where_vehicles_enter() {
-        let road = road();
-        let walker = |id, y| Agent {
-            category: AgentCategory::Pedestrian,
-            ..agent(id, 0.0, y, 0.0, 0.0, 0.0)
-        };
-        // Vehicle 1 stays on the road and walker 2 beside it; then vehicle 3 enters on the road, vehicle 4
-        // and walker 5 beside it, and vehicle 1 leaves the road.
-        let f1 = frame(0.0, vec![agent(1, 0.0, 0.0, 0.0, 0.0, 0.0), walker(2, 8.0)]);
-        let f2 = frame(
-            0.0,
-            vec![
-                agent(1, 0.0, 7.0, 0.0, 0.0, 0.0),
-                walker(2, 8.0),
-                agent(3, 20.0, 0.0, 0.0, 0.0, 0.0),
-                agent(4, 40.0, 9.0, 0.0, 0.0, 0.0),
-                walker(5, -9.0),
-            ],
-        );
-        let mut s = SceneStats::default();
-        s.add(&f1, None, 0.5, Some(&road));
-        s.add(&f2, Some(&f1), 0.5, Some(&road));
-        let r = s.summary();
-        assert_eq!(
-            r.entering_off_road_rate,
-            Some(1.0 / 2.0),
-            "vehicle 4 of vehicles 3 and 4"
-        );
-        assert_eq!(
-            r.vehicle_off_road_rate,
-            Some(2.0 / 4.0),
-            "vehicle 1 in frame 2 and vehicle 4"
-        );
-        assert_eq!(r.off_road_rate, Some(5.0 / 7.0));
-        // Without a map, nothing is known of the road.
-        let mut blind = SceneStats::default();
-        blind.add(&f1, None, 0.5, None);
-        blind.add(&f2, Some(&f1), 0.5, None);
-        assert_eq!(blind.summary().entering_off_road_rate, None);
-    }
-
-    #[test]
-    fn seconds_of_the_horizon() {
-        let s: Vec<usize> = (1..=5).map(|h| second_of(h, 0.5)).collect();
-        assert_eq!(s, [1, 1, 2, 2, 3]);
-        assert_eq!(second_of(1, 0.1), 1);
-        assert_eq!(second_of(10, 0.1), 1);
-        assert_eq!(second_of(11, 0.1), 2);
-    }
-}
+mod tests;

@@ -4,8 +4,10 @@
 //! how far [`kinematics`] alone predicts a dataset's agents, which bounds what beating that baseline can
 //! mean on it; and how a model uses the kinematic [`hint`] it is given. Over a rollout's [`horizon`], the
 //! same statistics for generated and real scenes: agents per frame, entries and exits, collisions, agents
-//! [`offroad`], heading against motion, speed and acceleration.
+//! [`offroad`], heading against motion, speed and acceleration, and whether agents brake on their
+//! [`approach`] to a standing one.
 
+pub mod approach;
 pub mod collision;
 pub mod hint;
 pub mod horizon;
