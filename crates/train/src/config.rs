@@ -60,7 +60,9 @@ pub struct TrainConfig {
     pub keep_checkpoints: usize,
     /// Token cache directory (made by `umgen tokenize`, or by `umgen train` from `data`).
     pub tokens: PathBuf,
-    /// Dataset to tokenize when the token cache is missing.
+    /// Dataset to tokenize when the token cache is missing. An empty path is none: `--set train.data=""`
+    /// trains from the token cache alone where the config names a dataset this machine lacks.
+    #[serde(deserialize_with = "path_or_none")]
     pub data: Option<PathBuf>,
     /// Split to train on.
     pub split: String,
@@ -336,6 +338,12 @@ impl TrainConfig {
         }
         v
     }
+}
+
+/// An optional path where an empty one means none.
+fn path_or_none<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Option<PathBuf>, D::Error> {
+    let p = Option::<PathBuf>::deserialize(d)?;
+    Ok(p.filter(|p| !p.as_os_str().is_empty()))
 }
 
 #[cfg(test)]

@@ -180,3 +180,15 @@ fn values_no_run_can_use_are_named_by_key() {
         "{e}"
     );
 }
+
+#[test]
+fn an_empty_dataset_path_is_none() {
+    let data = |json: &str| serde_json::from_str::<TrainConfig>(json).map(|c| c.data);
+    assert_eq!(data(r#"{"data": ""}"#).unwrap(), None);
+    assert_eq!(data(r#"{}"#).unwrap(), None);
+    assert_eq!(
+        data(r#"{"data": "data/sumo-more"}"#).unwrap(),
+        Some(PathBuf::from("data/sumo-more"))
+    );
+    assert!(data(r#"{"data": 3}"#).is_err(), "a number is no path");
+}
