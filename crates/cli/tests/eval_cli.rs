@@ -191,7 +191,10 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         "{md}"
     );
     assert!(md.contains("| binned const. vel. mean |"), "{md}");
-    assert!(md.contains("| vehicles off the map | entering off it |"), "{md}");
+    assert!(
+        md.contains("| vehicles off the map | entering off it | of those off, entered off |"),
+        "{md}"
+    );
     assert!(md.contains("| binned const. acc. mean |"), "{md}");
     assert!(md.contains("| binned real-state const. acc. mean |"), "{md}");
     let singles: Vec<serde_json::Value> = ids

@@ -3,8 +3,11 @@
 //! the generated ego pose, cells pooled over the frames as the tokenizer's own evaluation pools them
 //! ([`IouCounter`]). The context frames give the reference: their real codes decoded against the map at
 //! their real poses, what the map tokenizer alone keeps. Beside it, how the frame's vehicles sit on the
-//! map its own codes draw (all of them, and those entering the frame): a scene that places vehicles off
-//! its own roads is inconsistent whatever the real road does.
+//! map its own codes draw (all of them, those entering the frame, and of those off it the share that
+//! entered off it): a scene that places vehicles off its own roads is inconsistent whatever the real road
+//! does, and whether they drove off or came in off tells where to look.
+
+use std::collections::HashMap;
 
 use anyhow::Context;
 use umgen::data::Dataset;
@@ -25,11 +28,16 @@ struct Pooled {
     /// The same for vehicles absent from the frame before.
     entering: usize,
     entering_off: usize,
+    /// Vehicles off the map that entered off it (in their sequence's frames seen so far).
+    off_entered_off: usize,
 }
+
+/// Per vehicle (`track_id`) of one sequence of frames, whether it was off the map in the frame it entered.
+type Entered = HashMap<u64, bool>;
 
 impl Pooled {
     /// `{"frames", "iou": [per layer], "f1_within_1px": [per layer], "vehicles_off_map",
-    /// "entering_off_map"}`.
+    /// "entering_off_map", "off_map_entered_off"}`.
     fn json(&self) -> serde_json::Value {
         let f1: Vec<Option<f64>> = self.iou.near().iter().map(|n| n.map(|n| n.f1)).collect();
         let share = |n: usize, of: usize| (of > 0).then(|| n as f64 / of as f64);
@@ -39,11 +47,14 @@ impl Pooled {
             "f1_within_1px": f1,
             "vehicles_off_map": share(self.vehicles_off, self.vehicles),
             "entering_off_map": share(self.entering_off, self.entering),
+            "off_map_entered_off": share(self.off_entered_off, self.vehicles_off),
         })
     }
 
     /// Counts the vehicles of `agents` against the drivable `channels` of `map` (decoded with `view`);
-    /// those not in `before` (when known) also as entering. Vehicles outside the raster are left out.
+    /// those not in `before` (when known) also as entering, and records in `entered` where they entered.
+    /// Vehicles outside the raster are left out.
+    #[allow(clippy::too_many_arguments)]
     fn add_vehicles(
         &mut self,
         view: &MapView,
@@ -51,6 +62,7 @@ impl Pooled {
         channels: &[usize],
         agents: &[Agent],
         before: Option<&[Agent]>,
+        entered: &mut Entered,
     ) {
         for a in agents.iter().filter(|a| a.category == AgentCategory::Vehicle) {
             let Some(on) = on_drivable(view, map, channels, [a.x, a.y]) else {
@@ -62,7 +74,9 @@ impl Pooled {
             if before.is_some_and(|b| !b.iter().any(|o| o.track_id == a.track_id)) {
                 self.entering += 1;
                 self.entering_off += off;
+                entered.insert(a.track_id, !on);
             }
+            self.off_entered_off += usize::from(!on && entered.get(&a.track_id) == Some(&true));
         }
     }
 }
@@ -99,7 +113,9 @@ type MapCodes<'a> = (&'a dyn Modality, &'a Segment);
 
 /// Decodes the map codes of `row` (the other modalities are not decoded) and adds the map, against
 /// `network` rendered at the pose of `frame`, to `pooled`, with the vehicles of `frame` on it (entering
-/// ones against `before`, the frame before it); false when the codes decode to no map raster.
+/// ones against `before`, the frame before it, recorded in `entered`); false when the codes decode to no
+/// map raster.
+#[allow(clippy::too_many_arguments)]
 fn add_frame(
     (map, seg): MapCodes<'_>,
     view: &MapView,
@@ -108,6 +124,7 @@ fn add_frame(
     frame: &Frame,
     before: Option<&Frame>,
     pooled: &mut Pooled,
+    entered: &mut Entered,
 ) -> anyhow::Result<bool> {
     let codes = row.get(seg.content()).with_context(|| {
         format!(
@@ -134,7 +151,8 @@ fn add_frame(
     pooled.iou.add(c, [h, w], &cells(&decoded), &cells(&rendered));
     pooled.frames += 1;
     let before = before.map(|b| &b.agents[..]);
-    pooled.add_vehicles(view, &decoded, &drivable_channels(view), &frame.agents, before);
+    let channels = drivable_channels(view);
+    pooled.add_vehicles(view, &decoded, &channels, &frame.agents, before, entered);
     Ok(true)
 }
 
@@ -181,11 +199,23 @@ pub(super) fn map_consistency(
         };
         let first = c * per;
         // The context rows are the real frames' codes, the same in each of the context's scenes.
+        let mut entered = Entered::new();
         for (k, (row, f)) in rows[first][..n_context].iter().zip(&real.frames).enumerate() {
             let before = k.checked_sub(1).map(|j| &real.frames[j]);
-            without += usize::from(!add_frame(map, view, row, &network, f, before, &mut context)?);
+            let pooled = &mut context;
+            without += usize::from(!add_frame(
+                map,
+                view,
+                row,
+                &network,
+                f,
+                before,
+                pooled,
+                &mut entered,
+            )?);
         }
         for s in first..first + per {
+            let mut entered = Entered::new();
             for (k, (row, f)) in rows[s][n_context..].iter().zip(&scenes[s].frames).enumerate() {
                 let second = second_of(k + 1, dt);
                 if seconds.len() < second {
@@ -193,7 +223,16 @@ pub(super) fn map_consistency(
                 }
                 let before = k.checked_sub(1).map(|j| &scenes[s].frames[j]);
                 let pooled = &mut seconds[second - 1];
-                without += usize::from(!add_frame(map, view, row, &network, f, before, pooled)?);
+                without += usize::from(!add_frame(
+                    map,
+                    view,
+                    row,
+                    &network,
+                    f,
+                    before,
+                    pooled,
+                    &mut entered,
+                )?);
             }
         }
     }
@@ -257,13 +296,21 @@ mod tests {
             agent(6, walker, 0.0, -9.0), // a pedestrian: not counted
         ];
         let mut p = Pooled::default();
-        p.add_vehicles(&view, &map, &channels, &now, Some(&before));
+        let mut entered = Entered::new();
+        p.add_vehicles(&view, &map, &channels, &now, Some(&before), &mut entered);
         assert_eq!((p.vehicles, p.vehicles_off), (3, 1));
         assert_eq!((p.entering, p.entering_off), (2, 1));
+        assert_eq!(p.off_entered_off, 1, "3 entered off the road and is off it");
+        // A frame later 3 is still off, 1 left the road, 4 is on it: of the 3 off now (3 of the first
+        // frame, 3 and 1 of this one), 2 entered off it.
+        let later = [agent(1, car, 14.0, 9.0), now[1], now[2]];
+        p.add_vehicles(&view, &map, &channels, &later, Some(&now), &mut entered);
+        assert_eq!((p.vehicles_off, p.off_entered_off), (3, 2));
+        assert_eq!(p.json()["off_map_entered_off"].as_f64(), Some(2.0 / 3.0));
         // Without the frame before, nothing counts as entering.
         let mut first = Pooled::default();
-        first.add_vehicles(&view, &map, &channels, &now, None);
-        assert_eq!((first.vehicles, first.entering), (3, 0));
+        first.add_vehicles(&view, &map, &channels, &now, None, &mut Entered::new());
+        assert_eq!((first.vehicles, first.entering, first.off_entered_off), (3, 0, 0));
         let j = first.json();
         assert_eq!(j["vehicles_off_map"].as_f64(), Some(1.0 / 3.0));
         assert!(j["entering_off_map"].is_null(), "{j}");

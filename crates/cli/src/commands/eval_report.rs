@@ -249,15 +249,15 @@ pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Resul
          the F1 within one pixel in brackets. The context frames hold real codes at real poses: what the \
          tokenizer keeps. Off the map: the fraction of vehicles whose centre falls on a cell of the map their \
          own frame's codes decode to that no lane, intersection or lane connector covers, of all and of \
-         those entering.\n"
+         those entering; and of the vehicles off it, the share that was off it in the frame it entered.\n"
     )?;
     let names: Vec<&str> = layers.iter().filter_map(|l| l.as_str()).collect();
     writeln!(
         md,
-        "| second | frames | {} | vehicles off the map | entering off it |",
+        "| second | frames | {} | vehicles off the map | entering off it | of those off, entered off |",
         names.join(" | ")
     )?;
-    writeln!(md, "|---|---|{}---|---|", "---|".repeat(names.len()))?;
+    writeln!(md, "|---|---|{}---|---|---|", "---|".repeat(names.len()))?;
     let line = |md: &mut String, label: String, r: &serde_json::Value| {
         let ious: Vec<String> = (0..names.len())
             .map(|i| match r["f1_within_1px"][i].as_f64() {
@@ -267,11 +267,12 @@ pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Resul
             .collect();
         writeln!(
             md,
-            "| {label} | {} | {} | {} | {} |",
+            "| {label} | {} | {} | {} | {} | {} |",
             r["frames"],
             ious.join(" | "),
             num(&r["vehicles_off_map"]),
-            num(&r["entering_off_map"])
+            num(&r["entering_off_map"]),
+            num(&r["off_map_entered_off"])
         )
     };
     line(md, "context".into(), &map["context"])?;
