@@ -120,6 +120,9 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         "2 frames of 0.5 s: {horizon}"
     );
     assert_eq!(second["frames"], 6);
+    // With one second generated, the whole horizon pooled is that second, MMD and all.
+    assert_eq!(horizon["whole"]["generated"], *second, "{horizon}");
+    assert_eq!(horizon["whole"]["mmd"], horizon["seconds"][0]["mmd"]);
     let counts: Vec<usize> = frames.iter().flatten().map(Vec::len).collect();
     let mean = counts.iter().sum::<usize>() as f64 / 6.0;
     assert!(
@@ -172,7 +175,7 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     assert!(multi.join("eval/horizon.png").exists() || horizon["seconds"].as_array().unwrap().len() < 2);
     let md = std::fs::read_to_string(multi.join("eval/report.md")).unwrap();
     assert!(
-        md.contains("## Over the horizon") && md.contains("\n| real | "),
+        md.contains("## Over the horizon") && md.contains("\n| real | ") && md.contains("\n| 1–1 | "),
         "{md}"
     );
     assert!(

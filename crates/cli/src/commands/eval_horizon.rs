@@ -48,7 +48,8 @@ impl Maps<'_> {
     }
 }
 
-/// `{"real": …, "seconds": [{"second", "frames", "generated", "mmd"}]}` for generated `scenes` whose scene
+/// `{"real": …, "seconds": [{"second", "frames", "generated", "mmd"}], "whole": {"frames", "generated",
+/// "mmd"}}` (`whole`: every generated frame pooled, the horizon as one) for generated `scenes` whose scene
 /// `s` continues `contexts[s / per]` of `ds` (none: scenes from scratch, whose maps are unknown), `dt`
 /// seconds a frame, against `real` (the clips of the reference split, read with their networks).
 pub(super) fn horizon(
@@ -85,6 +86,7 @@ pub(super) fn horizon(
     let real_refs: Vec<&Agent> = real_agents.iter().collect();
     // The rollouts, second by second.
     let mut seconds: Vec<(SceneStats, Vec<&Agent>)> = Vec::new();
+    let (mut whole, mut whole_agents) = (SceneStats::default(), Vec::<&Agent>::new());
     for (s, scene) in scenes.iter().enumerate() {
         let map = match contexts.get(s / per.max(1)).and_then(|c| c["clip"].as_str()) {
             Some(id) => maps.of_clip(id)?,
@@ -96,8 +98,11 @@ pub(super) fn horizon(
                 seconds.resize_with(second, Default::default);
             }
             let (stats, agents) = &mut seconds[second - 1];
-            stats.add(f, k.checked_sub(1).map(|j| &scene.frames[j]), dt, map.as_deref());
+            let before = k.checked_sub(1).map(|j| &scene.frames[j]);
+            stats.add(f, before, dt, map.as_deref());
             agents.extend(f.agents.iter());
+            whole.add(f, before, dt, map.as_deref());
+            whole_agents.extend(f.agents.iter());
         }
     }
     let rows: Vec<serde_json::Value> = seconds
@@ -113,5 +118,14 @@ pub(super) fn horizon(
             })
         })
         .collect();
-    Ok(serde_json::json!({"real": real_stats.summary(), "seconds": rows}))
+    let whole = whole.summary();
+    Ok(serde_json::json!({
+        "real": real_stats.summary(),
+        "seconds": rows,
+        "whole": {
+            "frames": whole.frames,
+            "generated": whole,
+            "mmd": mmd_groups(&spaced(&whole_agents), &spaced(&real_refs)),
+        },
+    }))
 }

@@ -178,8 +178,8 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
     };
     writeln!(
         md,
-        "\n## Over the horizon\n\nPer second generated, against the real split over every frame of its clips \
-         (agents as the slots hold them). Collision: fraction of agents overlapping another; onsets: collisions \
+        "\n## Over the horizon\n\nPer second generated, and over the whole horizon (every generated frame pooled: \
+         the last row), against the real split over every frame of its clips (agents as the slots hold them). Collision: fraction of agents overlapping another; onsets: collisions \
          begun per second (pairs overlapping that did not a frame before), and the share of them driven at speed \
          into a standing agent (one below 1 m/s, the other above 5 m/s before); approaches: agents above 5 m/s \
          with a standing agent less than 3 s ahead in their lane, per second, and the share that braked by 1 m/s² \
@@ -232,6 +232,15 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
     line(md, "real".into(), &horizon["real"], None)?;
     for r in rows {
         line(md, r["second"].to_string(), &r["generated"], Some(&r["mmd"]))?;
+    }
+    let whole = &horizon["whole"];
+    if whole.is_object() {
+        line(
+            md,
+            format!("1–{}", rows.len()),
+            &whole["generated"],
+            Some(&whole["mmd"]),
+        )?;
     }
     Ok(())
 }
