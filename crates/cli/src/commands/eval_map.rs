@@ -198,21 +198,14 @@ pub(super) fn map_consistency(
             continue;
         };
         let first = c * per;
+        let add = |row: &[u32], f: &Frame, before, pooled: &mut Pooled, entered: &mut Entered| {
+            add_frame(map, view, row, &network, f, before, pooled, entered).map(|ok| usize::from(!ok))
+        };
         // The context rows are the real frames' codes, the same in each of the context's scenes.
         let mut entered = Entered::new();
         for (k, (row, f)) in rows[first][..n_context].iter().zip(&real.frames).enumerate() {
             let before = k.checked_sub(1).map(|j| &real.frames[j]);
-            let pooled = &mut context;
-            without += usize::from(!add_frame(
-                map,
-                view,
-                row,
-                &network,
-                f,
-                before,
-                pooled,
-                &mut entered,
-            )?);
+            without += add(row, f, before, &mut context, &mut entered)?;
         }
         for s in first..first + per {
             let mut entered = Entered::new();
@@ -222,17 +215,7 @@ pub(super) fn map_consistency(
                     seconds.resize_with(second, Pooled::default);
                 }
                 let before = k.checked_sub(1).map(|j| &scenes[s].frames[j]);
-                let pooled = &mut seconds[second - 1];
-                without += usize::from(!add_frame(
-                    map,
-                    view,
-                    row,
-                    &network,
-                    f,
-                    before,
-                    pooled,
-                    &mut entered,
-                )?);
+                without += add(row, f, before, &mut seconds[second - 1], &mut entered)?;
             }
         }
     }
