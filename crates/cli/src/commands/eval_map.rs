@@ -54,7 +54,6 @@ impl Pooled {
     /// Counts the vehicles of `agents` against the drivable `channels` of `map` (decoded with `view`);
     /// those not in `before` (when known) also as entering, and records in `entered` where they entered.
     /// Vehicles outside the raster are left out.
-    #[allow(clippy::too_many_arguments)]
     fn add_vehicles(
         &mut self,
         view: &MapView,
