@@ -188,9 +188,14 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         real["approach_braking"].as_f64().unwrap() > 0.8,
         "real vehicles brake on the approach to a standing one: {real}"
     );
+    // And most of those still at speed a step before begin to brake (0.67 on the test split).
+    assert!(
+        real["approach_braking_onset"].as_f64().unwrap() > 0.5,
+        "real vehicles begin to brake for a standing one ahead: {real}"
+    );
     assert!(real["starts_per_standing_s"].as_f64().unwrap() > 0.0, "{real}");
     assert!(
-        md.contains("| approaches/s | braking on approach | starts/s |"),
+        md.contains("| approaches/s | braking on approach | braking begun | starts/s |"),
         "{md}"
     );
     assert!(md.contains("| binned const. vel. mean |"), "{md}");

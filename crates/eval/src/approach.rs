@@ -39,21 +39,46 @@ impl Default for ApproachRule {
     }
 }
 
+/// Approaches counted over one step, and of them those that braked.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Approaches {
+    /// Approaches whose agent is still there in the next frame.
+    pub seen: usize,
+    /// Of those, the ones that braked over the step.
+    pub braked: usize,
+    /// Approaches whose agent was in the frame before as well and had not braked over that step: where
+    /// braking must begin rather than carry on. A generator that continues each agent's motion brakes
+    /// on the others without knowing what stands ahead.
+    pub unbraked: usize,
+    /// Of those, the ones that braked over the step.
+    pub unbraked_braked: usize,
+}
+
 /// Approaches in `prev` (an agent faster than [`ApproachRule::fast_m_s`] with a standing agent ahead in
 /// its lane, less than [`ApproachRule::time_gap_s`] away bumper to bumper) whose agent is still there in
 /// `next`, `dt` seconds later, and of them those that braked (speed down by at least
-/// [`ApproachRule::braking_m_s2`] × `dt`). Agents match by `track_id`; geometry and speeds do not depend
-/// on the frame, so each frame may be in its own ego frame.
-pub fn approaches(rule: &ApproachRule, prev: &[Agent], next: &[Agent], dt: f64) -> (usize, usize) {
-    let later: HashMap<u64, &Agent> = next.iter().map(|a| (a.track_id, a)).collect();
-    let speed = |a: &Agent| a.vx.hypot(a.vy);
-    let (mut seen, mut braked) = (0, 0);
+/// [`ApproachRule::braking_m_s2`] × `dt`); `earlier`, the frame `dt` before `prev` if there is one, tells
+/// which agents had not braked yet ([`Approaches::unbraked`]). Agents match by `track_id`; geometry and
+/// speeds do not depend on the frame, so each frame may be in its own ego frame.
+pub fn approaches(
+    rule: &ApproachRule,
+    earlier: Option<&[Agent]>,
+    prev: &[Agent],
+    next: &[Agent],
+    dt: f64,
+) -> Approaches {
+    let by_id =
+        |agents: &[Agent]| -> HashMap<u64, f64> { agents.iter().map(|a| (a.track_id, speed(a))).collect() };
+    let later = by_id(next);
+    let before = earlier.map(by_id).unwrap_or_default();
+    let braking = |from: f64, to: f64| from - to >= rule.braking_m_s2 * dt;
+    let mut out = Approaches::default();
     for a in prev {
         let v = speed(a);
         if v <= rule.fast_m_s {
             continue;
         }
-        let Some(a1) = later.get(&a.track_id) else {
+        let Some(&v1) = later.get(&a.track_id) else {
             continue;
         };
         let (c, s) = (a.heading.cos(), a.heading.sin());
@@ -69,12 +94,22 @@ pub fn approaches(rule: &ApproachRule, prev: &[Agent], next: &[Agent], dt: f64) 
                 && wrap_angle(b.heading - a.heading).abs().to_degrees() <= rule.heading_deg
                 && gap <= v * rule.time_gap_s
         });
-        if ahead {
-            seen += 1;
-            braked += usize::from(v - speed(a1) >= rule.braking_m_s2 * dt);
+        if !ahead {
+            continue;
+        }
+        let braked = usize::from(braking(v, v1));
+        out.seen += 1;
+        out.braked += braked;
+        if before.get(&a.track_id).is_some_and(|&v0| !braking(v0, v)) {
+            out.unbraked += 1;
+            out.unbraked_braked += braked;
         }
     }
-    (seen, braked)
+    out
+}
+
+fn speed(a: &Agent) -> f64 {
+    a.vx.hypot(a.vy)
 }
 
 #[cfg(test)]
@@ -88,6 +123,15 @@ mod tests {
             vx: speed * heading.cos(),
             vy: speed * heading.sin(),
             ..bev_box(x, y, heading, 4.0, 2.0)
+        }
+    }
+
+    /// Approaches without a frame before them: none counts as unbraked.
+    fn counts(seen: usize, braked: usize) -> Approaches {
+        Approaches {
+            seen,
+            braked,
+            ..Approaches::default()
         }
     }
 
@@ -116,11 +160,11 @@ mod tests {
         // Half a second later 1 is down to 9.4 m/s (1.2 m/s²): braked.
         let mut next = prev.clone();
         next[0] = car(1, 0.0, 4.9, up, 9.4);
-        assert_eq!(approaches(&rule, &prev, &next, 0.5), (1, 1));
+        assert_eq!(approaches(&rule, None, &prev, &next, 0.5), counts(1, 1));
         // Down to 9.6 m/s only (0.8 m/s²): an approach without braking; gone: no approach.
         next[0] = car(1, 0.0, 5.0, up, 9.6);
-        assert_eq!(approaches(&rule, &prev, &next, 0.5), (1, 0));
-        assert_eq!(approaches(&rule, &prev, &next[1..], 0.5), (0, 0));
+        assert_eq!(approaches(&rule, None, &prev, &next, 0.5), counts(1, 0));
+        assert_eq!(approaches(&rule, None, &prev, &next[1..], 0.5), counts(0, 0));
         // Rotated by 1 rad about the origin, the same scene holds the same approach.
         let turn = |a: &Agent| {
             let (c, s) = (1f64.cos(), 1f64.sin());
@@ -135,10 +179,43 @@ mod tests {
         };
         let (p2, n2): (Vec<Agent>, Vec<Agent>) =
             (prev.iter().map(turn).collect(), next.iter().map(turn).collect());
-        assert_eq!(approaches(&rule, &p2, &n2, 0.5), (1, 0));
+        assert_eq!(approaches(&rule, None, &p2, &n2, 0.5), counts(1, 0));
         // At 20 m/s the 40 m of agent 3 are within 3 s as well.
         let mut fast = prev.clone();
         fast[2] = car(3, 10.0, 0.0, up, 20.0);
-        assert_eq!(approaches(&rule, &fast, &fast, 0.5), (2, 0));
+        assert_eq!(approaches(&rule, None, &fast, &fast, 0.5), counts(2, 0));
+    }
+
+    #[test]
+    fn unbraked_approaches_are_those_whose_agent_kept_its_speed_the_step_before() {
+        let rule = ApproachRule::default();
+        let up = std::f64::consts::FRAC_PI_2;
+        // Two lanes along +y, each with a car 20 m behind a standing one. Half a second before, car 1
+        // drove at 10.2 m/s (0.4 m/s² down to 10: not braking) and car 3 at 11 m/s (2 m/s²: braking);
+        // car 5, a third approach, was not there.
+        let prev = vec![
+            car(1, 0.0, 0.0, up, 10.0),
+            car(2, 0.0, 20.0, up, 0.0),
+            car(3, 10.0, 0.0, up, 10.0),
+            car(4, 10.0, 20.0, up, 0.0),
+            car(5, 20.0, 0.0, up, 10.0),
+            car(6, 20.0, 20.0, up, 0.0),
+        ];
+        let earlier = vec![car(1, 0.0, -5.0, up, 10.2), car(3, 10.0, -5.0, up, 11.0)];
+        // Next, car 1 brakes (9 m/s) and cars 3 and 5 keep 10 m/s.
+        let mut next = prev.clone();
+        next[0] = car(1, 0.0, 4.8, up, 9.0);
+        let got = approaches(&rule, Some(&earlier), &prev, &next, 0.5);
+        let want = Approaches {
+            seen: 3,
+            braked: 1,
+            unbraked: 1,
+            unbraked_braked: 1,
+        };
+        assert_eq!(got, want);
+        // Car 1 keeps its speed instead: still unbraked, now without braking.
+        next[0] = car(1, 0.0, 5.0, up, 10.0);
+        let got = approaches(&rule, Some(&earlier), &prev, &next, 0.5);
+        assert_eq!((got.unbraked, got.unbraked_braked, got.braked), (1, 0, 0));
     }
 }

@@ -7,7 +7,7 @@
 //! by frame, each frame with the one before it in its sequence (entries, exits and accelerations need
 //! both); [`SceneStats::summary`] reports them.
 
-use crate::approach::{ApproachRule, approaches};
+use crate::approach::{ApproachRule, Approaches, approaches};
 use crate::collision::{colliding, collision_onsets};
 use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
@@ -36,8 +36,7 @@ pub struct SceneStats {
     onsets: usize,
     onsets_standing: usize,
     /// Approaches at speed to a standing agent ahead, and those that braked.
-    approaches: usize,
-    approaches_braked: usize,
+    approaches: Approaches,
     /// Agents standing in a frame and present in the next, and those moving in the next.
     standing: usize,
     starts: usize,
@@ -113,6 +112,9 @@ pub struct Summary {
     pub approaches_per_s: Option<f64>,
     /// Of those, the fraction that slowed by at least 1 m/s² by the next frame. `None` without approaches.
     pub approach_braking: Option<f64>,
+    /// The same fraction of the approaches whose agent had not braked over the step before
+    /// ([`Approaches::unbraked`]): braking that begins, not braking carried on. `None` without them.
+    pub approach_braking_onset: Option<f64>,
     /// Of the agents standing in a frame (below [`MOVING_M_S`]) and present in the next, the fraction
     /// moving there (above it), per second: how soon a standing agent drives off. `None` without any.
     pub starts_per_standing_s: Option<f64>,
@@ -140,9 +142,9 @@ pub struct Summary {
 }
 
 impl SceneStats {
-    /// Adds `frame`, with the frame `dt` seconds before it in its sequence (`None` at a sequence's start)
-    /// and the drivable area of its map, if known.
-    pub fn add(&mut self, frame: &Frame, before: Option<&Frame>, dt: f64, drivable: Option<&Drivable>) {
+    /// Adds `frame`, with the frames before it in its sequence (`dt` seconds apart, the last one just
+    /// before it; empty at a sequence's start) and the drivable area of its map, if known.
+    pub fn add(&mut self, frame: &Frame, before: &[Frame], dt: f64, drivable: Option<&Drivable>) {
         let agents = &frame.agents;
         self.counts.push(agents.len());
         if let Some(d) = drivable {
@@ -174,7 +176,7 @@ impl SceneStats {
             }
             vehicle_off.push(off.filter(|_| vehicle));
         }
-        let Some(before) = before else {
+        let Some((before, earlier_frames)) = before.split_last() else {
             return;
         };
         let earlier: HashMap<u64, [f64; 2]> = before
@@ -204,9 +206,12 @@ impl SceneStats {
         let (onsets, standing) = collision_onsets(&before.agents, agents);
         self.onsets += onsets;
         self.onsets_standing += standing;
-        let (seen, braked) = approaches(&ApproachRule::default(), &before.agents, agents, dt);
-        self.approaches += seen;
-        self.approaches_braked += braked;
+        let earliest = earlier_frames.last().map(|f| f.agents.as_slice());
+        let a = approaches(&ApproachRule::default(), earliest, &before.agents, agents, dt);
+        self.approaches.seen += a.seen;
+        self.approaches.braked += a.braked;
+        self.approaches.unbraked += a.unbraked;
+        self.approaches.unbraked_braked += a.unbraked_braked;
         self.transitions += 1;
         self.seconds += dt;
         self.entries += agents.len() - stayed;
@@ -239,8 +244,9 @@ impl SceneStats {
             collision_rate: mean(&self.collision_rates),
             collision_onsets_per_s: per_s(self.onsets),
             onsets_into_standing: share(self.onsets_standing, self.onsets),
-            approaches_per_s: per_s(self.approaches),
-            approach_braking: share(self.approaches_braked, self.approaches),
+            approaches_per_s: per_s(self.approaches.seen),
+            approach_braking: share(self.approaches.braked, self.approaches.seen),
+            approach_braking_onset: share(self.approaches.unbraked_braked, self.approaches.unbraked),
             starts_per_standing_s: share(self.starts, self.standing).map(|f| f / self.step_s()),
             off_road_rate: share(self.off_road, self.on_map),
             vehicle_off_road_rate: share(self.vehicles_off_road, self.vehicles_on_map),

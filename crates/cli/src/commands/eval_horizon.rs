@@ -78,8 +78,7 @@ pub(super) fn horizon(
         }
         let map = clip.network.as_deref().map(|n| maps.of(n));
         for (k, f) in clip.frames.iter().enumerate() {
-            let before = k.checked_sub(1).map(|j| &clip.frames[j]);
-            real_stats.add(f, before, clip.interval, map.as_deref());
+            real_stats.add(f, &clip.frames[..k], clip.interval, map.as_deref());
         }
         real_agents.extend(clip.frames.iter().flat_map(|f| f.agents.iter().cloned()));
     }
@@ -98,7 +97,7 @@ pub(super) fn horizon(
                 seconds.resize_with(second, Default::default);
             }
             let (stats, agents) = &mut seconds[second - 1];
-            let before = k.checked_sub(1).map(|j| &scene.frames[j]);
+            let before = &scene.frames[..k];
             stats.add(f, before, dt, map.as_deref());
             agents.extend(f.agents.iter());
             whole.add(f, before, dt, map.as_deref());

@@ -183,7 +183,7 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
          begun per second (pairs overlapping that did not a frame before), and the share of them driven at speed \
          into a standing agent (one below 1 m/s, the other above 5 m/s before); approaches: agents above 5 m/s \
          with a standing agent less than 3 s ahead in their lane, per second, and the share that braked by 1 m/s² \
-         or more by the next frame; starts: of the agents standing (below 1 m/s) in a frame, the share moving in the next, \
+         or more by the next frame (braking begun: the same share of the approaches whose agent had not braked over the step before); starts: of the agents standing (below 1 m/s) in a frame, the share moving in the next, \
          per second; off-road: fraction \
          of agent centres off the lanes, connectors and intersections (vehicles: of vehicle centres; entering: of vehicles in the frame they entered; ego: fraction of frames whose ego is); heading–motion: median angle between \
          heading and velocity of agents above 1 m/s; speed (m/s), acceleration (m/s²) and the speed of \
@@ -191,12 +191,12 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
     )?;
     writeln!(
         md,
-        "| second | frames | agents/frame | entries/s | exits/s | collision | onsets/s | onsets at speed into standing | approaches/s | braking on approach | starts/s | off-road | vehicles off-road | entering off-road | ego off-road | heading–motion ° | speed | acceleration | entering speed | MMD {} |",
+        "| second | frames | agents/frame | entries/s | exits/s | collision | onsets/s | onsets at speed into standing | approaches/s | braking on approach | braking begun | starts/s | off-road | vehicles off-road | entering off-road | ego off-road | heading–motion ° | speed | acceleration | entering speed | MMD {} |",
         Group::ALL.map(|g| g.name()).join(" / ")
     )?;
     writeln!(
         md,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )?;
     let spread = |v: &serde_json::Value| match (v["p50"].as_f64(), v["p90"].as_f64()) {
         (Some(a), Some(b)) => format!("{a:.2} ({b:.2})"),
@@ -208,7 +208,7 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
         });
         writeln!(
             md,
-            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {mmd} |",
+            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {mmd} |",
             s["frames"],
             num(&s["agents_mean"]),
             num(&s["entries_per_s"]),
@@ -218,6 +218,7 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
             num(&s["onsets_into_standing"]),
             num(&s["approaches_per_s"]),
             num(&s["approach_braking"]),
+            num(&s["approach_braking_onset"]),
             num(&s["starts_per_standing_s"]),
             num(&s["off_road_rate"]),
             num(&s["vehicle_off_road_rate"]),

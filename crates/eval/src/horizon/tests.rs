@@ -58,8 +58,8 @@ fn entries_exits_collisions_angles_and_accelerations() {
         ],
     );
     let mut s = SceneStats::default();
-    s.add(&f1, None, 0.5, Some(&road));
-    s.add(&f2, Some(&f1), 0.5, Some(&road));
+    s.add(&f1, &[], 0.5, Some(&road));
+    s.add(&f2, std::slice::from_ref(&f1), 0.5, Some(&road));
     let r = s.summary();
     assert_eq!(r.frames, 2);
     assert_eq!(r.agents_mean, Some(2.5));
@@ -87,7 +87,7 @@ fn entries_exits_collisions_angles_and_accelerations() {
     assert_eq!(r.ego_off_road_rate, Some(0.0));
     let mut off = f1.clone();
     off.ego.y = 50.0;
-    s.add(&off, None, 0.5, Some(&road));
+    s.add(&off, &[], 0.5, Some(&road));
     assert_eq!(s.summary().ego_off_road_rate, Some(1.0 / 3.0));
     // Moving agents: 1 twice (0° and atan(1/10) ≈ 5.71° off), 3 (30°).
     let m = r.heading_motion_median_deg.unwrap();
@@ -127,8 +127,8 @@ fn where_vehicles_enter() {
         ],
     );
     let mut s = SceneStats::default();
-    s.add(&f1, None, 0.5, Some(&road));
-    s.add(&f2, Some(&f1), 0.5, Some(&road));
+    s.add(&f1, &[], 0.5, Some(&road));
+    s.add(&f2, std::slice::from_ref(&f1), 0.5, Some(&road));
     let r = s.summary();
     assert_eq!(
         r.entering_off_road_rate,
@@ -143,8 +143,8 @@ fn where_vehicles_enter() {
     assert_eq!(r.off_road_rate, Some(5.0 / 7.0));
     // Without a map, nothing is known of the road.
     let mut blind = SceneStats::default();
-    blind.add(&f1, None, 0.5, None);
-    blind.add(&f2, Some(&f1), 0.5, None);
+    blind.add(&f1, &[], 0.5, None);
+    blind.add(&f2, std::slice::from_ref(&f1), 0.5, None);
     assert_eq!(blind.summary().entering_off_road_rate, None);
 }
 
@@ -169,18 +169,24 @@ fn standing_agents_that_drive_off_and_approaches() {
         ],
     );
     let mut s = SceneStats::default();
-    s.add(&f1, None, 0.5, None);
-    s.add(&f2, Some(&f1), 0.5, None);
+    s.add(&f1, &[], 0.5, None);
+    s.add(&f2, std::slice::from_ref(&f1), 0.5, None);
     let r = s.summary();
     // One of two standing agents drove off in one 0.5 s step.
     assert_eq!(r.starts_per_standing_s, Some(0.5 / 0.5));
     assert_eq!((r.approaches_per_s, r.approach_braking), (Some(2.0), Some(1.0)));
     // Frame 2 again after itself: 2 stands once more and stays, 1 moved already: 1 start of 3.
-    s.add(&f2, Some(&f2), 0.5, None);
+    s.add(&f2, &[f1.clone(), f2.clone()], 0.5, None);
     let r = s.summary();
     assert_eq!(r.starts_per_standing_s, Some(1.0 / 3.0 / 0.5));
     // 2 still stands and 3 still approaches at 9 m/s without slowing down: 2 approaches in 1 s.
     assert_eq!((r.approaches_per_s, r.approach_braking), (Some(2.0), Some(0.5)));
+    // 3 had braked from 10 to 9 m/s over the step before, so neither approach began unbraked.
+    assert_eq!(r.approach_braking_onset, None);
+    // Once more: now 3 kept 9 m/s over the step before and keeps it again, an unbraked approach
+    // without braking.
+    s.add(&f2, &[f1.clone(), f2.clone(), f2.clone()], 0.5, None);
+    assert_eq!(s.summary().approach_braking_onset, Some(0.0));
 }
 
 #[test]
