@@ -44,6 +44,13 @@ pub struct BackboneConfig {
     /// Move `track`'s slots by constant acceleration (the velocity's change since the window's previous
     /// frame kept for one more frame) instead of constant velocity. Needs `track`.
     pub track_accel: bool,
+    /// Brake `track`'s slots for a slower object ahead in their lane ([`crate::FollowSpec`]'s rule: the
+    /// deceleration that matches its speed before the gap closes): a moved slot otherwise carries its
+    /// motion on into a queue, and braking that has not begun is what a model copying its hint never
+    /// learns. Needs `track`. Left out of saved configs when off, so that manifests without it read as
+    /// before.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub track_follow: bool,
     /// Seconds between consecutive frames of a training window or a rollout (`train.gap` × the data's
     /// frame interval): how far `track` moves an object at its velocity. Training and generation refuse
     /// data that steps otherwise.
@@ -76,6 +83,7 @@ impl Default for BackboneConfig {
             ego_last: false,
             track: None,
             track_accel: false,
+            track_follow: false,
             step_s: 0.5,
             precision: Precision::F32,
             ordinal_init: true,

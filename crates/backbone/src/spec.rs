@@ -82,6 +82,50 @@ pub struct TrackSpec {
     /// window's previous frame is kept for one more frame (`backbone.track_accel`).
     #[serde(default)]
     pub accel: bool,
+    /// Brake for a slower object ahead in the lane (`backbone.track_follow`); absent from manifests
+    /// when off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub follow: Option<FollowSpec>,
+}
+
+/// When a tracked slot brakes for another ahead of it (`backbone.track_follow`). An object `j` leads
+/// object `i` when `j`'s centre lies ahead along `i`'s heading, within `half_width_m` of its axis, and
+/// `j` heads within `cos_heading` of `i`'s direction. Closing at `w` (m/s, `i`'s speed less `j`'s, both
+/// along `i`'s heading) with `r` metres left before the gap between their centres is `min_gap_m`
+/// (at least `min_room_m`), `i` needs `w² / (2r)` m/s² to match `j`'s speed in time; the hardest such
+/// braking over its leaders, once it reaches `onset_m_s2`, replaces the slot's velocity change along
+/// its heading where that is weaker, capped at `max_m_s2` and at a stop.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FollowSpec {
+    /// Most distance (m) of a leader's centre from the slot's axis: one lane.
+    pub half_width_m: f64,
+    /// Least cosine of the angle between the two headings: the same direction of travel.
+    pub cos_heading: f64,
+    /// Distance (m) between centres at which the slot should have the leader's speed: two half car
+    /// lengths and a standing gap.
+    pub min_gap_m: f64,
+    /// Least room (m) the rule divides by, so that a leader closer than `min_gap_m` asks for the
+    /// strongest braking rather than a division by nothing.
+    pub min_room_m: f64,
+    /// Least deceleration (m/s²) that changes the hint: below it the slot keeps its motion.
+    pub onset_m_s2: f64,
+    /// Most deceleration (m/s²) the hint applies.
+    pub max_m_s2: f64,
+}
+
+impl Default for FollowSpec {
+    /// SUMO-like cars: 5 m long with a standing gap of 2.5 m, lanes 3.2 m wide, emergency braking of
+    /// 9 m/s²; braking from 1 m/s², twice the noise of 1,024 velocity bins over a 0.5 s step.
+    fn default() -> Self {
+        Self {
+            half_width_m: 1.5,
+            cos_heading: 30f64.to_radians().cos(),
+            min_gap_m: 7.5,
+            min_room_m: 0.5,
+            onset_m_s2: 1.0,
+            max_m_s2: 9.0,
+        }
+    }
 }
 
 impl TrackSpec {

@@ -8,15 +8,16 @@
 //! the slot so moved (re-binned; other tokens, empty slots and categories as they are) next to the
 //! slot's own, and again at its output, so that "keep going" is a copy and what the model learns is the
 //! departure from it. With `accel` the slot moves by constant acceleration instead: the velocity's change
-//! since the window's previous frame is kept for one more frame.
+//! since the window's previous frame is kept for one more frame. With `follow` a slot closing on a slower
+//! one ahead in its lane brakes as much as it must to match its speed in time ([`FollowSpec`]).
 
 use crate::config::Precision;
 use crate::embed::FrameEmbedding;
-use crate::spec::{BackboneSpec, TrackSpec};
+use crate::spec::{BackboneSpec, FollowSpec, TrackSpec};
 use burn::module::Module;
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
-use burn::tensor::{Int, Tensor};
+use burn::tensor::{Bool, Int, Tensor};
 use std::f64::consts::PI;
 use umgen_ops::Kernels;
 use umgen_ops::linear::linear;
@@ -101,6 +102,15 @@ pub fn moved<B: Backend>(
     } else {
         (vx.zeros_like(), vy.zeros_like())
     };
+    let x_index = spec.fields[0].0;
+    let occupied = column(x_index).lower_elem(spec.values as i64);
+    let (dvx, dvy) = match &spec.follow {
+        Some(f) => {
+            let state = [&x, &y, &vx, &vy, &heading].map(|v| (*v).clone());
+            follow(f, spec.step_s, occupied.clone(), state, (dvx, dvy))
+        }
+        None => (dvx, dvy),
+    };
     // Where the velocity takes the object, relative to where the ego will be, then turned by −dθ.
     let ds = spec.step_s;
     let px = x + (vx.clone() + dvx.clone().mul_scalar(0.5)).mul_scalar(ds) - dx;
@@ -131,11 +141,48 @@ pub fn moved<B: Backend>(
     if let Some(pad) = spec.pad {
         moved = moved.mask_fill(stays.bool_not().expand([b, t, s, k]), i64::from(pad));
     }
-    let x_index = spec.fields[0].0;
-    let occupied = column(x_index)
-        .lower_elem(spec.values as i64)
-        .expand([b, t, s, k]);
-    slots.mask_where(occupied, moved).reshape([b, t, l])
+    slots
+        .mask_where(occupied.expand([b, t, s, k]), moved)
+        .reshape([b, t, l])
+}
+
+/// The velocity changes `(dvx, dvy)` `[b, t, s, 1]` of slots `[b, t, s, 1]` (`occupied`, and their x, y,
+/// vx, vy and heading) with the braking [`FollowSpec`] asks for over a step of `dt` seconds where it is
+/// harder than the change along the slot's heading. The arithmetic is [`crate::track`]'s hint, op for op
+/// in f32, which the generation engine repeats (its host and device `track` ops).
+fn follow<B: Backend>(
+    f: &FollowSpec,
+    dt: f64,
+    occupied: Tensor<B, 4, Bool>,
+    [x, y, vx, vy, heading]: [Tensor<B, 4>; 5],
+    (dvx, dvy): (Tensor<B, 4>, Tensor<B, 4>),
+) -> (Tensor<B, 4>, Tensor<B, 4>) {
+    // Slot i along dim 2, its possible leader j along dim 3.
+    let (c, s) = (heading.clone().cos(), heading.sin());
+    let other = |v: &Tensor<B, 4>| v.clone().swap_dims(2, 3);
+    let (dx, dy) = (other(&x) - x, other(&y) - y);
+    let along = dx.clone() * c.clone() + dy.clone() * s.clone();
+    let across = dy * c.clone() - dx * s.clone();
+    let same_way = other(&c) * c.clone() + other(&s) * s.clone();
+    let speed = vx.clone() * c.clone() + vy.clone() * s.clone();
+    let closing = speed.clone() - (other(&vx) * c.clone() + other(&vy) * s.clone());
+    let room = along.clone().sub_scalar(f.min_gap_m).clamp_min(f.min_room_m);
+    let need = closing.clone() * closing.clone() / room.mul_scalar(2.0);
+    let leads = other(&occupied.clone().float())
+        .greater_elem(0.5)
+        .bool_and(along.greater_elem(0.0))
+        .bool_and(across.abs().lower_equal_elem(f.half_width_m))
+        .bool_and(same_way.greater_equal_elem(f.cos_heading))
+        .bool_and(closing.greater_elem(0.0));
+    let hardest = need.mask_fill(leads.bool_not(), 0.0).max_dim(3);
+    let brakes = occupied.bool_and(hardest.clone().greater_equal_elem(f.onset_m_s2));
+    let target = hardest
+        .clamp_max(f.max_m_s2)
+        .mul_scalar(-dt)
+        .max_pair(speed.neg());
+    let change = dvx.clone() * c.clone() + dvy.clone() * s.clone();
+    let delta = (target - change).clamp_max(0.0).mask_fill(brakes.bool_not(), 0.0);
+    (dvx + delta.clone() * c, dvy + delta * s)
 }
 
 /// `(a, b)` turned by −θ, given `cos θ` and `sin θ` (broadcast): a vector seen from a frame turned by θ.

@@ -1,5 +1,6 @@
 //! The PyTorch runner (`runners/python`) against umgen on the tiny fixture with every option the manifest
-//! can hold on (ego module with its own action, AMA, tracked slots by constant acceleration): the logits of
+//! can hold on (ego module with its own action, AMA, tracked slots by constant acceleration braking for
+//! slower ones ahead): the logits of
 //! the bundle's golden file, greedy frames token for token, and a refused unknown setting
 //! (`tests/python/check_runner.py`).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
@@ -16,7 +17,7 @@ fn the_python_runner_computes_umgens_logits_and_greedy_frames() {
     let cfg = fx.config("r", 12).unwrap();
     let text = std::fs::read_to_string(&cfg).unwrap().replace(
         "[backbone]\n",
-        "[backbone]\ntrack = \"agent\"\ntrack_accel = true\nego_last = true\n",
+        "[backbone]\ntrack = \"agent\"\ntrack_accel = true\ntrack_follow = true\nego_last = true\n",
     );
     std::fs::write(&cfg, text).unwrap();
     ok(umgen(&["train", "--config", cfg.to_str().unwrap()]));

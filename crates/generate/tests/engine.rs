@@ -1,12 +1,12 @@
 //! The generation engine on the host executor against the burn decoder (`Generator`): greedy frames are the
 //! same frames, on a model with every option the engine runs (a codebook table, the ego module with each
-//! frame's own action, AMA, tracked slots moved by constant acceleration) and under every rule a control
+//! frame's own action, AMA, tracked slots moved by constant acceleration and braking for one ahead) and under every rule a control
 //! sets (token groups with the new-agent rule, keep redraws, placed tokens, id limits, forced actions),
 //! over a rollout that slides the window, from nothing and in chunks of scenes; sampled frames keep the
 //! rules and repeat with their seed.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
-use umgen_backbone::{ActionSpec, AlignSpec, Backbone, BackboneSpec, Slot, TrackSpec};
+use umgen_backbone::{ActionSpec, AlignSpec, Backbone, BackboneSpec, FollowSpec, Slot, TrackSpec};
 use umgen_generate::engine::{Engine, EngineSettings, HostExec};
 use umgen_generate::{FrameControl, Generator, GivenSegment, GroupBoxes, Sampling, TokenGroups};
 
@@ -46,6 +46,12 @@ fn model() -> Backbone<F> {
             step_s: 0.5,
             pad: Some(PAD),
             accel: true,
+            // Scaled to slots 2 m apart: a slot brakes for the other from 1 m/s².
+            follow: Some(FollowSpec {
+                half_width_m: 2.0,
+                min_gap_m: 1.0,
+                ..FollowSpec::default()
+            }),
         }),
     };
     seeded(&config(), &spec, 11)

@@ -37,6 +37,7 @@ fn model() -> Backbone<F> {
             // Constant acceleration reads the window's previous frame: generation must see it as the
             // teacher-forced pass does.
             accel: true,
+            follow: None,
         }),
     };
     seeded(&config(), &spec, 9)

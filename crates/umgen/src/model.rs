@@ -1,7 +1,9 @@
 //! The backbone's view of a registry.
 
 use crate::error::{Result, UmgenError};
-use umgen_backbone::{ActionSpec, AlignSpec, BackboneConfig, BackboneSpec, SegmentSpec, TrackSpec};
+use umgen_backbone::{
+    ActionSpec, AlignSpec, BackboneConfig, BackboneSpec, FollowSpec, SegmentSpec, TrackSpec,
+};
 use umgen_modality::{ModalityError, ModalityRegistry};
 
 fn config_error(key: &str, message: String) -> UmgenError {
@@ -93,6 +95,12 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
                 "moving tracked slots by their acceleration needs `backbone.track`".into(),
             ));
         }
+        None if cfg.track_follow => {
+            return Err(config_error(
+                "backbone.track_follow",
+                "braking tracked slots for what is ahead needs `backbone.track`".into(),
+            ));
+        }
         None => None,
         Some(name) => {
             let i = index("backbone.track", name)?;
@@ -122,6 +130,7 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
                 step_s: cfg.step_s,
                 pad: layout.segments()[i].pad_id,
                 accel: cfg.track_accel,
+                follow: cfg.track_follow.then(FollowSpec::default),
             })
         }
     };

@@ -18,14 +18,15 @@ BACKBONE_KEYS = {
     "d_model": None, "heads": None, "embed_dim": None, "mlp_ratio": None, "dropout": None,
     "ego_hist_layers": None, "ego_env_layers": None, "tar_layers": None, "oar_layers": None,
     "max_frames": None, "action": None, "align": None, "ego_last": None, "track": None,
-    "track_accel": None, "step_s": None, "precision": {"f32", "bf16", "bf16-linear"}, "ordinal_init": None,
+    "track_accel": None, "track_follow": None, "step_s": None, "precision": {"f32", "bf16", "bf16-linear"}, "ordinal_init": None,
 }
 SPEC_KEYS = {
     "": {"n", "segments", "action", "align", "track"},
     "segments": {"label", "block_start", "block_len", "offset", "tokens", "vocab", "embed_vocab", "ordinal"},
     "action": {"segment", "bins"},
     "align": {"segment", "rows", "cols", "cell_m"},
-    "track": {"segment", "slot", "values", "fields", "step_s", "pad", "accel"},
+    "track": {"segment", "slot", "values", "fields", "step_s", "pad", "accel", "follow"},
+    "follow": {"half_width_m", "cos_heading", "min_gap_m", "min_room_m", "onset_m_s2", "max_m_s2"},
 }
 # burn's layer-norm parameter names, and PyTorch's.
 NORM_NAMES = {"gamma": "weight", "beta": "bias"}
@@ -69,6 +70,8 @@ def check_settings(manifest):
     for part in ("action", "align", "track"):
         if spec.get(part):
             _known(f"manifest backbone.{part}.", spec[part], SPEC_KEYS[part])
+    if spec.get("track") and spec["track"].get("follow"):
+        _known("manifest backbone.track.follow.", spec["track"]["follow"], SPEC_KEYS["follow"])
     gen = manifest.get("generation")
     if gen is None:
         raise BundleError("the manifest has no `generation` section: export the bundle again with a newer umgen")

@@ -68,6 +68,39 @@ def _change(slots, action, track, vx, vy):
     return dvx.masked_fill(drop, 0.0), dvy.masked_fill(drop, 0.0)
 
 
+def _follow(rule, dt, occupied, state, dvx, dvy):
+    """The velocity changes ``(dvx, dvy)`` ``[b, t, s, 1]`` with the braking ``rule`` (the manifest's
+    ``track.follow``) asks for over ``dt`` seconds where it is harder than the change along the slot's
+    heading: the hardest ``w² / 2r`` over the slower slots ahead in its lane, op for op as umgen's."""
+    x, y, vx, vy, heading = state
+    c, s = torch.cos(heading), torch.sin(heading)
+
+    def other(v):
+        return v.transpose(2, 3)
+
+    dx, dy = other(x) - x, other(y) - y
+    along = dx * c + dy * s
+    across = dy * c - dx * s
+    same_way = other(c) * c + other(s) * s
+    speed = vx * c + vy * s
+    closing = speed - (other(vx) * c + other(vy) * s)
+    room = torch.clamp(along - rule["min_gap_m"], min=rule["min_room_m"])
+    need = closing * closing / (room * 2.0)
+    leads = (
+        other(occupied)
+        & (along > 0.0)
+        & (across.abs() <= rule["half_width_m"])
+        & (same_way >= _scalar(same_way, rule["cos_heading"]))
+        & (closing > 0.0)
+    )
+    hardest = need.masked_fill(~leads, 0.0).amax(dim=3, keepdim=True)
+    brakes = occupied & (hardest >= rule["onset_m_s2"])
+    target = torch.maximum(torch.clamp(hardest, max=rule["max_m_s2"]) * (-dt), -speed)
+    change = dvx * c + dvy * s
+    delta = torch.clamp(target - change, max=0.0).masked_fill(~brakes, 0.0)
+    return dvx + delta * c, dvy + delta * s
+
+
 def moved(ids, action, track):
     """Ids ``[b, t, slots·slot]`` of the tracked segment with every occupied slot moved by its velocity
     over ``step_s`` (by constant acceleration with ``accel``) into the frame reached by ``action`` ``[b, t,
@@ -87,6 +120,9 @@ def moved(ids, action, track):
         dvx, dvy = _change(slots, action, track, vx, vy)
     else:
         dvx, dvy = torch.zeros_like(vx), torch.zeros_like(vy)
+    occupied = column(fields[0][0]) < track["values"]
+    if track.get("follow"):
+        dvx, dvy = _follow(track["follow"], track["step_s"], occupied, (x, y, vx, vy, heading), dvx, dvy)
     ds = track["step_s"]
     px = x + (vx + dvx * 0.5) * ds - dx
     py = y + (vy + dvy * 0.5) * ds - dy
@@ -108,5 +144,4 @@ def moved(ids, action, track):
     out = torch.cat(columns, 3)
     if track.get("pad") is not None:
         out = out.masked_fill(~stays.expand(-1, -1, -1, k), track["pad"])
-    occupied = column(fields[0][0]) < track["values"]
     return torch.where(occupied.expand(-1, -1, -1, k), out, slots).reshape(b, t, l)

@@ -20,6 +20,7 @@ fn spec() -> TrackSpec {
         step_s: 0.5,
         pad: Some(9),
         accel: false,
+        follow: None,
     }
 }
 
@@ -222,4 +223,86 @@ fn a_slot_moved_out_of_the_window_empties_where_there_is_a_pad() {
     );
     let clamped = run(&TrackSpec { pad: None, ..spec() });
     assert_eq!(clamped, vec![7, 5, 7, 4, 6, 8], "without a pad: the end bin");
+}
+
+#[test]
+fn a_slot_closing_on_a_standing_one_ahead_in_its_lane_brakes_to_meet_it() {
+    // Bins of 0.125 m, 0.039 m/s and 0.35°; no ego motion. Slot 0 drives along +x at 10 m/s with
+    // slot 1 standing 20 m ahead, 0.3 m aside. Slot 2 drives at 10 m/s 65 m behind slot 1 (0.87 m/s²
+    // would do: under the onset) and 45 m behind slot 0, as fast as it. Slot 3 drives in the next lane,
+    // slot 5 towards slot 0 from ahead, slot 4 is empty.
+    let lo_v = -20.0;
+    let k = TrackSpec {
+        slot: 6,
+        values: 1024,
+        fields: [
+            (0, (-64.0, 64.0, 1024)),
+            (1, (-64.0, 64.0, 1024)),
+            (2, (lo_v, 20.0, 1024)),
+            (3, (lo_v, 20.0, 1024)),
+            (4, (-PI, PI, 1024)),
+        ],
+        pad: Some(1027),
+        follow: Some(FollowSpec::default()),
+        ..spec()
+    };
+    let bin = |j: usize, v: f64| {
+        let (lo, hi, n) = k.fields[j].1;
+        ((v - lo) / ((hi - lo) / f64::from(n))).floor() as i64
+    };
+    let car = |x: f64, y: f64, v: f64, h: f64| {
+        [
+            bin(0, x),
+            bin(1, y),
+            bin(2, v * h.cos()),
+            bin(3, v * h.sin()),
+            bin(4, h),
+            1024,
+        ]
+    };
+    let frame: Vec<i64> = [
+        car(0.06, 0.06, 10.0, 0.0),
+        car(20.0, 0.3, 0.0, 0.0),
+        car(-45.0, 0.0, 10.0, 0.0),
+        car(0.0, 10.0, 10.0, 0.0),
+        [1027; 6],
+        car(10.0, -0.2, 10.0, PI - 0.01),
+    ]
+    .concat();
+    let dev = Default::default();
+    let run = |k: &TrackSpec| {
+        moved::<F>(
+            Tensor::from_data(TensorData::new(frame.clone(), [1, 1, 36]), &dev),
+            Tensor::from_data(TensorData::new(vec![0.0f32; 3], [1, 1, 3]), &dev),
+            k,
+        )
+        .into_data()
+        .iter::<i64>()
+        .collect::<Vec<_>>()
+    };
+    let (braked, kept) = (run(&k), run(&TrackSpec { follow: None, ..k }));
+    assert_eq!(
+        braked[6..],
+        kept[6..],
+        "only slot 0 has a slower leader near enough"
+    );
+    // Slot 0 from its bins' centres: (u0 − u1)² / (2 (along − 7.5 m)) ≈ 4 m/s², 2 m/s less over the
+    // step, half of that on the way.
+    let at = |s: usize, j: usize| value_of(&frame[6 * s..6 * s + 6], j, &k);
+    let (u0, u1) = (at(0, 2), at(1, 2));
+    let need = (u0 - u1).powi(2) / (2.0 * (at(1, 0) - at(0, 0) - 7.5));
+    assert!((need - 4.0).abs() < 0.1, "{need}");
+    let v = u0 - 0.5 * need;
+    assert_eq!(braked[0], bin(0, at(0, 0) + 0.5 * (u0 + v) / 2.0));
+    assert_eq!(braked[2], bin(2, v));
+    assert!(kept[2] - braked[2] >= 50, "{} against {}", braked[2], kept[2]);
+    // A leader at 9.9 m/s: closing at 0.1 m/s asks for next to nothing, under the onset.
+    let mut slow = frame.clone();
+    slow[8] = bin(2, 9.9);
+    let got = moved::<F>(
+        Tensor::from_data(TensorData::new(slow, [1, 1, 36]), &dev),
+        Tensor::from_data(TensorData::new(vec![0.0f32; 3], [1, 1, 3]), &dev),
+        &k,
+    );
+    assert_eq!(got.into_data().iter::<i64>().next(), Some(kept[0]));
 }

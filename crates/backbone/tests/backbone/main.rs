@@ -96,6 +96,7 @@ pub fn spec() -> BackboneSpec {
             step_s: 0.5,
             pad: Some(9),
             accel: false,
+            follow: None,
         }),
     }
 }
@@ -117,6 +118,7 @@ pub fn config() -> BackboneConfig {
         ego_last: true,
         track: None,
         track_accel: false,
+        track_follow: false,
         step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,
@@ -229,6 +231,7 @@ fn the_paper_layout_runs_at_a_small_width() {
             step_s: 0.5,
             pad: Some(1027),
             accel: false,
+            follow: None,
         }),
     };
     let cfg = BackboneConfig {

@@ -266,11 +266,42 @@ struct Track {
     int bins[5];
     float lo[5], hi[5], width[5];
     float step;
+    int follow;              // brake for a slower slot ahead (backbone::FollowSpec)
+    float rule[6];           // half width, cos heading, min gap, min room, onset, max deceleration
 };
 
 // The centre of bin `id` of field f, in burn's f32 order: (id + 0.5)·width + lo.
 DEV float track_centre(const Track& P, int f, int id) {
     return add_rn(mul_rn((float)id + 0.5f, P.width[f]), P.lo[f]);
+}
+
+// Braking for the slowest-to-meet slot ahead in the lane (`backbone::track`'s `follow`, op for op in f32):
+// the hardest w²/(2r) over the leaders, once at the onset, replaces a weaker change along the heading.
+DEV void track_follow(const Track& P, long long f, const float* v, float* dvx, float* dvy) {
+    const float c = cosf(v[4]), s = sinf(v[4]);
+    const float speed = add_rn(mul_rn(v[2], c), mul_rn(v[3], s));
+    float hardest = 0.f;
+    for (int j = 0; j < P.slots; j++) {
+        const int* o = P.tok + f * P.n + P.offset + j * P.k;
+        if (o[P.field[0]] >= P.values) continue;
+        float u[5];
+        for (int q = 0; q < 5; q++) u[q] = track_centre(P, q, o[P.field[q]]);
+        const float dx = add_rn(u[0], -v[0]), dy = add_rn(u[1], -v[1]);
+        const float along = add_rn(mul_rn(dx, c), mul_rn(dy, s));
+        const float across = add_rn(mul_rn(dy, c), -mul_rn(dx, s));
+        const float same_way = add_rn(mul_rn(cosf(u[4]), c), mul_rn(sinf(u[4]), s));
+        const float closing = add_rn(speed, -add_rn(mul_rn(u[2], c), mul_rn(u[3], s)));
+        const float room = fmaxf(add_rn(along, -P.rule[2]), P.rule[3]);
+        const float need = mul_rn(closing, closing) / mul_rn(room, 2.f);
+        if (along > 0.f && fabsf(across) <= P.rule[0] && same_way >= P.rule[1] && closing > 0.f)
+            hardest = fmaxf(hardest, need);
+    }
+    if (hardest < P.rule[4]) return;
+    const float target = fmaxf(mul_rn(fminf(hardest, P.rule[5]), -P.step), -speed);
+    const float change = add_rn(mul_rn(*dvx, c), mul_rn(*dvy, s));
+    const float delta = fminf(add_rn(target, -change), 0.f);
+    *dvx = add_rn(*dvx, mul_rn(delta, c));
+    *dvy = add_rn(*dvy, mul_rn(delta, s));
 }
 
 // One thread per (frame, slot), the arithmetic of `backbone::track::moved` op for op in f32.
@@ -309,6 +340,7 @@ KERNEL umgen_track(const Track P) {
             }
         }
         if (ids[P.field[0]] >= P.values) continue;  // an empty slot (pad, or a category) stays as it is
+        if (P.follow) track_follow(P, f, v, &dvx, &dvy);
         const float px = add_rn(add_rn(v[0], mul_rn(add_rn(v[2], mul_rn(dvx, 0.5f)), P.step)), -dx);
         const float py = add_rn(add_rn(v[1], mul_rn(add_rn(v[3], mul_rn(dvy, 0.5f)), P.step)), -dy);
         float nv[5];

@@ -182,4 +182,23 @@ pub struct Track {
     pub fields: [TrackField; 5],
     /// Seconds per frame.
     pub step: f32,
+    /// Braking for a slower slot ahead (`backbone::FollowSpec`), when on.
+    pub follow: Option<TrackFollow>,
+}
+
+/// `backbone::FollowSpec` in f32, as burn's scalars reach its f32 operations.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackFollow {
+    /// Most distance (m) of a leader's centre from the slot's axis.
+    pub half_width: f32,
+    /// Least cosine between the two headings.
+    pub cos_heading: f32,
+    /// Distance (m) between centres at which the speeds should match.
+    pub min_gap: f32,
+    /// Least room (m) divided by.
+    pub min_room: f32,
+    /// Least deceleration (m/s²) that changes the hint.
+    pub onset: f32,
+    /// Most deceleration (m/s²).
+    pub max: f32,
 }

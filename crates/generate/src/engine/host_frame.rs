@@ -3,7 +3,7 @@
 //! weights in f64, as burn's CPU `grid_sample_2d`).
 
 use super::host::HostExec;
-use umgen_cuda::ops::{Align, ExecError, Op, Shift, Track};
+use umgen_cuda::ops::{Align, ExecError, Op, Shift, Track, TrackFollow};
 
 pub(super) fn run(x: &mut HostExec, op: &Op) -> Result<(), ExecError> {
     match op {
@@ -90,14 +90,15 @@ fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
     let mut out = vec![0i32; t.frames * t.slots * t.k];
     for f in 0..t.frames {
         let tf = f % t.w;
-        for slot in 0..t.slots {
+        let slot_ids = |slot: usize| {
             let at = f * t.n + t.offset + slot * t.k;
-            let ids = &tok[at..at + t.k];
-            let o = &mut out[(f * t.slots + slot) * t.k..(f * t.slots + slot + 1) * t.k];
-            o.copy_from_slice(ids);
-            let v: Vec<f32> = (0..5).map(|q| centre(q, ids[fl[q].index])).collect();
-            let (dx, dy, dth) = (act[3 * f], act[3 * f + 1], act[3 * f + 2]);
-            let (co, si) = (dth.cos(), dth.sin());
+            (at, &tok[at..at + t.k])
+        };
+        // Every slot's values and velocity change first: the follow rule reads the other slots.
+        let mut state = Vec::with_capacity(t.slots);
+        for slot in 0..t.slots {
+            let (at, ids) = slot_ids(slot);
+            let v: [f32; 5] = std::array::from_fn(|q| centre(q, ids[fl[q].index]));
             let (mut dvx, mut dvy) = (0.0f32, 0.0f32);
             if t.accel && t.w > 1 {
                 let before = if tf > 0 {
@@ -118,9 +119,26 @@ fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
                     (dvx, dvy) = (0.0, 0.0);
                 }
             }
-            if ids[fl[0].index] >= t.values as i32 {
+            state.push(SlotState {
+                occupied: ids[fl[0].index] < t.values as i32,
+                v,
+                dv: [dvx, dvy],
+            });
+        }
+        for slot in 0..t.slots {
+            let (_, ids) = slot_ids(slot);
+            let o = &mut out[(f * t.slots + slot) * t.k..(f * t.slots + slot + 1) * t.k];
+            o.copy_from_slice(ids);
+            let SlotState { occupied, v, dv } = state[slot];
+            if !occupied {
                 continue;
             }
+            let [dvx, dvy] = match &t.follow {
+                Some(rule) => follow(rule, t.step, &state, slot),
+                None => dv,
+            };
+            let (dx, dy, dth) = (act[3 * f], act[3 * f + 1], act[3 * f + 2]);
+            let (co, si) = (dth.cos(), dth.sin());
             let px = v[0] + (v[2] + dvx * 0.5) * t.step - dx;
             let py = v[1] + (v[3] + dvy * 0.5) * t.step - dy;
             let (wx, wy) = (v[2] + dvx, v[3] + dvy);
@@ -153,4 +171,44 @@ fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
         }
         _ => Err(ExecError::Invalid("track: the output is not i32".into())),
     }
+}
+
+/// One slot of a frame as the track rule reads it: whether it holds an object, its x, y, vx, vy and
+/// heading, and its velocity change.
+#[derive(Debug, Clone, Copy)]
+struct SlotState {
+    occupied: bool,
+    v: [f32; 5],
+    dv: [f32; 2],
+}
+
+/// Slot `i`'s velocity change with the braking `rule` asks for over a step of `dt` where it is harder
+/// (`backbone::track`'s `follow`, op for op in f32).
+fn follow(rule: &TrackFollow, dt: f32, slots: &[SlotState], i: usize) -> [f32; 2] {
+    let SlotState { v, dv, .. } = slots[i];
+    let (c, s) = (v[4].cos(), v[4].sin());
+    let speed = v[2] * c + v[3] * s;
+    let mut hardest = 0.0f32;
+    for other in slots.iter().filter(|o| o.occupied) {
+        let u = other.v;
+        let (dx, dy) = (u[0] - v[0], u[1] - v[1]);
+        let along = dx * c + dy * s;
+        let across = dy * c - dx * s;
+        let same_way = u[4].cos() * c + u[4].sin() * s;
+        let closing = speed - (u[2] * c + u[3] * s);
+        let room = (along - rule.min_gap).max(rule.min_room);
+        let need = closing * closing / (room * 2.0);
+        let leads =
+            along > 0.0 && across.abs() <= rule.half_width && same_way >= rule.cos_heading && closing > 0.0;
+        if leads {
+            hardest = hardest.max(need);
+        }
+    }
+    if hardest < rule.onset {
+        return dv;
+    }
+    let target = (hardest.min(rule.max) * -dt).max(-speed);
+    let change = dv[0] * c + dv[1] * s;
+    let delta = (target - change).min(0.0);
+    [dv[0] + delta * c, dv[1] + delta * s]
 }

@@ -7,7 +7,7 @@ use super::weights::SelfW;
 use super::window::{Map, Over};
 use crate::error::{GenerateError, Result};
 use umgen_cuda::ops::{
-    Align, AttendTiles, BiasT, Data, Exec, Flash, Op, Rows, Shift, Strides, Track, TrackField,
+    Align, AttendTiles, BiasT, Data, Exec, Flash, Op, Rows, Shift, Strides, Track, TrackField, TrackFollow,
 };
 
 impl<X: Exec> Engine<X> {
@@ -105,6 +105,14 @@ impl<X: Exec> Engine<X> {
                 accel: k.accel,
                 fields,
                 step: k.step_s as f32,
+                follow: k.follow.map(|f| TrackFollow {
+                    half_width: f.half_width_m as f32,
+                    cos_heading: f.cos_heading as f32,
+                    min_gap: f.min_gap_m as f32,
+                    min_room: f.min_room_m as f32,
+                    onset: f.onset_m_s2 as f32,
+                    max: f.max_m_s2 as f32,
+                }),
             }))?;
             self.embed(moved, cs * w * l, l, ts.offset, tmp)?;
             let xn = self.win.xn;

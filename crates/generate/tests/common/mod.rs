@@ -46,6 +46,7 @@ pub fn config() -> BackboneConfig {
         ego_last: true,
         track: None,
         track_accel: false,
+        track_follow: false,
         step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,

@@ -110,6 +110,9 @@ pub(in crate::gpu) struct Track {
     hi: [f32; 5],
     width: [f32; 5],
     step: f32,
+    /// Whether `follow_rule` applies: half width, cos heading, min gap, min room, onset, max.
+    follow: i32,
+    follow_rule: [f32; 6],
 }
 
 /// `struct Draw` of `draw.cu`.
@@ -257,6 +260,10 @@ impl CudaExec {
             hi: f.map(|x| x.hi),
             width: f.map(|x| x.width),
             step: t.step,
+            follow: i32::from(t.follow.is_some()),
+            follow_rule: t.follow.map_or([0.0; 6], |r| {
+                [r.half_width, r.cos_heading, r.min_gap, r.min_room, r.onset, r.max]
+            }),
         }
     }
 
