@@ -6,9 +6,9 @@
 use burn::tensor::{Tensor, TensorData};
 use std::f64::consts::PI;
 use umgen_backbone::track::moved;
-use umgen_backbone::{FollowSpec, TrackSpec};
-use umgen_cuda::ops::{Data, Elem, Exec, Op, Track, TrackField, TrackFollow};
-use umgen_generate::engine::HostExec;
+use umgen_backbone::{FollowSpec, SegmentSpec, TrackSpec};
+use umgen_cuda::ops::{Data, Elem, Exec, Op};
+use umgen_generate::engine::{HostExec, track_op};
 
 type F = burn::backend::Flex;
 
@@ -93,38 +93,19 @@ fn host_moved(ids: &[i64], acts: &[f32], b: usize, t: usize, k: &TrackSpec) -> V
     let act = x.alloc(Elem::F32, acts.len()).unwrap();
     x.write(act, Data::F32(acts)).unwrap();
     let out = x.alloc(Elem::I32, ids.len()).unwrap();
-    let fields = k.fields.map(|(index, (lo, hi, bins))| TrackField {
-        index,
-        lo: lo as f32,
-        hi: hi as f32,
-        bins,
-        width: ((hi - lo) / f64::from(bins)) as f32,
-    });
-    x.run(&Op::Track(Track {
-        tok,
-        act,
-        out,
-        frames: b * t,
-        w: t,
-        n,
+    let seg = SegmentSpec {
+        label: "agent".into(),
+        block_start: 0,
+        block_len: n + 2,
         offset: 0,
-        slots: SLOTS,
-        k: K,
-        values: k.values,
-        pad: k.pad,
-        accel: k.accel,
-        fields,
-        step: k.step_s as f32,
-        follow: k.follow.map(|f| TrackFollow {
-            half_width: f.half_width_m as f32,
-            cos_heading: f.cos_heading as f32,
-            min_gap: f.min_gap_m as f32,
-            min_room: f.min_room_m as f32,
-            onset: f.onset_m_s2 as f32,
-            max: f.max_m_s2 as f32,
-        }),
-    }))
-    .unwrap();
+        tokens: n,
+        vocab: 1028,
+        embed_vocab: 1030,
+        ordinal: 1024,
+        codebook: None,
+    };
+    x.run(&Op::Track(track_op(k, &seg, [tok, act, out], b * t, t, n)))
+        .unwrap();
     x.read_i32(out, ids.len()).unwrap()
 }
 

@@ -32,6 +32,7 @@ use crate::error::{GenerateError, Result};
 use crate::rules::{FrameControl, FrameRules, check_frame};
 use crate::sampling::Sampling;
 pub use host::HostExec;
+pub use tar::track_op;
 
 use buffers::{Caps, DecodeBufs, Tables, WindowBufs, alloc};
 use rand::{SeedableRng, rngs::StdRng};

@@ -6,8 +6,10 @@ use super::Engine;
 use super::weights::SelfW;
 use super::window::{Map, Over};
 use crate::error::{GenerateError, Result};
+use umgen_backbone::{SegmentSpec, TrackSpec};
 use umgen_cuda::ops::{
-    Align, AttendTiles, BiasT, Data, Exec, Flash, Op, Rows, Shift, Strides, Track, TrackField, TrackFollow,
+    Align, AttendTiles, BiasT, Buf, Data, Exec, Flash, Op, Rows, Shift, Strides, Track, TrackField,
+    TrackFollow,
 };
 
 impl<X: Exec> Engine<X> {
@@ -82,38 +84,9 @@ impl<X: Exec> Engine<X> {
             (&spec.track, self.win.track, self.w.track)
         {
             let ts = &spec.segments[k.segment];
-            let (l, slots) = (ts.tokens, ts.tokens / k.slot);
-            let fields = k.fields.map(|(index, (lo, hi, bins))| TrackField {
-                index,
-                lo: lo as f32,
-                hi: hi as f32,
-                bins,
-                width: ((hi - lo) / f64::from(bins)) as f32,
-            });
-            self.run(&Op::Track(Track {
-                tok: self.win.tok,
-                act: actb,
-                out: moved,
-                frames: cs * w,
-                w,
-                n,
-                offset: ts.offset,
-                slots,
-                k: k.slot,
-                values: k.values,
-                pad: k.pad,
-                accel: k.accel,
-                fields,
-                step: k.step_s as f32,
-                follow: k.follow.map(|f| TrackFollow {
-                    half_width: f.half_width_m as f32,
-                    cos_heading: f.cos_heading as f32,
-                    min_gap: f.min_gap_m as f32,
-                    min_room: f.min_room_m as f32,
-                    onset: f.onset_m_s2 as f32,
-                    max: f.max_m_s2 as f32,
-                }),
-            }))?;
+            let l = ts.tokens;
+            let op = track_op(k, ts, [self.win.tok, actb, moved], cs * w, w, n);
+            self.run(&Op::Track(op))?;
             self.embed(moved, cs * w * l, l, ts.offset, tmp)?;
             let xn = self.win.xn;
             self.rows(
@@ -371,5 +344,48 @@ impl<X: Exec> Engine<X> {
             first += count;
         }
         Ok(())
+    }
+}
+
+/// The `track` operation moving the slots of `k` in segment `seg` one frame ahead, over `frames` frames of
+/// `n` positions in windows of `w`: the window's tokens `tok`, each frame's next action `act`, the moved
+/// ids into `out`. The spec's bins and follow rule in f32, as burn's operations take them.
+pub fn track_op(
+    k: &TrackSpec,
+    seg: &SegmentSpec,
+    [tok, act, out]: [Buf; 3],
+    frames: usize,
+    w: usize,
+    n: usize,
+) -> Track {
+    Track {
+        tok,
+        act,
+        out,
+        frames,
+        w,
+        n,
+        offset: seg.offset,
+        slots: seg.tokens / k.slot,
+        k: k.slot,
+        values: k.values,
+        pad: k.pad,
+        accel: k.accel,
+        fields: k.fields.map(|(index, (lo, hi, bins))| TrackField {
+            index,
+            lo: lo as f32,
+            hi: hi as f32,
+            bins,
+            width: ((hi - lo) / f64::from(bins)) as f32,
+        }),
+        step: k.step_s as f32,
+        follow: k.follow.map(|f| TrackFollow {
+            half_width: f.half_width_m as f32,
+            cos_heading: f.cos_heading as f32,
+            min_gap: f.min_gap_m as f32,
+            min_room: f.min_room_m as f32,
+            onset: f.onset_m_s2 as f32,
+            max: f.max_m_s2 as f32,
+        }),
     }
 }
