@@ -141,6 +141,19 @@ fn config_errors_name_the_key_and_fail() {
         err.contains("backbone.track_accel") && err.contains("needs `backbone.track`"),
         "{err}"
     );
+    let follow = [
+        "--set",
+        "backbone.track=\"\"",
+        "--set",
+        "backbone.track_accel=false",
+        "--set",
+        "backbone.track_follow=true",
+    ];
+    let err = failure(&[&["layout", "--config", p][..], &follow].concat(), &[]);
+    assert!(
+        err.contains("backbone.track_follow") && err.contains("needs `backbone.track`"),
+        "{err}"
+    );
     let err = failure(&["layout", "--config", "/no/such/config.toml"], &[]);
     assert!(err.contains("/no/such/config.toml"), "{err}");
     let dir = tempfile::tempdir().unwrap();

@@ -179,10 +179,14 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         "{md}"
     );
     assert!(
-        md.contains("| collision | onsets/s | onsets at speed into standing |"),
+        md.contains("| collision | overlapping ego | onsets/s | onsets at speed into standing |"),
         "{md}"
     );
     assert!(real["collision_onsets_per_s"].as_f64().unwrap() >= 0.0, "{real}");
+    // Real agents seldom touch the ego's box (0.022 of the test split's frames: the box is the official
+    // code's ego, larger than SUMO's).
+    let on_ego = real["ego_overlap_rate"].as_f64().unwrap();
+    assert!(on_ego > 0.0 && on_ego < 0.05, "{real}");
     // SUMO's car-following model brakes for what stands ahead, and its queues drive off again.
     assert!(
         real["approach_braking"].as_f64().unwrap() > 0.8,

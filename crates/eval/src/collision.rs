@@ -61,6 +61,14 @@ pub fn colliding(agents: &[Agent]) -> (usize, usize) {
     (hit, agents.len())
 }
 
+/// Agents whose box overlaps the ego's, `ego` (length, width in m) centred at the frame's origin along +x:
+/// agents are placed in the ego's coordinates, and a generator that places them through the ego collides
+/// where the agents-only rate does not look.
+pub fn overlapping_ego(agents: &[Agent], ego: [f64; 2]) -> usize {
+    let ego = bev_box(0.0, 0.0, 0.0, ego[0], ego[1]);
+    agents.iter().filter(|a| overlap(a, &ego)).count()
+}
+
 /// Speeds (m/s) before the step of a collision driven at speed into a standing agent: one of the two
 /// slower than the first (not moving, as [`crate::horizon::MOVING_M_S`] has it), the other faster than
 /// the second. Queued vehicles that close up touch at walking pace; a vehicle that did not brake for one
@@ -173,5 +181,22 @@ mod tests {
         assert_eq!(colliding(&frame), (2, 4));
         let empty: [Agent; 0] = [];
         assert_eq!(collision_rate([&frame[..], &frame[2..], &empty[..]]), Some(0.25));
+    }
+
+    #[test]
+    fn agents_on_the_ego_box_are_counted() {
+        // The ego 5 × 2 m at the origin along +x; cars 4 × 2 m. Nose to tail: 2.5 + 2 = 4.5 m apart at
+        // most; side by side: 1 + 1 = 2 m.
+        let up = std::f64::consts::FRAC_PI_2;
+        let agents = [
+            car(4.4, 0.0, 0.0), // bumpers overlap by 0.1 m
+            car(4.6, 0.0, 0.0), // 0.1 m apart
+            car(0.0, 1.9, 0.0), // sides overlap
+            car(0.0, 2.1, 0.0), // side by side
+            car(0.0, 2.9, up),  // across, its end 0.1 m inside the ego's side
+            car(0.0, 3.1, up),  // across, 0.1 m clear
+        ];
+        assert_eq!(overlapping_ego(&agents, [5.0, 2.0]), 3);
+        assert_eq!(overlapping_ego(&[], [5.0, 2.0]), 0);
     }
 }

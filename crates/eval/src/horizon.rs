@@ -8,7 +8,7 @@
 //! both); [`SceneStats::summary`] reports them.
 
 use crate::approach::{ApproachRule, Approaches, approaches};
-use crate::collision::{colliding, collision_onsets};
+use crate::collision::{colliding, collision_onsets, overlapping_ego};
 use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
 use serde::Serialize;
@@ -32,6 +32,11 @@ pub struct SceneStats {
     seconds: f64,
     /// Per frame with agents, the fraction that overlaps another.
     collision_rates: Vec<f64>,
+    /// The ego's box (length, width in m) to test agents against, frames tested and those where an agent
+    /// overlaps it.
+    ego_box: Option<[f64; 2]>,
+    ego_frames: usize,
+    ego_hit_frames: usize,
     /// Collisions begun between consecutive frames, and those driven at speed into a standing agent.
     onsets: usize,
     onsets_standing: usize,
@@ -100,6 +105,9 @@ pub struct Summary {
     pub exits_per_s: Option<f64>,
     /// Mean over frames with agents of the fraction that overlaps another (the authors' ratio).
     pub collision_rate: Option<f64>,
+    /// Fraction of frames in which an agent overlaps the ego's box; `None` without a box
+    /// ([`SceneStats::with_ego_box`]).
+    pub ego_overlap_rate: Option<f64>,
     /// Collisions begun per second: pairs of agents whose boxes overlap in a frame and did not in the
     /// one before.
     pub collision_onsets_per_s: Option<f64>,
@@ -142,6 +150,15 @@ pub struct Summary {
 }
 
 impl SceneStats {
+    /// Statistics that also count the frames in which an agent overlaps the ego's box `ego` (length, width
+    /// in m, centred at the ego pose along its heading).
+    pub fn with_ego_box(ego: [f64; 2]) -> Self {
+        Self {
+            ego_box: Some(ego),
+            ..Self::default()
+        }
+    }
+
     /// Adds `frame`, with the frames before it in its sequence (`dt` seconds apart, the last one just
     /// before it; empty at a sequence's start) and the drivable area of its map, if known.
     pub fn add(&mut self, frame: &Frame, before: &[Frame], dt: f64, drivable: Option<&Drivable>) {
@@ -154,6 +171,10 @@ impl SceneStats {
         if !agents.is_empty() {
             let (hit, n) = colliding(agents);
             self.collision_rates.push(hit as f64 / n as f64);
+        }
+        if let Some(ego) = self.ego_box {
+            self.ego_frames += 1;
+            self.ego_hit_frames += usize::from(overlapping_ego(agents, ego) > 0);
         }
         // Per agent, whether it is a vehicle off the road (for the entering ones below).
         let mut vehicle_off = Vec::with_capacity(agents.len());
@@ -242,6 +263,7 @@ impl SceneStats {
             entries_per_s: per_s(self.entries),
             exits_per_s: per_s(self.exits),
             collision_rate: mean(&self.collision_rates),
+            ego_overlap_rate: share(self.ego_hit_frames, self.ego_frames),
             collision_onsets_per_s: per_s(self.onsets),
             onsets_into_standing: share(self.onsets_standing, self.onsets),
             approaches_per_s: per_s(self.approaches.seen),

@@ -34,7 +34,9 @@ pub use config::UmgenConfig;
 pub use error::{Result, UmgenError};
 pub use golden::{GOLDEN_FILE, write_golden};
 pub use model::backbone_spec;
-pub use rules::{agent_groups, agent_segment, agent_slot_groups, generation_manifest, history_window};
+pub use rules::{
+    EGO_BOX_M, agent_groups, agent_segment, agent_slot_groups, generation_manifest, history_window,
+};
 pub use tokenize::{TokenizeReport, tokenize_dataset, tokens_missing};
 pub use umgen_backbone as backbone;
 pub use umgen_checkpoint as checkpoint;

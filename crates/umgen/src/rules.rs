@@ -21,6 +21,10 @@ pub fn history_window(config: &UmgenConfig) -> usize {
         .min(config.train.frames.max(1))
 }
 
+/// Length and width (m) of the ego's box in the new-agent rule (the official code's ego vehicle), and in
+/// `umgen eval`'s count of agents overlapping the ego.
+pub const EGO_BOX_M: [f64; 2] = [5.176, 2.297];
+
 /// The agent slots from content position `offset` (`slots` of them) as token groups: each comes out either
 /// empty (all pad) or as values and a category, never a mix that decodes to nothing; new agents follow
 /// the official rule (the ego box, l 5.176 m × w 2.297 m, first; no overlaps; at most 30 other boxes).
@@ -41,7 +45,7 @@ pub fn agent_groups(offset: usize, slots: usize, cfg: &AgentConfig) -> TokenGrou
         // x, y, heading, length and width.
         boxes: Some(GroupBoxes {
             fields: [0, 1, 6, 7, 8].map(|i| (i, ranges[i][0], ranges[i][1], cfg.bins)),
-            ego: [5.176, 2.297],
+            ego: EGO_BOX_M,
             max_boxes: 31,
         }),
     }

@@ -67,7 +67,8 @@ pub(super) fn horizon(
     };
     // The real split, every frame, agents as the slots hold them.
     let agent = agent_modality(registry)?.map(|(m, _)| m);
-    let mut real_stats = SceneStats::default();
+    let stats = || SceneStats::with_ego_box(umgen::EGO_BOX_M);
+    let mut real_stats = stats();
     let mut real_agents: Vec<Agent> = Vec::new();
     for mut clip in real {
         if let Some(m) = agent {
@@ -85,7 +86,7 @@ pub(super) fn horizon(
     let real_refs: Vec<&Agent> = real_agents.iter().collect();
     // The rollouts, second by second.
     let mut seconds: Vec<(SceneStats, Vec<&Agent>)> = Vec::new();
-    let (mut whole, mut whole_agents) = (SceneStats::default(), Vec::<&Agent>::new());
+    let (mut whole, mut whole_agents) = (stats(), Vec::<&Agent>::new());
     for (s, scene) in scenes.iter().enumerate() {
         let map = match contexts.get(s / per.max(1)).and_then(|c| c["clip"].as_str()) {
             Some(id) => maps.of_clip(id)?,
@@ -94,7 +95,7 @@ pub(super) fn horizon(
         for (k, f) in scene.frames.iter().enumerate() {
             let second = second_of(k + 1, dt);
             if seconds.len() < second {
-                seconds.resize_with(second, Default::default);
+                seconds.resize_with(second, || (stats(), Vec::new()));
             }
             let (stats, agents) = &mut seconds[second - 1];
             let before = &scene.frames[..k];

@@ -179,7 +179,7 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
     writeln!(
         md,
         "\n## Over the horizon\n\nPer second generated, and over the whole horizon (every generated frame pooled: \
-         the last row), against the real split over every frame of its clips (agents as the slots hold them). Collision: fraction of agents overlapping another; onsets: collisions \
+         the last row), against the real split over every frame of its clips (agents as the slots hold them). Collision: fraction of agents overlapping another; overlapping ego: fraction of frames in which an agent overlaps the ego's box (5.176 × 2.297 m, the new-agent rule's); onsets: collisions \
          begun per second (pairs overlapping that did not a frame before), and the share of them driven at speed \
          into a standing agent (one below 1 m/s, the other above 5 m/s before); approaches: agents above 5 m/s \
          with a standing agent less than 3 s ahead in their lane, per second, and the share that braked by 1 m/s² \
@@ -191,12 +191,12 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
     )?;
     writeln!(
         md,
-        "| second | frames | agents/frame | entries/s | exits/s | collision | onsets/s | onsets at speed into standing | approaches/s | braking on approach | braking begun | starts/s | off-road | vehicles off-road | entering off-road | ego off-road | heading–motion ° | speed | acceleration | entering speed | MMD {} |",
+        "| second | frames | agents/frame | entries/s | exits/s | collision | overlapping ego | onsets/s | onsets at speed into standing | approaches/s | braking on approach | braking begun | starts/s | off-road | vehicles off-road | entering off-road | ego off-road | heading–motion ° | speed | acceleration | entering speed | MMD {} |",
         Group::ALL.map(|g| g.name()).join(" / ")
     )?;
     writeln!(
         md,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )?;
     let spread = |v: &serde_json::Value| match (v["p50"].as_f64(), v["p90"].as_f64()) {
         (Some(a), Some(b)) => format!("{a:.2} ({b:.2})"),
@@ -208,12 +208,13 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
         });
         writeln!(
             md,
-            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {mmd} |",
+            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {mmd} |",
             s["frames"],
             num(&s["agents_mean"]),
             num(&s["entries_per_s"]),
             num(&s["exits_per_s"]),
             num(&s["collision_rate"]),
+            num(&s["ego_overlap_rate"]),
             num(&s["collision_onsets_per_s"]),
             num(&s["onsets_into_standing"]),
             num(&s["approaches_per_s"]),

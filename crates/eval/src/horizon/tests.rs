@@ -146,6 +146,12 @@ fn where_vehicles_enter() {
     blind.add(&f1, &[], 0.5, None);
     blind.add(&f2, std::slice::from_ref(&f1), 0.5, None);
     assert_eq!(blind.summary().entering_off_road_rate, None);
+    assert_eq!(blind.summary().ego_overlap_rate, None, "no ego box given");
+    // Vehicle 1 stands on the ego (at the origin) in frame 1 and 7 m aside in frame 2.
+    let mut ego = SceneStats::with_ego_box([5.0, 2.0]);
+    ego.add(&f1, &[], 0.5, None);
+    ego.add(&f2, std::slice::from_ref(&f1), 0.5, None);
+    assert_eq!(ego.summary().ego_overlap_rate, Some(0.5));
 }
 
 #[test]
