@@ -438,47 +438,6 @@ static bool test_frame_parts() {
     return check("align", relative_error(g4, w4), 1e-5) && ok;
 }
 
-// The tracked slots with the follow rule: of six slots (one empty), only the one closing on a standing
-// slot 20 m ahead in its lane brakes, to the bins the rule gives in double precision (about 4 m/s²); the
-// others move as without the rule.
-static bool test_track() {
-    const double PI = 3.14159265358979323846;
-    const double lo[5] = {-64, -64, -20, -20, -PI}, hi[5] = {64, 64, 20, 20, PI};
-    auto bin = [&](int q, double v) { return (int)std::floor((v - lo[q]) / ((hi[q] - lo[q]) / 1024)); };
-    auto centre = [&](int q, int id) { return lo[q] + (id + 0.5) * (hi[q] - lo[q]) / 1024; };
-    const double cars[5][4] = {{0.06, 0.06, 10, 0}, {20, 0.3, 0, 0}, {-45, 0, 10, 0}, {0, 10, 10, 0},
-                               {10, -0.2, 10, PI - 0.01}};
-    std::vector<int> tok;
-    for (int c = 0; c < 6; c++) {
-        if (c == 4) {
-            tok.insert(tok.end(), 6, 1027);
-            continue;
-        }
-        const double* a = cars[c < 4 ? c : 4];
-        tok.insert(tok.end(), {bin(0, a[0]), bin(1, a[1]), bin(2, a[2] * std::cos(a[3])),
-                               bin(3, a[2] * std::sin(a[3])), bin(4, a[3]), 1024});
-    }
-    const std::vector<float> act = {0.f, 0.f, 0.f};
-    std::vector<int> on(36), off(36);
-    for (int follow = 0; follow < 2; follow++) {
-        Track P{tok.data(), act.data(), follow ? on.data() : off.data(), 1, 1, 36, 0, 6, 6, 1024, 1027, 1,
-                {0, 1, 2, 3, 4}, {1024, 1024, 1024, 1024, 1024}, {}, {}, {}, 0.5f, follow,
-                {1.5f, (float)std::cos(PI / 6), 7.5f, 0.5f, 1.f, 9.f}};
-        for (int q = 0; q < 5; q++) {
-            P.lo[q] = (float)lo[q];
-            P.hi[q] = (float)hi[q];
-            P.width[q] = (float)((hi[q] - lo[q]) / 1024);
-        }
-        launch(umgen_track, P, 1, 1);
-    }
-    bool ok = std::equal(on.begin() + 6, on.end(), off.begin() + 6);
-    const double u0 = centre(2, tok[2]), u1 = centre(2, tok[8]);
-    const double need = (u0 - u1) * (u0 - u1) / (2 * (centre(0, tok[6]) - centre(0, tok[0]) - 7.5));
-    const double v = u0 - 0.5 * need;
-    ok = ok && on[2] == bin(2, v) && on[0] == bin(0, centre(0, tok[0]) + 0.5 * (u0 + v) / 2) && off[2] - on[2] >= 50;
-    return check("track (follow)", ok ? 0.0 : 1.0, 0.5);
-}
-
 // The draw: greedy picks the best allowed id (ties to the smaller id) under the group rules, a known
 // position is left alone, a group after a pad is pad, the new-agent rule drops an overlapping newborn, and
 // the last block advances the position.
@@ -767,7 +726,6 @@ int main() {
     ok = test_rows(40) && ok;
     ok = test_rows(1056) && ok;
     ok = test_frame_parts() && ok;
-    ok = test_track() && ok;
     ok = test_draw() && ok;
     ok = test_sampled_draws() && ok;
     ok = test_group_first_draws() && ok;
