@@ -106,7 +106,7 @@ pub fn moved<B: Backend>(
     let occupied = column(x_index).lower_elem(spec.values as i64);
     let (dvx, dvy) = match &spec.follow {
         Some(f) => {
-            let state = [&x, &y, &vx, &vy, &heading].map(|v| (*v).clone());
+            let state = [x.clone(), y.clone(), vx.clone(), vy.clone(), heading.clone()];
             follow(f, spec.step_s, occupied.clone(), state, (dvx, dvy))
         }
         None => (dvx, dvy),
@@ -168,8 +168,9 @@ fn follow<B: Backend>(
     let closing = speed.clone() - (other(&vx) * c.clone() + other(&vy) * s.clone());
     let room = along.clone().sub_scalar(f.min_gap_m).clamp_min(f.min_room_m);
     let need = closing.clone() * closing.clone() / room.mul_scalar(2.0);
-    let leads = other(&occupied.clone().float())
-        .greater_elem(0.5)
+    let leads = occupied
+        .clone()
+        .swap_dims(2, 3)
         .bool_and(along.greater_elem(0.0))
         .bool_and(across.abs().lower_equal_elem(f.half_width_m))
         .bool_and(same_way.greater_equal_elem(f.cos_heading))

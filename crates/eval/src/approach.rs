@@ -54,6 +54,15 @@ pub struct Approaches {
     pub unbraked_braked: usize,
 }
 
+impl std::ops::AddAssign for Approaches {
+    fn add_assign(&mut self, o: Self) {
+        self.seen += o.seen;
+        self.braked += o.braked;
+        self.unbraked += o.unbraked;
+        self.unbraked_braked += o.unbraked_braked;
+    }
+}
+
 /// Approaches in `prev` (an agent faster than [`ApproachRule::fast_m_s`] with a standing agent ahead in
 /// its lane, less than [`ApproachRule::time_gap_s`] away bumper to bumper) whose agent is still there in
 /// `next`, `dt` seconds later, and of them those that braked (speed down by at least

@@ -228,11 +228,7 @@ impl SceneStats {
         self.onsets += onsets;
         self.onsets_standing += standing;
         let earliest = earlier_frames.last().map(|f| f.agents.as_slice());
-        let a = approaches(&ApproachRule::default(), earliest, &before.agents, agents, dt);
-        self.approaches.seen += a.seen;
-        self.approaches.braked += a.braked;
-        self.approaches.unbraked += a.unbraked;
-        self.approaches.unbraked_braked += a.unbraked_braked;
+        self.approaches += approaches(&ApproachRule::default(), earliest, &before.agents, agents, dt);
         self.transitions += 1;
         self.seconds += dt;
         self.entries += agents.len() - stayed;

@@ -23,6 +23,12 @@ static bool report(const char* name, bool ok) {
 static int bin(int q, double v) { return (int)std::floor((v - LO[q]) / ((HI[q] - LO[q]) / 1024)); }
 static double centre(int q, int id) { return LO[q] + (id + 0.5) * (HI[q] - LO[q]) / 1024; }
 
+// A vehicle slot at (x, y) driving at `speed` along `heading`.
+static void car(std::vector<int>& tok, double x, double y, double speed, double heading) {
+    tok.insert(tok.end(), {bin(0, x), bin(1, y), bin(2, speed * std::cos(heading)), bin(3, speed * std::sin(heading)),
+                           bin(4, heading), 1024});
+}
+
 static Track track(const int* tok, const float* act, int* out, int frames, int w, int slots, int follow) {
     Track P{tok, act, out, frames, w, slots * 6, 0, slots, 6, 1024, 1027, 1,
             {0, 1, 2, 3, 4}, {1024, 1024, 1024, 1024, 1024}, {}, {}, {}, 0.5f, follow,
@@ -130,7 +136,7 @@ static bool test_random() {
         const double h = (lane < 2 ? 0.0 : PI - 1e-3) + (u(rng) - 0.5) * 0.2;
         const double sp = u(rng) < 0.5 ? u(rng) * 0.5 : 3 + u(rng) * 12;
         const double x = (u(rng) - 0.5) * 110;
-        tok.insert(tok.end(), {bin(0, x), bin(1, y), bin(2, sp * std::cos(h)), bin(3, sp * std::sin(h)), bin(4, h), 1024});
+        car(tok, x, y, sp, h);
     }
     std::vector<float> act;
     for (int f = 0; f < frames; f++) act.insert(act.end(), {2.f + 0.3f * f, 0.02f * f - 0.1f, 0.03f - 0.01f * f});
@@ -166,34 +172,17 @@ static bool test_random() {
 // slot 20 m ahead in its lane brakes, to the bins the rule gives in double precision (about 4 m/s²); the
 // others move as without the rule.
 static bool test_hand() {
-    const double lo[5] = {-64, -64, -20, -20, -PI}, hi[5] = {64, 64, 20, 20, PI};
-    auto bin = [&](int q, double v) { return (int)std::floor((v - lo[q]) / ((hi[q] - lo[q]) / 1024)); };
-    auto centre = [&](int q, int id) { return lo[q] + (id + 0.5) * (hi[q] - lo[q]) / 1024; };
-    const double cars[5][4] = {{0.06, 0.06, 10, 0}, {20, 0.3, 0, 0}, {-45, 0, 10, 0}, {0, 10, 10, 0},
-                               {10, -0.2, 10, PI - 0.01}};
     std::vector<int> tok;
-    for (int c = 0; c < 6; c++) {
-        if (c == 4) {
-            tok.insert(tok.end(), 6, 1027);
-            continue;
-        }
-        const double* a = cars[c < 4 ? c : 4];
-        tok.insert(tok.end(), {bin(0, a[0]), bin(1, a[1]), bin(2, a[2] * std::cos(a[3])),
-                               bin(3, a[2] * std::sin(a[3])), bin(4, a[3]), 1024});
-    }
+    car(tok, 0.06, 0.06, 10, 0);
+    car(tok, 20, 0.3, 0, 0);
+    car(tok, -45, 0, 10, 0);
+    car(tok, 0, 10, 10, 0);
+    tok.insert(tok.end(), 6, 1027);
+    car(tok, 10, -0.2, 10, PI - 0.01);
     const std::vector<float> act = {0.f, 0.f, 0.f};
     std::vector<int> on(36), off(36);
-    for (int follow = 0; follow < 2; follow++) {
-        Track P{tok.data(), act.data(), follow ? on.data() : off.data(), 1, 1, 36, 0, 6, 6, 1024, 1027, 1,
-                {0, 1, 2, 3, 4}, {1024, 1024, 1024, 1024, 1024}, {}, {}, {}, 0.5f, follow,
-                {1.5f, (float)std::cos(PI / 6), 7.5f, 0.5f, 1.f, 9.f}};
-        for (int q = 0; q < 5; q++) {
-            P.lo[q] = (float)lo[q];
-            P.hi[q] = (float)hi[q];
-            P.width[q] = (float)((hi[q] - lo[q]) / 1024);
-        }
-        launch(umgen_track, P, 1, 1);
-    }
+    for (int follow = 0; follow < 2; follow++)
+        launch(umgen_track, track(tok.data(), act.data(), follow ? on.data() : off.data(), 1, 1, 6, follow), 1, 1);
     bool ok = std::equal(on.begin() + 6, on.end(), off.begin() + 6);
     const double u0 = centre(2, tok[2]), u1 = centre(2, tok[8]);
     const double need = (u0 - u1) * (u0 - u1) / (2 * (centre(0, tok[6]) - centre(0, tok[0]) - 7.5));
