@@ -10,7 +10,8 @@
 # included), for one step and for two, and prints the second run less the first: a steady step's GPU time
 # in all and by kernel. Compare the total with the step time `bench train` reports: equal means the step
 # is the GPU's. It takes a few minutes (ncu replays every kernel). The CSVs stay in $OUT (default
-# ./gpu-time-out). UMGEN names the binary (default: umgen), NCU the profiler (default: ncu on the PATH,
+# ./gpu-time-out). It prints the step by kernel family (kernel_families.py, as torch-time-step.py
+# prints the PyTorch reference) and its largest kernels. UMGEN names the binary (default: umgen), NCU the profiler (default: ncu on the PATH,
 # else /usr/local/cuda/bin/ncu); run from the repository root.
 set -uo pipefail
 gpu=${1:-0}
@@ -33,8 +34,10 @@ for steps in 1 2; do
         >"$out/ncu-$steps.csv" 2>"$out/ncu-$steps.err" ||
         { echo "profiled run failed; see $out/ncu-$steps.err" >&2; exit 1; }
 done
-python3 - "$out/ncu-1.csv" "$out/ncu-2.csv" <<'PY'
+python3 - "$out/ncu-1.csv" "$out/ncu-2.csv" "$here" <<'PY'
 import collections, csv, sys
+sys.path.insert(0, sys.argv[3])
+from kernel_families import summary
 def load(path):
     rows = [l for l in open(path, errors='replace') if l.startswith('"')]
     total, by, n = 0.0, collections.Counter(), collections.Counter()
@@ -52,6 +55,5 @@ def load(path):
 (t1, b1, n1), (t2, b2, n2) = load(sys.argv[1]), load(sys.argv[2])
 print(f'first step {t1:.1f} ms of GPU time; a steady step (the second) {t2 - t1:.1f} ms')
 by, n = b2 - b1, n2 - n1
-for k, v in by.most_common(30):
-    print(f'{v:9.2f} ms {100 * v / (t2 - t1):5.1f} % {n[k]:6d} launches  {k}')
+print(summary(dict(by), dict(n), top=30))
 PY
