@@ -30,7 +30,7 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::nn::LayerNorm;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{FloatDType, Tensor};
+use burn::tensor::{DType, FloatDType, Tensor};
 
 /// Passes the kernels refused in this process.
 static FALLBACKS: Fallbacks = Fallbacks::new("layer-norm");
@@ -50,26 +50,41 @@ fn fell_back(why: &str) {
 /// private, and a test checks the two agree).
 pub const LN_EPS: f64 = 1e-5;
 
-/// A backend that computes a layer norm's two passes over the rows of `[rows, d]` matrices (f32). The
-/// passes default to burn's operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides
-/// them.
+/// A layer norm's forward pass: the output, the rows' statistics for the backward pass and, where asked
+/// for, the input in the format the backward pass keeps it in.
+#[derive(Debug, Clone)]
+pub struct Normed<B: Backend> {
+    /// `[rows, d]`, in the format asked for.
+    pub y: Tensor<B, 2>,
+    /// The rows' means, `[rows]`, f32.
+    pub mean: Tensor<B, 1>,
+    /// The rows' `1/√(var + ε)`, `[rows]`, f32.
+    pub rstd: Tensor<B, 1>,
+    /// The input in the kept format, where one was asked for.
+    pub kept: Option<Tensor<B, 2>>,
+}
+
+/// A backend that computes a layer norm's two passes over the rows of `[rows, d]` matrices. The input is
+/// f32 or a bf16 copy kept for the backward pass (read as its exact f32 value). The passes default to
+/// burn's operations ([`forward_decomposed`], [`backward_decomposed`]); CUDA overrides them.
 pub trait FusedNorm: Backend {
     /// `(x − mean) / √(var + ε) · γ + β` row by row (centred variance) in `out`'s format, with each
-    /// row's mean and `1/√(var + ε)` (`[rows]`, f32) for the backward pass.
+    /// row's mean and `1/√(var + ε)` (`[rows]`, f32) for the backward pass, and with `keep`, `x` in that
+    /// format (on CUDA written by the same kernel as it reads `x`, instead of a cast reading it again).
     fn norm_forward(
         x: Tensor<Self, 2>,
         gamma: Tensor<Self, 1>,
         beta: Tensor<Self, 1>,
         eps: f64,
-        out: FloatDType,
+        (out, keep): (FloatDType, Option<FloatDType>),
         k: &Kernels,
-    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+    ) -> Normed<Self> {
         let _ = k;
-        forward_decomposed(x, gamma, beta, eps, out)
+        forward_decomposed(x, gamma, beta, eps, (out, keep))
     }
 
     /// The gradients of the input, the scale and the shift from the output's gradient `dy`, given the
-    /// forward pass's input, means and `1/σ`.
+    /// forward pass's input (f32 or its kept copy), means and `1/σ`.
     fn norm_backward(
         dy: Tensor<Self, 2>,
         x: Tensor<Self, 2>,
@@ -83,14 +98,17 @@ pub trait FusedNorm: Backend {
     }
 }
 
-/// [`FusedNorm::norm_forward`] as burn operations: the output computed in f32, then cast to `out`'s format.
+/// [`FusedNorm::norm_forward`] as burn operations: the output computed in f32, then cast to `out`'s format;
+/// the kept copy cast from the input.
 pub fn forward_decomposed<B: Backend>(
     x: Tensor<B, 2>,
     gamma: Tensor<B, 1>,
     beta: Tensor<B, 1>,
     eps: f64,
-    out: FloatDType,
-) -> (Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>) {
+    (out, keep): (FloatDType, Option<FloatDType>),
+) -> Normed<B> {
+    let kept = keep.map(|f| x.clone().cast(f));
+    let x = x.cast(FloatDType::F32);
     let rows = x.dims()[0];
     let mean = x.clone().mean_dim(1);
     let centered = x - mean.clone();
@@ -102,7 +120,12 @@ pub fn forward_decomposed<B: Backend>(
         .sqrt()
         .recip();
     let y = centered * rstd.clone() * gamma.unsqueeze::<2>() + beta.unsqueeze::<2>();
-    (y.cast(out), mean.reshape([rows]), rstd.reshape([rows]))
+    Normed {
+        y: y.cast(out),
+        mean: mean.reshape([rows]),
+        rstd: rstd.reshape([rows]),
+        kept,
+    }
 }
 
 /// [`FusedNorm::norm_backward`] as burn operations.
@@ -113,6 +136,7 @@ pub fn backward_decomposed<B: Backend>(
     rstd: Tensor<B, 1>,
     gamma: Tensor<B, 1>,
 ) -> (Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 1>) {
+    let x = x.cast(FloatDType::F32);
     let rstd = rstd.unsqueeze_dim::<2>(1);
     let xhat = (x - mean.unsqueeze_dim::<2>(1)) * rstd.clone();
     let dgamma = crate::rows::sum(dy.clone() * xhat.clone());
@@ -163,7 +187,7 @@ fn layer_norm_as<B: Backend, const D: usize>(
     };
     let y = match tracked::<B>() {
         Some(op) => op(flat, gamma, beta, out, k),
-        None => forward_decomposed(flat, gamma, beta, LN_EPS, out).0,
+        None => forward_decomposed(flat, gamma, beta, LN_EPS, (out, None)).y,
     };
     y.reshape(dims)
 }
@@ -200,9 +224,8 @@ impl<I: FusedNorm> Backward<I, 3> for Norm {
         // A product that read a bf16 output may hand back a bf16 gradient (burn's matmul does).
         let dy = float::<I, 2>(grads.consume::<I>(&ops.node)).cast(FloatDType::F32);
         let ([x, mean, rstd, gamma], k) = ops.state;
-        // The input widened back from the format it was kept in (`train.kernels.kept_inputs`).
-        let x = float::<I, 2>(x).cast(FloatDType::F32);
-        let (dx, dgamma, dbeta) = I::norm_backward(dy, x, float(mean), float(rstd), float(gamma), &k);
+        // The input as it was kept (`train.kernels.kept_inputs`): the passes read a bf16 copy as it is.
+        let (dx, dgamma, dbeta) = I::norm_backward(dy, float(x), float(mean), float(rstd), float(gamma), &k);
         let [x_node, gamma_node, beta_node] = ops.parents;
         // Only for parents that ask (a frozen norm, an untracked input).
         if let Some(node) = x_node {
@@ -230,15 +253,16 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
         gamma.into_primitive().tensor(),
         beta.into_primitive().tensor(),
     );
-    let (y, mean, rstd) = I::norm_forward(
-        float(x.primitive.clone()),
-        float(gamma.primitive.clone()),
-        float(beta.primitive.clone()),
-        LN_EPS,
-        out,
-        k,
-    );
-    let y = y.into_primitive().tensor();
+    let forward = |keep| {
+        I::norm_forward(
+            float(x.primitive.clone()),
+            float(gamma.primitive.clone()),
+            float(beta.primitive.clone()),
+            LN_EPS,
+            (out, keep),
+            k,
+        )
+    };
     let out = match Norm
         .prepare::<C>([x.node.clone(), gamma.node.clone(), beta.node.clone()])
         .compute_bound()
@@ -246,20 +270,24 @@ fn apply<I: FusedNorm, C: CheckpointStrategy>(
     {
         OpsKind::Tracked(prep) => {
             // An output that feeds products only (`layer_norm_operand`) is rounded to their format: the
-            // input kept in that format too costs the backward pass no more than that rounding.
-            let x = float::<I, 2>(x.primitive.clone())
-                .cast(k.kept_inputs.format(out))
-                .into_primitive()
-                .tensor();
+            // input kept in that format too costs the backward pass no more than that rounding. The forward
+            // kernel writes that copy as it reads the input.
+            let keep = k.kept_inputs.format(out);
+            let keep = (DType::from(keep) != float::<I, 2>(x.primitive.clone()).dtype()).then_some(keep);
+            let normed = forward(keep);
+            let kept_x = match normed.kept {
+                Some(kept) => kept.into_primitive().tensor(),
+                None => x.primitive.clone(),
+            };
             let kept = [
-                x,
-                mean.into_primitive().tensor(),
-                rstd.into_primitive().tensor(),
+                kept_x,
+                normed.mean.into_primitive().tensor(),
+                normed.rstd.into_primitive().tensor(),
                 gamma.primitive.clone(),
             ];
-            prep.finish((kept, *k), y)
+            prep.finish((kept, *k), normed.y.into_primitive().tensor())
         }
-        OpsKind::UnTracked(prep) => prep.finish(y),
+        OpsKind::UnTracked(prep) => prep.finish(forward(None).y.into_primitive().tensor()),
     };
     float(out)
 }

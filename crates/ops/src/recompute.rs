@@ -33,7 +33,7 @@ use burn::module::Param;
 use burn::nn::{LayerNorm, Linear};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
-use burn::tensor::{Distribution, FloatDType, Tensor};
+use burn::tensor::{DType, Distribution, Tensor};
 use math::{LayerBackend, Lin, Mask, Masks, Norm, Setting, Weights};
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -159,9 +159,9 @@ impl<I: LayerBackend> Kept<I> {
         ctx: Option<Tensor<I, 3>>,
         dy: Tensor<I, 3>,
     ) -> (Tensor<I, 3>, Option<Tensor<I, 3>>, math::WeightGrads<I>) {
-        // The input widened back from the format it was kept in (`train.kernels.kept_inputs`).
-        let x = self.x.cast(FloatDType::F32);
-        math::backward(&self.weights, self.setting, &self.masks, (x, ctx), dy)
+        // The input as it was kept (`train.kernels.kept_inputs`): the norms' kernels read a bf16 copy as it
+        // is, and the residual add widens it inside its fused kernel.
+        math::backward(&self.weights, self.setting, &self.masks, (self.x, ctx), dy)
     }
 }
 
@@ -378,12 +378,11 @@ fn start<I: LayerBackend, C: CheckpointStrategy>(
         attn: draw_mask(&x, parts.attn_dropout),
         mlp: draw_mask(&x, parts.mlp_dropout),
     };
-    let kept_x = x
-        .clone()
-        .cast(kernels.kept_inputs.format(parts.precision.operand_dtype()));
-    let y = math::forward(&weights, setting, &masks, x, ctx)
-        .into_primitive()
-        .tensor();
+    let keep = kernels.kept_inputs.format(parts.precision.operand_dtype());
+    let keep = (DType::from(keep) != x.dtype()).then_some(keep);
+    let (y, kept_x) = math::forward(&weights, setting, &masks, x.clone(), ctx, keep);
+    let kept_x = kept_x.unwrap_or(x);
+    let y = y.into_primitive().tensor();
     let kept = Kept {
         x: kept_x,
         weights,

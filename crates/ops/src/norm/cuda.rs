@@ -2,11 +2,12 @@
 //! fusion stream that launches `norm.cu`'s kernels (compiled with NVRTC) on cubecl's stream with their
 //! buffers bound to the launch (so the training thread queues them without waiting), or on a side stream
 //! ordered with cubecl's with `train.kernels.stream = "side"` ([`crate::side`]), unless `train.kernels.norm =
-//! "burn"`. Rows wider than 1,024, other types than f32, or a failure to compile or
-//! launch run the decomposition instead, counted by [`super::fallbacks`].
+//! "burn"`. The input is f32 or a kept bf16 copy; a forward pass asked for a bf16 copy of its f32 input
+//! writes it in the same kernel. Rows wider than 1,024, other types, or a failure to compile or launch run
+//! the decomposition instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
-use super::{FusedNorm, NormKernel, backward_decomposed, fell_back, forward_decomposed};
+use super::{FusedNorm, NormKernel, Normed, backward_decomposed, fell_back, forward_decomposed};
 use crate::format::float;
 use crate::kernels::{KernelStream, Kernels, SideFamily};
 use crate::side::{self, Compiled, Handles, Inner, KernelCache, Primitive, empty_f32, empty_packed};
@@ -78,7 +79,8 @@ fn refused(x: &Tensor<Cuda, 2>) -> Option<String> {
     if per_lane(d).is_none() {
         return Some(format!("rows of {d} (the kernels take up to 1,024)"));
     }
-    (x.dtype() != DType::F32).then(|| format!("{:?} input (the kernels take f32)", x.dtype()))
+    (!matches!(x.dtype(), DType::F32 | DType::BF16))
+        .then(|| format!("{:?} input (the kernels take f32 or bf16)", x.dtype()))
 }
 
 impl FusedNorm for Cuda {
@@ -87,33 +89,39 @@ impl FusedNorm for Cuda {
         gamma: Tensor<Self, 1>,
         beta: Tensor<Self, 1>,
         eps: f64,
-        out: FloatDType,
+        (out, keep): (FloatDType, Option<FloatDType>),
         kernels: &Kernels,
-    ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
+    ) -> Normed<Self> {
         if kernels.norm == NormKernel::Burn {
-            return forward_decomposed(x, gamma, beta, eps, out);
+            return forward_decomposed(x, gamma, beta, eps, (out, keep));
         }
         if let Some(why) = refused(&x) {
             fell_back(&why);
-            return forward_decomposed(x, gamma, beta, eps, out);
+            return forward_decomposed(x, gamma, beta, eps, (out, keep));
         }
         let [rows, d] = x.dims();
         let pass = Pass::Forward {
             eps: eps as f32,
             out,
+            keep,
             kernels: *kernels,
         };
         let inputs = vec![side::fused(x), side::fused(gamma), side::fused(beta)];
-        let outputs = vec![
+        let mut outputs = vec![
             (vec![rows, d], DType::from(out)),
             (vec![rows], DType::F32),
             (vec![rows], DType::F32),
         ];
-        let [y, mean, rstd]: [FloatTensor<Cuda>; 3] =
-            side::register_typed("umgen_norm_forward", inputs, outputs, pass)
-                .try_into()
-                .unwrap_or_else(|_| unreachable!("umgen_norm_forward was described with three outputs"));
-        (float(y), float(mean), float(rstd))
+        outputs.extend(keep.map(|f| (vec![rows, d], DType::from(f))));
+        let mut results = side::register_typed("umgen_norm_forward", inputs, outputs, pass).into_iter();
+        let mut next = || {
+            results
+                .next()
+                .unwrap_or_else(|| unreachable!("umgen_norm_forward was described with its outputs"))
+        };
+        let (y, mean, rstd) = (float(next()), float(next()), float(next()));
+        let kept = keep.map(|_| float(next()));
+        Normed { y, mean, rstd, kept }
     }
 
     fn norm_backward(
@@ -162,10 +170,11 @@ fn register_backward<const I: usize, const O: usize>(
 /// Which pass.
 #[derive(Debug, Clone, Copy)]
 enum Pass {
-    /// x, γ, β in; y (in `out`'s format), mean, rstd out.
+    /// x, γ, β in; y (in `out`'s format), mean, rstd and, with `keep`, x in that format out.
     Forward {
         eps: f32,
         out: FloatDType,
+        keep: Option<FloatDType>,
         kernels: Kernels,
     },
     /// dy, x, mean, rstd, γ in; dx and the warps' column sums of dy · x̂ and dy out.
@@ -175,19 +184,40 @@ enum Pass {
 impl side::SidePass for Pass {
     fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
         match *self {
-            Pass::Forward { eps, out, kernels } => {
-                let [x, gamma, beta] = side::contiguous_inputs::<3, 3>(handles, desc);
-                launch(&x, &gamma, Some(&beta), None, (eps, out), &kernels).unwrap_or_else(|why| {
+            Pass::Forward {
+                eps,
+                out,
+                keep,
+                kernels,
+            } => {
+                // Registered with a fourth output where it keeps a copy.
+                let [x, gamma, beta] = match keep {
+                    Some(_) => side::contiguous_inputs::<3, 4>(handles, desc),
+                    None => side::contiguous_inputs::<3, 3>(handles, desc),
+                };
+                let formats = Formats { eps, out, keep };
+                launch(&x, &gamma, Some(&beta), None, formats, &kernels).unwrap_or_else(|why| {
                     fell_back(&why);
-                    let (y, mean, rstd) =
-                        forward_decomposed::<Inner>(float(x), float(gamma), float(beta), f64::from(eps), out);
-                    vec![side::inner(y), side::inner(mean), side::inner(rstd)]
+                    let normed = forward_decomposed::<Inner>(
+                        float(x),
+                        float(gamma),
+                        float(beta),
+                        f64::from(eps),
+                        (out, keep),
+                    );
+                    let mut results = vec![
+                        side::inner(normed.y),
+                        side::inner(normed.mean),
+                        side::inner(normed.rstd),
+                    ];
+                    results.extend(normed.kept.map(side::inner));
+                    results
                 })
             }
             Pass::Backward { kernels } => {
                 let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
                 let grads = Some([&dy, &mean, &rstd]);
-                launch(&x, &gamma, None, grads, (0.0, FloatDType::F32), &kernels).unwrap_or_else(|why| {
+                launch(&x, &gamma, None, grads, Formats::BACKWARD, &kernels).unwrap_or_else(|why| {
                     fell_back(&why);
                     let warps = backward_warps(x.meta.shape()[0]);
                     let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
@@ -230,25 +260,49 @@ fn source() -> Result<String, String> {
     Ok(side::kernel_source(umgen_cuda::source::train::NORM))
 }
 
-/// Runs the forward pass on contiguous `x` `[rows, d]`, γ and β (`grads` `None`: y in `out`'s format,
-/// mean, rstd) or the backward pass (`grads` = `[dy, mean, rstd]`: dx and the warps' column sums),
-/// returning the results; an error says why it could not (no result was written that the caller keeps, so
-/// it may run the decomposition). On cubecl's stream the kernels are launched from this thread with their
-/// buffers bound ([`launch_bound`]); with `train.kernels.stream = "side"` their pointers are fetched and they
-/// are launched on cubecl's device thread ([`launch_with_pointers`]).
+/// A pass's scalars and formats: ε, the output's format and the kept copy's (forward).
+#[derive(Debug, Clone, Copy)]
+struct Formats {
+    eps: f32,
+    out: FloatDType,
+    keep: Option<FloatDType>,
+}
+
+impl Formats {
+    /// The backward pass's: f32 results, nothing kept.
+    const BACKWARD: Self = Self {
+        eps: 0.0,
+        out: FloatDType::F32,
+        keep: None,
+    };
+}
+
+/// Runs the forward pass on contiguous `x` `[rows, d]` (f32 or bf16), γ and β (`grads` `None`: y in
+/// `out`'s format, mean, rstd, and x in `keep`'s format where asked) or the backward pass (`grads` =
+/// `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an error says why it could
+/// not (no result was written that the caller keeps, so it may run the decomposition). On cubecl's stream
+/// the kernels are launched from this thread with their buffers bound ([`launch_bound`]); with
+/// `train.kernels.stream = "side"` their pointers are fetched and they are launched on cubecl's device
+/// thread ([`launch_with_pointers`]), on f32 only (a bf16 input widened and a kept copy cast around them).
 fn launch(
     x: &Primitive,
     gamma: &Primitive,
     beta: Option<&Primitive>,
     grads: Option<[&Primitive; 3]>,
-    (eps, out): (f32, FloatDType),
+    formats: Formats,
     kernels: &Kernels,
 ) -> Result<Vec<Primitive>, String> {
-    let mut operands = vec![x, gamma];
+    let mut operands = vec![gamma];
     operands.extend(beta);
     operands.extend(grads.into_iter().flatten());
     if let Some(t) = operands.iter().find(|t| t.dtype != DType::F32) {
         return Err(format!("{:?} operand (the layer-norm kernels take f32)", t.dtype));
+    }
+    if !matches!(x.dtype, DType::F32 | DType::BF16) {
+        return Err(format!(
+            "{:?} input (the layer-norm kernels take f32 or bf16)",
+            x.dtype
+        ));
     }
     let shape = x.meta.shape();
     let (rows, d) = (shape[0], shape[1]);
@@ -256,17 +310,22 @@ fn launch(
     let sizes = Sizes {
         rows: i64::try_from(rows).map_err(|_| format!("{rows} rows"))?,
         d: i32::try_from(d).map_err(|_| format!("width {d}"))?,
-        eps,
+        eps: formats.eps,
     };
     if kernels.stream == KernelStream::Cubecl {
-        return launch_bound(x, gamma, beta, grads, per, sizes, out);
+        return launch_bound(x, gamma, beta, grads, (per, sizes), formats);
     }
+    let wide = |t: &Primitive| side::inner(float::<Inner, 2>(t.clone()).cast(FloatDType::F32));
+    let x32 = wide(x);
     let mut results = side::on_device_thread(x, kernels.launch_thread, || {
-        launch_with_pointers(x, gamma, beta, grads, (per, sizes), kernels)
+        launch_with_pointers(&x32, gamma, beta, grads, (per, sizes), kernels)
     })?;
     // The side stream's kernels write f32 only.
-    if out != FloatDType::F32 {
-        results[0] = side::inner(float::<Inner, 2>(results[0].clone()).cast(out));
+    if formats.out != FloatDType::F32 {
+        results[0] = side::inner(float::<Inner, 2>(results[0].clone()).cast(formats.out));
+    }
+    if let Some(keep) = formats.keep.filter(|_| grads.is_none()) {
+        results.push(side::inner(float::<Inner, 2>(x.clone()).cast(keep)));
     }
     Ok(results)
 }
@@ -324,6 +383,15 @@ fn launch_with_pointers(
     Ok(results)
 }
 
+/// The kernels' name for a format: `32` or `16` (bf16).
+fn bits(format: DType) -> Result<&'static str, String> {
+    match format {
+        DType::F32 => Ok("32"),
+        DType::BF16 => Ok("16"),
+        other => Err(format!("{other:?} (the layer-norm kernels take f32 or bf16)")),
+    }
+}
+
 /// [`launch`] on cubecl's stream with the buffers bound to the launch (`NORM_BOUND_KERNELS`): cubecl resolves
 /// them as it launches, so this thread neither fetches pointers nor waits for cubecl's device thread.
 fn launch_bound(
@@ -331,26 +399,26 @@ fn launch_bound(
     gamma: &Primitive,
     beta: Option<&Primitive>,
     grads: Option<[&Primitive; 3]>,
-    per: usize,
-    sizes: Sizes,
-    out: FloatDType,
+    (per, sizes): (usize, Sizes),
+    Formats { out, keep, .. }: Formats,
 ) -> Result<Vec<Primitive>, String> {
     let rows = x.meta.shape()[0];
     let bind = |t: &Primitive| t.handle.clone().binding();
+    let xs = bits(x.dtype)?;
     let (results, buffers, entry, blocks) = match (beta, grads) {
         (Some(beta), None) => {
-            let format = match out {
-                FloatDType::F32 => "",
-                FloatDType::BF16 => "bf16_",
-                other => {
-                    return Err(format!(
-                        "a {other:?} output (the layer-norm kernels write f32 or bf16)"
-                    ));
-                }
+            let ys = bits(DType::from(out))?;
+            // A kept copy: bf16 of an f32 input, the one the kernels write.
+            let kept = match keep.map(DType::from) {
+                None => "",
+                Some(DType::BF16) if x.dtype == DType::F32 => "_keep",
+                Some(other) => return Err(format!("a {other:?} copy of a {:?} input", x.dtype)),
             };
-            let results = results(x, false, out);
+            let mut results = results(x, false, out);
+            let [r, d] = [x.meta.shape()[0], x.meta.shape()[1]];
+            results.extend(keep.map(|f| empty_packed(x, vec![r, d], DType::from(f))));
             let buffers = [x, gamma, beta].into_iter().chain(&results).map(bind).collect();
-            let entry = format!("umgen_norm_forward_bound_{format}{per}");
+            let entry = format!("umgen_norm_forward_bound_x{xs}_y{ys}{kept}_{per}");
             (results, buffers, entry, rows.div_ceil(WARPS))
         }
         (None, Some([dy, mean, rstd])) => {
@@ -358,18 +426,15 @@ fn launch_bound(
             let results = results(x, true, FloatDType::F32);
             let inputs = [dy, x, mean, rstd, gamma];
             let buffers = inputs.into_iter().chain(&results).map(bind).collect();
-            (
-                results,
-                buffers,
-                format!("umgen_norm_backward_bound_{per}"),
-                warps / WARPS,
-            )
+            let entry = format!("umgen_norm_backward_bound_x{xs}_{per}");
+            (results, buffers, entry, warps / WARPS)
         }
         _ => return Err("a pass takes β (forward) or the gradients (backward)".into()),
     };
     let blocks = u32::try_from(blocks).map_err(|_| format!("{blocks} blocks"))?;
-    // SAFETY: every buffer is bound (cubecl keeps it alive for the launch), contiguous and of the shape the
-    // kernel reads or writes (`rows × d`, `rows`, `d`, or one row per warp of the grid).
+    // SAFETY: every buffer is bound (cubecl keeps it alive for the launch), contiguous and of the shape and
+    // format the kernel reads or writes (`rows × d`, `rows`, `d`, or one row per warp of the grid; the
+    // entry point is chosen by the formats).
     unsafe {
         side::launch_bound_on_cubecl(
             x,

@@ -88,7 +88,9 @@ fn decomposed_passes_match_a_hand_computed_row() {
     let x = Tensor::<Flex, 2>::from_floats([[1.0, 2.0, 3.0, 6.0]], &dev);
     let gamma = Tensor::<Flex, 1>::from_floats([1.0, 2.0, 1.0, 1.0], &dev);
     let beta = Tensor::<Flex, 1>::from_floats([0.0, 0.0, 0.5, 0.0], &dev);
-    let (y, mean, rstd) = forward_decomposed(x.clone(), gamma.clone(), beta, 0.0, FloatDType::F32);
+    let normed = forward_decomposed(x.clone(), gamma.clone(), beta, 0.0, (FloatDType::F32, None));
+    assert!(normed.kept.is_none());
+    let (y, mean, rstd) = (normed.y, normed.mean, normed.rstd);
     let s = 1.0 / 3.5f32.sqrt();
     close(mean.clone(), Tensor::from_floats([3.0], &dev), 1e-6, "mean");
     close(rstd.clone(), Tensor::from_floats([s], &dev), 1e-6, "rstd");
@@ -150,7 +152,8 @@ fn a_norm_feeding_bf16_products_keeps_its_input_in_bf16() {
     };
     let gamma = ln.gamma.val().inner();
     let beta = ln.beta.as_ref().expect("a shift").val().inner();
-    let (_, mean, rstd) = forward_decomposed(x.clone(), gamma.clone(), beta, LN_EPS, FloatDType::F32);
+    let normed = forward_decomposed(x.clone(), gamma.clone(), beta, LN_EPS, (FloatDType::F32, None));
+    let (mean, rstd) = (normed.mean, normed.rstd);
     let bf16 = |t: Tensor<Flex, 2>| t.cast(FloatDType::BF16).cast(FloatDType::F32);
     // The output's gradient reaches the norm through its bf16 output: rounded to bf16 either way.
     let (rounded, dy) = (bf16(x.clone()), bf16(dy.clone()));
@@ -163,4 +166,64 @@ fn a_norm_feeding_bf16_products_keeps_its_input_in_bf16() {
     assert_eq!(kept_f32.into_data(), exact.clone().into_data());
     let err = (kept_bf16 - exact.clone()).abs().max().into_scalar() / exact.abs().max().into_scalar();
     assert!(err > 0.0 && err < 2e-2, "bf16-kept input against f32: {err}");
+}
+
+/// The passes on a kept bf16 copy: the forward pass asked for one returns the input rounded to bf16 and
+/// the same output as without; on the bf16 copy both passes give what they give on that copy widened to
+/// f32 (the cast the kernels save), bit for bit.
+#[test]
+fn passes_keep_and_read_a_bf16_copy_as_its_widened_value() {
+    let dev = Default::default();
+    let x = Tensor::<Flex, 2>::random([32, 40], Distribution::Normal(1.0, 2.0), &dev);
+    let dy = Tensor::<Flex, 2>::random([32, 40], Distribution::Normal(0.0, 1.0), &dev);
+    let gamma = Tensor::<Flex, 1>::random([40], Distribution::Normal(1.0, 0.3), &dev);
+    let beta = Tensor::<Flex, 1>::random([40], Distribution::Normal(0.0, 0.3), &dev);
+    let plain = forward_decomposed(
+        x.clone(),
+        gamma.clone(),
+        beta.clone(),
+        LN_EPS,
+        (FloatDType::BF16, None),
+    );
+    let keeping = forward_decomposed(
+        x.clone(),
+        gamma.clone(),
+        beta.clone(),
+        LN_EPS,
+        (FloatDType::BF16, Some(FloatDType::BF16)),
+    );
+    let kept = keeping.kept.expect("a kept copy");
+    assert_eq!(kept.dtype(), DType::BF16);
+    assert_eq!(
+        kept.clone().into_data(),
+        x.clone().cast(FloatDType::BF16).into_data()
+    );
+    assert_eq!(keeping.y.into_data(), plain.y.into_data());
+
+    let widened = kept.clone().cast(FloatDType::F32);
+    let on_copy = forward_decomposed(
+        kept.clone(),
+        gamma.clone(),
+        beta.clone(),
+        LN_EPS,
+        (FloatDType::F32, None),
+    );
+    let on_wide = forward_decomposed(
+        widened.clone(),
+        gamma.clone(),
+        beta,
+        LN_EPS,
+        (FloatDType::F32, None),
+    );
+    assert_eq!(on_copy.y.into_data(), on_wide.y.into_data());
+    let (mean, rstd) = (on_wide.mean, on_wide.rstd);
+    let from_copy = backward_decomposed(dy.clone(), kept, mean.clone(), rstd.clone(), gamma.clone());
+    let from_wide = backward_decomposed(dy, widened, mean, rstd, gamma);
+    assert_eq!(from_copy.0.into_data(), from_wide.0.into_data());
+    assert_eq!(from_copy.1.into_data(), from_wide.1.into_data());
+    // And the copy is not the input: the rounding the comparisons above go through is there.
+    let rounding = (x.clone().cast(FloatDType::BF16).cast(FloatDType::F32) - x)
+        .abs()
+        .max();
+    assert!(rounding.into_scalar() > 0.0);
 }

@@ -79,6 +79,8 @@ struct Saved<I: LayerBackend> {
     /// The MLP's first product, without its bias (what the bias + GELU's backward pass reads).
     hidden: Tensor<I, 2>,
     act: Tensor<I, 3>,
+    /// The input in the format asked for (`run`'s `keep`), written by the first norm.
+    kept: Option<Tensor<I, 3>>,
 }
 
 /// What the attention's backward pass reads.
@@ -149,12 +151,13 @@ fn run<I: LayerBackend>(
     masks: &Masks<I>,
     x: Tensor<I, 3>,
     ctx: Option<Tensor<I, 3>>,
+    keep: Option<FloatDType>,
 ) -> (Tensor<I, 3>, Saved<I>) {
     let (p, k) = (s.precision, &s.kernels);
     // The normalised inputs and the merged attention output feed products only: in their format once here
     // (the norms write it), not cast by each product (the forward pass's two, the recomputation's two and
     // the weight gradients').
-    let (n1, stats1) = norm(x.clone(), &w.ln1, s.eps, p, k);
+    let (n1, stats1, kept) = norm(x.clone(), &w.ln1, s.eps, p, keep, k);
     // Over positions the queries, keys and values are the attention's operands: written in its format
     // (the attention over time reads f32).
     let qkv_format = match s.over_time {
@@ -163,7 +166,7 @@ fn run<I: LayerBackend>(
     };
     let ctx = match (ctx, &w.ln_ctx) {
         (Some(c), Some(ln)) => {
-            let (nc, stats) = norm(c.clone(), ln, s.eps, p, k);
+            let (nc, stats, _) = norm(c.clone(), ln, s.eps, p, None, k);
             Some((c, stats, nc))
         }
         _ => None,
@@ -195,8 +198,9 @@ fn run<I: LayerBackend>(
         }
     };
     let merged = operand(merged, p);
-    let x1 = x.clone() + drop(&masks.attn, linear(merged.clone(), &w.proj, p, k));
-    let (n2, stats2) = norm(x1.clone(), &w.ln2, s.eps, p, k);
+    // A kept bf16 input (the backward pass's recomputation) is widened inside the add's fused kernel.
+    let x1 = x.clone().cast(FloatDType::F32) + drop(&masks.attn, linear(merged.clone(), &w.proj, p, k));
+    let (n2, stats2, _) = norm(x1.clone(), &w.ln2, s.eps, p, None, k);
     let hidden = unbiased(n2.clone(), &w.fc, p, inner_product_dtype(p, k), k);
     let [b, len, _] = n2.dims();
     let act = inner_forward(hidden.clone(), w.fc.b.clone(), k).reshape([b, len, hidden.dims()[1]]);
@@ -212,25 +216,30 @@ fn run<I: LayerBackend>(
         n2,
         hidden,
         act,
+        kept,
     };
     (x1, saved)
 }
 
-/// The layer's output for input `x` `[b, l, d]` (over the context `ctx` in a cross-attention layer).
+/// The layer's output for input `x` `[b, l, d]` (over the context `ctx` in a cross-attention layer) and,
+/// with `keep`, `x` in that format for the backward pass (written by the first norm's kernel as it reads
+/// `x`).
 pub fn forward<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
     masks: &Masks<I>,
     x: Tensor<I, 3>,
     ctx: Option<Tensor<I, 3>>,
-) -> Tensor<I, 3> {
-    let (x1, f) = run(w, s, masks, x, ctx);
-    x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision, &s.kernels))
+    keep: Option<FloatDType>,
+) -> (Tensor<I, 3>, Option<Tensor<I, 3>>) {
+    let (x1, f) = run(w, s, masks, x, ctx, keep);
+    let y = x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision, &s.kernels));
+    (y, f.kept)
 }
 
 /// The gradients of the input, of a cross-attention layer's context and of every parameter from the
-/// output's gradient `dy`, recomputing the forward pass from `x` (and `ctx`) with the forward pass's
-/// dropout masks.
+/// output's gradient `dy`, recomputing the forward pass from `x` (f32, or the copy [`forward`] kept) and
+/// `ctx` with the forward pass's dropout masks.
 pub fn backward<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
@@ -239,7 +248,7 @@ pub fn backward<I: LayerBackend>(
     dy: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Option<Tensor<I, 3>>, WeightGrads<I>) {
     let (p, k) = (s.precision, &s.kernels);
-    let (_, f) = run(w, s, masks, x, ctx);
+    let (_, f) = run(w, s, masks, x, ctx, None);
     let d_out = drop(&masks.mlp, dy.clone());
     // The activation's gradient in its own format (bf16 with the bf16 presets), as `mlp::gelu_mlp` has it.
     let act_format = float_format(f.act.dtype());

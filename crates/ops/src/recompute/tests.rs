@@ -8,7 +8,7 @@ use burn::module::{Module, ModuleMapper, ModuleVisitor};
 use burn::nn::{LayerNormConfig, LinearConfig};
 use burn::tensor::module::attention;
 use burn::tensor::ops::{AttentionModuleOptions, FloatTensorOps};
-use burn::tensor::{TensorMetadata, TensorPrimitive};
+use burn::tensor::{FloatDType, TensorMetadata, TensorPrimitive};
 
 type A = Autodiff<Flex>;
 
@@ -193,7 +193,7 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
         over_time: None,
         kernels: Kernels::default(),
     };
-    let y1 = math::forward(&weights, setting, &masks, x.clone(), None);
+    let (y1, _) = math::forward(&weights, setting, &masks, x.clone(), None, None);
     let (dx1, dctx, dp1) = math::backward(&weights, setting, &masks, (x, None), r);
     assert!(dctx.is_none(), "a self-attention layer has no context");
     assert!(rel(y1, y0) < 1e-4);

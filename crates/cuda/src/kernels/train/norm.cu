@@ -34,20 +34,29 @@ struct NormParams {
 
 // The forward pass: y = (x − mean) · rstd · γ + β, rstd = 1/√(var + ε) with the centred variance (as
 // burn's `LayerNorm`), for d ≤ 32 · PER, written to `out` (`p.y`'s place) as f32 or, where only products
-// read it, as their bf16 operand (`T`), so that no f32 copy is written and cast.
-template <int PER, typename T>
-DEV void norm_forward(const NormParams& p, T* out) {
+// read it, as their bf16 operand (`T`), so that no f32 copy is written and cast. The input `xs` is f32 or
+// the bf16 copy a recomputed layer kept (`TX`). With `keep`, the input is also written there in bf16: the
+// copy the backward pass keeps, which a cast kernel would otherwise read the input again to write.
+template <int PER, typename TX, typename T>
+DEV void norm_forward(const NormParams& p, const TX* xs, T* out, u16* keep) {
     const int lane = lane_id(), d = p.d;
     const long long stride = blocks() * warps_per_block();
     for (long long row = block_x() * warps_per_block() + warp_id(); row < p.rows; row += stride) {
-        const float* x = p.x + row * d;
+        const TX* x = xs + row * d;
         float v[PER];
         float s = 0.f;
 #pragma unroll
         for (int j = 0; j < PER; j++) {
             const int c = lane + 32 * j;
-            v[j] = c < d ? x[c] : 0.f;
+            v[j] = c < d ? value(x + c) : 0.f;
             s += v[j];
+        }
+        if (keep != nullptr) {
+#pragma unroll
+            for (int j = 0; j < PER; j++) {
+                const int c = lane + 32 * j;
+                if (c < d) store(keep + row * d + c, v[j]);
+            }
         }
         const float mean = warp_sum(s) / d;
         float q = 0.f;
@@ -71,9 +80,10 @@ DEV void norm_forward(const NormParams& p, T* out) {
 }
 
 // The backward pass: with x̂ = (x − mean) · rstd and g = dy · γ,
-// dx = rstd · (g − mean(g) − x̂ · mean(g · x̂)); each warp adds its rows' dy · x̂ and dy per column.
-template <int PER>
-DEV void norm_backward(const NormParams& p) {
+// dx = rstd · (g − mean(g) − x̂ · mean(g · x̂)); each warp adds its rows' dy · x̂ and dy per column. The
+// input `xs` is f32 or the bf16 copy the forward pass kept (`TX`).
+template <int PER, typename TX>
+DEV void norm_backward(const NormParams& p, const TX* xs) {
     const int lane = lane_id(), d = p.d;
     const long long warp = block_x() * warps_per_block() + warp_id();
     const long long stride = blocks() * warps_per_block();
@@ -81,7 +91,7 @@ DEV void norm_backward(const NormParams& p) {
 #pragma unroll
     for (int j = 0; j < PER; j++) dg[j] = db[j] = 0.f;
     for (long long row = warp; row < p.rows; row += stride) {
-        const float* x = p.x + row * d;
+        const TX* x = xs + row * d;
         const float* dy = p.dy + row * d;
         const float mean = p.mean[row], rstd = p.rstd[row];
         float xh[PER], g[PER];
@@ -91,7 +101,7 @@ DEV void norm_backward(const NormParams& p) {
             const int c = lane + 32 * j;
             const bool in = c < d;
             const float dyc = in ? dy[c] : 0.f;
-            xh[j] = in ? (x[c] - mean) * rstd : 0.f;
+            xh[j] = in ? (value(x + c) - mean) * rstd : 0.f;
             g[j] = in ? dyc * p.gamma[c] : 0.f;
             dg[j] += dyc * xh[j];
             db[j] += dyc;
@@ -118,8 +128,8 @@ DEV void norm_backward(const NormParams& p) {
 
 // One kernel per pass and row capacity: d ≤ 128, 256, 384, 512, 768, 1024.
 #define NORM_KERNELS(PER)                                                          \
-    KERNEL umgen_norm_forward_##PER(NormParams p) { norm_forward<PER>(p, p.y); }   \
-    KERNEL umgen_norm_backward_##PER(NormParams p) { norm_backward<PER>(p); }
+    KERNEL umgen_norm_forward_##PER(NormParams p) { norm_forward<PER>(p, p.x, p.y, nullptr); } \
+    KERNEL umgen_norm_backward_##PER(NormParams p) { norm_backward<PER>(p, p.x); }
 
 // The sizes the bound entry points take after their buffers (`Sizes` in `norm/cuda.rs`, field for field).
 struct NormSizes {
@@ -130,25 +140,32 @@ struct NormSizes {
 
 // The same passes with their buffers as parameters, which cubecl binds as it launches (`norm/cuda.rs`): the
 // host then needs no device pointers, so it makes no call to cubecl's device thread and does not wait.
-#define NORM_BOUND_KERNELS(PER)                                                                             \
-    KERNEL umgen_norm_forward_bound_##PER(const float* x, const float* gamma, const float* beta, float* y,  \
-                                          float* mean, float* rstd, NormSizes s) {                          \
-        norm_forward<PER>(NormParams{x, gamma, beta, nullptr, nullptr, nullptr, y, mean, rstd, nullptr,     \
-                                     nullptr, nullptr, s.rows, s.d, s.eps},                                 \
-                          y);                                                                               \
-    }                                                                                                       \
-    KERNEL umgen_norm_forward_bound_bf16_##PER(const float* x, const float* gamma, const float* beta,       \
-                                               u16* y, float* mean, float* rstd, NormSizes s) {             \
-        norm_forward<PER>(NormParams{x, gamma, beta, nullptr, nullptr, nullptr, nullptr, mean, rstd,        \
-                                     nullptr, nullptr, nullptr, s.rows, s.d, s.eps},                        \
-                          y);                                                                               \
-    }                                                                                                       \
-    KERNEL umgen_norm_backward_bound_##PER(const float* dy, const float* x, const float* mean,              \
-                                           const float* rstd, const float* gamma, float* dx, float* dgamma, \
-                                           float* dbeta, NormSizes s) {                                     \
-        norm_backward<PER>(NormParams{x, gamma, nullptr, dy, mean, rstd, nullptr, nullptr, nullptr, dx,     \
-                                      dgamma, dbeta, s.rows, s.d, s.eps});                                  \
+// Named by the formats of the input and the output (`x32`/`x16`, `y32`/`y16`; bf16 as `u16` bits) and,
+// for a forward pass that also writes the kept bf16 copy of its f32 input, `keep`.
+#define NORM_FORWARD_BOUND(PER, NAME, TX, TY, KEEP_PARAM, KEEP)                                               \
+    KERNEL umgen_norm_forward_bound_##NAME##_##PER(const TX* x, const float* gamma, const float* beta, TY* y,  \
+                                                   float* mean, float* rstd KEEP_PARAM, NormSizes s) {        \
+        norm_forward<PER>(NormParams{nullptr, gamma, beta, nullptr, nullptr, nullptr, nullptr, mean, rstd,   \
+                                     nullptr, nullptr, nullptr, s.rows, s.d, s.eps},                          \
+                          x, y, KEEP);                                                                        \
     }
+#define NORM_BACKWARD_BOUND(PER, NAME, TX)                                                                    \
+    KERNEL umgen_norm_backward_bound_##NAME##_##PER(const float* dy, const TX* x, const float* mean,          \
+                                                    const float* rstd, const float* gamma, float* dx,         \
+                                                    float* dgamma, float* dbeta, NormSizes s) {               \
+        norm_backward<PER>(NormParams{nullptr, gamma, nullptr, dy, mean, rstd, nullptr, nullptr, nullptr, dx, \
+                                      dgamma, dbeta, s.rows, s.d, s.eps},                                     \
+                           x);                                                                                \
+    }
+#define NORM_COMMA ,
+#define NORM_BOUND_KERNELS(PER)                                                   \
+    NORM_FORWARD_BOUND(PER, x32_y32, float, float, , nullptr)                     \
+    NORM_FORWARD_BOUND(PER, x32_y16, float, u16, , nullptr)                       \
+    NORM_FORWARD_BOUND(PER, x16_y32, u16, float, , nullptr)                       \
+    NORM_FORWARD_BOUND(PER, x16_y16, u16, u16, , nullptr)                         \
+    NORM_FORWARD_BOUND(PER, x32_y16_keep, float, u16, NORM_COMMA u16* keep, keep) \
+    NORM_BACKWARD_BOUND(PER, x32, float)                                          \
+    NORM_BACKWARD_BOUND(PER, x16, u16)
 // One family only where `UMGEN_INSTANCE` says which (kernels launched on cubecl's stream, `side/cubecl_stream.rs`).
 #ifdef UMGEN_INSTANCE
 UMGEN_INSTANCE

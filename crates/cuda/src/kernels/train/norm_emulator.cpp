@@ -67,17 +67,42 @@ static bool run(const Case& c, std::mt19937& rng) {
             rdx[r * c.d + i] = s * (g[i] * gamma[i] - mg - xh * mgx);
         }
     }
-    // The bf16 output of the bound forward pass (where products read the norm): the f32 output rounded, to
-    // the bit, as the cast it replaces rounded it.
-    double bf16_mismatch = 0;
+    // The bound entry points (where cubecl's stream launches them), against the pointer kernels' results:
+    // the bf16 output is the f32 output rounded, to the bit, as the cast it replaces rounded it; the kept
+    // copy is the input rounded; a bf16 input gives what the f32 kernels give on that input widened (the
+    // cast back to f32 it replaces), forward and backward, to the bit.
+    double bf16_mismatch = 0, kept_mismatch = 0, x16_mismatch = 0;
     if (c.per == 12 || c.per == 24) {
-        std::vector<u16> yb(n, 0xffff);
+        const bool wide = c.per == 24;
+        std::vector<u16> yb(n, 0xffff), kept(n, 0xffff);
         std::vector<float> m2(c.rows), r2(c.rows);
         const NormSizes sizes{c.rows, c.d, eps};
-        auto bf16 = c.per == 12 ? umgen_norm_forward_bound_bf16_12 : umgen_norm_forward_bound_bf16_24;
-        run_grid([&] { bf16(x.data(), gamma.data(), beta.data(), yb.data(), m2.data(), r2.data(), sizes); },
+        auto keep = wide ? umgen_norm_forward_bound_x32_y16_keep_24 : umgen_norm_forward_bound_x32_y16_keep_12;
+        run_grid([&] { keep(x.data(), gamma.data(), beta.data(), yb.data(), m2.data(), r2.data(), kept.data(), sizes); },
                  c.grid, c.warps);
-        for (long long i = 0; i < n; i++) bf16_mismatch += yb[i] != to_bf16(y[i]);
+        for (long long i = 0; i < n; i++) bf16_mismatch += yb[i] != to_bf16(y[i]), kept_mismatch += kept[i] != to_bf16(x[i]);
+        for (long long r = 0; r < c.rows; r++) bf16_mismatch += m2[r] != mean[r] || r2[r] != rstd[r];
+
+        // The f32 kernels on the kept copy widened, and the bf16-input kernels on the kept copy itself.
+        std::vector<float> xw(n), y32(n), m32(c.rows), r32(c.rows), dx32(n), dg32(warps * c.d), db32(warps * c.d);
+        for (long long i = 0; i < n; i++) xw[i] = from_bf16(kept[i]);
+        NormParams q = p;
+        q.x = xw.data(), q.y = y32.data(), q.mean_out = m32.data(), q.rstd_out = r32.data(), q.mean = m32.data(),
+        q.rstd = r32.data(), q.dx = dx32.data(), q.dgamma = dg32.data(), q.dbeta = db32.data();
+        launch(fwd, q, c.grid, c.warps);
+        launch(bwd, q, c.grid, c.warps);
+        std::vector<float> y16(n), m16(c.rows), r16(c.rows), dx16(n), dg16(warps * c.d), db16(warps * c.d);
+        auto fwd16 = wide ? umgen_norm_forward_bound_x16_y32_24 : umgen_norm_forward_bound_x16_y32_12;
+        auto bwd16 = wide ? umgen_norm_backward_bound_x16_24 : umgen_norm_backward_bound_x16_12;
+        run_grid([&] { fwd16(kept.data(), gamma.data(), beta.data(), y16.data(), m16.data(), r16.data(), sizes); },
+                 c.grid, c.warps);
+        run_grid([&] {
+            bwd16(dy.data(), kept.data(), m16.data(), r16.data(), gamma.data(), dx16.data(), dg16.data(), db16.data(),
+                  sizes);
+        }, c.grid, c.warps);
+        for (long long i = 0; i < n; i++) x16_mismatch += y16[i] != y32[i] || dx16[i] != dx32[i];
+        for (long long r = 0; r < c.rows; r++) x16_mismatch += m16[r] != m32[r] || r16[r] != r32[r];
+        for (long long i = 0; i < warps * c.d; i++) x16_mismatch += dg16[i] != dg32[i] || db16[i] != db32[i];
     }
     // The warps' partial column sums, added as the caller adds them.
     std::vector<float> sdg(c.d, 0), sdb(c.d, 0);
@@ -85,8 +110,9 @@ static bool run(const Case& c, std::mt19937& rng) {
         for (int i = 0; i < c.d; i++) sdg[i] += dg[w * c.d + i], sdb[i] += db[w * c.d + i];
     const double errs[] = {relative_error(y, ry), relative_error(mean, rmean), relative_error(rstd, rrstd),
                            relative_error(dx, rdx), relative_error(sdg, rdg), relative_error(sdb, rdb),
-                           bf16_mismatch};
-    const char* const names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta", "bf16 y unlike y rounded"};
+                           bf16_mismatch, kept_mismatch, x16_mismatch};
+    const char* const names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta", "bf16 y unlike y rounded",
+                                 "kept copy unlike x rounded", "bf16-input passes unlike f32 ones on it"};
     printf("rows %lld d %d per %d grid %d × %d warps:", c.rows, c.d, c.per, c.grid, c.warps);
     // f32 sums of up to a few hundred terms.
     return report(errs, names, 2e-5);

@@ -45,25 +45,28 @@ pub fn drop<I: LayerBackend>(mask: &Mask<I>, x: Tensor<I, 3>) -> Tensor<I, 3> {
 pub type Stats<I> = (Tensor<I, 1>, Tensor<I, 1>);
 
 /// `(x − mean) / √(var + ε) · γ + β` over the last axis ([`FusedNorm`]'s kernels) in the products' format
-/// under `p` (it feeds products only), with the rows' statistics.
+/// under `p` (it feeds products only), with the rows' statistics and, with `keep`, the input in that
+/// format (written as the kernel reads it). `x` is f32 or a kept bf16 copy.
 pub fn norm<I: LayerBackend>(
     x: Tensor<I, 3>,
     n: &Norm<I>,
     eps: f64,
     p: Precision,
+    keep: Option<FloatDType>,
     k: &Kernels,
-) -> (Tensor<I, 3>, Stats<I>) {
+) -> (Tensor<I, 3>, Stats<I>, Option<Tensor<I, 3>>) {
     let [b, l, d] = x.dims();
     let out = p.operand_dtype();
-    let (y, mean, rstd) = I::norm_forward(
+    let normed = I::norm_forward(
         x.reshape([b * l, d]),
         n.gamma.clone(),
         n.beta.clone(),
         eps,
-        out,
+        (out, keep),
         k,
     );
-    (y.reshape([b, l, d]), (mean, rstd))
+    let kept = normed.kept.map(|t| t.reshape([b, l, d]));
+    (normed.y.reshape([b, l, d]), (normed.mean, normed.rstd), kept)
 }
 
 /// Gradients of a layer norm's input, scale and shift from its output's gradient `dy`.
