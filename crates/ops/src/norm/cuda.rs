@@ -7,68 +7,18 @@
 //! the decomposition instead, counted by [`super::fallbacks`].
 #![allow(unsafe_code)]
 
+mod geometry;
+mod pointers;
+
 use super::{FusedNorm, NormKernel, Normed, backward_decomposed, fell_back, forward_decomposed};
 use crate::format::float;
-use crate::kernels::{KernelStream, Kernels, SideFamily};
-use crate::side::{self, Compiled, Handles, Inner, KernelCache, Primitive, empty_f32, empty_packed};
+use crate::kernels::{KernelStream, Kernels};
+use crate::side::{self, Handles, Inner, Primitive, empty_packed};
 use burn::backend::Cuda;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, FloatDType, Tensor};
 use burn_ir::CustomOpIr;
-use cudarc::driver::DeviceRepr;
-use cudarc::nvrtc::CompileOptions;
-use std::cell::RefCell;
-
-/// Values a lane keeps of its row, one kernel each: rows up to 32 times as wide.
-const PER_LANE: [usize; 6] = [4, 8, 12, 16, 24, 32];
-
-/// Warps a block (the kernels' `__launch_bounds__(256)`).
-const WARPS: usize = 8;
-
-/// Blocks of the backward kernel: each warp loops over rows and writes one row of column sums, so this
-/// bounds the sums the caller adds (8,192 rows of `d`) while filling an H100 (132 SMs) in one wave.
-const BACKWARD_BLOCKS: usize = 1024;
-
-/// `NormSizes` of `norm.cu`, field for field.
-#[repr(C)]
-#[derive(Debug, Clone, Copy)]
-struct Sizes {
-    rows: i64,
-    d: i32,
-    eps: f32,
-}
-
-// SAFETY: plain old data, laid out as the C struct the kernels take by value.
-unsafe impl DeviceRepr for Sizes {}
-
-/// `NormParams` of `norm.cu`, field for field.
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Default)]
-struct Params {
-    x: u64,
-    gamma: u64,
-    beta: u64,
-    dy: u64,
-    mean: u64,
-    rstd: u64,
-    y: u64,
-    mean_out: u64,
-    rstd_out: u64,
-    dx: u64,
-    dgamma: u64,
-    dbeta: u64,
-    rows: i64,
-    d: i32,
-    eps: f32,
-}
-
-// SAFETY: plain old data, laid out as the C struct the kernels take by value.
-unsafe impl DeviceRepr for Params {}
-
-/// The kernels' per-lane capacity for rows of `d`, if one takes them.
-fn per_lane(d: usize) -> Option<usize> {
-    PER_LANE.into_iter().find(|&p| 32 * p >= d)
-}
+use geometry::{Sizes, WARPS, backward_warps, per_lane, results, source};
 
 /// Why the kernels cannot take `x` `[rows, d]`, if they cannot.
 fn refused(x: &Tensor<Cuda, 2>) -> Option<String> {
@@ -152,11 +102,6 @@ impl FusedNorm for Cuda {
     }
 }
 
-/// Warps of the backward kernel's grid for `rows` rows (each writes a row of column sums).
-fn backward_warps(rows: usize) -> usize {
-    rows.div_ceil(WARPS).min(BACKWARD_BLOCKS) * WARPS
-}
-
 /// Registers the backward pass on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
 fn register_backward<const I: usize, const O: usize>(
     inputs: [FloatTensor<Cuda>; I],
@@ -236,30 +181,6 @@ impl side::SidePass for Pass {
     }
 }
 
-thread_local! {
-    /// This thread's kernels by device.
-    static KERNELS: KernelCache = const { RefCell::new(Vec::new()) };
-}
-
-/// Compiles the kernels for `like`'s device.
-fn build(like: &Primitive) -> Result<Compiled, String> {
-    let names: Vec<String> = PER_LANE
-        .iter()
-        .flat_map(|p| {
-            [
-                format!("umgen_norm_forward_{p}"),
-                format!("umgen_norm_backward_{p}"),
-            ]
-        })
-        .collect();
-    Compiled::compile(like, source()?, |_| CompileOptions::default(), &names, 0)
-}
-
-/// The kernels' source as NVRTC compiles it.
-fn source() -> Result<String, String> {
-    Ok(side::kernel_source(umgen_cuda::source::train::NORM))
-}
-
 /// A pass's scalars and formats: ε, the output's format and the kept copy's (forward).
 #[derive(Debug, Clone, Copy)]
 struct Formats {
@@ -283,7 +204,7 @@ impl Formats {
 /// not (no result was written that the caller keeps, so it may run the decomposition). On cubecl's stream
 /// the kernels are launched from this thread with their buffers bound ([`launch_bound`]); with
 /// `train.kernels.stream = "side"` their pointers are fetched and they are launched on cubecl's device
-/// thread ([`launch_with_pointers`]), on f32 only (a bf16 input widened and a kept copy cast around them).
+/// thread ([`pointers::launch`]), on f32 only (a bf16 input widened and a kept copy cast around them).
 fn launch(
     x: &Primitive,
     gamma: &Primitive,
@@ -318,7 +239,7 @@ fn launch(
     let wide = |t: &Primitive| side::inner(float::<Inner, 2>(t.clone()).cast(FloatDType::F32));
     let x32 = wide(x);
     let mut results = side::on_device_thread(x, kernels.launch_thread, || {
-        launch_with_pointers(&x32, gamma, beta, grads, (per, sizes), kernels)
+        pointers::launch(&x32, gamma, beta, grads, (per, sizes), kernels)
     })?;
     // The side stream's kernels write f32 only.
     if formats.out != FloatDType::F32 {
@@ -327,59 +248,6 @@ fn launch(
     if let Some(keep) = formats.keep.filter(|_| grads.is_none()) {
         results.push(side::inner(float::<Inner, 2>(x.clone()).cast(keep)));
     }
-    Ok(results)
-}
-
-/// [`launch`] on the side stream: the kernel takes [`Params`], the buffers' device pointers.
-fn launch_with_pointers(
-    x: &Primitive,
-    gamma: &Primitive,
-    beta: Option<&Primitive>,
-    grads: Option<[&Primitive; 3]>,
-    (per, sizes): (usize, Sizes),
-    kernels: &Kernels,
-) -> Result<Vec<Primitive>, String> {
-    let rows = x.meta.shape()[0];
-    let mut p = Params {
-        rows: sizes.rows,
-        d: sizes.d,
-        eps: sizes.eps,
-        ..Params::default()
-    };
-    // The pointers, and what keeps the buffers alive until the launch is queued.
-    let mut keep = side::Pointers::default();
-    let mut ptr = |t: &Primitive| keep.of(t);
-    (p.x, p.gamma) = (ptr(x)?, ptr(gamma)?);
-    let (results, name, blocks) = match (beta, grads) {
-        (Some(beta), None) => {
-            p.beta = ptr(beta)?;
-            let results = results(x, false, FloatDType::F32);
-            (p.y, p.mean_out, p.rstd_out) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
-            (results, format!("umgen_norm_forward_{per}"), rows.div_ceil(WARPS))
-        }
-        (None, Some([dy, mean, rstd])) => {
-            (p.dy, p.mean, p.rstd) = (ptr(dy)?, ptr(mean)?, ptr(rstd)?);
-            let warps = backward_warps(rows);
-            let results = results(x, true, FloatDType::F32);
-            (p.dx, p.dgamma, p.dbeta) = (ptr(&results[0])?, ptr(&results[1])?, ptr(&results[2])?);
-            (results, format!("umgen_norm_backward_{per}"), warps / WARPS)
-        }
-        _ => return Err("a pass takes β (forward) or the gradients (backward)".into()),
-    };
-    // SAFETY: every pointer in `p` is a live contiguous buffer (kept by `keep`) of the shape the kernel reads or
-    // writes (`rows × d`, `rows`, `d`, or one row per warp of the grid).
-    unsafe {
-        side::launch_kernel(
-            (&KERNELS, kernels),
-            x,
-            (SideFamily::LayerNorm, &|| build(x)),
-            &name,
-            (&format!("NORM_KERNELS({per})"), &source),
-            (blocks, 32 * WARPS as u32),
-            &p,
-        )
-    }?;
-    drop(keep);
     Ok(results)
 }
 
@@ -446,21 +314,4 @@ fn launch_bound(
         )
     }?;
     Ok(results)
-}
-
-/// The results of a pass over `x` `[rows, d]`, packed: y (in `out`'s format), the rows' means and `1/σ`
-/// (forward), or dx (f32) and one row of column sums per warp of the grid for the scale and the shift
-/// (`backward`).
-fn results(x: &Primitive, backward: bool, out: FloatDType) -> Vec<Primitive> {
-    let (rows, d) = (x.meta.shape()[0], x.meta.shape()[1]);
-    let stats = if backward {
-        vec![backward_warps(rows), d]
-    } else {
-        vec![rows]
-    };
-    vec![
-        empty_packed(x, vec![rows, d], DType::from(out)),
-        empty_f32(x, stats.clone()),
-        empty_f32(x, stats),
-    ]
 }
