@@ -139,14 +139,14 @@ impl side::SidePass for Pass {
     fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
         match *self {
             Pass::Forward => {
-                let [y, b] = side::contiguous_inputs::<2, 1>(handles, desc);
+                let [y, b] = side::contiguous_inputs::<2>(handles, desc);
                 launch(None, &y, &b).unwrap_or_else(|why| {
                     fell_back(&why);
                     vec![side::inner(forward_decomposed::<Inner>(float(y), float(b)))]
                 })
             }
             Pass::Backward => {
-                let [dh, y, b] = side::contiguous_inputs::<3, 2>(handles, desc);
+                let [dh, y, b] = side::contiguous_inputs::<3>(handles, desc);
                 launch(Some(&dh), &y, &b).unwrap_or_else(|why| {
                     fell_back(&why);
                     // The registered shape holds one row per group.

@@ -135,11 +135,7 @@ impl side::SidePass for Pass {
                 keep,
                 kernels,
             } => {
-                // Registered with a fourth output where it keeps a copy.
-                let [x, gamma, beta] = match keep {
-                    Some(_) => side::contiguous_inputs::<3, 4>(handles, desc),
-                    None => side::contiguous_inputs::<3, 3>(handles, desc),
-                };
+                let [x, gamma, beta] = side::contiguous_inputs(handles, desc);
                 let formats = Formats { eps, out, keep };
                 launch(&x, &gamma, Some(&beta), None, formats, &kernels).unwrap_or_else(|why| {
                     fell_back(&why);
@@ -160,7 +156,7 @@ impl side::SidePass for Pass {
                 })
             }
             Pass::Backward { kernels } => {
-                let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5, 3>(handles, desc);
+                let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5>(handles, desc);
                 let grads = Some([&dy, &mean, &rstd]);
                 launch(&x, &gamma, None, grads, Formats::BACKWARD, &kernels).unwrap_or_else(|why| {
                     fell_back(&why);
@@ -219,12 +215,8 @@ fn launch(
     if let Some(t) = operands.iter().find(|t| t.dtype != DType::F32) {
         return Err(format!("{:?} operand (the layer-norm kernels take f32)", t.dtype));
     }
-    if !matches!(x.dtype, DType::F32 | DType::BF16) {
-        return Err(format!(
-            "{:?} input (the layer-norm kernels take f32 or bf16)",
-            x.dtype
-        ));
-    }
+    // Both paths take an f32 or bf16 input (the side stream widens a bf16 one).
+    bits(x.dtype)?;
     let shape = x.meta.shape();
     let (rows, d) = (shape[0], shape[1]);
     let per = per_lane(d).ok_or_else(|| format!("rows of {d}"))?;
@@ -236,8 +228,7 @@ fn launch(
     if kernels.stream == KernelStream::Cubecl {
         return launch_bound(x, gamma, beta, grads, (per, sizes), formats);
     }
-    let wide = |t: &Primitive| side::inner(float::<Inner, 2>(t.clone()).cast(FloatDType::F32));
-    let x32 = wide(x);
+    let x32 = side::inner(float::<Inner, 2>(x.clone()).cast(FloatDType::F32));
     let mut results = side::on_device_thread(x, kernels.launch_thread, || {
         pointers::launch(&x32, gamma, beta, grads, (per, sizes), kernels)
     })?;

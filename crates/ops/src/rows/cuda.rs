@@ -84,11 +84,8 @@ enum Pass {
 
 impl side::SidePass for Pass {
     fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
-        let (x, cast) = match self {
-            Pass::Sum => (side::contiguous_inputs::<1, 1>(handles, desc), false),
-            Pass::SumCast => (side::contiguous_inputs::<1, 2>(handles, desc), true),
-        };
-        let [x] = x;
+        let [x] = side::contiguous_inputs(handles, desc);
+        let cast = matches!(self, Pass::SumCast);
         launch(&x, cast).unwrap_or_else(|why| {
             FALLBACKS.fell_back(&why);
             let x = float::<Inner, 2>(x);

@@ -32,12 +32,16 @@ pub(crate) fn inner<const D: usize>(t: burn::tensor::Tensor<Inner, D>) -> Primit
     t.into_primitive().tensor()
 }
 
-/// The `N` inputs of the custom operation `desc` (with `M` outputs), each made contiguous.
-pub(crate) fn contiguous_inputs<const N: usize, const M: usize>(
-    handles: &mut Handles,
-    desc: &CustomOpIr,
-) -> [Primitive; N] {
-    let (inputs, _) = desc.as_fixed::<N, M>();
+/// The `N` inputs of the custom operation `desc`, each made contiguous (whatever its number of outputs,
+/// which [`register_outputs`] checks against what the pass computed).
+pub(crate) fn contiguous_inputs<const N: usize>(handles: &mut Handles, desc: &CustomOpIr) -> [Primitive; N] {
+    let Ok(inputs) = <&[TensorIr; N]>::try_from(desc.inputs.as_slice()) else {
+        unreachable!(
+            "{} was registered with {} inputs, read as {N}",
+            desc.id,
+            desc.inputs.len()
+        )
+    };
     inputs
         .each_ref()
         .map(|t| into_contiguous(handles.get_float_tensor::<Inner>(t)))
@@ -45,6 +49,15 @@ pub(crate) fn contiguous_inputs<const N: usize, const M: usize>(
 
 /// Registers `outputs` as the outputs of the custom operation `desc`, in order.
 pub(crate) fn register_outputs(handles: &mut Handles, desc: &CustomOpIr, outputs: Vec<Primitive>) {
+    // A pass that computed another number of results than it was registered with would leave a later
+    // operation without its input's handle; a pass's output list is fixed by its code, so this cannot
+    // follow from data.
+    assert_eq!(
+        outputs.len(),
+        desc.outputs.len(),
+        "{} computed another number of results than it was registered with",
+        desc.id
+    );
     for (ir, t) in desc.outputs.iter().zip(outputs) {
         handles.register_float_tensor::<Inner>(&ir.id, t);
     }

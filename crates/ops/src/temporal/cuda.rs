@@ -183,7 +183,7 @@ impl side::SidePass for Pass {
         } = *self;
         let thread = kernels.launch_thread;
         if backward {
-            let [q, kv, dout] = side::contiguous_inputs::<3, 2>(handles, desc);
+            let [q, kv, dout] = side::contiguous_inputs::<3>(handles, desc);
             side::on_device_thread(&q, thread, || {
                 launch(&q, &kv, Some(&dout), (heads, causal), kernels)
             })
@@ -201,7 +201,7 @@ impl side::SidePass for Pass {
                 vec![side::inner(dq), side::inner(dkv)]
             })
         } else {
-            let [q, kv] = side::contiguous_inputs::<2, 2>(handles, desc);
+            let [q, kv] = side::contiguous_inputs::<2>(handles, desc);
             side::on_device_thread(&q, thread, || launch(&q, &kv, None, (heads, causal), kernels))
                 .unwrap_or_else(|why| {
                     crate::flash::fell_back("temporal", &why, "decomposed");

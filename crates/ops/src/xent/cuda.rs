@@ -114,7 +114,7 @@ impl side::SidePass for Pass {
     fn outputs(&self, handles: &mut Handles, desc: &CustomOpIr) -> Vec<Primitive> {
         match self {
             Pass::Forward { kernels } => {
-                let [x] = side::contiguous_inputs::<1, 1>(handles, desc);
+                let [x] = side::contiguous_inputs::<1>(handles, desc);
                 side::on_device_thread(&x, kernels.launch_thread, || launch(&x, None, *kernels))
                     .unwrap_or_else(|why| {
                         FALLBACKS.fell_back(&why);
@@ -124,7 +124,7 @@ impl side::SidePass for Pass {
                     })
             }
             Pass::Backward { kernels } => {
-                let [x, lse, g, ids, weights] = side::contiguous_inputs::<5, 1>(handles, desc);
+                let [x, lse, g, ids, weights] = side::contiguous_inputs::<5>(handles, desc);
                 let grads = Some([&lse, &g, &ids, &weights]);
                 side::on_device_thread(&x, kernels.launch_thread, || launch(&x, grads, *kernels))
                     .unwrap_or_else(|why| {
