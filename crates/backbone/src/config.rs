@@ -51,6 +51,13 @@ pub struct BackboneConfig {
     /// before.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub track_follow: bool,
+    /// The modality whose slots are stop points (a traffic light's stop lines, declared by the modality)
+    /// that `track_follow` brakes for as standing objects while they ask to stop
+    /// ([`crate::StopSpec`]): braking for a red light becomes part of the hint instead of a departure
+    /// the model must learn from lights it sees only as tokens. Needs `track_follow`. `""` or absent
+    /// turns it off; left out of saved configs when off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub track_stops: Option<String>,
     /// Seconds between consecutive frames of a training window or a rollout (`train.gap` × the data's
     /// frame interval): how far `track` moves an object at its velocity. Training and generation refuse
     /// data that steps otherwise.
@@ -84,6 +91,7 @@ impl Default for BackboneConfig {
             track: None,
             track_accel: false,
             track_follow: false,
+            track_stops: None,
             step_s: 0.5,
             precision: Precision::F32,
             ordinal_init: true,

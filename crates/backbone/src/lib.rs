@@ -60,5 +60,5 @@ pub use plain::{
     PlainAttention, PlainBackbone, PlainCross, PlainEgo, PlainEmbed, PlainLinear, PlainMlp, PlainNorm,
     PlainSelf, PlainTable,
 };
-pub use spec::{ActionSpec, AlignSpec, BackboneSpec, FollowSpec, SegmentSpec, TrackSpec};
+pub use spec::{ActionSpec, AlignSpec, BackboneSpec, FollowSpec, STOP_IDS, SegmentSpec, StopSpec, TrackSpec};
 pub use umgen_ops::Kernels;

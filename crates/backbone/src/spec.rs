@@ -86,7 +86,46 @@ pub struct TrackSpec {
     /// when off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub follow: Option<FollowSpec>,
+    /// Stop points of another segment (a red light's stop line) that the follow rule brakes for as
+    /// standing objects (`backbone.track_stops`); absent from manifests when off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stops: Option<StopSpec>,
 }
+
+/// Where the tracked slots stop (`backbone.track_stops`): slots of another segment, each a place, the
+/// heading of the traffic that stops there and a state. A slot whose state is one of `stop`, with no
+/// slot at the same place (the same x and y ids) in a `go` state, leads every tracked slot behind it
+/// in its lane ([`FollowSpec`]'s test) as a standing object whose follower's centre stops `gap_m`
+/// before it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StopSpec {
+    /// Segment index.
+    pub segment: usize,
+    /// Tokens per slot.
+    pub slot: usize,
+    /// Ids `0..values` are value bins; a slot whose x is not one holds no point.
+    pub values: u32,
+    /// Position in the slot and `(lo, hi, bins)` of x, y (m) and the heading (rad).
+    pub fields: [(usize, (f64, f64, u32)); 3],
+    /// Position of the state token in the slot.
+    pub state: usize,
+    /// State ids that ask to stop.
+    pub stop: Vec<u32>,
+    /// State ids that release the stops at their place.
+    pub go: Vec<u32>,
+    /// Distance (m) before the point at which a follower's centre stands: half a car and half a
+    /// metre.
+    pub gap_m: f64,
+}
+
+impl StopSpec {
+    /// A follower's centre stops this far (m) before a stop point: SUMO's cars are 5 m long and stand
+    /// with their front about half a metre before the line.
+    pub const GAP_M: f64 = 3.0;
+}
+
+/// Most state ids in a [`StopSpec`]'s `stop` and in its `go` (the generation kernels' fixed arrays).
+pub const STOP_IDS: usize = 4;
 
 /// When a tracked slot brakes for another ahead of it (`backbone.track_follow`). An object `j` leads
 /// object `i` when `j`'s centre lies ahead along `i`'s heading, within `half_width_m` of its axis, and
@@ -220,6 +259,45 @@ impl BackboneSpec {
                     k.slot, k.step_s
                 ));
             }
+        }
+        if let Some(st) = self
+            .track
+            .as_ref()
+            .and_then(|k| k.stops.as_ref().map(|st| (k, st)))
+        {
+            self.check_stops(st)?;
+        }
+        Ok(())
+    }
+
+    /// Checks the stop points of the tracked slots `k`.
+    fn check_stops(&self, (k, st): (&TrackSpec, &StopSpec)) -> Result<()> {
+        let tokens = self.segments.get(st.segment).map(|s| s.tokens).unwrap_or(0);
+        let vocab = self.segments.get(st.segment).map(|s| s.vocab).unwrap_or(0) as u32;
+        let fits = st.slot > 0
+            && tokens > 0
+            && tokens.is_multiple_of(st.slot)
+            && st.state < st.slot
+            && st
+                .fields
+                .iter()
+                .all(|(i, (lo, hi, n))| *i < st.slot && lo < hi && *n > 0 && *n <= st.values);
+        let ids = |v: &[u32], least: usize| {
+            (least..=STOP_IDS).contains(&v.len()) && v.iter().all(|&id| id >= st.values && id < vocab)
+        };
+        let ok = fits && ids(&st.stop, 1) && ids(&st.go, 0) && st.gap_m.is_finite() && st.gap_m >= 0.0;
+        if !ok {
+            return Err(BackboneError::Spec(format!(
+                "the stop segment needs slots of {} tokens that fill it, binned fields and a state inside a \
+                 slot, 1 to {STOP_IDS} stop and up to {STOP_IDS} go state ids past the value bins, and a \
+                 gap of at least 0 m ({} m)",
+                st.slot, st.gap_m
+            )));
+        }
+        if k.follow.is_none() || st.segment == k.segment {
+            return Err(BackboneError::Spec(
+                "stop points need the follow rule and a segment other than the tracked one".into(),
+            ));
         }
         Ok(())
     }

@@ -13,7 +13,7 @@
 
 use crate::config::Precision;
 use crate::embed::FrameEmbedding;
-use crate::spec::{BackboneSpec, FollowSpec, TrackSpec};
+use crate::spec::{BackboneSpec, FollowSpec, StopSpec, TrackSpec};
 use burn::module::Module;
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::tensor::backend::Backend;
@@ -71,7 +71,12 @@ pub(crate) fn embed_moved<B: Backend>(
     let k = spec.track.as_ref()?;
     let s = spec.segments.get(k.segment)?;
     let [b, t, _] = tokens.dims();
-    let ids = moved(tokens.narrow(2, s.offset, s.tokens), action, k);
+    let stops = k
+        .stops
+        .as_ref()
+        .and_then(|st| spec.segments.get(st.segment))
+        .map(|p| tokens.clone().narrow(2, p.offset, p.tokens));
+    let ids = moved(tokens.narrow(2, s.offset, s.tokens), stops, action, k);
     embed
         .block_with(s.offset, ids.reshape([b * t, s.tokens]), kernels)
         .map(|e| (s.offset, e))
@@ -82,9 +87,11 @@ pub(crate) fn embed_moved<B: Backend>(
 /// next frame. A slot moved past the x or y range becomes empty (`spec.pad` in every token) where the spec
 /// has a pad: the data leaves such agents out, so a hint at the edge bin would tell the model to keep an
 /// agent there for good. Other values past a field's range land in its end bins (a hint, not a token to
-/// decode).
+/// decode). `stops` `[b, t, m · slot]` are the ids of `spec.stops`'s segment, which the follow rule
+/// brakes for (ignored without `spec.stops`).
 pub fn moved<B: Backend>(
     ids: Tensor<B, 3, Int>,
+    stops: Option<Tensor<B, 3, Int>>,
     action: Tensor<B, 3>,
     spec: &TrackSpec,
 ) -> Tensor<B, 3, Int> {
@@ -107,7 +114,12 @@ pub fn moved<B: Backend>(
     let (dvx, dvy) = match &spec.follow {
         Some(f) => {
             let state = [x.clone(), y.clone(), vx.clone(), vy.clone(), heading.clone()];
-            follow(f, spec.step_s, occupied.clone(), state, (dvx, dvy))
+            let points = spec
+                .stops
+                .as_ref()
+                .zip(stops)
+                .map(|(st, ids)| stop_points(ids, st));
+            follow(f, spec.step_s, occupied.clone(), state, points, (dvx, dvy))
         }
         None => (dvx, dvy),
     };
@@ -155,27 +167,24 @@ fn follow<B: Backend>(
     dt: f64,
     occupied: Tensor<B, 4, Bool>,
     [x, y, vx, vy, heading]: [Tensor<B, 4>; 5],
+    stops: Option<(Leaders<B>, f64)>,
     (dvx, dvy): (Tensor<B, 4>, Tensor<B, 4>),
 ) -> (Tensor<B, 4>, Tensor<B, 4>) {
-    // Slot i along dim 2, its possible leader j along dim 3.
     let (c, s) = (heading.clone().cos(), heading.sin());
-    let other = |v: &Tensor<B, 4>| v.clone().swap_dims(2, 3);
-    let (dx, dy) = (other(&x) - x, other(&y) - y);
-    let along = dx.clone() * c.clone() + dy.clone() * s.clone();
-    let across = dy * c.clone() - dx * s.clone();
-    let same_way = other(&c) * c.clone() + other(&s) * s.clone();
     let speed = vx.clone() * c.clone() + vy.clone() * s.clone();
-    let closing = speed.clone() - (other(&vx) * c.clone() + other(&vy) * s.clone());
-    let room = along.clone().sub_scalar(f.min_gap_m).clamp_min(f.min_room_m);
-    let need = closing.clone() * closing.clone() / room.mul_scalar(2.0);
-    let leads = occupied
-        .clone()
-        .swap_dims(2, 3)
-        .bool_and(along.greater_elem(0.0))
-        .bool_and(across.abs().lower_equal_elem(f.half_width_m))
-        .bool_and(same_way.greater_equal_elem(f.cos_heading))
-        .bool_and(closing.greater_elem(0.0));
-    let hardest = need.mask_fill(leads.bool_not(), 0.0).max_dim(3);
+    let me = [x.clone(), y.clone(), c.clone(), s.clone(), speed.clone()];
+    // The other slots as leaders along dim 3.
+    let other = |v: &Tensor<B, 4>| v.clone().swap_dims(2, 3);
+    let slots = Leaders {
+        at: [other(&x), other(&y)],
+        way: [other(&c), other(&s)],
+        velocity: Some([other(&vx), other(&vy)]),
+        present: occupied.clone().swap_dims(2, 3),
+    };
+    let mut hardest = hardest_need(f, &me, slots, f.min_gap_m);
+    if let Some((points, gap)) = stops {
+        hardest = hardest.max_pair(hardest_need(f, &me, points, gap));
+    }
     let brakes = occupied.bool_and(hardest.clone().greater_equal_elem(f.onset_m_s2));
     let target = hardest
         .clamp_max(f.max_m_s2)
@@ -184,6 +193,87 @@ fn follow<B: Backend>(
     let change = dvx.clone() * c.clone() + dvy.clone() * s.clone();
     let delta = (target - change).clamp_max(0.0).mask_fill(brakes.bool_not(), 0.0);
     (dvx + delta.clone() * c, dvy + delta * s)
+}
+
+/// Objects a slot may brake for, along dim 3 of `[b, t, 1, j]` tensors: their centres, the cosine and
+/// sine of their headings, their velocities (`None`: standing) and whether each is there.
+struct Leaders<B: Backend> {
+    at: [Tensor<B, 4>; 2],
+    way: [Tensor<B, 4>; 2],
+    velocity: Option<[Tensor<B, 4>; 2]>,
+    present: Tensor<B, 4, Bool>,
+}
+
+/// The hardest braking `[b, t, s, 1]` that each slot `me` (x, y, cos and sin of the heading, speed
+/// along it; `[b, t, s, 1]`) needs for `leaders` to keep `gap` metres between centres, 0 where none
+/// leads it.
+fn hardest_need<B: Backend>(
+    f: &FollowSpec,
+    [x, y, c, s, speed]: &[Tensor<B, 4>; 5],
+    leaders: Leaders<B>,
+    gap: f64,
+) -> Tensor<B, 4> {
+    let [lx, ly] = leaders.at;
+    let (dx, dy) = (lx - x.clone(), ly - y.clone());
+    let along = dx.clone() * c.clone() + dy.clone() * s.clone();
+    let across = dy * c.clone() - dx * s.clone();
+    let [lc, ls] = leaders.way;
+    let same_way = lc * c.clone() + ls * s.clone();
+    let closing = match leaders.velocity {
+        Some([lvx, lvy]) => speed.clone() - (lvx * c.clone() + lvy * s.clone()),
+        None => speed.clone().expand(along.dims()),
+    };
+    let room = along.clone().sub_scalar(gap).clamp_min(f.min_room_m);
+    let need = closing.clone() * closing.clone() / room.mul_scalar(2.0);
+    let leads = leaders
+        .present
+        .expand(along.dims())
+        .bool_and(along.greater_elem(0.0))
+        .bool_and(across.abs().lower_equal_elem(f.half_width_m))
+        .bool_and(same_way.greater_equal_elem(f.cos_heading))
+        .bool_and(closing.greater_elem(0.0));
+    need.mask_fill(leads.bool_not(), 0.0).max_dim(3)
+}
+
+/// The stop points of stop-segment ids `[b, t, m · slot]` as standing leaders `[b, t, 1, m]`, with the
+/// gap a follower keeps: a slot holding a point in a stop state, with no slot at the same x and y ids
+/// in a go state.
+fn stop_points<B: Backend>(ids: Tensor<B, 3, Int>, st: &StopSpec) -> (Leaders<B>, f64) {
+    let [b, t, l] = ids.dims();
+    let m = l / st.slot;
+    let slots = ids.reshape([b, t, m, st.slot]);
+    let column = |i: usize| slots.clone().narrow(3, i, 1).swap_dims(2, 3);
+    let [x, y, heading] = st.fields.map(|(i, bins)| centre(column(i), bins));
+    let state = column(st.state);
+    let any_of = |ids: &[u32]| {
+        ids.iter().fold(state.clone().equal_elem(-1), |acc, &id| {
+            acc.bool_or(state.clone().equal_elem(i64::from(id)))
+        })
+    };
+    let (stop, go) = (any_of(&st.stop), any_of(&st.go));
+    // Point j (dim 3) is released by a go slot g (dim 2) at its x and y ids.
+    let (xi, yi) = (column(st.fields[0].0), column(st.fields[1].0));
+    let same = |v: &Tensor<B, 4, Int>| {
+        let square = [b, t, m, m];
+        v.clone()
+            .expand(square)
+            .equal(v.clone().swap_dims(2, 3).expand(square))
+    };
+    let released = same(&xi)
+        .bool_and(same(&yi))
+        .bool_and(go.swap_dims(2, 3).expand([b, t, m, m]))
+        .any_dim(2);
+    let present = xi
+        .lower_elem(i64::from(st.values))
+        .bool_and(stop)
+        .bool_and(released.bool_not());
+    let leaders = Leaders {
+        at: [x, y],
+        way: [heading.clone().cos(), heading.sin()],
+        velocity: None,
+        present,
+    };
+    (leaders, st.gap_m)
 }
 
 /// `(a, b)` turned by −θ, given `cos θ` and `sin θ` (broadcast): a vector seen from a frame turned by θ.
@@ -243,3 +333,6 @@ fn change<B: Backend>(
 
 #[cfg(test)]
 mod tests;
+
+#[cfg(test)]
+mod stop_tests;

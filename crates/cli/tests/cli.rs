@@ -154,6 +154,27 @@ fn config_errors_name_the_key_and_fail() {
         err.contains("backbone.track_follow") && err.contains("needs `backbone.track`"),
         "{err}"
     );
+    // Stop points are braked for by the follow rule, and only a modality that declares them has them.
+    let stops = [
+        "--set",
+        "backbone.track=agent",
+        "--set",
+        "backbone.track_stops=agent",
+    ];
+    let err = failure(&[&["layout", "--config", p][..], &stops].concat(), &[]);
+    assert!(
+        err.contains("backbone.track_stops") && err.contains("backbone.track_follow = true"),
+        "{err}"
+    );
+    let with_follow = ["--set", "backbone.track_follow=true"];
+    let err = failure(
+        &[&["layout", "--config", p][..], &stops, &with_follow].concat(),
+        &[],
+    );
+    assert!(
+        err.contains("backbone.track_stops") && err.contains("`agent` does not declare slots of stop points"),
+        "{err}"
+    );
     let err = failure(&["layout", "--config", "/no/such/config.toml"], &[]);
     assert!(err.contains("/no/such/config.toml"), "{err}");
     let dir = tempfile::tempdir().unwrap();

@@ -52,6 +52,7 @@ fn model() -> Backbone<F> {
                 min_gap_m: 1.0,
                 ..FollowSpec::default()
             }),
+            stops: None,
         }),
     };
     seeded(&config(), &spec, 11)

@@ -38,6 +38,7 @@ fn model() -> Backbone<F> {
             // teacher-forced pass does.
             accel: true,
             follow: None,
+            stops: None,
         }),
     };
     seeded(&config(), &spec, 9)

@@ -42,6 +42,9 @@ pub struct Segment {
     /// are, fix it, and token stores written before it existed stay valid.
     #[serde(skip)]
     pub tracks: Option<crate::spec::Tracks>,
+    /// The slot layout of stop points, not part of the fingerprint for the same reason.
+    #[serde(skip)]
+    pub stops: Option<crate::stops::Stops>,
 }
 
 impl Segment {
@@ -134,6 +137,7 @@ impl FrameLayout {
                 grid: spec.grid,
                 bins: spec.bins.clone(),
                 tracks: spec.tracks,
+                stops: spec.stops.clone(),
             });
         }
         let fingerprint = fingerprint(&segments, specs, boundary_tokens);

@@ -47,6 +47,7 @@ mod mark;
 mod registry;
 mod scalar;
 mod spec;
+mod stops;
 
 pub use base::{DecodeReport, Modality};
 pub use error::{ModalityError, Result};
@@ -55,3 +56,4 @@ pub use mark::Mark;
 pub use registry::{Factory, LayoutConfig, ModalityCatalog, ModalityRegistry, parse_settings};
 pub use scalar::{Clamp, ClampCount, Discretizer, ScalarBins};
 pub use spec::{Codebook, Grid, ModalitySpec, Tracks, downsampling};
+pub use stops::Stops;

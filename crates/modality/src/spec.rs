@@ -86,6 +86,9 @@ pub struct ModalitySpec {
     /// The slot layout, when the tokens are slots of tracked objects.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tracks: Option<Tracks>,
+    /// The slot layout, when the tokens are slots of stop points.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stops: Option<crate::stops::Stops>,
 }
 
 fn is_zero(n: &u32) -> bool {
@@ -112,6 +115,7 @@ impl ModalitySpec {
             bins: Vec::new(),
             ordinal: 0,
             tracks: None,
+            stops: None,
         }
     }
 
@@ -150,6 +154,12 @@ impl ModalitySpec {
     /// Declares the tokens as slots of tracked objects.
     pub fn with_tracks(mut self, tracks: Tracks) -> Self {
         self.tracks = Some(tracks);
+        self
+    }
+
+    /// Declares the tokens as slots of stop points.
+    pub fn with_stops(mut self, stops: crate::stops::Stops) -> Self {
+        self.stops = Some(stops);
         self
     }
 
@@ -222,6 +232,9 @@ impl ModalitySpec {
                 "grid {}×{} does not hold {} tokens",
                 g.rows, g.cols, self.tokens_per_frame
             ));
+        }
+        if let Some(st) = &self.stops {
+            st.check(self.tokens_per_frame, self.vocab_size).or_else(fail)?;
         }
         Ok(())
     }

@@ -2,9 +2,9 @@
 
 use crate::error::{Result, UmgenError};
 use umgen_backbone::{
-    ActionSpec, AlignSpec, BackboneConfig, BackboneSpec, FollowSpec, SegmentSpec, TrackSpec,
+    ActionSpec, AlignSpec, BackboneConfig, BackboneSpec, FollowSpec, SegmentSpec, StopSpec, TrackSpec,
 };
-use umgen_modality::{ModalityError, ModalityRegistry};
+use umgen_modality::{FrameLayout, ModalityError, ModalityRegistry};
 
 fn config_error(key: &str, message: String) -> UmgenError {
     UmgenError::Modality(ModalityError::Config {
@@ -101,6 +101,12 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
                 "braking tracked slots for what is ahead needs `backbone.track`".into(),
             ));
         }
+        None if stops_name(cfg).is_some() => {
+            return Err(config_error(
+                "backbone.track_stops",
+                "stopping tracked slots at stop points needs `backbone.track`".into(),
+            ));
+        }
         None => None,
         Some(name) => {
             let i = index("backbone.track", name)?;
@@ -131,6 +137,7 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
                 pad: layout.segments()[i].pad_id,
                 accel: cfg.track_accel,
                 follow: cfg.track_follow.then(FollowSpec::default),
+                stops: stop_spec(cfg, layout, &index)?,
             })
         }
     };
@@ -144,4 +151,45 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
     spec.validate(cfg)
         .map_err(|e| config_error("backbone", e.to_string()))?;
     Ok(spec)
+}
+
+/// `backbone.track_stops`, when set to a name.
+fn stops_name(cfg: &BackboneConfig) -> Option<&str> {
+    cfg.track_stops.as_deref().filter(|s| !s.is_empty())
+}
+
+/// The stop points of `backbone.track_stops`: the named modality's declared stop slots, for the follow
+/// rule to brake at; `index` finds a modality's segment.
+fn stop_spec(
+    cfg: &BackboneConfig,
+    layout: &FrameLayout,
+    index: &dyn Fn(&str, &str) -> Result<usize>,
+) -> Result<Option<StopSpec>> {
+    const KEY: &str = "backbone.track_stops";
+    let Some(name) = stops_name(cfg) else {
+        return Ok(None);
+    };
+    if !cfg.track_follow {
+        return Err(config_error(
+            KEY,
+            "stop points are braked for by the follow rule: set `backbone.track_follow = true`".into(),
+        ));
+    }
+    let i = index(KEY, name)?;
+    let Some(st) = &layout.segments()[i].stops else {
+        return Err(config_error(
+            KEY,
+            format!("modality `{name}` does not declare slots of stop points"),
+        ));
+    };
+    Ok(Some(StopSpec {
+        segment: i,
+        slot: st.slot,
+        values: st.values,
+        fields: st.fields.map(|(j, b)| (j, (b.lo, b.hi, b.bins))),
+        state: st.state,
+        stop: st.stop.clone(),
+        go: st.go.clone(),
+        gap_m: StopSpec::GAP_M,
+    }))
 }

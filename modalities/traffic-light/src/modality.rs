@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use umgen::data::LightState;
 use umgen::modality::{
-    ClampCount, DecodeReport, Discretizer, Mark, Modality, ModalityError, ModalitySpec, Result,
+    ClampCount, DecodeReport, Discretizer, Mark, Modality, ModalityError, ModalitySpec, Result, Stops,
     parse_settings,
 };
 use umgen::scene::{Extra, Frame, SceneClip};
@@ -39,9 +39,22 @@ impl TrafficLight {
     /// A traffic-light modality called `name`.
     pub fn new(name: &str, config: TrafficLightConfig) -> Result<Self> {
         let fields = config.fields(name)?;
+        let bins = |i: usize| (i, fields[i].1);
+        // Every head is a stop point while red, released where another head at the same stop line (the
+        // same x and y bins: the end of one lane) shows green or yellow, as `crossings` reads a line.
+        let state = |s: LightState| config.state_id(s as u8);
+        let stops = Stops {
+            slot: SLOT,
+            values: config.bins,
+            fields: [bins(0), bins(1), bins(2)],
+            state: 3,
+            stop: vec![state(LightState::Red)],
+            go: vec![state(LightState::Yellow), state(LightState::Green)],
+        };
         let spec = ModalitySpec::new(name, KIND, config.vocab_size(), config.count * SLOT)
             .with_pad(config.pad_id())
-            .with_ordinal(config.bins);
+            .with_ordinal(config.bins)
+            .with_stops(stops);
         spec.validate()?;
         Ok(Self {
             spec,

@@ -150,9 +150,18 @@ fn the_plugin_binary_trains_exports_generates_evaluates_and_draws_lights() {
         "train.steps=6",
         "--set",
         "train.checkpoint_every=6",
+        // The follow rule brakes the agents for red lights too (`backbone.track_stops`).
+        "--set",
+        "backbone.track_follow=true",
+        "--set",
+        "backbone.track_stops=lights",
     ]);
     assert!(log.contains("tokenized"), "{log}");
     lights(&["export", "--checkpoint", &t("run"), "--out", &t("bundle")]);
+    // The manifest records the lights' stop slots for every runner's hint.
+    let stops = &read_json(&tmp.path().join("bundle/manifest.json"))["backbone"]["track"]["stops"];
+    assert_eq!(stops["stop"], serde_json::json!([129]), "{stops}");
+    assert_eq!(stops["go"], serde_json::json!([130, 131]), "{stops}");
 
     // The stock commands' catalog does not know the kind, and says which.
     let err = Bundle::open_with(&tmp.path().join("bundle"), &umgen::builtin_catalog().unwrap())

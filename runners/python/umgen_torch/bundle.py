@@ -18,15 +18,16 @@ BACKBONE_KEYS = {
     "d_model": None, "heads": None, "embed_dim": None, "mlp_ratio": None, "dropout": None,
     "ego_hist_layers": None, "ego_env_layers": None, "tar_layers": None, "oar_layers": None,
     "max_frames": None, "action": None, "align": None, "ego_last": None, "track": None,
-    "track_accel": None, "track_follow": None, "step_s": None, "precision": {"f32", "bf16", "bf16-linear"}, "ordinal_init": None,
+    "track_accel": None, "track_follow": None, "track_stops": None, "step_s": None, "precision": {"f32", "bf16", "bf16-linear"}, "ordinal_init": None,
 }
 SPEC_KEYS = {
     "": {"n", "segments", "action", "align", "track"},
     "segments": {"label", "block_start", "block_len", "offset", "tokens", "vocab", "embed_vocab", "ordinal"},
     "action": {"segment", "bins"},
     "align": {"segment", "rows", "cols", "cell_m"},
-    "track": {"segment", "slot", "values", "fields", "step_s", "pad", "accel", "follow"},
+    "track": {"segment", "slot", "values", "fields", "step_s", "pad", "accel", "follow", "stops"},
     "follow": {"half_width_m", "cos_heading", "min_gap_m", "min_room_m", "onset_m_s2", "max_m_s2"},
+    "stops": {"segment", "slot", "values", "fields", "state", "stop", "go", "gap_m"},
 }
 # burn's layer-norm parameter names, and PyTorch's.
 NORM_NAMES = {"gamma": "weight", "beta": "bias"}
@@ -70,8 +71,9 @@ def check_settings(manifest):
     for part in ("action", "align", "track"):
         if spec.get(part):
             _known(f"manifest backbone.{part}.", spec[part], SPEC_KEYS[part])
-    if spec.get("track") and spec["track"].get("follow"):
-        _known("manifest backbone.track.follow.", spec["track"]["follow"], SPEC_KEYS["follow"])
+    for part in ("follow", "stops"):
+        if spec.get("track") and spec["track"].get(part):
+            _known(f"manifest backbone.track.{part}.", spec["track"][part], SPEC_KEYS[part])
     gen = manifest.get("generation")
     if gen is None:
         raise BundleError("the manifest has no `generation` section: export the bundle again with a newer umgen")

@@ -182,7 +182,12 @@ class UMGen(nn.Module):
             k = spec["track"]
             s = spec["segments"][k["segment"]]
             at, l = s["offset"], s["tokens"]
-            ids = motion.moved(tokens[:, :, at : at + l], act, k)
+            st = k.get("stops")
+            stops = None
+            if st:
+                p = spec["segments"][st["segment"]]
+                stops = tokens[:, :, p["offset"] : p["offset"] + p["tokens"]]
+            ids = motion.moved(tokens[:, :, at : at + l], act, k, stops)
             moved = (at, self.embed.at(at, ids.reshape(b * t, l)).reshape(b, t, l, d))
             x[:, :, at : at + l] = x[:, :, at : at + l] + self.track.input(moved[1])
         if spec.get("align") and act is not None:

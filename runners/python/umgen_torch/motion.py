@@ -68,32 +68,79 @@ def _change(slots, action, track, vx, vy):
     return dvx.masked_fill(drop, 0.0), dvy.masked_fill(drop, 0.0)
 
 
-def _follow(rule, dt, occupied, state, dvx, dvy):
+def _hardest(rule, me, leaders, gap):
+    """The hardest braking ``[b, t, s, 1]`` each slot ``me`` (x, y, cos and sin of its heading, speed
+    along it) needs for ``leaders`` (``[b, t, 1, j]`` x, y, cos, sin of their headings, velocity or None for
+    standing ones, presence) to keep ``gap`` metres between centres: ``w² / 2r``, 0 where none leads."""
+    x, y, c, s, speed = me
+    lx, ly, lc, ls, velocity, present = leaders
+    dx, dy = lx - x, ly - y
+    along = dx * c + dy * s
+    across = dy * c - dx * s
+    same_way = lc * c + ls * s
+    if velocity is None:
+        closing = speed.expand_as(along)
+    else:
+        closing = speed - (velocity[0] * c + velocity[1] * s)
+    room = torch.clamp(along - _scalar(along, gap), min=rule["min_room_m"])
+    need = closing * closing / (room * 2.0)
+    leads = (
+        present
+        & (along > 0.0)
+        & (across.abs() <= rule["half_width_m"])
+        & (same_way >= _scalar(same_way, rule["cos_heading"]))
+        & (closing > 0.0)
+    )
+    return need.masked_fill(~leads, 0.0).amax(dim=3, keepdim=True)
+
+
+def stop_points(ids, st):
+    """The stop points of stop-segment ids ``[b, t, m·slot]`` (the manifest's ``track.stops``) as
+    standing leaders ``[b, t, 1, m]``: a slot with a value x in a stop state, with no slot at the same x and
+    y ids in a go state."""
+    b, t, l = ids.shape
+    m = l // st["slot"]
+    slots = ids.reshape(b, t, m, st["slot"])
+
+    def column(i):
+        return slots[..., i : i + 1].transpose(2, 3)
+
+    x, y, heading = (centre(column(i), *bins) for i, bins in st["fields"])
+    state = column(st["state"])
+
+    def any_of(ids):
+        out = torch.zeros_like(state, dtype=torch.bool)
+        for i in ids:
+            out = out | (state == i)
+        return out
+
+    stop, go = any_of(st["stop"]), any_of(st["go"])
+    xi, yi = column(st["fields"][0][0]), column(st["fields"][1][0])
+    # Point j (dim 3) is released by a go slot g (dim 2) at its x and y ids.
+    same = (xi == xi.transpose(2, 3)) & (yi == yi.transpose(2, 3))
+    released = (same & go.transpose(2, 3)).any(dim=2, keepdim=True)
+    present = (xi < st["values"]) & stop & ~released
+    return (x, y, torch.cos(heading), torch.sin(heading), None, present)
+
+
+def _follow(rule, dt, occupied, state, dvx, dvy, points=None):
     """The velocity changes ``(dvx, dvy)`` ``[b, t, s, 1]`` with the braking ``rule`` (the manifest's
     ``track.follow``) asks for over ``dt`` seconds where it is harder than the change along the slot's
-    heading: the hardest ``w² / 2r`` over the slower slots ahead in its lane, op for op as umgen's."""
+    heading: the hardest ``w² / 2r`` over the slower slots ahead in its lane and the stop ``points``
+    (leaders of :func:`stop_points` and their gap), op for op as umgen's."""
     x, y, vx, vy, heading = state
     c, s = torch.cos(heading), torch.sin(heading)
 
     def other(v):
         return v.transpose(2, 3)
 
-    dx, dy = other(x) - x, other(y) - y
-    along = dx * c + dy * s
-    across = dy * c - dx * s
-    same_way = other(c) * c + other(s) * s
     speed = vx * c + vy * s
-    closing = speed - (other(vx) * c + other(vy) * s)
-    room = torch.clamp(along - rule["min_gap_m"], min=rule["min_room_m"])
-    need = closing * closing / (room * 2.0)
-    leads = (
-        other(occupied)
-        & (along > 0.0)
-        & (across.abs() <= rule["half_width_m"])
-        & (same_way >= _scalar(same_way, rule["cos_heading"]))
-        & (closing > 0.0)
-    )
-    hardest = need.masked_fill(~leads, 0.0).amax(dim=3, keepdim=True)
+    me = (x, y, c, s, speed)
+    slots = (other(x), other(y), other(c), other(s), (other(vx), other(vy)), other(occupied))
+    hardest = _hardest(rule, me, slots, rule["min_gap_m"])
+    if points is not None:
+        leaders, gap = points
+        hardest = torch.maximum(hardest, _hardest(rule, me, leaders, gap))
     brakes = occupied & (hardest >= rule["onset_m_s2"])
     target = torch.maximum(torch.clamp(hardest, max=rule["max_m_s2"]) * (-dt), -speed)
     change = dvx * c + dvy * s
@@ -101,10 +148,11 @@ def _follow(rule, dt, occupied, state, dvx, dvy):
     return dvx + delta * c, dvy + delta * s
 
 
-def moved(ids, action, track):
+def moved(ids, action, track, stops=None):
     """Ids ``[b, t, slots·slot]`` of the tracked segment with every occupied slot moved by its velocity
     over ``step_s`` (by constant acceleration with ``accel``) into the frame reached by ``action`` ``[b, t,
-    3]``, re-binned; a slot moved past the x or y range becomes all pad (when the spec has a pad)."""
+    3]``, re-binned; a slot moved past the x or y range becomes all pad (when the spec has a pad).
+    ``stops`` are the ids of ``track.stops``'s segment, which the follow rule brakes for."""
     b, t, l = ids.shape
     k = track["slot"]
     slots = ids.reshape(b, t, l // k, k)
@@ -122,7 +170,10 @@ def moved(ids, action, track):
         dvx, dvy = torch.zeros_like(vx), torch.zeros_like(vy)
     occupied = column(fields[0][0]) < track["values"]
     if track.get("follow"):
-        dvx, dvy = _follow(track["follow"], track["step_s"], occupied, (x, y, vx, vy, heading), dvx, dvy)
+        st = track.get("stops")
+        points = (stop_points(stops, st), st["gap_m"]) if st and stops is not None else None
+        state = (x, y, vx, vy, heading)
+        dvx, dvy = _follow(track["follow"], track["step_s"], occupied, state, dvx, dvy, points)
     ds = track["step_s"]
     px = x + (vx + dvx * 0.5) * ds - dx
     py = y + (vy + dvy * 0.5) * ds - dy

@@ -21,6 +21,7 @@ fn spec() -> TrackSpec {
         pad: Some(9),
         accel: false,
         follow: None,
+        stops: None,
     }
 }
 
@@ -120,6 +121,7 @@ fn slots_move_as_a_host_computation_says() {
         let dev = Default::default();
         let got = moved::<F>(
             Tensor::from_data(TensorData::new(ids.clone(), [b, t, s * k.slot]), &dev),
+            None,
             Tensor::from_data(
                 TensorData::new(acts.iter().map(|&a| a as f32).collect::<Vec<_>>(), [b, t, 3]),
                 &dev,
@@ -173,6 +175,7 @@ fn constant_acceleration_keeps_the_change_and_stops_rather_than_reverses() {
         let ids = vec![4i64, 5, vx[0], 4, 4, 8, 4, 5, vx[1], 4, 4, 8];
         moved::<F>(
             Tensor::from_data(TensorData::new(ids, [1, 2, 6]), &dev),
+            None,
             Tensor::from_data(TensorData::new(vec![0.0f32; 6], [1, 2, 3]), &dev),
             &TrackSpec { accel, ..spec() },
         )
@@ -195,6 +198,7 @@ fn a_standing_ego_and_object_stay_in_their_bins() {
     let dev = Default::default();
     let got = moved::<F>(
         Tensor::from_data(TensorData::new(slot.to_vec(), [1, 1, 6]), &dev),
+        None,
         Tensor::from_data(TensorData::new(vec![0.0f32; 3], [1, 1, 3]), &dev),
         &k,
     );
@@ -209,6 +213,7 @@ fn a_slot_moved_out_of_the_window_empties_where_there_is_a_pad() {
     let run = |k: &TrackSpec| {
         moved::<F>(
             Tensor::from_data(TensorData::new(slot.to_vec(), [1, 1, 6]), &dev),
+            None,
             Tensor::from_data(TensorData::new(vec![0.0f32; 3], [1, 1, 3]), &dev),
             k,
         )
@@ -273,6 +278,7 @@ fn a_slot_closing_on_a_standing_one_ahead_in_its_lane_brakes_to_meet_it() {
     let run = |k: &TrackSpec| {
         moved::<F>(
             Tensor::from_data(TensorData::new(frame.clone(), [1, 1, 36]), &dev),
+            None,
             Tensor::from_data(TensorData::new(vec![0.0f32; 3], [1, 1, 3]), &dev),
             k,
         )
@@ -280,7 +286,13 @@ fn a_slot_closing_on_a_standing_one_ahead_in_its_lane_brakes_to_meet_it() {
         .iter::<i64>()
         .collect::<Vec<_>>()
     };
-    let (braked, kept) = (run(&k), run(&TrackSpec { follow: None, ..k }));
+    let (braked, kept) = (
+        run(&k),
+        run(&TrackSpec {
+            follow: None,
+            ..k.clone()
+        }),
+    );
     assert_eq!(
         braked[6..],
         kept[6..],
@@ -301,6 +313,7 @@ fn a_slot_closing_on_a_standing_one_ahead_in_its_lane_brakes_to_meet_it() {
     slow[8] = bin(2, 9.9);
     let got = moved::<F>(
         Tensor::from_data(TensorData::new(slow, [1, 1, 36]), &dev),
+        None,
         Tensor::from_data(TensorData::new(vec![0.0f32; 3], [1, 1, 3]), &dev),
         &k,
     );

@@ -97,6 +97,7 @@ pub fn spec() -> BackboneSpec {
             pad: Some(9),
             accel: false,
             follow: None,
+            stops: None,
         }),
     }
 }
@@ -119,6 +120,7 @@ pub fn config() -> BackboneConfig {
         track: None,
         track_accel: false,
         track_follow: false,
+        track_stops: None,
         step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,
@@ -232,6 +234,7 @@ fn the_paper_layout_runs_at_a_small_width() {
             pad: Some(1027),
             accel: false,
             follow: None,
+            stops: None,
         }),
     };
     let cfg = BackboneConfig {

@@ -268,7 +268,46 @@ struct Track {
     float step;
     int follow;              // brake for a slower slot ahead (backbone::FollowSpec)
     float rule[6];           // half width, cos heading, min gap, min room, onset, max deceleration
+    int stops;               // stop slots braked for as standing leaders (backbone::StopSpec), 0: none
+    int s_offset, s_k, s_values, s_state;
+    int s_field[3];          // position in the slot of x, y, heading
+    int s_stop[4], s_go[4];  // state ids that stop and that release a place (-1: unused)
+    float s_lo[3], s_width[3];
+    float s_gap;             // metres between a stopped follower's centre and the point
 };
+
+DEV bool track_has(const int* ids, int id) {
+    for (int i = 0; i < 4; i++)
+        if (ids[i] >= 0 && ids[i] == id) return true;
+    return false;
+}
+
+// Whether stop slot j of frame f asks to stop: a value x, a stop state, and no slot at the same x and y
+// ids in a go state.
+DEV bool track_stop(const Track& P, long long f, int j) {
+    const int* frame = P.tok + f * P.n + P.s_offset;
+    const int* o = frame + j * P.s_k;
+    if (o[P.s_field[0]] >= P.s_values || !track_has(P.s_stop, o[P.s_state])) return false;
+    for (int g = 0; g < P.stops; g++) {
+        const int* p = frame + g * P.s_k;
+        if (p[P.s_field[0]] == o[P.s_field[0]] && p[P.s_field[1]] == o[P.s_field[1]] && track_has(P.s_go, p[P.s_state]))
+            return false;
+    }
+    return true;
+}
+
+// What a leader at (x, y) heading h, closing at `closing` m/s with `gap` m between centres, asks of the
+// slot at v (x, y, ·, ·, ·; cos c, sin s of its heading): w²/(2r), or 0 where it does not lead.
+DEV float track_need(const Track& P, const float* v, float c, float s, float x, float y, float h, float closing,
+                     float gap) {
+    const float dx = add_rn(x, -v[0]), dy = add_rn(y, -v[1]);
+    const float along = add_rn(mul_rn(dx, c), mul_rn(dy, s));
+    const float across = add_rn(mul_rn(dy, c), -mul_rn(dx, s));
+    const float same_way = add_rn(mul_rn(cosf(h), c), mul_rn(sinf(h), s));
+    const float room = fmaxf(add_rn(along, -gap), P.rule[3]);
+    const float need = mul_rn(closing, closing) / mul_rn(room, 2.f);
+    return along > 0.f && fabsf(across) <= P.rule[0] && same_way >= P.rule[1] && closing > 0.f ? need : 0.f;
+}
 
 // The centre of bin `id` of field f, in burn's f32 order: (id + 0.5)·width + lo.
 DEV float track_centre(const Track& P, int f, int id) {
@@ -286,15 +325,15 @@ DEV void track_follow(const Track& P, long long f, const float* v, float* dvx, f
         if (o[P.field[0]] >= P.values) continue;
         float u[5];
         for (int q = 0; q < 5; q++) u[q] = track_centre(P, q, o[P.field[q]]);
-        const float dx = add_rn(u[0], -v[0]), dy = add_rn(u[1], -v[1]);
-        const float along = add_rn(mul_rn(dx, c), mul_rn(dy, s));
-        const float across = add_rn(mul_rn(dy, c), -mul_rn(dx, s));
-        const float same_way = add_rn(mul_rn(cosf(u[4]), c), mul_rn(sinf(u[4]), s));
         const float closing = add_rn(speed, -add_rn(mul_rn(u[2], c), mul_rn(u[3], s)));
-        const float room = fmaxf(add_rn(along, -P.rule[2]), P.rule[3]);
-        const float need = mul_rn(closing, closing) / mul_rn(room, 2.f);
-        if (along > 0.f && fabsf(across) <= P.rule[0] && same_way >= P.rule[1] && closing > 0.f)
-            hardest = fmaxf(hardest, need);
+        hardest = fmaxf(hardest, track_need(P, v, c, s, u[0], u[1], u[4], closing, P.rule[2]));
+    }
+    for (int j = 0; j < P.stops; j++) {
+        if (!track_stop(P, f, j)) continue;
+        const int* o = P.tok + f * P.n + P.s_offset + j * P.s_k;
+        float u[3];
+        for (int q = 0; q < 3; q++) u[q] = add_rn(mul_rn((float)o[P.s_field[q]] + 0.5f, P.s_width[q]), P.s_lo[q]);
+        hardest = fmaxf(hardest, track_need(P, v, c, s, u[0], u[1], u[2], speed, P.s_gap));
     }
     if (hardest < P.rule[4]) return;
     const float target = fmaxf(mul_rn(fminf(hardest, P.rule[5]), -P.step), -speed);

@@ -1,7 +1,7 @@
 // Runs the generation engine's `umgen_track` kernel (rows.cu) on the host and compares it with a
 // double-precision reference of `backbone::track::moved`: slots moved one frame ahead by constant
 // acceleration, with and without the follow rule (braking for a slower slot ahead in the lane), over
-// random SUMO-like windows, and a hand-worked case of the rule:
+// random SUMO-like windows, and hand-worked cases of the rule and of its stop points:
 //   c++ -std=c++20 -O2 -pthread -o /tmp/track-emu crates/cuda/src/kernels/track_emulator.cpp && /tmp/track-emu
 // (`crates/cuda/tests/emulator.rs` runs it in the test suite.)
 #include "warp_emulator.h"
@@ -191,9 +191,55 @@ static bool test_hand() {
     return report("follow, by hand", ok);
 }
 
+// Stop points (backbone::StopSpec): one car at 10 m/s and three head slots after it in the frame (1 m
+// bins over ±64 m, 128 heading bins, state 128 + code: 129 red, 130 yellow, 131 green, pad 132). A red
+// head 20 m ahead in its lane brakes it to the bins the rule gives in double precision (v²/(2(d − 3 m)));
+// a green head at the same place releases it; a red head behind or in the next lane does nothing.
+static bool test_stops() {
+    const double W = 1.0, HW = 2 * PI / 128;
+    auto head = [&](std::vector<int>& tok, double x, double y, double h, int state) {
+        tok.insert(tok.end(), {(int)std::floor((x + 64) / W), (int)std::floor((y + 64) / W),
+                               (int)std::floor((h + PI) / HW), state});
+    };
+    auto run = [&](std::vector<int> heads, bool stops) {
+        std::vector<int> tok;
+        car(tok, 0.06, 0.06, 10, 0);
+        while (heads.size() < 12) heads.push_back(132);
+        tok.insert(tok.end(), heads.begin(), heads.end());
+        const std::vector<float> act = {0.f, 0.f, 0.f};
+        std::vector<int> out(6);
+        Track P = track(tok.data(), act.data(), out.data(), 1, 1, 1, 1);
+        P.n = 18;
+        if (stops) {
+            P.stops = 3, P.s_offset = 6, P.s_k = 4, P.s_values = 128, P.s_state = 3;
+            for (int q = 0; q < 3; q++) P.s_field[q] = q;
+            for (int i = 0; i < 4; i++) P.s_stop[i] = P.s_go[i] = -1;
+            P.s_stop[0] = 129, P.s_go[0] = 130, P.s_go[1] = 131;
+            P.s_lo[0] = P.s_lo[1] = -64.f, P.s_lo[2] = (float)-PI;
+            P.s_width[0] = P.s_width[1] = (float)W, P.s_width[2] = (float)HW;
+            P.s_gap = 3.f;
+        }
+        launch(umgen_track, P, 1, 1);
+        return out;
+    };
+    std::vector<int> red, green, behind, beside;
+    head(red, 20, 0.3, 0, 129);
+    green = red;
+    head(green, 20.2, 0.4, 0, 131);
+    head(behind, -15, 0.3, 0, 129);
+    head(beside, 20, 3.5, 0, 129);
+    const std::vector<int> free = run(red, false), braked = run(red, true);
+    const double x0 = centre(0, bin(0, 0.06)), v = centre(2, bin(2, 10)), line = -64 + (std::floor(20 + 64) + 0.5) * W;
+    const double need = v * v / (2 * (line - x0 - 3)), slower = v - 0.5 * need;
+    bool ok = braked[2] == bin(2, slower) && braked[0] == bin(0, x0 + 0.5 * (v + slower) / 2) && free[2] - braked[2] >= 30;
+    ok = ok && run(green, true) == free && run(behind, true) == free && run(beside, true) == free;
+    return report("stop points, by hand", ok);
+}
+
 int main() {
     bool ok = test_random();
     ok = test_hand() && ok;
+    ok = test_stops() && ok;
     printf(ok ? "all cases agree\n" : "some cases disagree\n");
     return ok ? 0 : 1;
 }

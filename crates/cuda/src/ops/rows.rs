@@ -184,6 +184,57 @@ pub struct Track {
     pub step: f32,
     /// Braking for a slower slot ahead (`backbone::FollowSpec`), when on.
     pub follow: Option<TrackFollow>,
+    /// Stop points the follow rule also brakes for (`backbone::StopSpec`), when on.
+    pub stops: Option<TrackStops>,
+}
+
+/// Most state ids of [`TrackStops::stop`] and [`TrackStops::go`] (`backbone::STOP_IDS`).
+pub const TRACK_STOP_IDS: usize = 4;
+
+/// `backbone::StopSpec` as the `track` operation reads it: slots of another segment of the same frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackStops {
+    /// The stop segment's first content position.
+    pub offset: usize,
+    /// Slots.
+    pub slots: usize,
+    /// Tokens per slot.
+    pub k: usize,
+    /// Ids below are values.
+    pub values: u32,
+    /// x, y and heading (`hi` unused).
+    pub fields: [TrackField; 3],
+    /// Position of the state token.
+    pub state: usize,
+    /// State ids that ask to stop; −1 fills unused entries.
+    pub stop: [i32; TRACK_STOP_IDS],
+    /// State ids that release the stops at their x and y ids; −1 fills unused entries.
+    pub go: [i32; TRACK_STOP_IDS],
+    /// Distance (m) before a point at which a follower's centre stands.
+    pub gap: f32,
+}
+
+impl TrackStops {
+    /// The slots of frame `frame` of tokens `tok` `[frames][n]` that ask to stop: their x is a value,
+    /// their state a stop id, and no slot at the same x and y ids shows a go id.
+    pub fn standing(&self, tok: &[i32], n: usize, frame: usize) -> Vec<usize> {
+        let slot = |j: usize| {
+            let at = frame * n + self.offset + j * self.k;
+            &tok[at..at + self.k]
+        };
+        let (ix, iy) = (self.fields[0].index, self.fields[1].index);
+        let has = |ids: &[i32; TRACK_STOP_IDS], id: i32| ids.iter().any(|&s| s >= 0 && s == id);
+        (0..self.slots)
+            .filter(|&j| {
+                let o = slot(j);
+                let released = (0..self.slots).any(|g| {
+                    let p = slot(g);
+                    p[ix] == o[ix] && p[iy] == o[iy] && has(&self.go, p[self.state])
+                });
+                o[ix] < self.values as i32 && has(&self.stop, o[self.state]) && !released
+            })
+            .collect()
+    }
 }
 
 /// `backbone::FollowSpec` in f32, as burn's scalars reach its f32 operations.

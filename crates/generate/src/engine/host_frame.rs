@@ -125,6 +125,22 @@ fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
                 dv: [dvx, dvy],
             });
         }
+        // The stop points braked for, as standing leaders: x, y, heading from their bins' centres.
+        let points: Vec<[f32; 3]> = match (&t.stops, &t.follow) {
+            (Some(st), Some(_)) => st
+                .standing(&tok, t.n, f)
+                .into_iter()
+                .map(|j| {
+                    let at = f * t.n + st.offset + j * st.k;
+                    std::array::from_fn(|q| {
+                        let b = &st.fields[q];
+                        (tok[at + b.index] as f32 + 0.5) * b.width + b.lo
+                    })
+                })
+                .collect(),
+            _ => Vec::new(),
+        };
+        let gap = t.stops.map_or(0.0, |st| st.gap);
         for slot in 0..t.slots {
             let (_, ids) = slot_ids(slot);
             let o = &mut out[(f * t.slots + slot) * t.k..(f * t.slots + slot + 1) * t.k];
@@ -134,7 +150,7 @@ fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
                 continue;
             }
             let [dvx, dvy] = match &t.follow {
-                Some(rule) => follow(rule, t.step, &state, slot),
+                Some(rule) => follow(rule, t.step, &state, (&points, gap), slot),
                 None => dv,
             };
             let (dx, dy, dth) = (act[3 * f], act[3 * f + 1], act[3 * f + 2]);
@@ -182,27 +198,39 @@ struct SlotState {
     dv: [f32; 2],
 }
 
-/// Slot `i`'s velocity change with the braking `rule` asks for over a step of `dt` where it is harder
+/// Slot `i`'s velocity change with the braking `rule` asks for over a step of `dt` where it is harder,
+/// for the other slots and the standing stop points (x, y, heading) kept `gap` m behind
 /// (`backbone::track`'s `follow`, op for op in f32).
-fn follow(rule: &TrackFollow, dt: f32, slots: &[SlotState], i: usize) -> [f32; 2] {
+fn follow(
+    rule: &TrackFollow,
+    dt: f32,
+    slots: &[SlotState],
+    (points, gap): (&[[f32; 3]], f32),
+    i: usize,
+) -> [f32; 2] {
     let SlotState { v, dv, .. } = slots[i];
     let (c, s) = (v[4].cos(), v[4].sin());
     let speed = v[2] * c + v[3] * s;
-    let mut hardest = 0.0f32;
-    for other in slots.iter().filter(|o| o.occupied) {
-        let u = other.v;
-        let (dx, dy) = (u[0] - v[0], u[1] - v[1]);
+    // What leader (x, y, heading) at `closing` m/s with `gap` m between centres asks for, if it leads.
+    let need = |[x, y, h]: [f32; 3], closing: f32, gap: f32| {
+        let (dx, dy) = (x - v[0], y - v[1]);
         let along = dx * c + dy * s;
         let across = dy * c - dx * s;
-        let same_way = u[4].cos() * c + u[4].sin() * s;
-        let closing = speed - (u[2] * c + u[3] * s);
-        let room = (along - rule.min_gap).max(rule.min_room);
+        let same_way = h.cos() * c + h.sin() * s;
+        let room = (along - gap).max(rule.min_room);
         let need = closing * closing / (room * 2.0);
         let leads =
             along > 0.0 && across.abs() <= rule.half_width && same_way >= rule.cos_heading && closing > 0.0;
-        if leads {
-            hardest = hardest.max(need);
-        }
+        if leads { need } else { 0.0 }
+    };
+    let mut hardest = 0.0f32;
+    for other in slots.iter().filter(|o| o.occupied) {
+        let u = other.v;
+        let closing = speed - (u[2] * c + u[3] * s);
+        hardest = hardest.max(need([u[0], u[1], u[4]], closing, rule.min_gap));
+    }
+    for &p in points {
+        hardest = hardest.max(need(p, speed, gap));
     }
     if hardest < rule.onset {
         return dv;

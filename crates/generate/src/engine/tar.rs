@@ -6,10 +6,10 @@ use super::Engine;
 use super::weights::SelfW;
 use super::window::{Map, Over};
 use crate::error::{GenerateError, Result};
-use umgen_backbone::{SegmentSpec, TrackSpec};
+use umgen_backbone::{SegmentSpec, StopSpec, TrackSpec};
 use umgen_cuda::ops::{
     Align, AttendTiles, BiasT, Buf, Data, Exec, Flash, Op, Rows, Shift, Strides, Track, TrackField,
-    TrackFollow,
+    TrackFollow, TrackStops,
 };
 
 impl<X: Exec> Engine<X> {
@@ -85,7 +85,7 @@ impl<X: Exec> Engine<X> {
         {
             let ts = &spec.segments[k.segment];
             let l = ts.tokens;
-            let op = track_op(k, ts, [self.win.tok, actb, moved], cs * w, w, n);
+            let op = track_op(k, &spec.segments, [self.win.tok, actb, moved], cs * w, w, n);
             self.run(&Op::Track(op))?;
             self.embed(moved, cs * w * l, l, ts.offset, tmp)?;
             let xn = self.win.xn;
@@ -347,17 +347,19 @@ impl<X: Exec> Engine<X> {
     }
 }
 
-/// The `track` operation moving the slots of `k` in segment `seg` one frame ahead, over `frames` frames of
-/// `n` positions in windows of `w`: the window's tokens `tok`, each frame's next action `act`, the moved
-/// ids into `out`. The spec's bins and follow rule in f32, as burn's operations take them.
+/// The `track` operation moving the slots of `k` (of its segment among `segments`) one frame ahead, over
+/// `frames` frames of `n` positions in windows of `w`: the window's tokens `tok`, each frame's next action
+/// `act`, the moved ids into `out`. The spec's bins, follow rule and stop points in f32, as burn's
+/// operations take them.
 pub fn track_op(
     k: &TrackSpec,
-    seg: &SegmentSpec,
+    segments: &[SegmentSpec],
     [tok, act, out]: [Buf; 3],
     frames: usize,
     w: usize,
     n: usize,
 ) -> Track {
+    let seg = &segments[k.segment];
     Track {
         tok,
         act,
@@ -387,5 +389,30 @@ pub fn track_op(
             onset: f.onset_m_s2 as f32,
             max: f.max_m_s2 as f32,
         }),
+        stops: k.stops.as_ref().and_then(|st| stops_op(st, segments)),
     }
+}
+
+/// The stop points of `st` for the `track` operation; `None` when its segment is not in `segments`
+/// (a spec that validated has it).
+fn stops_op(st: &StopSpec, segments: &[SegmentSpec]) -> Option<TrackStops> {
+    let seg = segments.get(st.segment)?;
+    let ids = |v: &[u32]| std::array::from_fn(|i| v.get(i).map_or(-1, |&id| id as i32));
+    Some(TrackStops {
+        offset: seg.offset,
+        slots: seg.tokens / st.slot,
+        k: st.slot,
+        values: st.values,
+        fields: st.fields.map(|(index, (lo, hi, bins))| TrackField {
+            index,
+            lo: lo as f32,
+            hi: hi as f32,
+            bins,
+            width: ((hi - lo) / f64::from(bins)) as f32,
+        }),
+        state: st.state,
+        stop: ids(&st.stop),
+        go: ids(&st.go),
+        gap: st.gap_m as f32,
+    })
 }

@@ -47,6 +47,7 @@ pub fn config() -> BackboneConfig {
         track: None,
         track_accel: false,
         track_follow: false,
+        track_stops: None,
         step_s: 0.5,
         precision: Default::default(),
         ordinal_init: true,

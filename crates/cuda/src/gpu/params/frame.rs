@@ -113,6 +113,19 @@ pub(in crate::gpu) struct Track {
     /// Whether `follow_rule` applies: half width, cos heading, min gap, min room, onset, max.
     follow: i32,
     follow_rule: [f32; 6],
+    /// Stop slots the follow rule brakes for (0: none), then their segment's offset, tokens per slot,
+    /// value ids, state position, x/y/heading positions, stop and go ids (−1: unused), bins and gap.
+    stops: i32,
+    stop_offset: i32,
+    stop_k: i32,
+    stop_values: i32,
+    stop_state: i32,
+    stop_field: [i32; 3],
+    stop_ids: [i32; 4],
+    go_ids: [i32; 4],
+    stop_lo: [f32; 3],
+    stop_width: [f32; 3],
+    stop_gap: f32,
 }
 
 /// `struct Draw` of `draw.cu`.
@@ -264,6 +277,17 @@ impl CudaExec {
             follow_rule: t.follow.map_or([0.0; 6], |r| {
                 [r.half_width, r.cos_heading, r.min_gap, r.min_room, r.onset, r.max]
             }),
+            stops: t.stops.map_or(0, |st| i(st.slots)),
+            stop_offset: t.stops.map_or(0, |st| i(st.offset)),
+            stop_k: t.stops.map_or(0, |st| i(st.k)),
+            stop_values: t.stops.map_or(0, |st| i(st.values as usize)),
+            stop_state: t.stops.map_or(0, |st| i(st.state)),
+            stop_field: t.stops.map_or([0; 3], |st| st.fields.map(|x| i(x.index))),
+            stop_ids: t.stops.map_or([-1; 4], |st| st.stop),
+            go_ids: t.stops.map_or([-1; 4], |st| st.go),
+            stop_lo: t.stops.map_or([0.0; 3], |st| st.fields.map(|x| x.lo)),
+            stop_width: t.stops.map_or([0.0; 3], |st| st.fields.map(|x| x.width)),
+            stop_gap: t.stops.map_or(0.0, |st| st.gap),
         }
     }
 
