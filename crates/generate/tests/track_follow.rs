@@ -234,4 +234,39 @@ fn the_host_track_op_stops_at_red_heads_as_burn_does() {
     assert!(changed.len() >= 5, "{} slots braked by the heads", changed.len());
     // Without the stop spec the heads are ignored.
     assert_eq!(burn_moved(&ids, &heads, &acts, b, t, &follow), burn_follow);
+    // The PyTorch runner's `motion.moved` gives the same ids, from the spec as the manifest writes it.
+    python_moved_check(&serde_json::json!({
+        "track": stopping,
+        "shape": [b, t],
+        "ids": ids,
+        "heads": heads,
+        "actions": acts,
+        "want": burn_stops,
+        "without_stops": burn_follow,
+    }));
+}
+
+/// `tests/python/check_motion.py` on `case`, where the suite's Python (`UMGEN_TB_PYTHON`, set by
+/// `.ci/run`) is given.
+fn python_moved_check(case: &serde_json::Value) {
+    let Ok(python) = std::env::var("UMGEN_TB_PYTHON") else {
+        eprintln!("UMGEN_TB_PYTHON unset: the PyTorch runner's motion was not checked");
+        return;
+    };
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("case.json");
+    std::fs::write(&file, case.to_string()).unwrap();
+    let out = std::process::Command::new(python)
+        .arg(root.join("tests/python/check_motion.py"))
+        .arg(&file)
+        .env("PYTHONPATH", root.join("runners/python"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "check_motion.py: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -1,7 +1,8 @@
 //! The plug-in's own binary end to end on clips of the bundled SUMO sample, on the CPU: `umgen-lights`
 //! trains the tiny five-modality model, exports, generates, evaluates and draws it; the decoded light states
 //! of the context frames are SUMO's; generated frames carry decoded lights; the stock catalog refuses the
-//! bundle, naming the kind; `viz --config` draws the lights in their colours.
+//! bundle, naming the kind; `viz --config` draws the lights in their colours; the PyTorch runner's logits
+//! and greedy frames are umgen's with the agents braking for red lights (`backbone.track_stops`).
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 use std::path::{Path, PathBuf};
@@ -32,6 +33,27 @@ fn lights(args: &[&str]) -> String {
     let log = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(out.status.success(), "umgen-lights {args:?}: {log}");
     log
+}
+
+/// `tests/python/check_runner.py` on `bundle` and umgen's greedy `tokens`, where the suite's Python
+/// (`UMGEN_TB_PYTHON`, set by `.ci/run`) is given.
+fn python_runner_check(bundle: &Path, tokens: &Path) {
+    let Ok(python) = std::env::var("UMGEN_TB_PYTHON") else {
+        eprintln!("UMGEN_TB_PYTHON unset: the PyTorch runner was not checked");
+        return;
+    };
+    let out = Command::new(python)
+        .arg(workspace().join("tests/python/check_runner.py"))
+        .args([bundle, tokens])
+        .env("PYTHONPATH", workspace().join("runners/python"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "check_runner.py: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// The heads of a frame: x, y, heading, state code.
@@ -157,7 +179,15 @@ fn the_plugin_binary_trains_exports_generates_evaluates_and_draws_lights() {
         "backbone.track_stops=lights",
     ]);
     assert!(log.contains("tokenized"), "{log}");
-    lights(&["export", "--checkpoint", &t("run"), "--out", &t("bundle")]);
+    lights(&[
+        "export",
+        "--checkpoint",
+        &t("run"),
+        "--out",
+        &t("bundle"),
+        "--golden",
+        "2",
+    ]);
     // The manifest records the lights' stop slots for every runner's hint.
     let stops = &read_json(&tmp.path().join("bundle/manifest.json"))["backbone"]["track"]["stops"];
     assert_eq!(stops["stop"], serde_json::json!([129]), "{stops}");
@@ -212,6 +242,11 @@ fn the_plugin_binary_trains_exports_generates_evaluates_and_draws_lights() {
         CONTEXT..CONTEXT + 2,
     );
     assert!(given.iter().sum::<usize>() > 0, "no head given");
+
+    // The PyTorch runner moves the agent slots as umgen does, red lights included: the golden logits
+    // and greedy frames agree.
+    generate("greedy", &["--top-k", "1"]);
+    python_runner_check(&tmp.path().join("bundle"), &tmp.path().join("greedy/tokens.json"));
 
     lights(&[
         "eval",
