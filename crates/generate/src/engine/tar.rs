@@ -373,13 +373,7 @@ pub fn track_op(
         values: k.values,
         pad: k.pad,
         accel: k.accel,
-        fields: k.fields.map(|(index, (lo, hi, bins))| TrackField {
-            index,
-            lo: lo as f32,
-            hi: hi as f32,
-            bins,
-            width: ((hi - lo) / f64::from(bins)) as f32,
-        }),
+        fields: k.fields.map(track_field),
         step: k.step_s as f32,
         follow: k.follow.map(|f| TrackFollow {
             half_width: f.half_width_m as f32,
@@ -403,16 +397,21 @@ fn stops_op(st: &StopSpec, segments: &[SegmentSpec]) -> Option<TrackStops> {
         slots: seg.tokens / st.slot,
         k: st.slot,
         values: st.values,
-        fields: st.fields.map(|(index, (lo, hi, bins))| TrackField {
-            index,
-            lo: lo as f32,
-            hi: hi as f32,
-            bins,
-            width: ((hi - lo) / f64::from(bins)) as f32,
-        }),
+        fields: st.fields.map(track_field),
         state: st.state,
         stop: ids(&st.stop),
         go: ids(&st.go),
         gap: st.gap_m as f32,
     })
+}
+
+/// A binned field `(slot position, (lo, hi, bins))` in f32, its width computed in f64 as burn's scalar.
+fn track_field((index, (lo, hi, bins)): (usize, (f64, f64, u32))) -> TrackField {
+    TrackField {
+        index,
+        lo: lo as f32,
+        hi: hi as f32,
+        bins,
+        width: ((hi - lo) / f64::from(bins)) as f32,
+    }
 }
