@@ -272,8 +272,10 @@ impl BackboneSpec {
 
     /// Checks the stop points of the tracked slots `k`.
     fn check_stops(&self, (k, st): (&TrackSpec, &StopSpec)) -> Result<()> {
-        let tokens = self.segments.get(st.segment).map(|s| s.tokens).unwrap_or(0);
-        let vocab = self.segments.get(st.segment).map(|s| s.vocab).unwrap_or(0) as u32;
+        let (tokens, vocab) = self
+            .segments
+            .get(st.segment)
+            .map_or((0, 0), |s| (s.tokens, s.vocab as u32));
         let fits = st.slot > 0
             && tokens > 0
             && tokens.is_multiple_of(st.slot)

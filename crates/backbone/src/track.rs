@@ -246,7 +246,7 @@ fn stop_points<B: Backend>(ids: Tensor<B, 3, Int>, st: &StopSpec) -> (Leaders<B>
     let [x, y, heading] = st.fields.map(|(i, bins)| centre(column(i), bins));
     let state = column(st.state);
     let any_of = |ids: &[u32]| {
-        ids.iter().fold(state.clone().equal_elem(-1), |acc, &id| {
+        ids.iter().fold(state.clone().zeros_like().bool(), |acc, &id| {
             acc.bool_or(state.clone().equal_elem(i64::from(id)))
         })
     };

@@ -153,6 +153,9 @@ pub fn backbone_spec(registry: &ModalityRegistry, cfg: &BackboneConfig) -> Resul
     Ok(spec)
 }
 
+// A modality's stop ids fit the backbone's, which fit the kernels' arrays.
+const _: () = assert!(umgen_modality::Stops::MAX_IDS == umgen_backbone::STOP_IDS);
+
 /// `backbone.track_stops`, when set to a name.
 fn stops_name(cfg: &BackboneConfig) -> Option<&str> {
     cfg.track_stops.as_deref().filter(|s| !s.is_empty())

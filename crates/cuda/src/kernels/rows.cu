@@ -309,10 +309,11 @@ DEV float track_need(const Track& P, const float* v, float c, float s, float x, 
     return along > 0.f && fabsf(across) <= P.rule[0] && same_way >= P.rule[1] && closing > 0.f ? need : 0.f;
 }
 
-// The centre of bin `id` of field f, in burn's f32 order: (id + 0.5)·width + lo.
-DEV float track_centre(const Track& P, int f, int id) {
-    return add_rn(mul_rn((float)id + 0.5f, P.width[f]), P.lo[f]);
-}
+// The centre of bin `id` of `width` from `lo`, in burn's f32 order: (id + 0.5)·width + lo.
+DEV float bin_centre(int id, float width, float lo) { return add_rn(mul_rn((float)id + 0.5f, width), lo); }
+
+// The centre of bin `id` of tracked field f.
+DEV float track_centre(const Track& P, int f, int id) { return bin_centre(id, P.width[f], P.lo[f]); }
 
 // Braking for the slowest-to-meet slot ahead in the lane (`backbone::track`'s `follow`, op for op in f32):
 // the hardest w²/(2r) over the leaders, once at the onset, replaces a weaker change along the heading.
@@ -332,7 +333,7 @@ DEV void track_follow(const Track& P, long long f, const float* v, float* dvx, f
         if (!track_stop(P, f, j)) continue;
         const int* o = P.tok + f * P.n + P.s_offset + j * P.s_k;
         float u[3];
-        for (int q = 0; q < 3; q++) u[q] = add_rn(mul_rn((float)o[P.s_field[q]] + 0.5f, P.s_width[q]), P.s_lo[q]);
+        for (int q = 0; q < 3; q++) u[q] = bin_centre(o[P.s_field[q]], P.s_width[q], P.s_lo[q]);
         hardest = fmaxf(hardest, track_need(P, v, c, s, u[0], u[1], u[2], speed, P.s_gap));
     }
     if (hardest < P.rule[4]) return;

@@ -151,6 +151,13 @@ pub struct TrackField {
     pub width: f32,
 }
 
+impl TrackField {
+    /// The centre of bin `id`, in burn's f32 order: `(id + 0.5) · width + lo`.
+    pub fn centre(&self, id: i32) -> f32 {
+        (id as f32 + 0.5) * self.width + self.lo
+    }
+}
+
 /// The tracked slots of each frame's tokens moved one frame ahead (`backbone::track::moved`).
 #[derive(Debug, Clone)]
 pub struct Track {
@@ -215,24 +222,26 @@ pub struct TrackStops {
 }
 
 impl TrackStops {
-    /// The slots of frame `frame` of tokens `tok` `[frames][n]` that ask to stop: their x is a value,
-    /// their state a stop id, and no slot at the same x and y ids shows a go id.
-    pub fn standing(&self, tok: &[i32], n: usize, frame: usize) -> Vec<usize> {
+    /// The points of frame `frame` of tokens `tok` `[frames][n]` that ask to stop, as the centres of
+    /// their x, y and heading bins: slots whose x is a value, whose state is a stop id, and with no slot
+    /// at the same x and y ids showing a go id.
+    pub fn points(&self, tok: &[i32], n: usize, frame: usize) -> Vec<[f32; 3]> {
         let slot = |j: usize| {
             let at = frame * n + self.offset + j * self.k;
             &tok[at..at + self.k]
         };
         let (ix, iy) = (self.fields[0].index, self.fields[1].index);
         let has = |ids: &[i32; TRACK_STOP_IDS], id: i32| ids.iter().any(|&s| s >= 0 && s == id);
-        (0..self.slots)
-            .filter(|&j| {
-                let o = slot(j);
-                let released = (0..self.slots).any(|g| {
-                    let p = slot(g);
-                    p[ix] == o[ix] && p[iy] == o[iy] && has(&self.go, p[self.state])
-                });
-                o[ix] < self.values as i32 && has(&self.stop, o[self.state]) && !released
+        let released = |o: &[i32]| {
+            (0..self.slots).any(|g| {
+                let p = slot(g);
+                p[ix] == o[ix] && p[iy] == o[iy] && has(&self.go, p[self.state])
             })
+        };
+        (0..self.slots)
+            .map(slot)
+            .filter(|o| o[ix] < self.values as i32 && has(&self.stop, o[self.state]) && !released(o))
+            .map(|o| std::array::from_fn(|q| self.fields[q].centre(o[self.fields[q].index])))
             .collect()
     }
 }

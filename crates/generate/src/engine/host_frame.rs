@@ -86,7 +86,7 @@ fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
     let tok = x.i32s(t.tok)[..t.frames * t.n].to_vec();
     let act = x.f32s(t.act)[..t.frames * 3].to_vec();
     let fl = &t.fields;
-    let centre = |q: usize, id: i32| (id as f32 + 0.5) * fl[q].width + fl[q].lo;
+    let centre = |q: usize, id: i32| fl[q].centre(id);
     let mut out = vec![0i32; t.frames * t.slots * t.k];
     for f in 0..t.frames {
         let tf = f % t.w;
@@ -125,19 +125,9 @@ fn track(x: &mut HostExec, t: &Track) -> Result<(), ExecError> {
                 dv: [dvx, dvy],
             });
         }
-        // The stop points braked for, as standing leaders: x, y, heading from their bins' centres.
-        let points: Vec<[f32; 3]> = match (&t.stops, &t.follow) {
-            (Some(st), Some(_)) => st
-                .standing(&tok, t.n, f)
-                .into_iter()
-                .map(|j| {
-                    let at = f * t.n + st.offset + j * st.k;
-                    std::array::from_fn(|q| {
-                        let b = &st.fields[q];
-                        (tok[at + b.index] as f32 + 0.5) * b.width + b.lo
-                    })
-                })
-                .collect(),
+        // The stop points braked for, as standing leaders (x, y, heading).
+        let points = match (&t.stops, &t.follow) {
+            (Some(st), Some(_)) => st.points(&tok, t.n, f),
             _ => Vec::new(),
         };
         let gap = t.stops.map_or(0.0, |st| st.gap);

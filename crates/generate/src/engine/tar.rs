@@ -387,6 +387,9 @@ pub fn track_op(
     }
 }
 
+// The kernels' id arrays hold every id a validated spec has.
+const _: () = assert!(umgen_backbone::STOP_IDS == umgen_cuda::ops::TRACK_STOP_IDS);
+
 /// The stop points of `st` for the `track` operation; `None` when its segment is not in `segments`
 /// (a spec that validated has it).
 fn stops_op(st: &StopSpec, segments: &[SegmentSpec]) -> Option<TrackStops> {
