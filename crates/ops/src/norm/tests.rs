@@ -178,20 +178,11 @@ fn passes_keep_and_read_a_bf16_copy_as_its_widened_value() {
     let dy = Tensor::<Flex, 2>::random([32, 40], Distribution::Normal(0.0, 1.0), &dev);
     let gamma = Tensor::<Flex, 1>::random([40], Distribution::Normal(1.0, 0.3), &dev);
     let beta = Tensor::<Flex, 1>::random([40], Distribution::Normal(0.0, 0.3), &dev);
-    let plain = forward_decomposed(
-        x.clone(),
-        gamma.clone(),
-        beta.clone(),
-        LN_EPS,
-        (FloatDType::BF16, None),
-    );
-    let keeping = forward_decomposed(
-        x.clone(),
-        gamma.clone(),
-        beta.clone(),
-        LN_EPS,
-        (FloatDType::BF16, Some(FloatDType::BF16)),
-    );
+    // The norm of `x` with output and kept-copy types `dtypes`, under the same γ and β.
+    let norm =
+        |x: Tensor<Flex, 2>, dtypes| forward_decomposed(x, gamma.clone(), beta.clone(), LN_EPS, dtypes);
+    let plain = norm(x.clone(), (FloatDType::BF16, None));
+    let keeping = norm(x.clone(), (FloatDType::BF16, Some(FloatDType::BF16)));
     let kept = keeping.kept.expect("a kept copy");
     assert_eq!(kept.dtype(), DType::BF16);
     assert_eq!(
@@ -201,20 +192,8 @@ fn passes_keep_and_read_a_bf16_copy_as_its_widened_value() {
     assert_eq!(keeping.y.into_data(), plain.y.into_data());
 
     let widened = kept.clone().cast(FloatDType::F32);
-    let on_copy = forward_decomposed(
-        kept.clone(),
-        gamma.clone(),
-        beta.clone(),
-        LN_EPS,
-        (FloatDType::F32, None),
-    );
-    let on_wide = forward_decomposed(
-        widened.clone(),
-        gamma.clone(),
-        beta,
-        LN_EPS,
-        (FloatDType::F32, None),
-    );
+    let on_copy = norm(kept.clone(), (FloatDType::F32, None));
+    let on_wide = norm(widened.clone(), (FloatDType::F32, None));
     assert_eq!(on_copy.y.into_data(), on_wide.y.into_data());
     let (mean, rstd) = (on_wide.mean, on_wide.rstd);
     let from_copy = backward_decomposed(dy.clone(), kept, mean.clone(), rstd.clone(), gamma.clone());
