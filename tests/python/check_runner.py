@@ -31,6 +31,9 @@ assert dist(Sampling(top_k=0, top_p=0.3)) == [(4, 1.0)]
 assert dist(Sampling(top_k=1)) == [(4, 1.0)]
 # An agent slot's first token with pad = id 0: pad keeps its 0.1, the top 2 of the rest share 0.9 as 4:3.
 assert dist(Sampling(top_k=2), present=0) == [(0, 0.1), (4, round(0.9 * 4 / 7, 6)), (2, round(0.9 * 3 / 7, 6))]
+# The nucleus of the rest: id 4 keeps 0.4; top-p 0.6 of the rest's 0.6 keeps ids 2 and 1 (3:2 of 0.6).
+assert dist(Sampling(top_k=0, top_p=0.6, top_p_rest=True)) == [(4, 0.4), (2, 0.36), (1, 0.24)]
+assert dist(Sampling(top_k=0, top_p_rest=True)) == dist(Sampling(top_k=0))
 # Ties go to the lower id.
 assert Sampling(top_k=1).distribution(np.array([1.0, 2.0, 2.0], dtype=np.float32))[0][0] == 1
 print("sampling: ok")

@@ -80,7 +80,9 @@ impl Sampling {
         let width = values.dims()[1];
         let top = values.clone().max_dim(1);
         let mut scaled = (values - top).div_scalar(self.temperature);
-        if self.top_p < 1.0 {
+        if self.top_p < 1.0 && self.top_p_rest && width > 1 {
+            scaled = rest_nucleus(softmax(scaled, 1), self.top_p);
+        } else if self.top_p < 1.0 {
             let probs = softmax(scaled.clone(), 1);
             // Keep an id while the more likely ones hold less than top_p (the first to reach it stays).
             let before = probs.clone().cumsum(1) - probs;
@@ -94,6 +96,23 @@ impl Sampling {
             None => pick.reshape([m]),
         }
     }
+}
+
+/// The log-weights of [`crate::sampling::nucleus`] with `rest` for rows of probabilities `[m, w]` (most
+/// likely first, `w > 1`): the first column keeps its probability `p₀`; the others are kept while the
+/// rest's mass before them is below `top_p · (1 − p₀)` and share `1 − p₀`. Cut ids are −∞.
+fn rest_nucleus<B: Backend>(probs: Tensor<B, 2>, top_p: f64) -> Tensor<B, 2> {
+    let [m, w] = probs.dims();
+    let lead = probs.clone().slice([0..m, 0..1]);
+    let share = lead.clone().neg().add_scalar(1.0);
+    // The first column's "rest before it" is −p₀, below any threshold: it is never cut.
+    let before = probs.clone().cumsum(1) - probs.clone() - lead.clone().expand([m, w]);
+    let cut = before.greater_equal(share.clone().mul_scalar(top_p).expand([m, w]));
+    let rest = probs.mask_fill(cut, 0.0).slice([0..m, 1..w]);
+    // A row whose rest underflowed to 0 keeps zeros (0 × a large scale), not 0 / 0.
+    let kept = rest.clone().sum_dim(1).clamp_min(f32::MIN_POSITIVE);
+    let rest = rest * (share / kept).expand([m, w - 1]);
+    Tensor::cat(vec![lead, rest], 1).log()
 }
 
 /// `n` uniform numbers in (0, 1), where both logarithms of the Gumbel noise stay finite.

@@ -229,6 +229,7 @@ fn sampled_frames_keep_the_rules_and_repeat_with_their_seed() {
         top_k: 4,
         top_p: 0.9,
         temperature: 0.8,
+        top_p_rest: false,
     };
     let run = |seed, smp| {
         let mut e = engine(&m, smp, 3, seed, 64);
@@ -244,6 +245,7 @@ fn sampled_frames_keep_the_rules_and_repeat_with_their_seed() {
         top_k: 0,
         top_p: 1.0,
         temperature: 1.0,
+        top_p_rest: false,
     };
     for scene in a.iter().chain(&run(2, all)) {
         for f in &scene[4..] {
@@ -270,7 +272,8 @@ fn sampled_frames_keep_the_rules_and_repeat_with_their_seed() {
             Sampling {
                 top_k: 0,
                 top_p: 0.5,
-                temperature: 1.0
+                temperature: 1.0,
+                top_p_rest: false,
             };
             3
         ],

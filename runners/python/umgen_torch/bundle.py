@@ -167,7 +167,7 @@ class Bundle:
     def generate(self, history, frames=1, sampling=None, seed=0, window=None, actions=None):
         """Continues each scene of ``history`` (per scene a list of frames of N ids; ``[]`` starts from
         nothing) by ``frames`` frames with the bundle's token rules; returns the new frames per scene.
-        ``sampling`` maps modality names to ``{"top_k", "top_p", "temperature"}`` replacing the bundle's
+        ``sampling`` maps modality names to ``{"top_k", "top_p", "temperature", "top_p_rest"}`` replacing the bundle's
         defaults (``top_k = 1`` is greedy); ``actions`` (per frame, per scene, the action ids) forces the
         ego motion. See :mod:`umgen_torch.generate`."""
         from .generate import Generator

@@ -98,6 +98,11 @@ pub struct GenerateArgs {
     /// (docs/control.md).
     #[arg(long = "top-p-of", value_name = "MODALITY=P", value_parser = modality_top_p)]
     pub top_p_of: Vec<(String, f64)>,
+    /// Cut one modality's nucleus from the ids after its most likely one, which keeps its own
+    /// probability (repeatable), e.g. `--top-p-of agent=0.8 --top-p-rest-of agent`: a standing agent
+    /// drives off at the model's rate instead of never (docs/control.md).
+    #[arg(long = "top-p-rest-of", value_name = "MODALITY")]
+    pub top_p_rest_of: Vec<String>,
     /// Softmax temperature, every modality.
     #[arg(long, default_value_t = 1.0)]
     pub temperature: f64,

@@ -53,9 +53,10 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         top_k: a.top_k,
         top_p: a.top_p,
         temperature: a.temperature,
+        top_p_rest: false,
     };
     let labels: Vec<&str> = spec.segments.iter().map(|s| s.label.as_str()).collect();
-    let samplings = sampling.per_segment(&a.top_k_of, &a.top_p_of, &labels)?;
+    let samplings = sampling.per_segment(&a.top_k_of, &a.top_p_of, &a.top_p_rest_of, &labels)?;
     // Recorded in meta.json: what each modality was drawn with.
     let sampling_meta: serde_json::Map<String, serde_json::Value> = labels
         .iter()

@@ -61,6 +61,7 @@ struct Draw {
     double temperature, top_p;
     int m, n, vocab, top_k, keeps, groups, box_cap;
     u32 key0, key1;
+    int top_p_rest;   // top-p cuts only the ids after the most likely one (Sampling::top_p_rest)
 };
 
 // Whether `a` ranks before `b`: larger logit, ties to the smaller id.
@@ -354,17 +355,22 @@ DEV int draw_from(const Draw& P, const float* row, const Rule& R, const GroupRun
             for (int j = 0; j < count; j++) pr[j] /= total;
             int keep = count;
             if (P.top_p < 1.0) {
+                // `umgen_generate::sampling::nucleus`: with top_p_rest the first id keeps its probability and
+                // the cut is made among the others, against top_p of their mass, which they then share.
+                const int skip = P.top_p_rest ? 1 : 0;
+                const double share = skip ? 1.0 - pr[0] : 1.0;
                 double mass = 0.0;
-                for (int j = 0; j < count; j++) {
+                for (int j = skip; j < count; j++) {
                     mass += pr[j];
-                    if (mass >= P.top_p) {
+                    if (mass >= P.top_p * share) {
                         keep = j + 1;
                         break;
                     }
                 }
                 double kept = 0.0;
-                for (int j = 0; j < keep; j++) kept += pr[j];
-                for (int j = 0; j < keep; j++) pr[j] /= kept;
+                for (int j = skip; j < keep; j++) kept += pr[j];
+                if (kept > 0.0)
+                    for (int j = skip; j < keep; j++) pr[j] = pr[j] / kept * share;
             }
             double u = uniform(P.key0, P.key1, sc, p, frame, purpose | 0xffffffu);
             id = ci[keep - 1];

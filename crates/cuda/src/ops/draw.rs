@@ -128,6 +128,9 @@ pub struct Draw {
     pub temperature: f64,
     /// Top-p.
     pub top_p: f64,
+    /// Top-p cuts only the ids after the most likely one, which keeps its probability
+    /// (`umgen_generate::Sampling::top_p_rest`).
+    pub top_p_rest: bool,
     /// Scenes.
     pub m: usize,
     /// Positions.

@@ -111,18 +111,11 @@ fn draw_from(site: &Site<'_>, row: &[f32], limited: bool, purpose: u32) -> i32 {
         .collect();
     let total: f64 = pr.iter().sum();
     pr.iter_mut().for_each(|p| *p /= total);
-    let mut keep = pr.len();
-    if d.top_p < 1.0 {
-        let mut mass = 0.0;
-        if let Some(j) = pr.iter().position(|p| {
-            mass += p;
-            mass >= d.top_p
-        }) {
-            keep = j + 1;
-        }
-        let kept: f64 = pr[..keep].iter().sum();
-        pr[..keep].iter_mut().for_each(|p| *p /= kept);
-    }
+    let keep = if d.top_p < 1.0 {
+        crate::sampling::nucleus(&mut pr, d.top_p, d.top_p_rest)
+    } else {
+        pr.len()
+    };
     let mut u = unif(0x00ff_ffff);
     for j in 0..keep {
         if u < pr[j] {
@@ -266,12 +259,10 @@ mod tests {
         );
     }
 
-    /// A group's first position with top-k 5: pad comes out at its untruncated share (0.9 here; 0.998 if
-    /// the top-5 list alone counted), the values only from the list; as `draw.cu`'s emulator case.
-    #[test]
-    fn a_group_first_draw_keeps_pad_at_its_untruncated_share() {
+    /// The settings of a draw over one row of 300 ids (no buffers: `draw_from` reads none).
+    fn settings(top_k: usize, top_p: f64, top_p_rest: bool) -> Draw {
         let b = umgen_cuda::Buf { id: 0, at: 0 };
-        let d = Draw {
+        Draw {
             logits: b,
             keep_logits: b,
             rules: b,
@@ -286,18 +277,64 @@ mod tests {
             nboxes: b,
             state: b,
             temperature: 1.0,
-            top_p: 1.0,
+            top_p,
+            top_p_rest,
             m: 1,
             n: 4,
             vocab: 300,
-            top_k: 5,
+            top_k,
             keeps: 1,
             groups: 1,
             box_cap: 1,
             keep_cap: 0,
             run_count: 1,
             key: [7, 9],
-        };
+        }
+    }
+
+    /// Ids drawn from `row` at position 1 of scenes `0..n` (no group).
+    fn draws(d: &Draw, row: &[f32], n: u32) -> Vec<i32> {
+        let run = GroupRun::EMPTY;
+        (0..n)
+            .map(|scene| {
+                let site = Site {
+                    d,
+                    rule: &Rule::FREE,
+                    run: &run,
+                    first: -1,
+                    scene,
+                    position: 1,
+                    frame: 5,
+                };
+                draw_from(&site, row, true, 0)
+            })
+            .collect()
+    }
+
+    /// A top-20 list of id 0 at 0.9 and 19 tied values at 1/190: a plain top-p of 0.8 keeps id 0 alone;
+    /// with `top_p_rest` id 0 keeps its 0.9 and the rest's nucleus (0.08 of 0.1) takes ids 1..16; as
+    /// `draw.cu`'s emulator case.
+    #[test]
+    fn the_rest_nucleus_keeps_the_most_likely_id_at_its_share() {
+        let mut row = vec![f32::NEG_INFINITY; 300];
+        row[1..200].iter_mut().for_each(|x| *x = 0.0);
+        row[0] = 171.0f32.ln();
+        let plain = draws(&settings(20, 0.8, false), &row, 2_000);
+        assert!(plain.iter().all(|&id| id == 0), "{plain:?}");
+        let rest = draws(&settings(20, 0.8, true), &row, 20_000);
+        assert!(rest.iter().all(|&id| (0..=16).contains(&id)), "{rest:?}");
+        let lead = rest.iter().filter(|&&id| id == 0).count();
+        assert!((lead as f64 / 20_000.0 - 0.9).abs() < 0.01, "{lead}");
+        // The 16 kept values share the rest about equally.
+        let ones = rest.iter().filter(|&&id| id == 1).count() as f64 / 20_000.0;
+        assert!((ones - 0.1 / 16.0).abs() < 0.003, "{ones}");
+    }
+
+    /// A group's first position with top-k 5: pad comes out at its untruncated share (0.9 here; 0.998 if
+    /// the top-5 list alone counted), the values only from the list; as `draw.cu`'s emulator case.
+    #[test]
+    fn a_group_first_draw_keeps_pad_at_its_untruncated_share() {
+        let d = settings(5, 1.0, false);
         let rule = Rule {
             gstart: 1,
             ..Rule::FREE

@@ -156,6 +156,7 @@ impl<X: Exec> Engine<X> {
             state: dec.state,
             temperature: smp.temperature,
             top_p: smp.top_p,
+            top_p_rest: smp.top_p_rest,
             m: gs,
             n,
             vocab: head.n,

@@ -156,6 +156,7 @@ pub(in crate::gpu) struct Draw {
     box_cap: i32,
     key0: u32,
     key1: u32,
+    top_p_rest: i32,
 }
 
 // SAFETY: a plain `#[repr(C)]` struct of integers and floats, laid out as the kernel's struct.
@@ -317,6 +318,7 @@ impl CudaExec {
             box_cap: i(d.box_cap),
             key0: d.key[0],
             key1: d.key[1],
+            top_p_rest: i32::from(d.top_p_rest),
         }
     }
 }
