@@ -13,7 +13,7 @@
 //! shown, e.g. with `generate --recorded ego,lights`); a model with the traffic-light modality is also
 //! measured against the lights it generated itself. Prints a Markdown
 //! table: crossings, crossings on red (and of those, the ones made above 5 m/s: driven through, not crept
-//! over while stopping), their share, red approaches (a vehicle within 20 m behind a red
+//! over while stopping), their share with its 95 % (Wilson) interval, red approaches (a vehicle within 20 m behind a red
 //! line) and red crossings per approach; and for such a model, how its lights agree with SUMO's (the stop
 //! lines of the 8 nearest recorded heads, a generated line at each, the same state).
 
@@ -131,8 +131,11 @@ fn generated(lights: &TrafficLight, dir: &Path) -> Result<Generated, Error> {
 
 fn row(name: &str, c: &Crossings, pairs: usize) -> String {
     let pct = |v: Option<f64>| v.map_or("–".into(), |v| format!("{:.1} %", 100.0 * v));
+    let interval = c.red_share_interval().map_or("–".into(), |(lo, hi)| {
+        format!("{:.1}–{:.1} %", 100.0 * lo, 100.0 * hi)
+    });
     format!(
-        "| {name} | {pairs} | {} | {} | {} | {} | {} | {} |",
+        "| {name} | {pairs} | {} | {} | {} | {} ({interval}) | {} | {} |",
         c.total(),
         c.red,
         c.red_through,
@@ -157,7 +160,7 @@ fn main() -> Result<(), Error> {
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
-        "| frames of | frame pairs | crossings | on red | on red above {THROUGH_MPS} m/s | share on red | red approaches | red run per approach |"
+        "| frames of | frame pairs | crossings | on red | on red above {THROUGH_MPS} m/s | share on red (95 % interval) | red approaches | red run per approach |"
     )?;
     writeln!(out, "|---|---|---|---|---|---|---|---|")?;
     let (c, pairs) = recorded(&lights, &data, &split)?;

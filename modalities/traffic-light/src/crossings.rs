@@ -103,6 +103,19 @@ impl Crossings {
         (t > 0).then(|| self.red as f64 / t as f64)
     }
 
+    /// The 95 % Wilson score interval of [`red_share`](Self::red_share): how far apart two rollouts'
+    /// shares must be before their difference is more than the draw of their crossings.
+    pub fn red_share_interval(&self) -> Option<(f64, f64)> {
+        let n = self.total();
+        (n > 0).then(|| {
+            let (n, z) = (n as f64, 1.959_963_984_540_054_f64);
+            let p = self.red as f64 / n;
+            let centre = (p + z * z / (2.0 * n)) / (1.0 + z * z / n);
+            let half = z / (1.0 + z * z / n) * (p * (1.0 - p) / n + z * z / (4.0 * n * n)).sqrt();
+            (centre - half, centre + half)
+        })
+    }
+
     /// Red crossings per red approach: how often a vehicle near a red line ran it in the next step.
     pub fn run_rate(&self) -> Option<f64> {
         (self.red_approaches > 0).then(|| self.red as f64 / self.red_approaches as f64)
@@ -281,6 +294,16 @@ mod tests {
         );
         assert_eq!(c.red_share(), Some(0.5));
         assert_eq!(c.run_rate(), Some(0.5));
+        // Wilson intervals (z = 1.96) worked out by hand: 28 of 98, and 0 of 10, whose lower end is 0.
+        let share = |red, green| Crossings { red, green, ..c }.red_share_interval().unwrap();
+        let (lo, hi) = share(28, 70);
+        assert!(
+            (lo - 0.205_688).abs() < 1e-6 && (hi - 0.381_907).abs() < 1e-6,
+            "{lo} {hi}"
+        );
+        let (lo, hi) = share(0, 10);
+        assert!(lo.abs() < 1e-12 && (hi - 0.277_533).abs() < 1e-6, "{lo} {hi}");
+        assert_eq!(Crossings::default().red_share_interval(), None);
         // The vehicle's own velocity before the step decides: 6 m/s drove through, 4.9 m/s did not.
         let mut fast = prev.clone();
         fast.agents[0].vx = 6.0;
