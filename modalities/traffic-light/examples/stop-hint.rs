@@ -10,7 +10,8 @@
 //!
 //! For the slots that a rule brakes (their hinted speed below the hint without it), it prints how many
 //! there are, how often the recorded next speed is nearer the braked hint than the unbraked one, and
-//! the mean speeds: a rule whose braking the data does not follow teaches a model to depart from it.
+//! the mean speeds, over all of them and by how hard the rule brakes: a rule whose braking the data
+//! does not follow teaches a model to depart from it.
 //! The token cache must be made for the config's layout (`umgen-lights tokenize`).
 
 use burn::tensor::{Int, Tensor, TensorData};
@@ -25,8 +26,11 @@ use umgen_modality_traffic_light::{KIND, TrafficLight};
 type Error = Box<dyn std::error::Error>;
 type F = burn::backend::Flex;
 
+/// Lower ends (m/s²) of the classes of how hard a rule brakes.
+const CLASSES: [f64; 4] = [0.0, 2.0, 4.0, 6.0];
+
 /// Slots a rule braked and how the recorded next frame compares.
-#[derive(Default)]
+#[derive(Default, Clone)]
 struct Braked {
     slots: usize,
     nearer_braked: usize,
@@ -134,7 +138,15 @@ fn main() -> Result<(), Error> {
     let step = (windows.len() / limit.max(1)).max(1);
     windows = windows.into_iter().step_by(step).take(limit).collect();
     let n = layout.len();
-    let (mut follow, mut stop) = (Braked::default(), Braked::default());
+    // [all, by class] for the follow rule and the stop points.
+    let mut follow = vec![Braked::default(); CLASSES.len() + 1];
+    let mut stop = follow.clone();
+    let add = |to: &mut Vec<Braked>, a: f64, b: f64, r: f64| {
+        let hard = (a - b) / track.step_s;
+        let class = CLASSES.iter().rposition(|&lo| hard >= lo).unwrap_or(0);
+        to[0].add(a, b, r);
+        to[class + 1].add(a, b, r);
+    };
     let dev = Default::default();
     for batch in windows.chunks(512) {
         let mut now = Vec::with_capacity(batch.len() * n);
@@ -175,10 +187,10 @@ fn main() -> Result<(), Error> {
                     continue;
                 };
                 if f < a - 1e-9 {
-                    follow.add(a, f, r);
+                    add(&mut follow, a, f, r);
                 }
                 if s < f - 1e-9 {
-                    stop.add(f, s, r);
+                    add(&mut stop, f, s, r);
                 }
             }
         }
@@ -190,11 +202,18 @@ fn main() -> Result<(), Error> {
         "| braked by | slots | recorded nearer the braked hint | hint without the rule m/s | braked hint m/s | recorded m/s |"
     )?;
     writeln!(out, "|---|---|---|---|---|---|")?;
-    writeln!(out, "{}", follow.row("the follow rule (slots ahead)"))?;
-    writeln!(
-        out,
-        "{}",
-        stop.row("the stop points (red heads), beyond the follow rule")
-    )?;
+    for (name, rows) in [
+        ("the follow rule (slots ahead)", &follow),
+        ("the stop points (red heads), beyond the follow rule", &stop),
+    ] {
+        writeln!(out, "{}", rows[0].row(name))?;
+        for (i, lo) in CLASSES.iter().enumerate() {
+            let class = match CLASSES.get(i + 1) {
+                Some(hi) => format!("{lo}–{hi} m/s²"),
+                None => format!("{lo} m/s² and more"),
+            };
+            writeln!(out, "{}", rows[i + 1].row(&format!("… braking {class}")))?;
+        }
+    }
     Ok(())
 }
