@@ -206,6 +206,7 @@ pub fn nucleus(probs: &mut Vec<f64>, top_p: f64, rest: bool) -> usize {
     }
     keep
 }
+
 /// One uniform number walked along `dist` (the last id where rounding leaves some over; 0 when empty).
 fn walk(dist: &[(u32, f64)], rng: &mut impl Rng) -> u32 {
     let Some(&(last, _)) = dist.last() else {

@@ -292,15 +292,14 @@ mod tests {
         }
     }
 
-    /// Ids drawn from `row` at position 1 of scenes `0..n` (no group).
-    fn draws(d: &Draw, row: &[f32], n: u32) -> Vec<i32> {
-        let run = GroupRun::EMPTY;
+    /// Ids drawn from `row` at position 1 of scenes `0..n` under `rule` (run `run`).
+    fn draws(d: &Draw, rule: &Rule, run: &GroupRun, row: &[f32], n: u32) -> Vec<i32> {
         (0..n)
             .map(|scene| {
                 let site = Site {
                     d,
-                    rule: &Rule::FREE,
-                    run: &run,
+                    rule,
+                    run,
                     first: -1,
                     scene,
                     position: 1,
@@ -319,9 +318,10 @@ mod tests {
         let mut row = vec![f32::NEG_INFINITY; 300];
         row[1..200].iter_mut().for_each(|x| *x = 0.0);
         row[0] = 171.0f32.ln();
-        let plain = draws(&settings(20, 0.8, false), &row, 2_000);
+        let free = |d: &Draw, n| draws(d, &Rule::FREE, &GroupRun::EMPTY, &row, n);
+        let plain = free(&settings(20, 0.8, false), 2_000);
         assert!(plain.iter().all(|&id| id == 0), "{plain:?}");
-        let rest = draws(&settings(20, 0.8, true), &row, 20_000);
+        let rest = free(&settings(20, 0.8, true), 20_000);
         assert!(rest.iter().all(|&id| (0..=16).contains(&id)), "{rest:?}");
         let lead = rest.iter().filter(|&&id| id == 0).count();
         assert!((lead as f64 / 20_000.0 - 0.9).abs() < 0.01, "{lead}");
@@ -352,17 +352,8 @@ mod tests {
         row[290] = (9.0f32 * 200.0).ln();
         let n = 20_000u32;
         let mut pads = 0;
-        for scene in 0..n {
-            let site = Site {
-                d: &d,
-                rule: &rule,
-                run: &run,
-                first: -1,
-                scene,
-                position: 1,
-                frame: 5,
-            };
-            match draw_from(&site, &row, true, 0) {
+        for id in draws(&d, &rule, &run, &row, n) {
+            match id {
                 290 => pads += 1,
                 id => assert!((0..4).contains(&id), "{id} is not in the top-5 list"),
             }
