@@ -6,7 +6,8 @@
 //! and scalar loads), bias and GELU in place, row gathers with norms, periods and index lists (held in
 //! registers and not), scatter-adds, embedding inputs, the action block's shift,
 //! AMA's bilinear move, and the draw's token rules, greedy ties, sampled draws, a group's first token at
-//! pad's untruncated share, the nucleus of the rest and the new-agent rule. Weights and operands in f32 and in bf16.
+//! pad's untruncated share, the nucleus of the rest and the new-agent rule (against the boxes before
+//! a new agent, and against every old agent of the frame). Weights and operands in f32 and in bf16.
 #![allow(clippy::expect_used, clippy::panic, clippy::print_stderr, missing_docs)]
 
 use std::path::Path;
@@ -18,8 +19,8 @@ fn engine_kernels_match_a_double_precision_reference_in_the_host_emulator() {
     for defines in [["-DWT=float"], ["-DWT=u16"]] {
         match run(&source, &defines).expect("building the emulator") {
             Emulated::Agreed(report) => {
-                // Forty-three cases and the summary line.
-                assert_eq!(report.lines().count(), 44, "{report}");
+                // Forty-four cases and the summary line.
+                assert_eq!(report.lines().count(), 45, "{report}");
                 assert!(!report.contains("FAIL"), "{report}");
                 assert!(report.contains("all cases agree"), "{report}");
             }

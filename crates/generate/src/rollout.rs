@@ -251,11 +251,16 @@ impl<'a, B: Backend> Generator<'a, B> {
                         continue;
                     }
                     let newborn = rules.newborn[b][p];
-                    let dropped = boxes.admit(b, &row[*start..=p], spec, newborn);
+                    let verdict = boxes.admit(b, *start, &row[*start..=p], spec, newborn);
                     self.new_agents.0 += u64::from(newborn);
-                    if dropped {
+                    let emptied = verdict
+                        .emptied
+                        .iter()
+                        .copied()
+                        .chain(verdict.drop.then_some(*start));
+                    for first in emptied {
                         self.new_agents.1 += 1;
-                        row[*start..=p].iter_mut().for_each(|x| *x = g.pad);
+                        row[first..first + g.size].iter_mut().for_each(|x| *x = g.pad);
                     }
                 }
             }

@@ -101,6 +101,7 @@ fn groups() -> TokenGroups {
             ],
             ego: [4.5, 2.0],
             max_boxes: 2,
+            whole_frame: true,
         }),
     }
 }

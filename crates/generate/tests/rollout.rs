@@ -275,6 +275,7 @@ fn forced_actions_initial_scenes_and_bad_settings() {
             ],
             ego: [5.0, 2.0],
             max_boxes: 30,
+            whole_frame: true,
         }));
         let f = g.next_frame(&[vec![]], &boxed).unwrap();
         assert!(

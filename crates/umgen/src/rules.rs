@@ -27,7 +27,9 @@ pub const EGO_BOX_M: [f64; 2] = [5.176, 2.297];
 
 /// The agent slots from content position `offset` (`slots` of them) as token groups: each comes out either
 /// empty (all pad) or as values and a category, never a mix that decodes to nothing; new agents follow
-/// the official rule (the ego box, l 5.176 m × w 2.297 m, first; no overlaps; at most 30 other boxes).
+/// the official rule (the ego box, l 5.176 m × w 2.297 m, first; no overlaps; at most 30 other boxes),
+/// tested against every old agent of the frame, not only those in the slots before them
+/// ([`GroupBoxes::whole_frame`]; docs/decisions/019-new-agents-against-the-whole-frame.md).
 pub fn agent_groups(offset: usize, slots: usize, cfg: &AgentConfig) -> TokenGroups {
     let ids: Vec<u32> = AgentCategory::ALL.iter().map(|c| cfg.category_id(*c)).collect();
     let (lo, hi) = (
@@ -47,6 +49,7 @@ pub fn agent_groups(offset: usize, slots: usize, cfg: &AgentConfig) -> TokenGrou
             fields: [0, 1, 6, 7, 8].map(|i| (i, ranges[i][0], ranges[i][1], cfg.bins)),
             ego: EGO_BOX_M,
             max_boxes: 31,
+            whole_frame: true,
         }),
     }
 }
@@ -93,7 +96,7 @@ pub fn generation_manifest(registry: &ModalityRegistry, config: &UmgenConfig) ->
                 "last": [g.last.start, g.last.end], "keep": true,
                 "boxes": g.boxes.map(|b| serde_json::json!({
                     "fields": b.fields.map(|(i, lo, hi, bins)| serde_json::json!([i, lo, hi, bins])),
-                    "ego": b.ego, "max_boxes": b.max_boxes,
+                    "ego": b.ego, "max_boxes": b.max_boxes, "whole_frame": b.whole_frame,
                 })),
             })
         })

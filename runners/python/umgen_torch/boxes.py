@@ -1,6 +1,7 @@
 """The new-agent rule: a slot filled in the new frame but empty in the newest history frame is dropped
 (made pad) when its bird's-eye box overlaps one decoded before it in the frame (the ego's first) or the
-frame already holds ``max_boxes`` boxes. Agents that existed before are kept."""
+frame already holds ``max_boxes`` boxes. With ``whole_frame`` an agent that existed before also drops
+every new agent decoded before it whose box it overlaps. Agents that existed before are kept."""
 
 import math
 
@@ -45,14 +46,26 @@ class FrameBoxes:
     """The boxes decoded so far in one scene's new frame, starting with the ego's at the origin."""
 
     def __init__(self, ego):
-        self.boxes = [(0.0, 0.0, 0.0, ego[0], ego[1])]
+        # (box, first position of a new agent's group or None)
+        self.boxes = [((0.0, 0.0, 0.0, ego[0], ego[1]), None)]
 
-    def admit(self, tokens, spec, newborn):
-        """Takes in a finished group; returns whether it must be emptied."""
+    def admit(self, start, tokens, spec, newborn):
+        """Takes in a finished group starting at ``start``; returns whether it must be emptied and the
+        first positions of the new agents before it that must be."""
         box = decode_box(tokens, spec["fields"])
         if box is None:
-            return False
-        if newborn and (len(self.boxes) >= spec["max_boxes"] or any(overlap(o, box) for o in self.boxes)):
-            return True
-        self.boxes.append(box)
-        return False
+            return False, []
+        emptied = []
+        if newborn:
+            if len(self.boxes) >= spec["max_boxes"] or any(overlap(o, box) for o, _ in self.boxes):
+                return True, []
+        elif spec.get("whole_frame", False):
+            kept = []
+            for o, at in self.boxes:
+                if at is not None and overlap(o, box):
+                    emptied.append(at)
+                else:
+                    kept.append((o, at))
+            self.boxes = kept
+        self.boxes.append((box, start if newborn else None))
+        return False, emptied

@@ -35,7 +35,7 @@ GENERATION_KEYS = {
     "": {"window", "sampling", "groups"},
     "sampling": {"top_k", "top_p", "temperature"},
     "groups": {"first", "size", "count", "pad", "values", "last", "keep", "boxes"},
-    "boxes": {"fields", "ego", "max_boxes"},
+    "boxes": {"fields", "ego", "max_boxes", "whole_frame"},
 }
 
 

@@ -202,11 +202,11 @@ class Generator:
             if r[start] == grp["pad"]:
                 continue
             born = newborn[b][p]
-            dropped = boxes[b].admit(r[start : p + 1], grp["boxes"], born)
+            dropped, emptied = boxes[b].admit(start, r[start : p + 1], grp["boxes"], born)
             self.new_agents[0] += int(born)
-            if dropped:
+            for first in emptied + ([start] if dropped else []):
                 self.new_agents[1] += 1
-                r[start : p + 1] = [grp["pad"]] * (p + 1 - start)
+                r[first : first + grp["size"]] = [grp["pad"]] * grp["size"]
 
     def _keep(self, history):
         """Per position: ``(pad, per scene whether the slot was filled in the newest frame)``."""

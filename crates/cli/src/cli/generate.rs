@@ -103,6 +103,11 @@ pub struct GenerateArgs {
     /// drives off at the model's rate instead of never (docs/control.md).
     #[arg(long = "top-p-rest-of", value_name = "MODALITY")]
     pub top_p_rest_of: Vec<String>,
+    /// Which boxes a new agent must clear: every old agent of the frame (`frame`), or only the boxes
+    /// decoded before it, as the official code does (`before`: an old agent in a later slot may stand
+    /// on it). docs/control.md.
+    #[arg(long, value_enum, default_value = "frame")]
+    pub new_agent_rule: NewAgentRule,
     /// Softmax temperature, every modality.
     #[arg(long, default_value_t = 1.0)]
     pub temperature: f64,
@@ -118,6 +123,15 @@ pub struct GenerateArgs {
     /// The generation engine's weights and products on a GPU.
     #[arg(long, value_enum, default_value = "auto")]
     pub precision: EnginePrecisionArg,
+}
+
+/// Which boxes a new agent must clear (`GroupBoxes::whole_frame`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum NewAgentRule {
+    /// Every old agent of the frame and the boxes decoded before it.
+    Frame,
+    /// The boxes decoded before it (the ego's first), as the official code.
+    Before,
 }
 
 /// What decodes the frames.

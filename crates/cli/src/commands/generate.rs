@@ -66,7 +66,17 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     let bins = spec.action.as_ref().map(|x| x.bins);
     let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
     let control = applicable_control(a, control, bins.is_some(), agents.as_ref().map(|s| s.slots()))?;
-    let groups: Vec<_> = agents.iter().map(|a| a.groups()).collect();
+    let whole_frame = a.new_agent_rule == crate::cli::NewAgentRule::Frame;
+    let groups: Vec<_> = agents
+        .iter()
+        .map(|s| {
+            let mut g = s.groups();
+            if let Some(b) = g.boxes.as_mut() {
+                b.whole_frame = whole_frame;
+            }
+            g
+        })
+        .collect();
     let cuda = matches!(device, Device::Cuda(_));
     let on_device = a.draw.on_device(cuda, total);
     let engine = a.decoder.engine(cuda);
@@ -201,7 +211,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             "speculate": a.speculate,
             "decoder": if engine { "engine" } else { "burn" },
             "draw": if engine { "engine" } else if on_device { "device" } else { "host" },
-            "new_agents": {"tested": new_tested, "dropped": new_dropped},
+            "new_agents": {"tested": new_tested, "dropped": new_dropped, "rule": if whole_frame { "frame" } else { "before" }},
             "interval": interval,
             "recorded_ego": recorded_ego,
             "recorded": recorded_labels,

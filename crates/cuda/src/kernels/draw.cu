@@ -13,7 +13,9 @@
 // - a kept agent (its group was there in the previous frame) that draws pad redraws from the TAR head's
 //   logits, pad allowed again (the TAR, which sees the history, may let it leave);
 // - at a group's last position, the new-agent rule: a group that was empty in the previous frame and
-//   overlaps a box decoded before it (the ego's first), or exceeds the box budget, becomes pad.
+//   overlaps a box decoded before it (the ego's first), or exceeds the box budget, becomes pad; with
+//   `boxes == 2` (the whole frame), an agent that was there before also empties every new agent decoded
+//   before it whose box it overlaps, so that a new agent overlaps no old one wherever their slots lie.
 //
 // The last block to finish advances the device position, so that the next step needs nothing from the host.
 
@@ -23,6 +25,9 @@
 #define DRAW_HELD 32
 // The id of "nothing found" (exact as a float, which the warp shuffles carry).
 #define NO_ID (1 << 30)
+// Doubles a box takes in `Draw::boxes`: x, y, heading, length, width; the group's size if it is a new agent
+// (its negative once emptied, 0 for the ego and old agents); the group's first position.
+#define BOX_WORDS 7
 
 struct Rule {
     int known;        // the token is prefilled: nothing to draw
@@ -38,7 +43,9 @@ struct Rule {
 };
 
 struct GroupRun {
-    int size, pad, values, last_lo, last_hi, boxes, max_boxes;
+    int size, pad, values, last_lo, last_hi;
+    int boxes;        // 0: no new-agent rule; 1: against the boxes before; 2: against every old agent
+    int max_boxes;
     int field[5];     // x, y, heading, length, width: index in the group
     int bins[5];
     double lo[5], hi[5];
@@ -55,7 +62,7 @@ struct Draw {
     int* pos;
     unsigned* done;             // blocks finished at this position
     unsigned* counts;           // new agents tested, dropped
-    double* boxes;              // [m][box_cap][5]
+    double* boxes;              // [m][box_cap][BOX_WORDS]
     int* nboxes;                // [m]
     const unsigned* state;      // the frame's counter, the scene stride of `keep_logits`, the first scene
     double temperature, top_p;
@@ -435,18 +442,33 @@ DEV void new_agent(const Draw& P, const Rule& R, const GroupRun& G, int b, int p
         if (id < 0 || id >= G.bins[f]) return;
         box[f] = G.lo[f] + ((double)id + 0.5) * (G.hi[f] - G.lo[f]) / (double)G.bins[f];
     }
-    double* mine = P.boxes + (long long)b * P.box_cap * 5;
+    double* mine = P.boxes + (long long)b * P.box_cap * BOX_WORDS;
     const int nb = P.nboxes[b];
+    int held = 0;
+    for (int q = 0; q < nb; q++) held += mine[BOX_WORDS * q + 5] >= 0.0;
     bool drop = false;
     if (newborn) {
-        drop = nb >= G.max_boxes;
-        for (int q = 0; q < nb && !drop; q++) drop = boxes_overlap(mine + 5 * q, box);
+        drop = held >= G.max_boxes;
+        for (int q = 0; q < nb && !drop; q++)
+            drop = mine[BOX_WORDS * q + 5] >= 0.0 && boxes_overlap(mine + BOX_WORDS * q, box);
+    } else if (G.boxes == 2) {
+        for (int q = 0; q < nb; q++) {
+            double* o = mine + BOX_WORDS * q;
+            if (o[5] <= 0.0 || !boxes_overlap(o, box)) continue;
+            const int s = (int)o[6], size = (int)o[5];
+            for (int i = s; i < s + size; i++) row[i] = G.pad;
+            o[5] = -o[5];
+            atomic_add_u(P.counts + 1, 1u);
+        }
     }
     if (drop) {
         for (int q = R.gstart; q <= p; q++) row[q] = G.pad;
         atomic_add_u(P.counts + 1, 1u);
     } else if (nb < P.box_cap) {
-        for (int f = 0; f < 5; f++) mine[5 * nb + f] = box[f];
+        double* o = mine + BOX_WORDS * nb;
+        for (int f = 0; f < 5; f++) o[f] = box[f];
+        o[5] = newborn ? (double)(p + 1 - R.gstart) : 0.0;
+        o[6] = (double)R.gstart;
         P.nboxes[b] = nb + 1;
     }
 }

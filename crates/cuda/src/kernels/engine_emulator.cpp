@@ -476,11 +476,11 @@ static bool test_draw() {
     std::vector<float> logits(size_t(m) * vocab);
     std::vector<unsigned char> keep_on(1, 0), newborn = {1, 1};
     unsigned done = 0, counts[2] = {0, 0};
-    std::vector<double> boxes(size_t(m) * 2 * 5, 0.0);
+    std::vector<double> boxes(size_t(m) * 2 * BOX_WORDS, 0.0);
     std::vector<int> nboxes = {1, 1};
     // Scene 0's ego box at the origin, 4.5 × 2 m; scene 1's far away, so that its agent stays.
     const double ego0[5] = {0, 0, 0, 4.5, 2.0}, ego1[5] = {50, 50, 0, 1, 1};
-    for (int f = 0; f < 5; f++) boxes[f] = ego0[f], boxes[10 + f] = ego1[f];
+    for (int f = 0; f < 5; f++) boxes[f] = ego0[f], boxes[2 * BOX_WORDS + f] = ego1[f];
     int pos = 0;
     const unsigned state[3] = {0, 0, 0};
     Draw P{};
@@ -535,7 +535,7 @@ static bool test_draw() {
     // dropped 0, two boxes.
     ok = ok && counts[0] == 1 && counts[1] == 0 && nboxes[1] == 2;
     // Run the group again in scene 1 with its ego box on top of the agent: it is dropped.
-    for (int f = 0; f < 5; f++) boxes[10 + f] = ego0[f];
+    for (int f = 0; f < 5; f++) boxes[2 * BOX_WORDS + f] = ego0[f];
     nboxes[1] = 1;
     pos = 2;
     for (int p = 2; p < 6; p++) {
@@ -562,6 +562,84 @@ static bool test_draw() {
     return check("draw (rules, greedy)", ok ? 0.0 : 1.0, 0.5);
 }
 
+// The whole-frame new-agent rule (`boxes == 2`): a new agent in the first group and an old agent in the
+// second, both drawn greedily onto the same spot. Checking only the boxes before it, the new agent stays;
+// with the whole frame, the old agent's finish empties it (and the old agent stays).
+static bool test_draw_whole_frame() {
+    const int n = 6, vocab = 12;
+    bool ok = true;
+    for (int mode = 1; mode <= 2; mode++) {
+        // Positions 0..2 and 3..5: two groups of 3 (x, y, heading; length and width read y again).
+        std::vector<Rule> rules(n);
+        for (int p = 0; p < n; p++) {
+            const int g = p / 3;
+            rules[p] = Rule{0, 1 << 30, 3 * g, p % 3, 0, g, p % 3 == 2, -1, 0, 0};
+        }
+        GroupRun run{};
+        run.size = 3;
+        run.pad = 9;
+        run.values = 9;
+        run.last_lo = 0;
+        run.last_hi = 9;
+        run.boxes = mode;
+        run.max_boxes = 5;
+        const int fields[5] = {0, 1, 2, 1, 1};
+        for (int f = 0; f < 5; f++) {
+            run.field[f] = fields[f];
+            run.bins[f] = 9;
+            run.lo[f] = f == 2 ? -0.9 : 0.0;
+            run.hi[f] = f == 2 ? 0.9 : 9.0;
+        }
+        std::vector<int> tok(n, -1);
+        std::vector<float> logits(vocab);
+        std::vector<unsigned char> keep_on(1, 0), newborn = {1, 0};
+        unsigned done = 0, counts[2] = {0, 0};
+        std::vector<double> boxes(3 * BOX_WORDS, 0.0);
+        // The ego box far away.
+        boxes[0] = boxes[1] = 50.0, boxes[3] = boxes[4] = 1.0;
+        int nboxes = 1, pos = 0;
+        const unsigned state[3] = {0, 0, 0};
+        Draw P{};
+        P.logits = logits.data();
+        P.keep_logits = logits.data();
+        P.rules = rules.data();
+        P.runs = &run;
+        P.keep_on = keep_on.data();
+        P.newborn = newborn.data();
+        P.tok = tok.data();
+        P.pos = &pos;
+        P.done = &done;
+        P.counts = counts;
+        P.boxes = boxes.data();
+        P.nboxes = &nboxes;
+        P.state = state;
+        P.temperature = 1.0;
+        P.top_p = 1.0;
+        P.m = 1;
+        P.n = n;
+        P.vocab = vocab;
+        P.top_k = 1;
+        P.keeps = 1;
+        P.groups = 2;
+        P.box_cap = 3;
+        // Both agents at x 2.5, y 3.5 m (3.5 × 3.5 m), heading 0: they overlap.
+        const int best[n] = {2, 3, 4, 2, 3, 4};
+        for (int p = 0; p < n; p++) {
+            for (int i = 0; i < vocab; i++) logits[i] = 0.f;
+            logits[best[p]] = 2.f;
+            launch(umgen_draw, P, 1, 8);
+        }
+        const bool emptied = tok[0] == 9 && tok[1] == 9 && tok[2] == 9;
+        const bool old_kept = tok[3] == 2 && tok[4] == 3 && tok[5] == 4;
+        if (mode == 1) ok = ok && !emptied && old_kept && counts[0] == 1 && counts[1] == 0 && nboxes == 3;
+        if (mode == 2) ok = ok && emptied && old_kept && counts[0] == 1 && counts[1] == 1 && nboxes == 3 &&
+                             boxes[BOX_WORDS + 5] == -3.0 && boxes[2 * BOX_WORDS + 5] == 0.0;
+        if (!ok) printf("draw (whole frame): mode %d tokens %d %d %d %d %d %d counts %u %u\n", mode, tok[0],
+                        tok[1], tok[2], tok[3], tok[4], tok[5], counts[0], counts[1]);
+    }
+    return check("draw (new agents against the whole frame)", ok ? 0.0 : 1.0, 0.5);
+}
+
 // A draw at position 1 of `m` scenes with no keeps and no boxes in use: its buffers, and its arguments over
 // them (built in place: `P` points into the members).
 struct PlainDraw {
@@ -574,7 +652,7 @@ struct PlainDraw {
     Draw P{};
     PlainDraw(const std::vector<float>& logits, const std::vector<Rule>& rules, const GroupRun* run, int m, int n,
               int vocab, int top_k, double temperature, double top_p, u32 key0, u32 key1)
-        : tok(size_t(m) * n, 0), nboxes(m, 1), flags(m, 0), boxes(size_t(m) * 5, 0.0) {
+        : tok(size_t(m) * n, 0), nboxes(m, 1), flags(m, 0), boxes(size_t(m) * BOX_WORDS, 0.0) {
         P.logits = logits.data();
         P.keep_logits = logits.data();
         P.rules = rules.data();
@@ -758,6 +836,7 @@ int main() {
     ok = test_rows(1056) && ok;
     ok = test_frame_parts() && ok;
     ok = test_draw() && ok;
+    ok = test_draw_whole_frame() && ok;
     ok = test_sampled_draws() && ok;
     ok = test_group_first_draws() && ok;
     ok = test_rest_nucleus_draws() && ok;

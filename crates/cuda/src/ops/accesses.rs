@@ -5,8 +5,8 @@
 //! inside the frame.
 
 use super::{
-    Buf, DRAW_KMAX, Elem, ExecError, GEMV_ROWS, GemvIn, GemvOut, Keys, MAX_HEAD, Op, ROWS_MAX_SPLITS,
-    ROWS_SPLIT, Strides,
+    BOX_WORDS, Buf, DRAW_KMAX, Elem, ExecError, GEMV_ROWS, GemvIn, GemvOut, Keys, MAX_HEAD, Op,
+    ROWS_MAX_SPLITS, ROWS_SPLIT, Strides,
 };
 
 /// One buffer an operation reaches.
@@ -282,7 +282,7 @@ impl Op {
                 a(d.pos, 1, I32, "pos"),
                 a(d.done, 1, U32, "done"),
                 a(d.counts, 2, U32, "counts"),
-                a(d.boxes, d.m * d.box_cap * 5, &[Elem::F64], "boxes"),
+                a(d.boxes, d.m * d.box_cap * BOX_WORDS, &[Elem::F64], "boxes"),
                 a(d.nboxes, d.m, I32, "nboxes"),
                 a(d.state, 3, U32, "state"),
             ],

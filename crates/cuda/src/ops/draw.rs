@@ -8,6 +8,11 @@ use super::Buf;
 /// Gumbel-max over every id, which needs top-p 1.
 pub const DRAW_KMAX: usize = 64;
 
+/// Doubles a box takes in [`Draw::boxes`] (`BOX_WORDS` of `draw.cu`): x, y, heading, length, width; the
+/// group's size if it is a new agent (negated once the rule empties it; 0 for the ego and old agents); the
+/// group's first position.
+pub const BOX_WORDS: usize = 7;
+
 /// A position's rule for the draw (`Rule` of `draw.cu`, field for field).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -64,7 +69,8 @@ pub struct GroupRun {
     pub last_lo: i32,
     /// End of that range.
     pub last_hi: i32,
-    /// Whether the new-agent rule applies.
+    /// The new-agent rule: 0 none; 1 against the boxes decoded before the new agent (the official code's);
+    /// 2 also against every old agent decoded after it (the whole frame).
     pub boxes: i32,
     /// Boxes a frame may hold.
     pub max_boxes: i32,
@@ -118,7 +124,7 @@ pub struct Draw {
     pub done: Buf,
     /// New agents tested and dropped (u32 × 2).
     pub counts: Buf,
-    /// Boxes `[m][box_cap][5]`.
+    /// Boxes `[m][box_cap][BOX_WORDS]`.
     pub boxes: Buf,
     /// Boxes held `[m]`.
     pub nboxes: Buf,

@@ -2,7 +2,7 @@
 //! numbers, so that the host and a GPU draw the same tokens from the same logits.
 
 use super::host::{HostExec, Store};
-use umgen_cuda::ops::{DRAW_KMAX, Draw, ExecError, GroupRun, Rule};
+use umgen_cuda::ops::{BOX_WORDS, DRAW_KMAX, Draw, ExecError, GroupRun, Rule};
 use umgen_eval::collision::{bev_box, overlap};
 
 /// Philox4x32-10 of the counter `c` under `key` (`engine_common.cuh`'s `philox`).
@@ -205,23 +205,39 @@ pub(super) fn draw(x: &mut HostExec, d: &Draw) -> Result<(), ExecError> {
                 continue;
             }
             let agent = bev_box(v[0], v[1], v[2], v[3], v[4]);
-            let mine = &mut boxes[d.boxes.at + b * d.box_cap * 5..d.boxes.at + (b + 1) * d.box_cap * 5];
+            let mine = &mut boxes
+                [d.boxes.at + b * d.box_cap * BOX_WORDS..d.boxes.at + (b + 1) * d.box_cap * BOX_WORDS];
             let nb = nboxes[b] as usize;
-            let held = |q: usize| {
-                bev_box(
-                    mine[5 * q],
-                    mine[5 * q + 1],
-                    mine[5 * q + 2],
-                    mine[5 * q + 3],
-                    mine[5 * q + 4],
-                )
+            let held = |mine: &[f64], q: usize| {
+                let o = &mine[BOX_WORDS * q..BOX_WORDS * q + 5];
+                bev_box(o[0], o[1], o[2], o[3], o[4])
             };
-            let drop = born && (nb >= run.max_boxes as usize || (0..nb).any(|q| overlap(&held(q), &agent)));
+            // [5]: the group's size for a new agent (negated once emptied), 0 for the ego and old agents.
+            let standing = |mine: &[f64], q: usize| mine[BOX_WORDS * q + 5] >= 0.0;
+            let count = (0..nb).filter(|&q| standing(mine, q)).count();
+            let drop = born
+                && (count >= run.max_boxes as usize
+                    || (0..nb).any(|q| standing(mine, q) && overlap(&held(mine, q), &agent)));
+            if !born && run.boxes == 2 {
+                for q in 0..nb {
+                    let o = BOX_WORDS * q;
+                    if mine[o + 5] <= 0.0 || !overlap(&held(mine, q), &agent) {
+                        continue;
+                    }
+                    let (first, size) = (mine[o + 6] as usize, mine[o + 5] as usize);
+                    row[first..first + size].fill(run.pad);
+                    mine[o + 5] = -mine[o + 5];
+                    counts[1] += 1;
+                }
+            }
             if drop {
                 row[start..=p].fill(run.pad);
                 counts[1] += 1;
             } else if nb < d.box_cap {
-                mine[5 * nb..5 * nb + 5].copy_from_slice(&v);
+                let o = &mut mine[BOX_WORDS * nb..BOX_WORDS * (nb + 1)];
+                o[..5].copy_from_slice(&v);
+                o[5] = if born { (p + 1 - start) as f64 } else { 0.0 };
+                o[6] = start as f64;
                 nboxes[b] += 1;
             }
         }

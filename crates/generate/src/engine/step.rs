@@ -7,7 +7,7 @@ use crate::error::{GenerateError, Result};
 use crate::rules::{FrameControl, FrameRules};
 use umgen_backbone::Slot;
 use umgen_cuda::ops::{
-    AttendRows, Buf, Data, Draw, Elem, Exec, Gemv, GemvIn, GemvOut, GroupRun, Keys, Op, Rule,
+    AttendRows, BOX_WORDS, Buf, Data, Draw, Elem, Exec, Gemv, GemvIn, GemvOut, GroupRun, Keys, Op, Rule,
 };
 
 impl<X: Exec> Engine<X> {
@@ -292,9 +292,9 @@ impl<X: Exec> Engine<X> {
             .iter()
             .find_map(|g| g.boxes.as_ref().map(|b| b.ego))
             .unwrap_or([0.0, 0.0]);
-        let mut boxes = vec![0.0f64; gs * (caps.groups + 1) * 5];
+        let mut boxes = vec![0.0f64; gs * (caps.groups + 1) * BOX_WORDS];
         for b in 0..gs {
-            let at = b * (caps.groups + 1) * 5;
+            let at = b * (caps.groups + 1) * BOX_WORDS;
             boxes[at..at + 5].copy_from_slice(&[0.0, 0.0, 0.0, ego[0], ego[1]]);
         }
         let x = &mut self.x;
@@ -345,7 +345,7 @@ impl<X: Exec> Engine<X> {
             runs: alloc(x, Elem::Run, caps.runs)?,
             keep_on: alloc(x, Elem::U8, g * caps.keeps)?,
             newborn: alloc(x, Elem::U8, g * caps.groups)?,
-            boxes: alloc(x, Elem::F64, g * (caps.groups + 1) * 5)?,
+            boxes: alloc(x, Elem::F64, g * (caps.groups + 1) * BOX_WORDS)?,
             nboxes: alloc(x, Elem::I32, g)?,
             keep_logits: alloc(x, Elem::F32, g * caps.keep_logits)?,
         });
@@ -366,7 +366,7 @@ fn group_run(g: &crate::rules::TokenGroups) -> GroupRun {
         ..GroupRun::EMPTY
     };
     if let Some(b) = &g.boxes {
-        run.boxes = 1;
+        run.boxes = if b.whole_frame { 2 } else { 1 };
         run.max_boxes = i32::try_from(b.max_boxes).unwrap_or(i32::MAX);
         for (f, (i, lo, hi, bins)) in b.fields.iter().enumerate() {
             run.field[f] = *i as i32;
