@@ -134,8 +134,14 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     };
     if new_tested > 0 {
         tracing::info!(
-            "new-agent rule: dropped {new_dropped} of {new_tested} new agents (overlapping a box decoded before \
-             them, or over the frame's box budget)"
+            "new-agent rule ({}): dropped {new_dropped} of {new_tested} new agents (overlapping {}, or over the \
+             frame's box budget)",
+            if whole_frame { "frame" } else { "before" },
+            if whole_frame {
+                "a box decoded before them or an old agent after them"
+            } else {
+                "a box decoded before them"
+            }
         );
     }
     let scenes = history;

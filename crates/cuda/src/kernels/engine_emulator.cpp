@@ -438,6 +438,66 @@ static bool test_frame_parts() {
     return check("align", relative_error(g4, w4), 1e-5) && ok;
 }
 
+// A group run of `size` tokens (values 0..8, pad 9, last ids `last_lo..last_hi`) whose boxes read x, y
+// and heading at 0, 1, 2 of the group and length and width from the y token again; `boxes` the rule.
+static GroupRun box_run(int size, int last_lo, int last_hi, int boxes) {
+    GroupRun run{};
+    run.size = size;
+    run.pad = 9;
+    run.values = 9;
+    run.last_lo = last_lo;
+    run.last_hi = last_hi;
+    run.boxes = boxes;
+    run.max_boxes = 5;
+    const int fields[5] = {0, 1, 2, 1, 1};
+    for (int f = 0; f < 5; f++) {
+        run.field[f] = fields[f];
+        run.bins[f] = 9;
+        run.lo[f] = f == 2 ? -0.9 : 0.0;
+        run.hi[f] = f == 2 ? 0.9 : 9.0;
+    }
+    return run;
+}
+
+// The arguments of a greedy draw (top-k 1, temperature 1, one keep entry) over a rules test's buffers.
+struct RuleDraw {
+    const std::vector<float>* logits;
+    const std::vector<Rule>* rules;
+    const GroupRun* run;
+    const unsigned char *keep_on, *newborn;
+    int *tok, *pos, *nboxes;
+    unsigned *done, *counts;
+    double* boxes;
+    const unsigned* state;
+    int m, n, vocab, groups, box_cap;
+    Draw args() const {
+        Draw P{};
+        P.logits = logits->data();
+        P.keep_logits = logits->data();
+        P.rules = rules->data();
+        P.runs = run;
+        P.keep_on = keep_on;
+        P.newborn = newborn;
+        P.tok = tok;
+        P.pos = pos;
+        P.done = done;
+        P.counts = counts;
+        P.boxes = boxes;
+        P.nboxes = nboxes;
+        P.state = state;
+        P.temperature = 1.0;
+        P.top_p = 1.0;
+        P.m = m;
+        P.n = n;
+        P.vocab = vocab;
+        P.top_k = 1;
+        P.keeps = 1;
+        P.groups = groups;
+        P.box_cap = box_cap;
+        return P;
+    }
+};
+
 // The draw: greedy picks the best allowed id (ties to the smaller id) under the group rules, a known
 // position is left alone, a group after a pad is pad, the new-agent rule drops an overlapping newborn, and
 // the last block advances the position.
@@ -454,22 +514,7 @@ static bool test_draw() {
     }
     rules[5].finish = 1;
     rules[6].limit = 5;
-    GroupRun run{};
-    run.size = 4;
-    run.pad = 9;
-    run.values = 9;
-    run.last_lo = 10;
-    run.last_hi = 12;
-    run.boxes = 1;
-    run.max_boxes = 5;
-    // x, y, heading, length, width at 0, 1, 2, 1, 1 of the group (length and width read the y token again).
-    const int fields[5] = {0, 1, 2, 1, 1};
-    for (int f = 0; f < 5; f++) {
-        run.field[f] = fields[f];
-        run.bins[f] = 9;
-        run.lo[f] = f == 2 ? -0.9 : 0.0;
-        run.hi[f] = f == 2 ? 0.9 : 9.0;
-    }
+    const GroupRun run = box_run(4, 10, 12, 1);
     std::vector<int> tok(size_t(m) * n, -1);
     tok[0] = 7;
     tok[n] = 7;
@@ -483,29 +528,9 @@ static bool test_draw() {
     for (int f = 0; f < 5; f++) boxes[f] = ego0[f], boxes[2 * BOX_WORDS + f] = ego1[f];
     int pos = 0;
     const unsigned state[3] = {0, 0, 0};
-    Draw P{};
-    P.logits = logits.data();
-    P.keep_logits = logits.data();
-    P.rules = rules.data();
-    P.runs = &run;
-    P.keep_on = keep_on.data();
-    P.newborn = newborn.data();
-    P.tok = tok.data();
-    P.pos = &pos;
-    P.done = &done;
-    P.counts = counts;
-    P.boxes = boxes.data();
-    P.nboxes = nboxes.data();
-    P.state = state;
-    P.temperature = 1.0;
-    P.top_p = 1.0;
-    P.m = m;
-    P.n = n;
-    P.vocab = vocab;
-    P.top_k = 1;
-    P.keeps = 1;
-    P.groups = 1;
-    P.box_cap = 2;
+    Draw P = RuleDraw{&logits, &rules, &run, keep_on.data(), newborn.data(), tok.data(), &pos, nboxes.data(),
+                      &done, counts, boxes.data(), state, m, n, vocab, 1, 2}
+                 .args();
     // Per position, each scene's logits: the best id is given first (ties at equal values go to the
     // smaller id), then what the rules should make of it.
     const int best[8][2] = {{3, 3}, {6, 11}, {9, 0}, {4, 1}, {2, 2}, {11, 11}, {8, 8}, {5, 5}};
@@ -575,21 +600,7 @@ static bool test_draw_whole_frame() {
             const int g = p / 3;
             rules[p] = Rule{0, 1 << 30, 3 * g, p % 3, 0, g, p % 3 == 2, -1, 0, 0};
         }
-        GroupRun run{};
-        run.size = 3;
-        run.pad = 9;
-        run.values = 9;
-        run.last_lo = 0;
-        run.last_hi = 9;
-        run.boxes = mode;
-        run.max_boxes = 5;
-        const int fields[5] = {0, 1, 2, 1, 1};
-        for (int f = 0; f < 5; f++) {
-            run.field[f] = fields[f];
-            run.bins[f] = 9;
-            run.lo[f] = f == 2 ? -0.9 : 0.0;
-            run.hi[f] = f == 2 ? 0.9 : 9.0;
-        }
+        const GroupRun run = box_run(3, 0, 9, mode);
         std::vector<int> tok(n, -1);
         std::vector<float> logits(vocab);
         std::vector<unsigned char> keep_on(1, 0), newborn = {1, 0};
@@ -599,29 +610,9 @@ static bool test_draw_whole_frame() {
         boxes[0] = boxes[1] = 50.0, boxes[3] = boxes[4] = 1.0;
         int nboxes = 1, pos = 0;
         const unsigned state[3] = {0, 0, 0};
-        Draw P{};
-        P.logits = logits.data();
-        P.keep_logits = logits.data();
-        P.rules = rules.data();
-        P.runs = &run;
-        P.keep_on = keep_on.data();
-        P.newborn = newborn.data();
-        P.tok = tok.data();
-        P.pos = &pos;
-        P.done = &done;
-        P.counts = counts;
-        P.boxes = boxes.data();
-        P.nboxes = &nboxes;
-        P.state = state;
-        P.temperature = 1.0;
-        P.top_p = 1.0;
-        P.m = 1;
-        P.n = n;
-        P.vocab = vocab;
-        P.top_k = 1;
-        P.keeps = 1;
-        P.groups = 2;
-        P.box_cap = 3;
+        const Draw P = RuleDraw{&logits, &rules, &run, keep_on.data(), newborn.data(), tok.data(), &pos, &nboxes,
+                                &done, counts, boxes.data(), state, 1, n, vocab, 2, 3}
+                           .args();
         // Both agents at x 2.5, y 3.5 m (3.5 × 3.5 m), heading 0: they overlap.
         const int best[n] = {2, 3, 4, 2, 3, 4};
         for (int p = 0; p < n; p++) {

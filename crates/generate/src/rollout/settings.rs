@@ -37,8 +37,9 @@ impl<B: Backend> Generator<'_, B> {
     }
 
     /// New agents (groups filled in a slot that was empty in the previous frame) that the new-agent rule
-    /// tested so far, and how many of them it dropped for overlapping a box decoded before them or for
-    /// exceeding the frame's box budget.
+    /// tested so far, and how many of them it dropped for overlapping a box decoded before them (or, with
+    /// [`crate::GroupBoxes::whole_frame`], an old agent decoded after them) or for exceeding the frame's
+    /// box budget.
     pub fn new_agents(&self) -> (u64, u64) {
         self.new_agents
     }
