@@ -67,6 +67,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     let agents = super::agents::AgentSlots::of(&bundle, &registry)?;
     let control = applicable_control(a, control, bins.is_some(), agents.as_ref().map(|s| s.slots()))?;
     let whole_frame = a.new_agent_rule == crate::cli::NewAgentRule::Frame;
+    let rule = if whole_frame { "frame" } else { "before" };
     let groups: Vec<_> = agents
         .iter()
         .map(|s| {
@@ -134,9 +135,8 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     };
     if new_tested > 0 {
         tracing::info!(
-            "new-agent rule ({}): dropped {new_dropped} of {new_tested} new agents (overlapping {}, or over the \
-             frame's box budget)",
-            if whole_frame { "frame" } else { "before" },
+            "new-agent rule ({rule}): dropped {new_dropped} of {new_tested} new agents (overlapping {}, or over \
+             the frame's box budget)",
             if whole_frame {
                 "a box decoded before them or an old agent after them"
             } else {
@@ -217,7 +217,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             "speculate": a.speculate,
             "decoder": if engine { "engine" } else { "burn" },
             "draw": if engine { "engine" } else if on_device { "device" } else { "host" },
-            "new_agents": {"tested": new_tested, "dropped": new_dropped, "rule": if whole_frame { "frame" } else { "before" }},
+            "new_agents": {"tested": new_tested, "dropped": new_dropped, "rule": rule},
             "interval": interval,
             "recorded_ego": recorded_ego,
             "recorded": recorded_labels,

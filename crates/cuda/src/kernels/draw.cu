@@ -444,10 +444,11 @@ DEV void new_agent(const Draw& P, const Rule& R, const GroupRun& G, int b, int p
     }
     double* mine = P.boxes + (long long)b * P.box_cap * BOX_WORDS;
     const int nb = P.nboxes[b];
-    int held = 0;
-    for (int q = 0; q < nb; q++) held += mine[BOX_WORDS * q + 5] >= 0.0;
     bool drop = false;
     if (newborn) {
+        // The budget counts the boxes left (an emptied new agent's size is negative).
+        int held = 0;
+        for (int q = 0; q < nb; q++) held += mine[BOX_WORDS * q + 5] >= 0.0;
         drop = held >= G.max_boxes;
         for (int q = 0; q < nb && !drop; q++)
             drop = mine[BOX_WORDS * q + 5] >= 0.0 && boxes_overlap(mine + BOX_WORDS * q, box);

@@ -459,7 +459,7 @@ static GroupRun box_run(int size, int last_lo, int last_hi, int boxes) {
     return run;
 }
 
-// The arguments of a greedy draw (top-k 1, temperature 1, one keep entry) over a rules test's buffers.
+// The arguments of a draw over a test's buffers: greedy (top-k 1, temperature 1), one keep entry.
 struct RuleDraw {
     const std::vector<float>* logits;
     const std::vector<Rule>* rules;
@@ -644,28 +644,12 @@ struct PlainDraw {
     PlainDraw(const std::vector<float>& logits, const std::vector<Rule>& rules, const GroupRun* run, int m, int n,
               int vocab, int top_k, double temperature, double top_p, u32 key0, u32 key1)
         : tok(size_t(m) * n, 0), nboxes(m, 1), flags(m, 0), boxes(size_t(m) * BOX_WORDS, 0.0) {
-        P.logits = logits.data();
-        P.keep_logits = logits.data();
-        P.rules = rules.data();
-        P.runs = run;
-        P.keep_on = flags.data();
-        P.newborn = flags.data();
-        P.tok = tok.data();
-        P.pos = &pos;
-        P.done = &done;
-        P.counts = counts;
-        P.boxes = boxes.data();
-        P.nboxes = nboxes.data();
-        P.state = state;
+        P = RuleDraw{&logits, &rules, run, flags.data(), flags.data(), tok.data(), &pos, nboxes.data(), &done, counts,
+                     boxes.data(), state, m, n, vocab, 1, 1}
+                .args();
         P.temperature = temperature;
         P.top_p = top_p;
-        P.m = m;
-        P.n = n;
-        P.vocab = vocab;
         P.top_k = top_k;
-        P.keeps = 1;
-        P.groups = 1;
-        P.box_cap = 1;
         P.key0 = key0;
         P.key1 = key1;
     }

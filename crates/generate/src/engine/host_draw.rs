@@ -213,11 +213,10 @@ pub(super) fn draw(x: &mut HostExec, d: &Draw) -> Result<(), ExecError> {
                 bev_box(o[0], o[1], o[2], o[3], o[4])
             };
             // [5]: the group's size for a new agent (negated once emptied), 0 for the ego and old agents.
-            let standing = |mine: &[f64], q: usize| mine[BOX_WORDS * q + 5] >= 0.0;
-            let count = (0..nb).filter(|&q| standing(mine, q)).count();
+            let kept = |mine: &[f64], q: usize| mine[BOX_WORDS * q + 5] >= 0.0;
             let drop = born
-                && (count >= run.max_boxes as usize
-                    || (0..nb).any(|q| standing(mine, q) && overlap(&held(mine, q), &agent)));
+                && ((0..nb).filter(|&q| kept(mine, q)).count() >= run.max_boxes as usize
+                    || (0..nb).any(|q| kept(mine, q) && overlap(&held(mine, q), &agent)));
             if !born && run.boxes == 2 {
                 for q in 0..nb {
                     let o = BOX_WORDS * q;
