@@ -9,7 +9,7 @@ use std::path::Path;
 use umgen::backbone::Backbone;
 use umgen::checkpoint::burn_io::weights_from_bytes;
 use umgen::generate::engine::EngineSettings;
-use umgen::generate::{Control, FrameControl, Generator, GivenSegment, NextFrame, Sampling};
+use umgen::generate::{Control, Generator, NextFrame, Sampling};
 use umgen::scene::SceneClip;
 use umgen::{Bundle, backbone_spec};
 
@@ -85,7 +85,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         !(engine && a.speculate > 0),
         "--speculate decodes with the burn model: add --decoder burn"
     );
-    let plan = Plan {
+    let plan = super::generate_plan::Plan {
         a,
         control: &control,
         bins,
@@ -238,97 +238,6 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         frames
     );
     Ok(())
-}
-
-/// What a rollout imposes on each frame: the control file, the recorded or forced ego actions, the agent
-/// slots' rules.
-struct Plan<'a> {
-    a: &'a GenerateArgs,
-    control: &'a Control,
-    bins: Option<[(f64, f64, u32); 3]>,
-    agents: &'a Option<super::agents::AgentSlots>,
-    recorded: &'a [super::recorded::Recorded],
-    /// The ego action's segment: a recorded one replaces the ego module's action.
-    action_segment: Option<usize>,
-    groups: &'a [umgen::generate::TokenGroups],
-}
-
-impl Plan<'_> {
-    /// Generates `--frames` frames onto every scene's `history` with `g` (fewer when `--time-limit` stops
-    /// it), a progress bar or a log line per frame.
-    fn roll_out(&self, g: &mut dyn NextFrame, history: &mut [Vec<Vec<u32>>]) -> anyhow::Result<()> {
-        let (a, control) = (self.a, self.control);
-        let total = history.len();
-        let bar = crate::progress::bar(a.frames as u64, "frames")?;
-        let limit = crate::progress::TimeLimit::minutes(a.time_limit);
-        for k in 0..a.frames {
-            if k > 0 && limit.reached(&bar, k as u64) {
-                tracing::warn!(
-                    "time limit: {k} of {} frame(s) generated; writing those",
-                    a.frames
-                );
-                break;
-            }
-            let forced = self.bins.and_then(|b| control.action_at(k, &b));
-            if let Some((_, clamped)) = &forced
-                && *clamped > 0
-            {
-                tracing::warn!("frame {k}: {clamped} forced action value(s) outside the bins, clamped");
-            }
-            let ((placed, below), keep) = match self.agents {
-                Some(slots) => (slots.placement(control, k)?, slots.keep(history)),
-                None => {
-                    anyhow::ensure!(
-                        control.agents_at(k).next().is_none(),
-                        "the control file sets agents, but this model has no agent modality"
-                    );
-                    Default::default()
-                }
-            };
-            let per_scene = |r: &super::recorded::Recorded| -> Vec<Vec<u32>> {
-                (0..total).map(|s| r.blocks[s / a.scenes][k].clone()).collect()
-            };
-            let action_segment = self.action_segment;
-            let action = match self.recorded.iter().find(|r| Some(r.segment) == action_segment) {
-                Some(r) => Some(per_scene(r)),
-                None => forced.map(|(ids, _)| vec![ids; total]),
-            };
-            let given = self
-                .recorded
-                .iter()
-                .filter(|r| Some(r.segment) != action_segment)
-                .map(|r| GivenSegment {
-                    segment: r.segment,
-                    ids: per_scene(r),
-                })
-                .collect();
-            let fc = FrameControl {
-                action,
-                tokens: placed,
-                below,
-                keep,
-                groups: self.groups.to_vec(),
-                given,
-            };
-            let frame_start = std::time::Instant::now();
-            let next = g.next_frame(history, &fc)?;
-            for (h, f) in history.iter_mut().zip(next) {
-                h.push(f);
-            }
-            bar.inc(1);
-            // Without a terminal the bar is hidden; a line per frame tells a log reader how far it got.
-            if bar.is_hidden() {
-                tracing::info!(
-                    "frame {}/{}: {:.2} s",
-                    k + 1,
-                    a.frames,
-                    frame_start.elapsed().as_secs_f64()
-                );
-            }
-        }
-        bar.finish_and_clear();
-        Ok(())
-    }
 }
 
 /// The decoded scenes as a umgen dataset in `dir` (replacing one from an earlier run), each on its context

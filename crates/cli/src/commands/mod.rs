@@ -20,6 +20,7 @@ mod eval_report;
 mod eval_truth;
 mod export;
 mod generate;
+mod generate_plan;
 mod launch;
 mod layout;
 mod recorded;
