@@ -147,6 +147,17 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         Some(exits as f64 / 1.5),
         "{second}"
     );
+    // The counts behind the rates, each rate inside its 95 % interval.
+    let c = &second["counts"];
+    assert_eq!(
+        (c["entries"].as_u64(), c["exits"].as_u64(), c["seconds"].as_f64()),
+        (Some(entries as u64), Some(exits as u64), Some(1.5)),
+        "{c}"
+    );
+    for (rate, ci) in [(entries, "entries_per_s_95"), (exits, "exits_per_s_95")] {
+        let (lo, hi) = (c[ci][0].as_f64().unwrap(), c[ci][1].as_f64().unwrap());
+        assert!(lo <= rate as f64 / 1.5 && rate as f64 / 1.5 <= hi, "{ci}: {c}");
+    }
     let real = &horizon["real"];
     assert!(real["agents_mean"].as_f64().unwrap() > 1.0, "{real}");
     let total: f64 = real["agents_distribution"]
@@ -181,6 +192,12 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     assert!(
         md.contains("| collision | overlapping ego | onsets/s | onsets at speed into standing |"),
         "{md}"
+    );
+    // The events table: the second's entry count and its rate over the 1.5 s counted.
+    let events = format!("\n| 1 | 1.5 | {entries} | {:.3} [", entries as f64 / 1.5);
+    assert!(
+        md.contains("## Events per second, with 95 % intervals") && md.contains(&events),
+        "{events}: {md}"
     );
     assert!(real["collision_onsets_per_s"].as_f64().unwrap() >= 0.0, "{real}");
     // Real agents seldom touch the ego's box (0.022 of the test split's frames: the box is the official

@@ -9,6 +9,7 @@
 
 use crate::approach::{ApproachRule, Approaches, approaches};
 use crate::collision::{colliding, collision_onsets, overlapping_ego};
+use crate::counts::rate_95;
 use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
 use serde::Serialize;
@@ -90,6 +91,42 @@ impl Spread {
     }
 }
 
+/// Events counted between consecutive frames, over `seconds`, with the 95 % interval of each one's rate
+/// per second ([`crate::counts::rate_95`]: the count taken as Poisson; events of one scene are not
+/// independent, so the true uncertainty is if anything wider).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EventCounts {
+    /// Seconds between the frames of the transitions counted.
+    pub seconds: f64,
+    /// Agents entering.
+    pub entries: usize,
+    /// Agents leaving.
+    pub exits: usize,
+    /// Collisions begun.
+    pub onsets: usize,
+    /// 95 % interval of the entries per second; `None` without time.
+    pub entries_per_s_95: Option<[f64; 2]>,
+    /// 95 % interval of the exits per second.
+    pub exits_per_s_95: Option<[f64; 2]>,
+    /// 95 % interval of the collisions begun per second.
+    pub onsets_per_s_95: Option<[f64; 2]>,
+}
+
+impl EventCounts {
+    fn new(seconds: f64, entries: usize, exits: usize, onsets: usize) -> Self {
+        let rate = |k| rate_95(k, seconds);
+        Self {
+            seconds,
+            entries,
+            exits,
+            onsets,
+            entries_per_s_95: rate(entries),
+            exits_per_s_95: rate(exits),
+            onsets_per_s_95: rate(onsets),
+        }
+    }
+}
+
 /// What [`SceneStats`] gathered, as reported.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Summary {
@@ -103,6 +140,9 @@ pub struct Summary {
     pub entries_per_s: Option<f64>,
     /// Agents leaving per second (present in a frame, absent from the next).
     pub exits_per_s: Option<f64>,
+    /// The events behind the rates per second, and the seconds they were counted over: agents entering
+    /// and leaving, collisions begun.
+    pub counts: EventCounts,
     /// Mean over frames with agents of the fraction that overlaps another (the authors' ratio).
     pub collision_rate: Option<f64>,
     /// Fraction of frames in which an agent overlaps the ego's box; `None` without a box
@@ -258,6 +298,7 @@ impl SceneStats {
             agents_distribution: distribution,
             entries_per_s: per_s(self.entries),
             exits_per_s: per_s(self.exits),
+            counts: EventCounts::new(self.seconds, self.entries, self.exits, self.onsets),
             collision_rate: mean(&self.collision_rates),
             ego_overlap_rate: share(self.ego_hit_frames, self.ego_frames),
             collision_onsets_per_s: per_s(self.onsets),

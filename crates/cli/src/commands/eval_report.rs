@@ -37,6 +37,7 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
         writeln!(md, "| MMD {} | {} |", g.name(), num(&report["mmd"][g.name()]))?;
     }
     horizon_markdown(&mut md, &report["horizon"])?;
+    events_markdown(&mut md, &report["horizon"])?;
     map_markdown(&mut md, &report["map"])?;
     let rows = report["l2"].as_array().map_or(&[][..], |r| &r[..]);
     if rows.is_empty() {
@@ -243,6 +244,56 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
             &whole["generated"],
             Some(&whole["mmd"]),
         )?;
+    }
+    Ok(())
+}
+
+/// The events table of `report.md`: per second generated (and pooled), the agents entering and leaving
+/// and the collisions begun, each count with its rate and the rate's 95 % interval (`EventCounts`).
+pub fn events_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fmt::Result {
+    let Some(rows) = horizon["seconds"].as_array().filter(|r| !r.is_empty()) else {
+        return Ok(());
+    };
+    writeln!(
+        md,
+        "\n## Events per second, with 95 % intervals\n\nAgents entering, agents leaving and collisions begun, \
+         counted over the seconds of transitions between frames, with the rate per second and its 95 % \
+         interval in brackets (the count taken as Poisson: exact up to 100 events, Byar's approximation \
+         beyond). Events of one scene are not independent, so the uncertainty is if anything wider. A \
+         second's rate is off the real one only where the real rate (or the band a target puts around it) \
+         lies outside the interval.\n"
+    )?;
+    writeln!(
+        md,
+        "| second | seconds counted | entries | entries/s | exits | exits/s | onsets | onsets/s |\n|---|---|---|---|---|---|---|---|"
+    )?;
+    let rate = |c: &serde_json::Value, k: &str, ci: &str| {
+        let n = c[k].as_u64();
+        let seconds = c["seconds"].as_f64().filter(|s| *s > 0.0);
+        match (n, seconds, c[ci][0].as_f64(), c[ci][1].as_f64()) {
+            (Some(n), Some(t), Some(lo), Some(hi)) => {
+                format!("{n} | {:.3} [{lo:.3}, {hi:.3}]", n as f64 / t)
+            }
+            _ => "- | -".to_string(),
+        }
+    };
+    let line = |md: &mut String, label: String, s: &serde_json::Value| {
+        let c = &s["counts"];
+        writeln!(
+            md,
+            "| {label} | {} | {} | {} | {} |",
+            c["seconds"].as_f64().map_or("-".into(), |t| format!("{t:.1}")),
+            rate(c, "entries", "entries_per_s_95"),
+            rate(c, "exits", "exits_per_s_95"),
+            rate(c, "onsets", "onsets_per_s_95"),
+        )
+    };
+    line(md, "real".into(), &horizon["real"])?;
+    for r in rows {
+        line(md, r["second"].to_string(), &r["generated"])?;
+    }
+    if horizon["whole"].is_object() {
+        line(md, format!("1–{}", rows.len()), &horizon["whole"]["generated"])?;
     }
     Ok(())
 }

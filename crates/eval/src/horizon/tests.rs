@@ -69,6 +69,16 @@ fn entries_exits_collisions_angles_and_accelerations() {
         (Some(4.0), Some(2.0)),
         "2 in and 1 out in 0.5 s"
     );
+    // The rates' counts, and their intervals from the counts (not from the rates).
+    let c = &r.counts;
+    assert_eq!((c.entries, c.exits, c.onsets, c.seconds), (2, 1, 0, 0.5));
+    assert_eq!(c.entries_per_s_95, rate_95(2, 0.5));
+    let [lo, hi] = c.exits_per_s_95.unwrap_or_default();
+    assert!(
+        lo < 2.0 && 2.0 < hi && lo > 0.0,
+        "one exit in 0.5 s: [{lo}, {hi}] around 2/s"
+    );
+    assert_eq!(c.onsets_per_s_95.map(|[lo, _]| lo), Some(0.0));
     // Frame 2: agents 3 and 4 overlap (2 of 3); frame 1: none.
     assert_eq!(r.collision_rate, Some((0.0 + 2.0 / 3.0) / 2.0));
     // They entered together, so no collision began between two frames of both.
