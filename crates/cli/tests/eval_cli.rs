@@ -154,6 +154,9 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         (Some(entries as u64), Some(exits as u64), Some(1.5)),
         "{c}"
     );
+    // The bundle's agents have a range, so every entry and exit is told inside or across its edge.
+    assert!(c["entries_inside"].as_u64().unwrap() <= entries as u64, "{c}");
+    assert!(c["exits_inside"].as_u64().unwrap() <= exits as u64, "{c}");
     for (rate, ci) in [(entries, "entries_per_s_95"), (exits, "exits_per_s_95")] {
         let (lo, hi) = (c[ci][0].as_f64().unwrap(), c[ci][1].as_f64().unwrap());
         assert!(lo <= rate as f64 / 1.5 && rate as f64 / 1.5 <= hi, "{ci}: {c}");

@@ -13,8 +13,8 @@ use crate::counts::rate_95;
 use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
 use serde::Serialize;
-use std::collections::HashMap;
-use umgen_scene::{AgentCategory, Frame, wrap_angle};
+use std::collections::{HashMap, HashSet};
+use umgen_scene::{AgentCategory, EgoPose, Frame, wrap_angle};
 
 /// Speed (m/s) above which an agent counts as moving, for the heading–motion angle: below it a velocity's
 /// direction is mostly noise of the data (or of the velocity bins).
@@ -29,6 +29,12 @@ pub struct SceneStats {
     transitions: usize,
     entries: usize,
     exits: usize,
+    /// The x and y range (m, ego frame) agents can be placed in ([`SceneStats::within`]), and the entries
+    /// and exits inside it: agents that appear or vanish where they could have been seen a step before or
+    /// after.
+    extent: Option<[[f64; 2]; 2]>,
+    entries_inside: usize,
+    exits_inside: usize,
     /// Seconds between the frames of the transitions.
     seconds: f64,
     /// Per frame with agents, the fraction that overlaps another.
@@ -104,6 +110,13 @@ pub struct EventCounts {
     pub exits: usize,
     /// Collisions begun.
     pub onsets: usize,
+    /// Of the entries, those inside the agents' range ([`SceneStats::within`]): the agent's position a
+    /// step before, at its velocity, lies in the range of the frame before, where it was not. `None`
+    /// without a range.
+    pub entries_inside: Option<usize>,
+    /// Of the exits, those inside the range: the agent's position a step after, at its velocity, lies in
+    /// the range of the next frame, where it is not.
+    pub exits_inside: Option<usize>,
     /// 95 % interval of the entries per second; `None` without time.
     pub entries_per_s_95: Option<[f64; 2]>,
     /// 95 % interval of the exits per second.
@@ -113,13 +126,17 @@ pub struct EventCounts {
 }
 
 impl EventCounts {
-    fn new(seconds: f64, entries: usize, exits: usize, onsets: usize) -> Self {
+    fn of(s: &SceneStats) -> Self {
+        let (seconds, entries, exits, onsets) = (s.seconds, s.entries, s.exits, s.onsets);
         let rate = |k| rate_95(k, seconds);
+        let inside = |k| s.extent.map(|_| k);
         Self {
             seconds,
             entries,
             exits,
             onsets,
+            entries_inside: inside(s.entries_inside),
+            exits_inside: inside(s.exits_inside),
             entries_per_s_95: rate(entries),
             exits_per_s_95: rate(exits),
             onsets_per_s_95: rate(onsets),
@@ -199,6 +216,23 @@ impl SceneStats {
         }
     }
 
+    /// Statistics that also tell the agents entering and leaving inside the range they can be placed in
+    /// (`x` and `y`, m, in the ego frame: the agent modality's) from those crossing its edge.
+    pub fn within(self, x: [f64; 2], y: [f64; 2]) -> Self {
+        Self {
+            extent: Some([x, y]),
+            ..self
+        }
+    }
+
+    /// Whether global position `g` lies in the range of the frame whose ego is `ego`.
+    fn inside(&self, ego: &EgoPose, g: [f64; 2]) -> bool {
+        self.extent.is_some_and(|[x, y]| {
+            let p = ego.pose2().to_local(g);
+            (x[0]..=x[1]).contains(&p[0]) && (y[0]..=y[1]).contains(&p[1])
+        })
+    }
+
     /// Adds `frame`, with the frames before it in its sequence (`dt` seconds apart, the last one just
     /// before it; empty at a sequence's start) and the drivable area of its map, if known.
     pub fn add(&mut self, frame: &Frame, before: &[Frame], dt: f64, drivable: Option<&Drivable>) {
@@ -258,10 +292,22 @@ impl SceneStats {
                 }
             } else {
                 self.entry_speeds.push(a.vx.hypot(a.vy));
+                let v = global_velocity(&frame.ego, a);
+                let g = global_position(&frame.ego, a);
+                let back = [g[0] - v[0] * dt, g[1] - v[1] * dt];
+                self.entries_inside += usize::from(self.inside(&before.ego, back));
                 if let Some(off) = off {
                     self.entering_on_map += 1;
                     self.entering_off_road += usize::from(off);
                 }
+            }
+        }
+        if self.extent.is_some() {
+            let now: HashSet<u64> = agents.iter().map(|a| a.track_id).collect();
+            for b in before.agents.iter().filter(|b| !now.contains(&b.track_id)) {
+                let (g, v) = (global_position(&before.ego, b), global_velocity(&before.ego, b));
+                let ahead = [g[0] + v[0] * dt, g[1] + v[1] * dt];
+                self.exits_inside += usize::from(self.inside(&frame.ego, ahead));
             }
         }
         let (onsets, standing) = collision_onsets(&before.agents, agents);
@@ -298,7 +344,7 @@ impl SceneStats {
             agents_distribution: distribution,
             entries_per_s: per_s(self.entries),
             exits_per_s: per_s(self.exits),
-            counts: EventCounts::new(self.seconds, self.entries, self.exits, self.onsets),
+            counts: EventCounts::of(self),
             collision_rate: mean(&self.collision_rates),
             ego_overlap_rate: share(self.ego_hit_frames, self.ego_frames),
             collision_onsets_per_s: per_s(self.onsets),

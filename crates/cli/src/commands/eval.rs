@@ -240,7 +240,9 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         }
     }
     let per = meta["scenes_per_context"].as_u64().unwrap_or(1) as usize;
-    let horizon = super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, split_clips, dt)?;
+    let extent = umgen::agent_segment(&registry, &bundle.config)?.map(|(_, _, c)| [c.x, c.y]);
+    let horizon =
+        super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, split_clips, dt, extent)?;
     report["horizon"] = horizon;
     if let Some(view) = super::scenes::map_view(&bundle)? {
         let map =

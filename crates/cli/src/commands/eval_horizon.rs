@@ -51,7 +51,10 @@ impl Maps<'_> {
 /// `{"real": …, "seconds": [{"second", "frames", "generated", "mmd"}], "whole": {"frames", "generated",
 /// "mmd"}}` (`whole`: every generated frame pooled, the horizon as one) for generated `scenes` whose scene
 /// `s` continues `contexts[s / per]` of `ds` (none: scenes from scratch, whose maps are unknown), `dt`
-/// seconds a frame, against `real` (the clips of the reference split, read with their networks).
+/// seconds a frame, against `real` (the clips of the reference split, read with their networks); entries
+/// and exits are told apart by whether they cross the agents' range (`extent`: x and y in the ego frame,
+/// the agent modality's), where the bundle has one.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn horizon(
     scenes: &[SceneClip],
     contexts: &[serde_json::Value],
@@ -60,6 +63,7 @@ pub(super) fn horizon(
     registry: &ModalityRegistry,
     real: Vec<SceneClip>,
     dt: f64,
+    extent: Option<[[f64; 2]; 2]>,
 ) -> anyhow::Result<serde_json::Value> {
     let mut maps = Maps {
         ds,
@@ -67,7 +71,13 @@ pub(super) fn horizon(
     };
     // The real split, every frame, agents as the slots hold them.
     let agent = agent_modality(registry)?.map(|(m, _)| m);
-    let stats = || SceneStats::with_ego_box(umgen::EGO_BOX_M);
+    let stats = || {
+        let s = SceneStats::with_ego_box(umgen::EGO_BOX_M);
+        match extent {
+            Some([x, y]) => s.within(x, y),
+            None => s,
+        }
+    };
     let mut real_stats = stats();
     let mut real_agents: Vec<Agent> = Vec::new();
     for mut clip in real {

@@ -261,12 +261,18 @@ pub fn events_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fmt
          interval in brackets (the count taken as Poisson: exact up to 100 events, Byar's approximation \
          beyond). Events of one scene are not independent, so the uncertainty is if anything wider. A \
          second's rate is off the real one only where the real rate (or the band a target puts around it) \
-         lies outside the interval.\n"
+         lies outside the interval. Inside: the share of the entries (exits) whose position a step before \
+         (after), at their velocity, lies in the agents' range of the frame before (after): agents that \
+         appear or vanish where they could have been seen, not across the range's edge.\n"
     )?;
     writeln!(
         md,
-        "| second | seconds counted | entries | entries/s | exits | exits/s | onsets | onsets/s |\n|---|---|---|---|---|---|---|---|"
+        "| second | seconds counted | entries | entries/s | entries inside | exits | exits/s | exits inside | onsets | onsets/s |\n|---|---|---|---|---|---|---|---|---|---|"
     )?;
+    let share = |c: &serde_json::Value, k: &str, of: &str| match (c[k].as_u64(), c[of].as_u64()) {
+        (Some(n), Some(all)) if all > 0 => format!("{:.2}", n as f64 / all as f64),
+        _ => "-".to_string(),
+    };
     let rate = |c: &serde_json::Value, k: &str, ci: &str| {
         let n = c[k].as_u64();
         let seconds = c["seconds"].as_f64().filter(|s| *s > 0.0);
@@ -281,10 +287,12 @@ pub fn events_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fmt
         let c = &s["counts"];
         writeln!(
             md,
-            "| {label} | {} | {} | {} | {} |",
+            "| {label} | {} | {} | {} | {} | {} | {} |",
             c["seconds"].as_f64().map_or("-".into(), |t| format!("{t:.1}")),
             rate(c, "entries", "entries_per_s_95"),
+            share(c, "entries_inside", "entries"),
             rate(c, "exits", "exits_per_s_95"),
+            share(c, "exits_inside", "exits"),
             rate(c, "onsets", "onsets_per_s_95"),
         )
     };

@@ -213,3 +213,56 @@ fn seconds_of_the_horizon() {
     assert_eq!(second_of(10, 0.1), 1);
     assert_eq!(second_of(11, 0.1), 2);
 }
+
+#[test]
+fn entries_and_exits_inside_the_range_or_across_its_edge() {
+    let at = |x: f64, heading: f64, agents| Frame {
+        ego: EgoPose {
+            x,
+            y: 0.0,
+            heading,
+            speed: 0.0,
+        },
+        agents,
+        ..Frame::default()
+    };
+    // Ranges ±10 m. Frame 1, ego at the origin: agent 1 at x = 9 driving out at 4 m/s; agent 2 standing
+    // at the centre; agent 5 standing behind at x = -8; agent 7 stays.
+    let f1 = at(
+        0.0,
+        0.0,
+        vec![
+            agent(1, 9.0, 0.0, 4.0, 0.0, 0.0),
+            agent(2, 0.0, 0.0, 0.0, 0.0, 0.0),
+            agent(5, -8.0, 0.0, 0.0, 0.0, 0.0),
+            agent(7, 0.0, 6.0, 0.0, 0.0, 0.0),
+        ],
+    );
+    // Frame 2, 0.5 s later, the ego 5 m further along x (its range now global x from -5 to 15). Agent 3
+    // enters at the front edge driving towards the ego at 4 m/s: a step before it was at global 16.5,
+    // beyond the old range. Agent 4 appears standing at (2, 2), global (7, 2): inside the old range.
+    let f2 = at(
+        5.0,
+        0.0,
+        vec![
+            agent(7, -5.0, 6.0, 0.0, 0.0, 0.0),
+            agent(3, 9.5, -4.0, -4.0, 0.0, 0.0),
+            agent(4, 2.0, 2.0, 0.0, 0.0, 0.0),
+        ],
+    );
+    let mut s = SceneStats::default().within([-10.0, 10.0], [-10.0, 10.0]);
+    s.add(&f1, &[], 0.5, None);
+    s.add(&f2, std::slice::from_ref(&f1), 0.5, None);
+    let c = s.summary().counts;
+    assert_eq!((c.entries, c.exits), (2, 3));
+    // Entries: 3 across the edge, 4 inside. Exits: agent 1 would be at global 11, local 6 in the new
+    // frame (the ego followed it), and agent 2 at local -5: both vanished inside; agent 5, standing at
+    // global -8, is local -13: left across the edge, though it did not move.
+    assert_eq!((c.entries_inside, c.exits_inside), (Some(1), Some(2)));
+    // Without a range nothing is told apart.
+    let mut plain = SceneStats::default();
+    plain.add(&f1, &[], 0.5, None);
+    plain.add(&f2, std::slice::from_ref(&f1), 0.5, None);
+    let p = plain.summary().counts;
+    assert_eq!((p.entries_inside, p.exits_inside), (None, None));
+}
