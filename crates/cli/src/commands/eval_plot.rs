@@ -16,11 +16,13 @@ const SIZE: (u32, u32) = (780, 440);
 /// Pixels on the right that hold the legend, outside the curves.
 const LEGEND_W: u32 = 240;
 
-/// One curve: its legend, colour and `(seconds, value)` points.
+/// One curve: its legend, colour and `(seconds, value)` points, and the points' 95 % intervals as
+/// `(seconds, low, high)` whiskers where it has them.
 struct Series {
     label: String,
     colour: RGBColor,
     points: Vec<(f64, f64)>,
+    bars: Vec<(f64, f64, f64)>,
 }
 
 /// A drawn plot, and where each series' points landed.
@@ -50,7 +52,11 @@ fn chart(series: &[Series], title: &str, y_desc: &str) -> anyhow::Result<Plot> {
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
         root.fill(&WHITE)?;
         let (plot_area, legend) = root.split_horizontally(w - LEGEND_W);
-        let all = || series.iter().flat_map(|s| s.points.iter());
+        let all = || {
+            series
+                .iter()
+                .flat_map(|s| s.points.iter().copied().chain(s.bars.iter().map(|b| (b.0, b.2))))
+        };
         // A little room beyond the last second and the largest value, so no curve runs along the frame.
         let x_max = all().map(|p| p.0).fold(0.0f64, f64::max).max(0.5) * 1.03;
         let y_max = all().map(|p| p.1).fold(0.0f64, f64::max).max(1e-6) * 1.08;
@@ -68,6 +74,11 @@ fn chart(series: &[Series], title: &str, y_desc: &str) -> anyhow::Result<Plot> {
             .draw()?;
         for (i, s) in series.iter().enumerate() {
             c.draw_series(LineSeries::new(s.points.clone(), s.colour.stroke_width(2)))?;
+            c.draw_series(
+                s.bars
+                    .iter()
+                    .map(|&(x, lo, hi)| PathElement::new(vec![(x, lo), (x, hi)], s.colour.stroke_width(1))),
+            )?;
             at.push(s.points.iter().map(|p| c.backend_coord(p)).collect());
             // The legend: a swatch and the name, one row per series, beside the chart.
             let y = 48 + 20 * i as i32;
@@ -120,12 +131,14 @@ fn l2_chart(rows: &[serde_json::Value]) -> anyhow::Result<Plot> {
         label: label.into(),
         colour,
         points: points(rows, key),
+        bars: Vec::new(),
     });
     chart(&series, "L2 against the real positions", "mean L2 (m)")
 }
 
-/// Agents per frame, entries and exits per second of the rollouts over the horizon against the real
-/// split's (the same colours lighter, flat), as a PNG; nothing with fewer than two seconds.
+/// Agents per frame, entries and exits per second of the rollouts over the horizon (the rates with their
+/// 95 % intervals) against the real split's (the same colours lighter, flat), as a PNG; nothing with
+/// fewer than two seconds.
 pub fn horizon_plot(horizon: &serde_json::Value, path: &Path) -> anyhow::Result<()> {
     if let Some(plot) = horizon_chart(horizon)? {
         write_png(path, &plot.image).with_context(|| format!("writing {}", path.display()))?;
@@ -144,26 +157,41 @@ fn horizon_chart(horizon: &serde_json::Value) -> anyhow::Result<Option<Plot>> {
         .filter_map(|r| r["second"].as_f64())
         .fold((f64::MAX, 0.0f64), |(a, b), s| (a.min(s), b.max(s)));
     let mut series = Vec::new();
-    for (key, colour, light, label) in [
+    // The rates from counts carry their 95 % intervals (`counts`), drawn as whiskers; the entries' a
+    // little left of their second and the exits' a little right, so that the two do not cover each other.
+    for (key, interval, colour, light, label) in [
         (
             "agents_mean",
+            (None, 0.0),
             RGBColor(40, 80, 200),
             RGBColor(140, 165, 240),
             "agents / frame",
         ),
         (
             "entries_per_s",
+            (Some("entries_per_s_95"), -0.12),
             RGBColor(30, 150, 60),
             RGBColor(150, 215, 160),
             "entries / s",
         ),
         (
             "exits_per_s",
+            (Some("exits_per_s_95"), 0.12),
             RGBColor(200, 40, 40),
             RGBColor(240, 150, 150),
             "exits / s",
         ),
     ] {
+        let (interval, shift) = interval;
+        let bars: Vec<(f64, f64, f64)> = interval.map_or_else(Vec::new, |ci| {
+            seconds
+                .iter()
+                .filter_map(|r| {
+                    let b = &r["generated"]["counts"][ci];
+                    Some((r["second"].as_f64()? + shift, b[0].as_f64()?, b[1].as_f64()?))
+                })
+                .collect()
+        });
         let generated: Vec<(f64, f64)> = seconds
             .iter()
             .filter_map(|r| Some((r["second"].as_f64()?, r["generated"][key].as_f64()?)))
@@ -176,11 +204,13 @@ fn horizon_chart(horizon: &serde_json::Value) -> anyhow::Result<Option<Plot>> {
             label: format!("{label}, generated"),
             colour,
             points: generated,
+            bars,
         });
         series.push(Series {
             label: format!("{label}, real"),
             colour: light,
             points: real,
+            bars: Vec::new(),
         });
     }
     Ok(Some(chart(
@@ -253,7 +283,8 @@ mod tests {
         let seconds: Vec<serde_json::Value> = (1..=3)
             .map(|s| {
                 serde_json::json!({"second": s, "generated": {"agents_mean": 10.0 - 3.0 * s as f64,
-                    "entries_per_s": 1.5, "exits_per_s": null}})
+                    "entries_per_s": 1.5, "exits_per_s": null,
+                    "counts": {"entries_per_s_95": [1.0, 2.5], "exits_per_s_95": null}}})
             })
             .collect();
         let horizon = serde_json::json!({"seconds": seconds,
@@ -269,6 +300,14 @@ mod tests {
         assert_eq!(real[0].1, real[1].1);
         assert!(plot.at[0].iter().all(|p| p.1 > real[0].1), "{:?}", plot.at);
         assert!(near(&plot.image, plot.at[0][2], RGBColor(40, 80, 200)));
+        // The entries' whiskers run from 1.0 to 2.5 through the curve at 1.5 (a little left of their
+        // second): their colour a third of the way from the curve up to the real level (2.0), on a row
+        // the flat curve itself does not reach.
+        let (curve, real) = (plot.at[2][1], plot.at[3][0]);
+        let row = curve.1 + (real.1 - curve.1) / 3;
+        assert!(real.1 < row && row < curve.1 - 3, "{curve:?} {real:?}");
+        let green = (curve.0 - 40..curve.0).filter(|&x| px(&plot.image, (x, row)) == [30, 150, 60]);
+        assert!(green.count() > 0, "no whisker left of {curve:?} on row {row}");
         assert!(
             horizon_chart(&serde_json::json!({"seconds": [], "real": {}}))
                 .unwrap()
