@@ -14,7 +14,7 @@ use crate::l2::{global_position, global_velocity, median, quantile};
 use crate::offroad::Drivable;
 use serde::Serialize;
 use std::collections::{HashMap, HashSet};
-use umgen_scene::{AgentCategory, EgoPose, Frame, wrap_angle};
+use umgen_scene::{Agent, AgentCategory, EgoPose, Frame, wrap_angle};
 
 /// Speed (m/s) above which an agent counts as moving, for the heading–motion angle: below it a velocity's
 /// direction is mostly noise of the data (or of the velocity bins).
@@ -225,10 +225,12 @@ impl SceneStats {
         }
     }
 
-    /// Whether global position `g` lies in the range of the frame whose ego is `ego`.
-    fn inside(&self, ego: &EgoPose, g: [f64; 2]) -> bool {
+    /// Whether agent `a` of the frame whose ego is `ego`, moved `dt` seconds at its velocity (back in time
+    /// where `dt` is negative), lies in the range of the frame whose ego is `other`.
+    fn inside(&self, a: &Agent, ego: &EgoPose, dt: f64, other: &EgoPose) -> bool {
         self.extent.is_some_and(|[x, y]| {
-            let p = ego.pose2().to_local(g);
+            let (g, v) = (global_position(ego, a), global_velocity(ego, a));
+            let p = other.pose2().to_local([g[0] + v[0] * dt, g[1] + v[1] * dt]);
             (x[0]..=x[1]).contains(&p[0]) && (y[0]..=y[1]).contains(&p[1])
         })
     }
@@ -292,10 +294,7 @@ impl SceneStats {
                 }
             } else {
                 self.entry_speeds.push(a.vx.hypot(a.vy));
-                let v = global_velocity(&frame.ego, a);
-                let g = global_position(&frame.ego, a);
-                let back = [g[0] - v[0] * dt, g[1] - v[1] * dt];
-                self.entries_inside += usize::from(self.inside(&before.ego, back));
+                self.entries_inside += usize::from(self.inside(a, &frame.ego, -dt, &before.ego));
                 if let Some(off) = off {
                     self.entering_on_map += 1;
                     self.entering_off_road += usize::from(off);
@@ -305,9 +304,7 @@ impl SceneStats {
         if self.extent.is_some() {
             let now: HashSet<u64> = agents.iter().map(|a| a.track_id).collect();
             for b in before.agents.iter().filter(|b| !now.contains(&b.track_id)) {
-                let (g, v) = (global_position(&before.ego, b), global_velocity(&before.ego, b));
-                let ahead = [g[0] + v[0] * dt, g[1] + v[1] * dt];
-                self.exits_inside += usize::from(self.inside(&frame.ego, ahead));
+                self.exits_inside += usize::from(self.inside(b, &before.ego, dt, &frame.ego));
             }
         }
         let (onsets, standing) = collision_onsets(&before.agents, agents);
