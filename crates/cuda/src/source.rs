@@ -33,10 +33,12 @@ pub mod train {
 }
 
 /// FlashAttention-2's forward and backward kernels (`kernels/flash2/`: warp primitives, tiles and fragment
-/// products, the three passes), with their own primitives: NVRTC compiles them alone.
+/// products, the one-pass backward pass's queries' gradient, the passes), with their own
+/// primitives: NVRTC compiles them alone.
 pub const FLASH2: &str = concat!(
     include_str!("kernels/flash2/flash2_warp.cu"),
     include_str!("kernels/flash2/flash2_tiles.cu"),
+    include_str!("kernels/flash2/flash2_dq.cu"),
     include_str!("kernels/flash2/flash2.cu")
 );
 

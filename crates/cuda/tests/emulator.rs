@@ -57,7 +57,8 @@ fn the_track_kernel_matches_a_double_precision_reference_in_the_host_emulator() 
 /// compares the output, log-sum-exp and the three gradients with a double-precision reference (causal and
 /// not, ragged lengths, head sizes 32 and 64, f32 and bf16 operands, 4 and 8 warps per block, a spare grid
 /// row, scores so low that an unmasked past-the-end key would give NaN, rows that do not start on 16 bytes;
-/// the backward kernels' column step 32 and 64).
+/// the backward kernels' column step 32 and 64), and on `wgmma` the one-pass backward pass's three
+/// gradients (head size 64) into fresh results.
 #[test]
 fn flash2_kernels_match_a_double_precision_reference_in_the_host_emulator() {
     let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/kernels/flash2/flash2_emulator.cpp");
@@ -69,7 +70,12 @@ fn flash2_kernels_match_a_double_precision_reference_in_the_host_emulator() {
         match run(&source, defines).expect("building the emulator") {
             // Twenty cases (ten shapes, two of them with rows that do not start on 16 bytes, × 4 and 8
             // warps), each with its five errors.
-            Emulated::Agreed(report) => assert_eq!(report.matches("warps, b").count(), 20, "{report}"),
+            Emulated::Agreed(report) => {
+                assert_eq!(report.matches("warps, b").count(), 20, "{report}");
+                // The eight head-size-64 shapes × 4 and 8 warps, where the one-pass kernels exist.
+                let one_pass = if defines.contains(&wgmma) { 16 } else { 0 };
+                assert_eq!(report.matches("one-pass dq").count(), one_pass, "{report}");
+            }
             Emulated::Disagreed(report) => panic!("{defines:?}:\n{report}"),
             Emulated::NoCompiler => {
                 eprintln!("no C++ compiler: the flash2 kernels' emulator did not run");

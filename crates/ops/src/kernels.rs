@@ -77,6 +77,8 @@ pub struct Kernels {
     pub launch_thread: LaunchThread,
     /// Warps per block of the flash2 kernels, 4 or 8 (each warp owns 16 query rows).
     pub flash2_warps: usize,
+    /// How the flash2 kernels compute the backward pass, [`Flash2Backward`].
+    pub attention_backward: Flash2Backward,
     /// Where the host waits around side-stream work (`stream = "side"` only), [`SideSync`].
     pub side_sync: SideSync,
 }
@@ -104,6 +106,7 @@ impl Kernels {
         stream: KernelStream::Cubecl,
         launch_thread: LaunchThread::Device,
         flash2_warps: 8,
+        attention_backward: Flash2Backward::TwoPass,
         side_sync: SideSync::DEFAULT,
     };
 
@@ -122,6 +125,12 @@ impl Kernels {
                     "{}: the flash2 kernels take 4 or 8 warps a block",
                     self.flash2_warps
                 ),
+            ));
+        }
+        if self.attention_backward == Flash2Backward::OnePass && self.stream != KernelStream::Cubecl {
+            return Some((
+                "attention_backward",
+                "\"one-pass\" runs on cubecl's stream only (train.kernels.stream = \"cubecl\")".into(),
             ));
         }
         check_step(self.attention_step)
@@ -173,6 +182,21 @@ pub enum AttentionKernel {
     /// speed.
     #[default]
     Flash2,
+}
+
+/// How the flash2 kernels compute the attention's backward pass (`train.kernels.attention_backward`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Flash2Backward {
+    /// One kernel for the keys' and values' gradients, another for the queries', each recomputing the
+    /// probabilities and their gradients.
+    #[default]
+    TwoPass,
+    /// One kernel for all three: the key/value kernel adds each step's share of the queries' gradient into
+    /// an f32 accumulator with atomic adds, as FlashAttention-2's backward pass does. Head size 64 on
+    /// Hopper's `wgmma` (compute capability 9.0) only, on cubecl's stream; elsewhere the two-pass kernels
+    /// run (counted in the attention's fallbacks).
+    OnePass,
 }
 
 /// The format the backward pass keeps layer norms' inputs in (`train.kernels.kept_inputs`).
@@ -290,6 +314,10 @@ mod tests {
         let parsed: Vec<LaunchThread> = serde_json::from_str(r#"["device", "caller"]"#).expect("both names");
         assert_eq!(parsed, [LaunchThread::Device, LaunchThread::Caller]);
         assert!(serde_json::from_str::<AttentionKernel>(r#""flash3""#).is_err());
+        let parsed: Vec<Flash2Backward> =
+            serde_json::from_str(r#"["two-pass", "one-pass"]"#).expect("both names");
+        assert_eq!(parsed, [Flash2Backward::TwoPass, Flash2Backward::OnePass]);
+        assert!(serde_json::from_str::<Flash2Backward>(r#""one_pass""#).is_err());
     }
 
     #[test]
@@ -305,7 +333,8 @@ mod tests {
                 d.adamw,
                 d.stream,
                 d.launch_thread,
-                d.kept_inputs
+                d.kept_inputs,
+                d.attention_backward
             ),
             (
                 MatmulKernel::default(),
@@ -316,7 +345,8 @@ mod tests {
                 AdamWChoice::default(),
                 KernelStream::default(),
                 LaunchThread::default(),
-                KeptInputs::default()
+                KeptInputs::default(),
+                Flash2Backward::default()
             )
         );
     }
@@ -340,6 +370,21 @@ mod tests {
             ..Kernels::default()
         };
         assert_eq!(block.problem().map(|(k, _)| k), Some("attention_block_mib"));
+        let one_pass_on_side = Kernels {
+            attention_backward: Flash2Backward::OnePass,
+            stream: KernelStream::Side,
+            ..Kernels::default()
+        };
+        let (key, why) = one_pass_on_side
+            .problem()
+            .expect("one-pass needs cubecl's stream");
+        assert_eq!(key, "attention_backward");
+        assert!(why.contains("one-pass") && why.contains("cubecl"), "{why}");
+        let one_pass = Kernels {
+            attention_backward: Flash2Backward::OnePass,
+            ..Kernels::default()
+        };
+        assert_eq!(one_pass.problem(), None);
         assert_eq!(Kernels::default().problem(), None);
     }
 }

@@ -32,7 +32,10 @@ use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::ops::numeric::zeros_client;
 use cubecl::prelude::*;
-pub(crate) use cubecl_stream::{launch as launch_on_cubecl, launch_bound as launch_bound_on_cubecl};
+pub(crate) use cubecl_stream::{
+    launch as launch_on_cubecl, launch_bound as launch_bound_on_cubecl,
+    launch_shared as launch_shared_on_cubecl,
+};
 use cudarc::driver::{CudaContext, CudaFunction, CudaStream, DeviceRepr, LaunchConfig, PushKernelArg};
 use cudarc::nvrtc::{CompileOptions, compile_ptx_with_opts};
 use std::cell::RefCell;

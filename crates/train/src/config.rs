@@ -227,6 +227,7 @@ impl TrainConfig {
                 "attention_step" => "kernels.attention_step",
                 "attention_block_mib" => "kernels.attention_block_mib",
                 "flash2_warps" => "kernels.flash2_warps",
+                "attention_backward" => "kernels.attention_backward",
                 _ => "kernels",
             };
             return Some((key, why));

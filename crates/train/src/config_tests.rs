@@ -91,6 +91,12 @@ fn kernel_settings_parse_are_checked_and_resuming_may_change_them() {
         .expect("6 warps");
     assert_eq!(key, "kernels.flash2_warps");
     assert!(why.contains('6'), "{why}");
+    let (key, why) = parse(r#"{"kernels": {"attention_backward": "one-pass", "stream": "side"}}"#)
+        .expect("parses")
+        .problem()
+        .expect("one-pass on a side stream");
+    assert_eq!(key, "kernels.attention_backward");
+    assert!(why.contains("cubecl"), "{why}");
 }
 
 #[test]

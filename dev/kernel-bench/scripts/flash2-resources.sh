@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Registers and spills of the flash2 attention kernels on a machine without a GPU: compiles
-# crates/cuda/src/kernels/flash2/flash2_warp.cu + flash2_tiles.cu + flash2.cu with NVRTC as umgen does (compute_80, fast math),
+# crates/cuda/src/kernels/flash2/flash2_warp.cu + flash2_tiles.cu + flash2_dq.cu + flash2.cu with NVRTC as umgen does (compute_80, fast math),
 # then assembles the PTX for sm_90 with ptxas and prints each kernel's registers and spill bytes. With
 # ARCH=90a, NVRTC targets compute_90a as on an H100 (the head size 64 kernels on `wgmma`) and ptxas sm_90a.
 #
@@ -22,7 +22,7 @@ done
 source_file=$(mktemp --suffix=.cu)
 ptx=$(mktemp --suffix=.ptx)
 trap 'rm -f "$source_file" "$ptx"' EXIT
-if [ $# -ge 1 ]; then cp "$1" "$source_file"; else cat "$here/flash2_warp.cu" "$here/flash2_tiles.cu" "$here/flash2.cu" >"$source_file"; fi
+if [ $# -ge 1 ]; then cp "$1" "$source_file"; else cat "$here/flash2_warp.cu" "$here/flash2_tiles.cu" "$here/flash2_dq.cu" "$here/flash2.cu" >"$source_file"; fi
 arch=${ARCH:-80}
 ARCH=$arch NVRTC=$(ls "$tools"/nvidia-cuda-nvrtc-cu12/nvidia/cuda_nvrtc/lib/libnvrtc.so.* | head -1) \
     python3 - "$source_file" "$ptx" <<'PY'

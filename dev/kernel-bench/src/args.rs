@@ -215,6 +215,28 @@ pub struct BenchAttentionArgs {
     /// CUDA, `tiled` on the CPU, which has neither of the others.
     #[arg(long, value_enum, value_delimiter = ',')]
     pub kernels: Vec<AttentionArg>,
+    /// flash2's backward passes to measure (`train.kernels.attention_backward`), comma-separated: one flash2
+    /// row each. Default: both.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub backward: Vec<BackwardArg>,
+}
+
+/// `--backward` values (`train.kernels.attention_backward`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BackwardArg {
+    /// Key/value gradients and query gradients in two kernels.
+    TwoPass,
+    /// All three in one kernel, the queries' gradient added atomically (head size 64 on an H100 or H200).
+    OnePass,
+}
+
+impl From<BackwardArg> for umgen::ops::kernels::Flash2Backward {
+    fn from(a: BackwardArg) -> Self {
+        match a {
+            BackwardArg::TwoPass => Self::TwoPass,
+            BackwardArg::OnePass => Self::OnePass,
+        }
+    }
 }
 
 /// `--kernels` values (`train.kernels.attention`).

@@ -13,6 +13,7 @@ use umgen::backbone::Precision;
 use umgen::ops::Kernels;
 use umgen::ops::attention::tiled_for;
 use umgen::ops::flash::{self, AttentionKernel};
+use umgen::ops::kernels::Flash2Backward;
 use umgen_cli::device::{Device, memory_in_use};
 
 /// One measured shape.
@@ -124,9 +125,13 @@ pub(super) fn rel_err<B: Backend, const D: usize>(a: Tensor<B, D>, b: Tensor<B, 
     diff / scale.max(f64::MIN_POSITIVE)
 }
 
-/// The rows to measure: each kernel of `--kernels`, the tiled one once per block size (bytes) and the
-/// fused one once per loop step (`None`: the default).
-fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(AttentionKernel, Option<usize>)>> {
+/// One row to measure: the kernel, the tiled one's block size (bytes) or the fused one's loop step (`None`:
+/// the default), and flash2's backward pass.
+type Variant = (AttentionKernel, Option<usize>, Flash2Backward);
+
+/// The rows to measure: each kernel of `--kernels`, the tiled one once per block size, the fused one once
+/// per loop step and flash2 once per `--backward` choice.
+fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<Variant>> {
     anyhow::ensure!(
         a.block_mib.iter().all(|&m| m > 0),
         "--block-mib sizes must be positive"
@@ -157,12 +162,17 @@ fn variants(a: &BenchAttentionArgs, device: Device) -> anyhow::Result<Vec<(Atten
         true => vec![None],
         false => a.step.iter().map(|&s| Some(s)).collect(),
     };
+    let backward: Vec<Flash2Backward> = match a.backward.is_empty() {
+        true => vec![Flash2Backward::TwoPass, Flash2Backward::OnePass],
+        false => a.backward.iter().map(|&b| b.into()).collect(),
+    };
+    let two = Flash2Backward::TwoPass;
     Ok(kernels
         .into_iter()
         .flat_map(|k| match k {
-            AttentionKernel::Fused => steps.iter().map(|&s| (k, s)).collect::<Vec<_>>(),
-            AttentionKernel::Tiled => blocks.iter().map(|&b| (k, b)).collect(),
-            AttentionKernel::Flash2 => vec![(k, None)],
+            AttentionKernel::Fused => steps.iter().map(|&s| (k, s, two)).collect::<Vec<_>>(),
+            AttentionKernel::Tiled => blocks.iter().map(|&b| (k, b, two)).collect(),
+            AttentionKernel::Flash2 => backward.iter().map(|&b| (k, None, b)).collect(),
         })
         .collect())
 }
@@ -205,9 +215,10 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
             // Training kernels first: the pool only grows, so the decomposed path's figure includes what
             // they added.
             let mut runs = Vec::new();
-            for &(kernel, size) in &variants {
+            for &(kernel, size, backward) in &variants {
                 let mut kernels = Kernels {
                     attention: kernel,
+                    attention_backward: backward,
                     ..Kernels::DEFAULT
                 };
                 match (kernel, size) {
@@ -225,7 +236,7 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
             }
             let d = measure::<B>(c, None, a.iters, device, &dev)?;
             let mut rows = Vec::new();
-            for (t, &(kernel, size)) in runs.into_iter().zip(&variants) {
+            for (t, &(kernel, size, backward)) in runs.into_iter().zip(&variants) {
                 let t = t?;
                 let [tq, tk, tv] = t.grads;
                 let [dq, dk, dv] = d.grads.clone();
@@ -237,7 +248,10 @@ pub fn run(a: &BenchAttentionArgs) -> anyhow::Result<()> {
                 ];
                 let block = match kernel {
                     AttentionKernel::Fused => format!("step {}", size.unwrap_or(flash::DEFAULT_STEP)),
-                    AttentionKernel::Flash2 => "-".into(),
+                    AttentionKernel::Flash2 => match backward {
+                        Flash2Backward::TwoPass => "two-pass".into(),
+                        Flash2Backward::OnePass => "one-pass".into(),
+                    },
                     AttentionKernel::Tiled => {
                         (size.unwrap_or(umgen::ops::kernels::BLOCK_BYTES) >> 20).to_string()
                     }

@@ -161,6 +161,7 @@ mod tests {
             flash: true,
             block_mib: vec![],
             kernels: vec![],
+            backward: vec![],
             step: vec![],
         };
         let e = crate::attention::run(&a).unwrap_err().to_string();

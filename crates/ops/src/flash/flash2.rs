@@ -13,9 +13,9 @@
 //! layouts on the host.
 #![allow(unsafe_code)]
 
-use crate::kernels::{KernelStream, Kernels, SideFamily};
+use crate::kernels::{Flash2Backward, KernelStream, Kernels, SideFamily};
 use crate::side::Primitive;
-use crate::side::{Compiled, KernelCache, Pointers, launch_on_cubecl, with_cached};
+use crate::side::{Compiled, KernelCache, Pointers, launch_on_cubecl, launch_shared_on_cubecl, with_cached};
 use crate::side::{empty_f32, empty_packed};
 use burn::tensor::DType;
 use cudarc::driver::{CudaFunction, LaunchConfig, PushKernelArg};
@@ -30,8 +30,13 @@ const SOURCE: &str = umgen_cuda::source::FLASH2;
 /// The grid's largest y (and z) extent.
 const GRID_YZ: usize = 65_535;
 
+/// Dynamic shared memory of the one-pass backward kernel: `DS_TILES` of `flash2_dq.cu` (two bf16 tiles of dS,
+/// 128 keys × (column step + 8)) for the largest column step, 64 (`SUB`, which a source given by
+/// `UMGEN_FLASH2_SOURCE` may change).
+const ONE_PASS_SHARED: usize = 2 * 128 * (64 + 8) * 2;
+
 /// The kernels' source: [`SOURCE`], or the file `UMGEN_FLASH2_SOURCE` names (for trying a change to the
-/// kernels without rebuilding umgen: `cat flash2_warp.cu flash2_tiles.cu flash2.cu > FILE`, then edit; it must keep the
+/// kernels without rebuilding umgen: `cat flash2_warp.cu flash2_tiles.cu flash2_dq.cu flash2.cu > FILE`, then edit; it must keep the
 /// kernels' names and `Params`).
 fn source() -> Result<String, String> {
     match std::env::var_os("UMGEN_FLASH2_SOURCE") {
@@ -99,6 +104,13 @@ fn resources(functions: &[(String, CudaFunction)], warps: usize) -> String {
         })
         .collect::<Vec<_>>()
         .join("; ")
+}
+
+/// Whether the backward pass tries the one-pass kernels: asked for, on cubecl's stream (`Kernels::problem`
+/// refuses them elsewhere). They take head size 64 where NVRTC targets `sm_90a`; elsewhere their first
+/// launch fails and the two-pass kernels run.
+fn one_pass(kernels: &Kernels) -> bool {
+    kernels.attention_backward == Flash2Backward::OnePass && kernels.stream == KernelStream::Cubecl
 }
 
 /// `[b, rows, h, d]` as the `[b, h, rows, d]` view the attention's callers take (no copy).
@@ -198,6 +210,15 @@ pub(super) fn launch(
             // The values' columns follow the keys' in each row.
             p.dv = p.dk + (h * d * q.dtype.size()) as u64;
             (p.dqs, p.dks, p.dvs) = (merged(lq, h), merged(lk, 2 * h), merged(lk, 2 * h));
+            if one_pass(kernels) {
+                if d == 64 {
+                    let acc = empty_f32(q, vec![b, h, lq, d]);
+                    p.dq_acc = ptr(&acc)?;
+                } else {
+                    let why = format!("head size {d} (its kernels take 64)");
+                    super::fell_back("flash2 one-pass", &why, "two-pass flash2");
+                }
+            }
             let results = vec![heads_first(dq), dkv];
             let launches = vec![
                 (format!("umgen_flash2_backward_kv_{dtype}_{d}"), lk),
@@ -219,6 +240,27 @@ pub(super) fn launch(
     let threads = 32 * warps as u32;
     if kernels.stream == KernelStream::Cubecl {
         let element = if dtype == "bf16" { "u16" } else { "float" };
+        if p.dq_acc != 0 {
+            let instance = format!("ONE_PASS_64({dtype}_64, {element})");
+            let launches = [
+                (format!("umgen_flash2_dq_zero_{dtype}_64"), lq, 0),
+                (
+                    format!("umgen_flash2_backward_one_pass_{dtype}_64"),
+                    lk,
+                    ONE_PASS_SHARED,
+                ),
+                (format!("umgen_flash2_dq_store_{dtype}_64"), lq, 0),
+            ];
+            // SAFETY: as the two-pass launches below; `dq_acc` is a live `[b, h, lq, 64]` f32 buffer.
+            let launched = launches.iter().try_for_each(|(name, rows, shared)| unsafe {
+                launch_shared_on_cubecl(q, name, (&instance, &source), (grid(*rows), threads, *shared), &p)
+            });
+            match launched {
+                Ok(()) => return Ok(results),
+                // The two-pass kernels write every result the one-pass ones may have begun.
+                Err(why) => super::fell_back("flash2 one-pass", &why, "two-pass flash2"),
+            }
+        }
         let instance = format!("INSTANCES({dtype}_{d}, {element}, {d})");
         for (name, rows) in &launches {
             // SAFETY: every pointer in `p` is a live buffer (kept by `keep`) of the shape and strides recorded

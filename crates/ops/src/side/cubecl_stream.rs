@@ -21,7 +21,7 @@ use burn::cubecl::cuda::{CudaCompiler, CudaComputeKernel};
 use cubecl::prelude::*;
 use cubecl::server::{Binding, KernelArguments, MetadataBindingInfo};
 use cubecl::{CompilationError, CubeTask};
-use cubecl_cpp::shared::{Body, CubeIndexFlags, Elem, Flags, Item};
+use cubecl_cpp::shared::{Body, CubeIndexFlags, Elem, Flags, Item, SharedMemory};
 use cudarc::driver::DeviceRepr;
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -38,6 +38,8 @@ struct SourceKernel {
     /// The entry point, `extern "C"`.
     entry: &'static str,
     cube_dim: CubeDim,
+    /// Bytes of dynamic shared memory a block takes (`extern __shared__`), 0 for none.
+    shared_bytes: usize,
 }
 
 impl KernelMetadata for SourceKernel {
@@ -47,7 +49,7 @@ impl KernelMetadata for SourceKernel {
 
     fn id(&self) -> KernelId {
         KernelId::new::<Self>()
-            .info((self.entry, self.hash))
+            .info((self.entry, self.hash, self.shared_bytes))
             .cube_dim(self.cube_dim)
     }
 
@@ -68,7 +70,7 @@ impl CubeTask<CudaCompiler> for SourceKernel {
             entrypoint_name: self.entry.to_string(),
             debug_name: None,
             source: self.source.to_string(),
-            repr: Some(representation(self.entry, self.cube_dim)),
+            repr: Some(representation(self.entry, self.cube_dim, self.shared_bytes)),
             cube_dim: self.cube_dim,
             debug_info: None,
         })
@@ -76,10 +78,21 @@ impl CubeTask<CudaCompiler> for SourceKernel {
 }
 
 /// cubecl-cuda takes the dynamic shared memory a launch needs from the kernel's representation, and
-/// checks it against the device's; umgen's kernels declare theirs statically, so an empty body (no shared
-/// memory, no scalars, no buffers) describes them.
-fn representation(entry: &str, cube_dim: CubeDim) -> CudaComputeKernel {
+/// checks it against the device's (and raises the function's limit to it); umgen's kernels declare most of
+/// theirs statically, so a body with no scalars, no buffers and one shared array of the dynamic bytes
+/// (`shared_bytes`, none where 0) describes them.
+fn representation(entry: &str, cube_dim: CubeDim, shared_bytes: usize) -> CudaComputeKernel {
     let address = Item::new(Elem::U32, 1, true);
+    let shared_memories = (shared_bytes > 0)
+        .then(|| SharedMemory::Array {
+            index: 0,
+            item: Item::new(Elem::U8, 1, true),
+            length: shared_bytes,
+            align: 16,
+            offset: 0,
+        })
+        .into_iter()
+        .collect();
     CudaComputeKernel {
         tensor_maps: Vec::new(),
         buffers: Vec::new(),
@@ -88,7 +101,7 @@ fn representation(entry: &str, cube_dim: CubeDim) -> CudaComputeKernel {
         meta_static_len: 0,
         body: Body {
             instructions: Vec::new(),
-            shared_memories: Vec::new(),
+            shared_memories,
             pipelines: Vec::new(),
             barriers: Vec::new(),
             const_arrays: Vec::new(),
@@ -177,8 +190,51 @@ pub(crate) unsafe fn launch<P: DeviceRepr>(
 pub(crate) unsafe fn launch_bound<P: DeviceRepr>(
     like: &Primitive,
     entry: &str,
-    (instance, source): (&str, &dyn Fn() -> Result<String, String>),
+    instance: (&str, &dyn Fn() -> Result<String, String>),
     (grid, threads): ((u32, u32, u32), u32),
+    buffers: Vec<Binding>,
+    params: &P,
+) -> Result<(), String> {
+    // SAFETY: the caller's contract.
+    unsafe { launch_with(like, entry, instance, (grid, threads, 0), buffers, params) }
+}
+
+/// [`launch`] of a kernel that also takes `shared_bytes` of dynamic shared memory a block (its `extern
+/// __shared__` array; cubecl raises the function's limit to it where it is over 48 KiB with the static).
+///
+/// # Safety
+///
+/// As [`launch`].
+pub(crate) unsafe fn launch_shared<P: DeviceRepr>(
+    like: &Primitive,
+    entry: &str,
+    instance: (&str, &dyn Fn() -> Result<String, String>),
+    (grid, threads, shared_bytes): ((u32, u32, u32), u32, usize),
+    params: &P,
+) -> Result<(), String> {
+    // SAFETY: the caller's contract.
+    unsafe {
+        launch_with(
+            like,
+            entry,
+            instance,
+            (grid, threads, shared_bytes),
+            Vec::new(),
+            params,
+        )
+    }
+}
+
+/// [`launch_bound`] with `shared_bytes` of dynamic shared memory a block.
+///
+/// # Safety
+///
+/// As [`launch_bound`].
+unsafe fn launch_with<P: DeviceRepr>(
+    like: &Primitive,
+    entry: &str,
+    (instance, source): (&str, &dyn Fn() -> Result<String, String>),
+    (grid, threads, shared_bytes): ((u32, u32, u32), u32, usize),
     buffers: Vec<Binding>,
     params: &P,
 ) -> Result<(), String> {
@@ -196,6 +252,7 @@ pub(crate) unsafe fn launch_bound<P: DeviceRepr>(
                 hash: hasher.finish(),
                 entry,
                 cube_dim,
+                shared_bytes,
             };
             Ok((task, false))
         });

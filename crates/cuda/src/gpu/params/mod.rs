@@ -152,6 +152,8 @@ pub struct Flash2 {
     pub scale: f32,
     /// Batch entries × heads.
     pub count: i32,
+    /// The one-pass backward pass's f32 accumulator of `dq`, `[count, lq, 64]` contiguous.
+    pub dq_acc: u64,
 }
 
 // SAFETY: a plain `#[repr(C)]` struct of integers and floats, laid out as the kernel's struct.

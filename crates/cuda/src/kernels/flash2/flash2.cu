@@ -1,5 +1,6 @@
 // FlashAttention-2 in CUDA C for NVRTC (`train.attention = "flash2"`): forward, key/value gradients and
-// query gradients, one kernel each. Operands f32 or bf16 (`T`), converted to bf16 as they enter shared
+// query gradients, one kernel each (and, on `wgmma`, the one-pass backward kernel that computes all three
+// gradients, `train.kernels.attention_backward = "one-pass"`). Operands f32 or bf16 (`T`), converted to bf16 as they enter shared
 // memory; products on the tensor cores (`mma.sync` m16n8k16, bf16 in, f32 accumulation); scores,
 // probabilities and their gradients stay in registers (the accumulator layout of one product is the operand
 // layout of the next). Results (output, gradients) are written in `T`, the log-sum-exp in f32. Each block
@@ -10,7 +11,8 @@
 // rows read from swizzled tiles in shared memory, P and dS from registers.
 //
 // NVRTC compiles `flash2_warp.cu` (primitives) and `flash2_tiles.cu` (parameters, tiles, fragment products)
-// followed by this file (`flash2.rs` joins them). The same source compiles on the host (`UMGEN_EMULATED`),
+// and `flash2_dq.cu` (the one-pass backward pass's queries' gradient) followed by this file
+// (`umgen_cuda::source::FLASH2` joins them). The same source compiles on the host (`UMGEN_EMULATED`),
 // where `flash2_emulator.cpp` runs every thread of a block and defines the warp-level primitives, so that
 // fragment layouts are checked without a GPU.
 
@@ -219,17 +221,24 @@ DEV void lane_probabilities(const Params& P, float (*s)[4], float (*dp)[4], cons
 #define OWN_ROWS(D) (WGMMA && (D) == 64 ? MAX_ROWS : 8)
 #define STREAM_ROWS(D) (WGMMA && (D) == 64 ? ROWS : MAX_ROWS)
 
-template <typename T, int D>
+// With ONE_PASS (head size 64 on `wgmma` only) it also adds the queries' gradient into `dq_acc`
+// (`flash2_dq.cu`), and masks the keys past their end: their zero rows give a dS of exp2(−lse2) · −delta
+// (NaN for a row whose log-sum-exp is below about −88), which would meet K there.
+template <typename T, int D, bool ONE_PASS = false>
 DEV void backward_kv(const Params& P) {
     constexpr bool WG = WGMMA && D == 64;
+    static_assert(!ONE_PASS || WG, "the one-pass backward pass runs on wgmma, head size 64");
     SHARED TILE_ALIGNED u16 qt[TILE(STREAM_ROWS(D), D)];
     SHARED TILE_ALIGNED u16 ot[TILE(STREAM_ROWS(D), D)];
     SHARED TILE_ALIGNED u16 kr[TILE(OWN_ROWS(D), D)];
     SHARED TILE_ALIGNED u16 vr[TILE(OWN_ROWS(D), D)];
     // Without `wgmma`, the tile's log-sum-exps and deltas (with it, registers: no room).
     SHARED float lse_s[WG ? 1 : ROWS], delta_s[WG ? 1 : ROWS];
+    DYNAMIC_SHARED(u16, ds_tiles, ONE_PASS ? DS_TILES : 8);
     int bh = block_y(), k0 = block_rows() * block_x();
     if (bh >= P.count) return;
+    float* dq_head = ONE_PASS ? P.dq_acc + (long long)bh * P.lq * D : nullptr;
+    bool past_end = ONE_PASS && k0 + block_rows() > P.lk;
     const float sl = P.scale * LOG2E;
     const QueryValues lses = query_values(P.lse, P.ls, bh, P.heads);
     const QueryValues deltas = query_values(P.delta, P.es, bh, P.heads);
@@ -268,7 +277,7 @@ DEV void backward_kv(const Params& P) {
             const u16 *qc = qt + at_tile<D>(c, 0), *oc = ot + at_tile<D>(c, 0);
             both_times_transposed<D, SUB / 8>(s, kr, ka, qc, dp, vr, va, oc);
             // Some key of the block comes after some query of these columns.
-            bool mask = P.causal && k0 + block_rows() - 1 > q0 + c + P.off;
+            bool mask = past_end || (P.causal && k0 + block_rows() - 1 > q0 + c + P.off);
             if constexpr (WG) {
                 if (mask)
                     lane_probabilities<true, SUB / 8, true>(P, s, dp, lse2, delta, k0, q0 + c, c, sl);
@@ -279,7 +288,9 @@ DEV void backward_kv(const Params& P) {
             } else {
                 probabilities<true, SUB / 8, false>(P, s, dp, 0, 0, lse_s + c, delta_s + c, k0, q0 + c, sl);
             }
+            if constexpr (ONE_PASS) store_ds<SUB>(ds_tile<SUB>(ds_tiles, c), dp);
             both_times<D, SUB / 8>(dv, s, oc, dk, dp, qc);
+            if constexpr (ONE_PASS) add_dq_step<SUB>(dq_head, ds_tile<SUB>(ds_tiles, c), kr, q0 + c, P.lq);
         }
     }
     store_rows<T, D>(P.dk, head_base(P.dks, bh, P.heads), P.dks[2], dk, k0, P.lk, P.scale);
@@ -348,6 +359,12 @@ DEV void backward_q(const Params& P) {
     store_rows<T, D>(P.dq, head_base(P.dqs, bh, P.heads), P.dqs[2], dq, q0, P.lq, P.scale);
 }
 
+// The one-pass backward pass's kernels for operands `T` (head size 64 on `wgmma`).
+#define ONE_PASS_64(NAME, T)                                                                                   \
+    KERNEL umgen_flash2_dq_zero_##NAME(Params p) { dq_zero(p); }                                               \
+    KERNEL umgen_flash2_backward_one_pass_##NAME(Params p) { backward_kv<T, 64, true>(p); }                    \
+    KERNEL umgen_flash2_dq_store_##NAME(Params p) { dq_store<T>(p); }
+
 #define INSTANCES(NAME, T, D)                                                                                   \
     KERNEL umgen_flash2_forward_##NAME(Params p) { forward<T, D>(p); }                                         \
     KERNEL umgen_flash2_backward_kv_##NAME(Params p) { backward_kv<T, D>(p); }                                 \
@@ -362,4 +379,8 @@ INSTANCES(f32_64, float, 64)
 INSTANCES(bf16_64, u16, 64)
 INSTANCES(f32_32, float, 32)
 INSTANCES(bf16_32, u16, 32)
+#if WGMMA
+ONE_PASS_64(f32_64, float)
+ONE_PASS_64(bf16_64, u16)
+#endif
 #endif

@@ -59,6 +59,8 @@ struct Params {
     float scale;
     // Heads in all (batch × heads): the grid may hold more blocks than that.
     int count;
+    // The one-pass backward pass's f32 accumulator of the queries' gradient, `[count, lq, 64]` contiguous.
+    float* dq_acc;
 };
 
 DEV u16 bf16_bits(float x) {

@@ -79,6 +79,10 @@ DEV int block_x() { return blockIdx.x; }
 // The flattened (batch, head) index: the grid's y and z (y holds at most 65,535).
 DEV int block_y() { return blockIdx.y + 65535 * blockIdx.z; }
 DEV void sync_block() { __syncthreads(); }
+// x of the lane whose id differs from this one's by the bits of `mask`.
+DEV float lane_xor(float x, int mask) { return __shfl_xor_sync(0xffffffffu, x, mask); }
+// A block's dynamic shared memory (sized at launch), here `n` elements of `type` at most.
+#define DYNAMIC_SHARED(type, name, n) extern __shared__ __align__(16) type name[]
 #endif
 
 
@@ -192,10 +196,21 @@ DEV void wg_hold(float (*acc)[4]) {
 #pragma unroll
         for (int e = 0; e < 4; e++) asm volatile("" : "+f"(acc[j][e])::"memory");
 }
+// x added to p[0..4) in global memory (16-byte aligned) by one atomic instruction (`red.global.add.v4.f32`,
+// a quarter of the scalar reductions' operations at the L2).
+DEV void atomic_add4(float* p, float a, float b, float c, float d) {
+    asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};" ::"l"(p), "f"(a), "f"(b), "f"(c), "f"(d)
+                 : "memory");
+}
 // Makes this thread's stores to shared memory visible to the tensor cores' reads (the async proxy).
 DEV void to_async_proxy() { asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory"); }
 #elif !defined(UMGEN_EMULATED)
 #define TILE_ALIGNED ALIGNED
 DEV void to_async_proxy() {}
+// Four scalar reductions where the vector one is missing (the one-pass kernel that adds this way runs on
+// sm_90a only).
+DEV void atomic_add4(float* p, float a, float b, float c, float d) {
+    atomicAdd(p, a), atomicAdd(p + 1, b), atomicAdd(p + 2, c), atomicAdd(p + 3, d);
+}
 #endif
 
