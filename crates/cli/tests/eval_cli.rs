@@ -182,6 +182,14 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         real["vehicle_off_road_rate"].as_f64().unwrap() < 0.02,
         "real vehicles off the road: {real}"
     );
+    // SUMO's egos drive on the road too (all but a frame in 10,000 here), so the vehicles of the frames
+    // whose ego is on it are nearly all of them.
+    let rate = |key: &str| real[key].as_f64().unwrap();
+    assert!(rate("ego_off_road_rate") < 1e-3, "{real}");
+    assert!(
+        (rate("vehicle_off_road_ego_on_rate") - rate("vehicle_off_road_rate")).abs() < 1e-3,
+        "{real}"
+    );
     assert!(
         real["heading_motion_median_deg"].as_f64().unwrap() < 10.0,
         "real agents drive where they head: {real}"

@@ -58,6 +58,9 @@ pub struct SceneStats {
     /// The same for vehicles alone: pedestrians walk off the drivable area, vehicles do not.
     vehicles_on_map: usize,
     vehicles_off_road: usize,
+    /// The same for the vehicles of frames whose ego is on the drivable area.
+    vehicles_on_map_ego_on: usize,
+    vehicles_off_road_ego_on: usize,
     /// Vehicles tested against a map in the frame they entered, and those off its drivable area.
     entering_on_map: usize,
     entering_off_road: usize,
@@ -189,6 +192,9 @@ pub struct Summary {
     /// The same for vehicles alone (pedestrians walk beside the roads, so a change of the pedestrian
     /// share moves `off_road_rate` without any vehicle leaving the road); `None` without maps.
     pub vehicle_off_road_rate: Option<f64>,
+    /// `vehicle_off_road_rate` over the frames whose ego is on the drivable area: the vehicles that leave
+    /// the road themselves, not carried off it by an ego that left it. `None` without such frames.
+    pub vehicle_off_road_ego_on_rate: Option<f64>,
     /// Of the vehicles entering (in the frame they entered), the fraction whose centre is off the
     /// drivable area: where a generated scene places its new vehicles. `None` without maps or entries.
     pub entering_off_road_rate: Option<f64>,
@@ -240,9 +246,10 @@ impl SceneStats {
     pub fn add(&mut self, frame: &Frame, before: &[Frame], dt: f64, drivable: Option<&Drivable>) {
         let agents = &frame.agents;
         self.counts.push(agents.len());
-        if let Some(d) = drivable {
+        let ego_on = drivable.map(|d| d.contains([frame.ego.x, frame.ego.y]));
+        if let Some(on) = ego_on {
             self.ego_on_map += 1;
-            self.ego_off_road += usize::from(!d.contains([frame.ego.x, frame.ego.y]));
+            self.ego_off_road += usize::from(!on);
         }
         if !agents.is_empty() {
             let (hit, n) = colliding(agents);
@@ -269,6 +276,10 @@ impl SceneStats {
                 if vehicle {
                     self.vehicles_on_map += 1;
                     self.vehicles_off_road += usize::from(off);
+                    if ego_on == Some(true) {
+                        self.vehicles_on_map_ego_on += 1;
+                        self.vehicles_off_road_ego_on += usize::from(off);
+                    }
                 }
             }
             vehicle_off.push(off.filter(|_| vehicle));
@@ -352,6 +363,7 @@ impl SceneStats {
             starts_per_standing_s: share(self.starts, self.standing).map(|f| f / self.step_s()),
             off_road_rate: share(self.off_road, self.on_map),
             vehicle_off_road_rate: share(self.vehicles_off_road, self.vehicles_on_map),
+            vehicle_off_road_ego_on_rate: share(self.vehicles_off_road_ego_on, self.vehicles_on_map_ego_on),
             entering_off_road_rate: share(self.entering_off_road, self.entering_on_map),
             ego_off_road_rate: share(self.ego_off_road, self.ego_on_map),
             heading_motion_median_deg: median(&self.heading_motion),

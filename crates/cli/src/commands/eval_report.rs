@@ -186,18 +186,18 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
          with a standing agent less than 3 s ahead in their lane, per second, and the share that braked by 1 m/s² \
          or more by the next frame (braking begun: the same share of the approaches whose agent had not braked over the step before); starts: of the agents standing (below 1 m/s) in a frame, the share moving in the next, \
          per second; off-road: fraction \
-         of agent centres off the lanes, connectors and intersections (vehicles: of vehicle centres; entering: of vehicles in the frame they entered; ego: fraction of frames whose ego is); heading–motion: median angle between \
+         of agent centres off the lanes, connectors and intersections (vehicles: of vehicle centres; ego on road: of the vehicle centres of frames whose ego is on the road, what the vehicles leave themselves; entering: of vehicles in the frame they entered; ego: fraction of frames whose ego is); heading–motion: median angle between \
          heading and velocity of agents above 1 m/s; speed (m/s), acceleration (m/s²) and the speed of \
          entering agents in the frame they entered as median (90th percentile).\n"
     )?;
     writeln!(
         md,
-        "| second | frames | agents/frame | entries/s | exits/s | collision | overlapping ego | onsets/s | onsets at speed into standing | approaches/s | braking on approach | braking begun | starts/s | off-road | vehicles off-road | entering off-road | ego off-road | heading–motion ° | speed | acceleration | entering speed | MMD {} |",
+        "| second | frames | agents/frame | entries/s | exits/s | collision | overlapping ego | onsets/s | onsets at speed into standing | approaches/s | braking on approach | braking begun | starts/s | off-road | vehicles off-road | vehicles off-road, ego on road | entering off-road | ego off-road | heading–motion ° | speed | acceleration | entering speed | MMD {} |",
         Group::ALL.map(|g| g.name()).join(" / ")
     )?;
     writeln!(
         md,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )?;
     let spread = |v: &serde_json::Value| match (v["p50"].as_f64(), v["p90"].as_f64()) {
         (Some(a), Some(b)) => format!("{a:.2} ({b:.2})"),
@@ -209,7 +209,7 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
         });
         writeln!(
             md,
-            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {mmd} |",
+            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {mmd} |",
             s["frames"],
             num(&s["agents_mean"]),
             num(&s["entries_per_s"]),
@@ -224,6 +224,7 @@ pub fn horizon_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fm
             num(&s["starts_per_standing_s"]),
             num(&s["off_road_rate"]),
             num(&s["vehicle_off_road_rate"]),
+            num(&s["vehicle_off_road_ego_on_rate"]),
             num(&s["entering_off_road_rate"]),
             num(&s["ego_off_road_rate"]),
             num(&s["heading_motion_median_deg"]),

@@ -95,10 +95,16 @@ fn entries_exits_collisions_angles_and_accelerations() {
     assert_eq!(r.entering_off_road_rate, Some(1.0));
     // Both egos stand at the origin, on the road; one moved to y = 50 is off it.
     assert_eq!(r.ego_off_road_rate, Some(0.0));
+    assert_eq!(r.vehicle_off_road_ego_on_rate, r.vehicle_off_road_rate);
     let mut off = f1.clone();
     off.ego.y = 50.0;
     s.add(&off, &[], 0.5, Some(&road));
-    assert_eq!(s.summary().ego_off_road_rate, Some(1.0 / 3.0));
+    let with_off = s.summary();
+    assert_eq!(with_off.ego_off_road_rate, Some(1.0 / 3.0));
+    // Agent 1 rides with that ego to global (10, 50), off the road; the frames whose ego is on it keep
+    // their vehicles' rate.
+    assert_eq!(with_off.vehicle_off_road_rate, Some(3.0 / 5.0));
+    assert_eq!(with_off.vehicle_off_road_ego_on_rate, Some(2.0 / 4.0));
     // Moving agents: 1 twice (0° and atan(1/10) ≈ 5.71° off), 3 (30°).
     let m = r.heading_motion_median_deg.unwrap();
     assert!((m - (1.0f64 / 10.0).atan().to_degrees()).abs() < 1e-9, "{m}");
