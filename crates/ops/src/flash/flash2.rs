@@ -30,10 +30,10 @@ const SOURCE: &str = umgen_cuda::source::FLASH2;
 /// The grid's largest y (and z) extent.
 const GRID_YZ: usize = 65_535;
 
-/// Dynamic shared memory of the one-pass backward kernel: `DS_TILES` of `flash2_dq.cu` (two bf16 tiles of dS,
-/// 128 keys × (column step + 8)) for the largest column step, 64 (`SUB`, which a source given by
-/// `UMGEN_FLASH2_SOURCE` may change).
-const ONE_PASS_SHARED: usize = 2 * 128 * (64 + 8) * 2;
+/// Dynamic shared memory of the one-pass backward kernel: `ONE_PASS_SHARED` of `flash2_dq.cu` (two bf16
+/// tiles of dS, 128 keys × (column step + 8), then an f32 tile of a step's dQ, column step × 64) for the
+/// largest column step, 64 (`SUB`, which a source given by `UMGEN_FLASH2_SOURCE` may change).
+const ONE_PASS_SHARED: usize = 2 * 128 * (64 + 8) * 2 + 64 * 64 * 4;
 
 /// The kernels' source: [`SOURCE`], or the file `UMGEN_FLASH2_SOURCE` names (for trying a change to the
 /// kernels without rebuilding umgen: `cat flash2_warp.cu flash2_tiles.cu flash2_dq.cu flash2.cu > FILE`, then edit; it must keep the

@@ -234,7 +234,7 @@ DEV void backward_kv(const Params& P) {
     SHARED TILE_ALIGNED u16 vr[TILE(OWN_ROWS(D), D)];
     // Without `wgmma`, the tile's log-sum-exps and deltas (with it, registers: no room).
     SHARED float lse_s[WG ? 1 : ROWS], delta_s[WG ? 1 : ROWS];
-    DYNAMIC_SHARED(u16, ds_tiles, ONE_PASS ? DS_TILES : 8);
+    DYNAMIC_SHARED(u16, ds_tiles, ONE_PASS ? ONE_PASS_SHARED : 8);
     int bh = block_y(), k0 = block_rows() * block_x();
     if (bh >= P.count) return;
     float* dq_head = ONE_PASS ? P.dq_acc + (long long)bh * P.lq * D : nullptr;
@@ -290,9 +290,11 @@ DEV void backward_kv(const Params& P) {
             }
             if constexpr (ONE_PASS) store_ds<SUB>(ds_tile<SUB>(ds_tiles, c), dp);
             both_times<D, SUB / 8>(dv, s, oc, dk, dp, qc);
-            if constexpr (ONE_PASS) add_dq_step<SUB>(dq_head, ds_tile<SUB>(ds_tiles, c), kr, q0 + c, P.lq);
+            if constexpr (ONE_PASS)
+                add_dq_step<SUB>(dq_head, ds_tile<SUB>(ds_tiles, c), kr, (float*)(ds_tiles + DS_TILES), q0 + c, P.lq);
         }
     }
+    if (ONE_PASS && thread_id() == 0) bulk_wait();
     store_rows<T, D>(P.dk, head_base(P.dks, bh, P.heads), P.dks[2], dk, k0, P.lk, P.scale);
     store_rows<T, D>(P.dv, head_base(P.dvs, bh, P.heads), P.dvs[2], dv, k0, P.lk, 1.f);
 }

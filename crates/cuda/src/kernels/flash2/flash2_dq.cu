@@ -8,8 +8,10 @@
 // reads. NVRTC compiles this file after `flash2_tiles.cu` and before `flash2.cu`; `STEP` is that file's
 // column step `SUB`.
 
-// Elements of the two dS tiles (128 keys × (SUB + 8)) in the one-pass kernel's dynamic shared memory.
+// The one-pass kernel's dynamic shared memory in 16-bit elements: two dS tiles (128 keys × (SUB + 8)
+// bf16), then the f32 staging tile of a step's dQ (SUB queries × 64).
 #define DS_TILES (2 * MAX_ROWS * (SUB + 8))
+#define ONE_PASS_SHARED (DS_TILES + 2 * SUB * 64)
 
 // The dS tile of the step at column `c`: the two take turns.
 template <int STEP>
@@ -46,40 +48,36 @@ DEV void ds_times_keys(float (*acc)[4], const u16* ds, const u16* keys, int m, i
     }
 }
 
-// Adds `acc` (`ds_times_keys`' tiles for head columns [16 n, 16 n + 16)) to the rows from `q0` on of one
-// head's accumulator `head` (rows of 64), rows before `lq` only. The two lanes of a quad that hold adjacent
-// column pairs trade halves first, so that each adds four adjacent columns in one instruction: the even
-// lane those of the first tile, the odd lane the second's (a quarter of the atomic operations of adding
-// every value alone, which bounded the kernel).
-DEV void add_dq(float* head, const float (*acc)[4], int q0, int lq, int n) {
-    int l = lane_id(), g = l >> 2, t = l & 3, odd = t & 1;
+// `acc` (`ds_times_keys`' tiles for queries [16 m, 16 m + 16) and head columns [16 n, 16 n + 16)) into
+// the step's f32 staging tile (STEP rows of 64).
+DEV void stage_dq(float* staging, const float (*acc)[4], int m, int n) {
+    int l = lane_id(), g = l >> 2, t = l & 3;
 #pragma unroll
-    for (int h = 0; h < 2; h++) {
-        // This lane's pair of the tile it keeps, then the partner's pair of it (sent: the other tile's).
-        float k0 = acc[odd][2 * h], k1 = acc[odd][2 * h + 1];
-        float r0 = lane_xor(acc[1 - odd][2 * h], 1), r1 = lane_xor(acc[1 - odd][2 * h + 1], 1);
-        int row = q0 + g + 8 * h;
-        if (row >= lq) continue;
-        float* p = head + 64 * row + 16 * n + 8 * odd + 4 * (t >> 1);
-        if (odd)
-            atomic_add4(p, r0, r1, k0, k1);
-        else
-            atomic_add4(p, k0, k1, r0, r1);
-    }
+    for (int h = 0; h < 2; h++)
+#pragma unroll
+        for (int j = 0; j < 2; j++)
+            *(float2*)(staging + 64 * (16 * m + g + 8 * h) + 16 * n + 8 * j + 2 * t) =
+                float2{acc[j][2 * h], acc[j][2 * h + 1]};
 }
 
 // The step's share of dQ (the block's dS in `ds`, its keys in `keys`) added to the rows of `head` from query
 // `q0` on: (16-query tile, 16-column pair) units of it shared out among the warps, once every warp has
-// written its dS.
+// written its dS, gathered in `staging` and added by one bulk reduction (the TMA unit's, on sm_90a: a
+// reduction a value, even four values an instruction, cost more than the products it saves).
 template <int STEP>
-DEV void add_dq_step(float* head, const u16* ds, const u16* keys, int q0, int lq) {
+DEV void add_dq_step(float* head, const u16* ds, const u16* keys, float* staging, int q0, int lq) {
+    // The last step's reduction has read the staging tile before any warp writes it again.
+    if (thread_id() == 0) bulk_wait_read();
     sync_block();
     for (int u = warp_id(); u < STEP / 16 * 4; u += threads() >> 5) {
         float acc[2][4];
         int m = u % (STEP / 16), n = u / (STEP / 16);
         ds_times_keys<STEP>(acc, ds, keys, m, n);
-        add_dq(head, acc, q0 + 16 * m, lq, n);
+        stage_dq(staging, acc, m, n);
     }
+    to_async_proxy();
+    sync_block();
+    if (thread_id() == 0 && q0 < lq) bulk_add(head + 64 * q0, staging, min(STEP, lq - q0) * 64 * 4);
 }
 
 // Zeroes this block's rows of `dq_acc` (the grid of `backward_q`: `block_rows` queries of head `block_y`).

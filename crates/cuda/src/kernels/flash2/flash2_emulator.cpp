@@ -58,10 +58,13 @@ DEV int block_x() { return g_bx; }
 DEV int block_y() { return g_by; }
 DEV void sync_block() { g_block->arrive_and_wait(); }
 DEV void sync_warp() { g_warp[warp_id()]->arrive_and_wait(); }
-DEV void atomic_add4(float* p, float a, float b, float c, float d) {
-    const float x[4] = {a, b, c, d};
-    for (int i = 0; i < 4; i++) std::atomic_ref<float>(p[i]).fetch_add(x[i]);
+// The TMA unit's bulk reduction, synchronous here: each value added atomically (blocks of other heads run
+// at the same time only on the GPU, but the adds are atomic either way).
+DEV void bulk_add(float* dst, const float* src, int bytes) {
+    for (int i = 0; i < bytes / 4; i++) std::atomic_ref<float>(dst[i]).fetch_add(src[i]);
 }
+DEV void bulk_wait_read() {}
+DEV void bulk_wait() {}
 #define DYNAMIC_SHARED(type, name, n) static TILE_ALIGNED type name[n]
 
 // Element (row, k) of the 16×16 A fragment a warp's lanes staged (`mma.sync`'s layout, also `wgmma`'s).
@@ -125,7 +128,6 @@ DEV float from_lane(float x, int lane) {
     sync_warp();
     return y;
 }
-DEV float lane_xor(float x, int m) { return shfl_xor(x, m); }
 DEV float quad_max(float x) {
     x = fmaxf(x, shfl_xor(x, 1));
     return fmaxf(x, shfl_xor(x, 2));

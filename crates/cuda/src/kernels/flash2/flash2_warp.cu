@@ -79,8 +79,6 @@ DEV int block_x() { return blockIdx.x; }
 // The flattened (batch, head) index: the grid's y and z (y holds at most 65,535).
 DEV int block_y() { return blockIdx.y + 65535 * blockIdx.z; }
 DEV void sync_block() { __syncthreads(); }
-// x of the lane whose id differs from this one's by the bits of `mask`.
-DEV float lane_xor(float x, int mask) { return __shfl_xor_sync(0xffffffffu, x, mask); }
 // A block's dynamic shared memory (sized at launch), here `n` elements of `type` at most.
 #define DYNAMIC_SHARED(type, name, n) extern __shared__ __align__(16) type name[]
 #endif
@@ -196,21 +194,29 @@ DEV void wg_hold(float (*acc)[4]) {
 #pragma unroll
         for (int e = 0; e < 4; e++) asm volatile("" : "+f"(acc[j][e])::"memory");
 }
-// x added to p[0..4) in global memory (16-byte aligned) by one atomic instruction (`red.global.add.v4.f32`,
-// a quarter of the scalar reductions' operations at the L2).
-DEV void atomic_add4(float* p, float a, float b, float c, float d) {
-    asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};" ::"l"(p), "f"(a), "f"(b), "f"(c), "f"(d)
+// The f32 values at `src` (shared memory, 16-byte aligned, `bytes` a multiple of 16) added to those at
+// `dst` (global memory, 16-byte aligned) by the TMA unit: one instruction for a whole tile, where
+// element-wise reductions took one for every four values. `bulk_wait_read` returns once this thread's
+// bulk reductions have read their shared memory, `bulk_wait` once they are done.
+DEV void bulk_add(float* dst, const float* src, int bytes) {
+    asm volatile("cp.reduce.async.bulk.global.shared::cta.bulk_group.add.f32 [%0], [%1], %2;\n"
+                 "cp.async.bulk.commit_group;" ::"l"(dst),
+                 "r"(shared_address((const u16*)src)), "r"(bytes)
                  : "memory");
 }
+DEV void bulk_wait_read() { asm volatile("cp.async.bulk.wait_group.read 0;" ::: "memory"); }
+DEV void bulk_wait() { asm volatile("cp.async.bulk.wait_group 0;" ::: "memory"); }
 // Makes this thread's stores to shared memory visible to the tensor cores' reads (the async proxy).
 DEV void to_async_proxy() { asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory"); }
 #elif !defined(UMGEN_EMULATED)
 #define TILE_ALIGNED ALIGNED
 DEV void to_async_proxy() {}
-// Four scalar reductions where the vector one is missing (the one-pass kernel that adds this way runs on
+// Element-wise reductions where the bulk one is missing (the one-pass kernel that adds this way runs on
 // sm_90a only).
-DEV void atomic_add4(float* p, float a, float b, float c, float d) {
-    atomicAdd(p, a), atomicAdd(p + 1, b), atomicAdd(p + 2, c), atomicAdd(p + 3, d);
+DEV void bulk_add(float* dst, const float* src, int bytes) {
+    for (int i = 0; i < bytes / 4; i++) atomicAdd(dst + i, src[i]);
 }
+DEV void bulk_wait_read() {}
+DEV void bulk_wait() {}
 #endif
 
