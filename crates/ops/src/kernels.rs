@@ -193,7 +193,8 @@ pub enum Flash2Backward {
     #[default]
     TwoPass,
     /// One kernel for all three: the key/value kernel adds each step's share of the queries' gradient into
-    /// an f32 accumulator with atomic adds, as FlashAttention-2's backward pass does. Head size 64 on
+    /// an f32 accumulator, as FlashAttention-2's backward pass does (by the TMA unit's bulk reduction, as
+    /// FlashAttention-3 adds it). Head size 64 on
     /// Hopper's `wgmma` (compute capability 9.0) only, on cubecl's stream; elsewhere the two-pass kernels
     /// run (counted in the attention's fallbacks).
     OnePass,

@@ -1,14 +1,14 @@
-// FlashAttention-2 in CUDA C for NVRTC (`train.attention = "flash2"`): forward, key/value gradients and
-// query gradients, one kernel each (and, on `wgmma`, the one-pass backward kernel that computes all three
-// gradients, `train.kernels.attention_backward = "one-pass"`). Operands f32 or bf16 (`T`), converted to bf16 as they enter shared
-// memory; products on the tensor cores (`mma.sync` m16n8k16, bf16 in, f32 accumulation); scores,
-// probabilities and their gradients stay in registers (the accumulator layout of one product is the operand
-// layout of the next). Results (output, gradients) are written in `T`, the log-sum-exp in f32. Each block
-// of 4 or 8 warps owns 16 rows per warp (queries, or keys for the key/value gradients) and walks the
-// other side in tiles of 64, the next tile read into registers while the
-// current one's products run (8 warps). Head size `D`: 64 or 32. Where NVRTC targets sm_90a (on an H100),
-// the head size 64 products run on `wgmma` (`flash2_warp.cu`): 64 rows a warpgroup, B and the block's own
-// rows read from swizzled tiles in shared memory, P and dS from registers.
+// FlashAttention-2 in CUDA C for NVRTC (`train.attention = "flash2"`): forward, key/value gradients and query
+// gradients, one kernel each (and, on `wgmma`, the one-pass backward kernel that computes all three
+// gradients, `train.kernels.attention_backward = "one-pass"`). Operands f32 or bf16 (`T`), converted to bf16
+// as they enter shared memory; products on the tensor cores (`mma.sync` m16n8k16, bf16 in, f32 accumulation);
+// scores, probabilities and their gradients stay in registers (the accumulator layout of one product is the
+// operand layout of the next). Results (output, gradients) are written in `T`, the log-sum-exp in f32. Each
+// block of 4 or 8 warps owns 16 rows per warp (queries, or keys for the key/value gradients) and walks the
+// other side in tiles of 64, the next tile read into registers while the current one's products run (8
+// warps). Head size `D`: 64 or 32. Where NVRTC targets sm_90a (on an H100), the head size 64 products run on
+// `wgmma` (`flash2_warp.cu`): 64 rows a warpgroup, B and the block's own rows read from swizzled tiles in
+// shared memory, P and dS from registers.
 //
 // NVRTC compiles `flash2_warp.cu` (primitives) and `flash2_tiles.cu` (parameters, tiles, fragment products)
 // and `flash2_dq.cu` (the one-pass backward pass's queries' gradient) followed by this file
