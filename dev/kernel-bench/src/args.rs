@@ -226,7 +226,8 @@ pub struct BenchAttentionArgs {
 pub enum BackwardArg {
     /// Key/value gradients and query gradients in two kernels.
     TwoPass,
-    /// All three in one kernel, the queries' gradient added atomically (head size 64 on an H100 or H200).
+    /// All three in one kernel, the queries' gradient added by a bulk reduction (head size 64 on an H100 or
+    /// H200).
     OnePass,
 }
 
