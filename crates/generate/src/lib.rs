@@ -15,6 +15,7 @@ mod control;
 mod device_draw;
 pub mod engine;
 mod error;
+mod road;
 mod rollout;
 mod rules;
 mod sampling;
@@ -23,6 +24,7 @@ pub use boxes::GroupBoxes;
 pub use control::{AgentControl, Control, EgoControl};
 pub use device_draw::DeviceTopK;
 pub use error::{GenerateError, Result};
+pub use road::{Area, Entering, RoadCount, RoadRule};
 pub use rollout::{
     DEFAULT_PASS_FRAMES, DEFAULT_UNIFORM_BLOCK, FrameControl, Generator, GivenSegment, TokenGroups,
 };

@@ -49,6 +49,28 @@ impl MapView {
         [half - (row as f64 + 0.5) * rr, half - (col as f64 + 0.5) * rc]
     }
 
+    /// The channels of the layers vehicles drive on (lanes, intersections, lane connectors).
+    pub fn drivable_channels(&self) -> Vec<usize> {
+        let drivable = [MapLayer::Lane, MapLayer::Intersection, MapLayer::LaneConnector];
+        (0..self.layers.len())
+            .filter(|&i| drivable.contains(&self.layers[i]))
+            .collect()
+    }
+
+    /// Whether the cell of `map` (a raster of this view) holding the ego-frame point `p` is set (above
+    /// 127, as the map modality reads it) in one of `channels`; `None` outside the raster.
+    pub fn covers(&self, map: &MapRaster, channels: &[usize], p: [f64; 2]) -> Option<bool> {
+        let [col, row] = self.ego_to_pixel(p).map(f64::floor);
+        let inside = |v: f64, n: usize| (0.0..n as f64).contains(&v).then_some(v as usize);
+        let (row, col) = (inside(row, map.height)?, inside(col, map.width)?);
+        let plane = map.height * map.width;
+        Some(channels.iter().any(|&c| {
+            map.data
+                .get(c * plane + row * map.width + col)
+                .is_some_and(|&v| v > 127)
+        }))
+    }
+
     /// The raster of `network` around `pose`; each covered cell is 255.
     pub fn render(&self, network: &RoadNetwork, pose: &Pose2) -> MapRaster {
         let [rows, cols] = self.size;

@@ -108,6 +108,10 @@ pub struct GenerateArgs {
     /// on it). docs/control.md.
     #[arg(long, value_enum, default_value = "frame")]
     pub new_agent_rule: NewAgentRule,
+    /// Empty each vehicle entering a frame (its slot empty in the frame before) whose centre lies off
+    /// the drivable layers of the map the frame's own codes decode to: the road rule (docs/control.md).
+    #[arg(long)]
+    pub entering_on_road: bool,
     /// Softmax temperature, every modality.
     #[arg(long, default_value_t = 1.0)]
     pub temperature: f64,

@@ -71,6 +71,11 @@ impl AgentSlots {
         (out, clamped)
     }
 
+    /// The vehicle category's token id.
+    pub fn vehicle_id(&self) -> u32 {
+        self.cfg.category_id(AgentCategory::Vehicle)
+    }
+
     /// Agent slots per frame.
     pub fn slots(&self) -> usize {
         self.slots

@@ -12,7 +12,7 @@ use std::collections::HashMap;
 use anyhow::Context;
 use umgen::data::Dataset;
 use umgen::modality::{Modality, ModalityRegistry, Segment};
-use umgen::scene::{Agent, AgentCategory, Frame, MapLayer, MapRaster, RoadNetwork, SceneClip};
+use umgen::scene::{Agent, AgentCategory, Frame, MapRaster, RoadNetwork, SceneClip};
 use umgen::tokenizer_vq::IouCounter;
 use umgen_eval::horizon::second_of;
 use umgen_render::MapView;
@@ -64,7 +64,7 @@ impl Pooled {
         entered: &mut Entered,
     ) {
         for a in agents.iter().filter(|a| a.category == AgentCategory::Vehicle) {
-            let Some(on) = on_drivable(view, map, channels, [a.x, a.y]) else {
+            let Some(on) = view.covers(map, channels, [a.x, a.y]) else {
                 continue;
             };
             let off = usize::from(!on);
@@ -78,28 +78,6 @@ impl Pooled {
             self.off_entered_off += usize::from(!on && entered.get(&a.track_id) == Some(&true));
         }
     }
-}
-
-/// The channels of the layers vehicles drive on (lanes, intersections, lane connectors) in `view`.
-fn drivable_channels(view: &MapView) -> Vec<usize> {
-    let drivable = [MapLayer::Lane, MapLayer::Intersection, MapLayer::LaneConnector];
-    (0..view.layers.len())
-        .filter(|&i| drivable.contains(&view.layers[i]))
-        .collect()
-}
-
-/// Whether the cell of `map` holding the ego-frame point `p` is set in one of `channels`; `None` outside
-/// the raster.
-fn on_drivable(view: &MapView, map: &MapRaster, channels: &[usize], p: [f64; 2]) -> Option<bool> {
-    let [col, row] = view.ego_to_pixel(p).map(f64::floor);
-    let inside = |v: f64, n: usize| (0.0..n as f64).contains(&v).then_some(v as usize);
-    let (row, col) = (inside(row, map.height)?, inside(col, map.width)?);
-    let plane = map.height * map.width;
-    Some(channels.iter().any(|&c| {
-        map.data
-            .get(c * plane + row * map.width + col)
-            .is_some_and(|&v| v > 127)
-    }))
 }
 
 /// The cells of a raster as the map modality reads them: set above 127.
@@ -150,7 +128,7 @@ fn add_frame(
     pooled.iou.add(c, [h, w], &cells(&decoded), &cells(&rendered));
     pooled.frames += 1;
     let before = before.map(|b| &b.agents[..]);
-    let channels = drivable_channels(view);
+    let channels = view.drivable_channels();
     pooled.add_vehicles(view, &decoded, &channels, &frame.agents, before, entered);
     Ok(true)
 }
@@ -240,7 +218,7 @@ pub(super) fn map_consistency(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use umgen::scene::Pose2;
+    use umgen::scene::{MapLayer, Pose2};
     use umgen_eval::collision::bev_box;
 
     fn agent(id: u64, category: AgentCategory, x: f64, y: f64) -> Agent {
@@ -264,7 +242,7 @@ mod tests {
             size: [64, 64],
             layers: MapLayer::ALL.to_vec(),
         };
-        let channels = drivable_channels(&view);
+        let channels = view.drivable_channels();
         assert_eq!(channels.len(), 3, "lane, intersection, lane connector");
         let (car, walker) = (AgentCategory::Vehicle, AgentCategory::Pedestrian);
         // The ego on the road facing along it.
@@ -299,7 +277,7 @@ mod tests {
         // The ego turned left across the road: its x is global y, its y global −x. (0, −20) lies on the
         // road 20 m along global x; (20, 0) lies 20 m off it.
         let turned = view.render(&network, &Pose2::new(0.0, 0.0, std::f64::consts::FRAC_PI_2));
-        let on = |p: [f64; 2]| on_drivable(&view, &turned, &channels, p);
+        let on = |p: [f64; 2]| view.covers(&turned, &channels, p);
         assert_eq!((on([0.0, -20.0]), on([20.0, 0.0])), (Some(true), Some(false)));
         assert_eq!(on([0.0, 64.5]), None, "beyond the raster's edge");
     }

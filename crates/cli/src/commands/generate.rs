@@ -78,6 +78,27 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             g
         })
         .collect();
+    let road = match (a.entering_on_road, agents.as_ref()) {
+        (false, _) => None,
+        (true, None) => {
+            anyhow::bail!("--entering-on-road tests entering agents, and this model has no agent modality")
+        }
+        (true, Some(slots)) => {
+            let layout = registry.layout()?;
+            anyhow::ensure!(
+                !recorded
+                    .iter()
+                    .any(|r| layout.segments()[r.segment].kind == umgen::modality_agent::KIND),
+                "--entering-on-road tests the agents the model draws; with the agents recorded it draws none"
+            );
+            Some(super::road::RoadCheck::new(
+                &bundle,
+                &registry,
+                &slots.groups(),
+                slots.vehicle_id(),
+            )?)
+        }
+    };
     let cuda = matches!(device, Device::Cuda(_));
     let on_device = a.draw.on_device(cuda, total);
     let engine = a.decoder.engine(cuda);
@@ -93,12 +114,13 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         recorded: &recorded,
         action_segment: spec.action.as_ref().map(|x| x.segment),
         groups: &groups,
+        road: road.as_ref(),
     };
     let mut history: Vec<Vec<Vec<u32>>> = (0..total)
         .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
         .collect();
     let started = std::time::Instant::now();
-    let (new_tested, new_dropped) = if engine {
+    let ((new_tested, new_dropped), road_count) = if engine {
         // The weights go to the engine's own buffers: the burn model that reads the bundle stays on the CPU.
         let cfg = bundle.config.backbone.for_inference();
         let model = Backbone::<burn::backend::Flex>::new(&cfg, &spec, &Default::default())?;
@@ -111,8 +133,8 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         };
         let mut e = super::engine::AnyEngine::new(device, &model.plain(), settings, a.precision)?;
         drop(model);
-        plan.roll_out(&mut e, &mut history)?;
-        e.new_agents()
+        let road = plan.roll_out(&mut e, &mut history)?;
+        (e.new_agents(), road)
     } else {
         crate::with_inference!(device, |I, dev| {
             let model = Backbone::<I>::new(&bundle.config.backbone.for_inference(), &spec, &dev)?;
@@ -122,7 +144,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
                 .pass_frames(a.pass_frames)
                 .device_top_k(a.device_top_k.into())
                 .speculate(a.speculate);
-            plan.roll_out(&mut g, &mut history)?;
+            let road = plan.roll_out(&mut g, &mut history)?;
             let (blocks, decided) = g.speculation();
             if blocks > 0 {
                 tracing::info!(
@@ -130,7 +152,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
                     decided as f64 / blocks as f64
                 );
             }
-            g.new_agents()
+            (g.new_agents(), road)
         })
     };
     if new_tested > 0 {
@@ -142,6 +164,15 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             } else {
                 "a box decoded before them"
             }
+        );
+    }
+    if road.is_some() {
+        tracing::info!(
+            "road rule: emptied {} of {} entering vehicles off their frame's own drivable map ({} beyond \
+             the map's raster, kept)",
+            road_count.dropped,
+            road_count.tested,
+            road_count.beyond
         );
     }
     let scenes = history;
@@ -218,6 +249,9 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             "decoder": if engine { "engine" } else { "burn" },
             "draw": if engine { "engine" } else if on_device { "device" } else { "host" },
             "new_agents": {"tested": new_tested, "dropped": new_dropped, "rule": rule},
+            "entering_on_road": road.as_ref().map(|_| serde_json::json!({
+                "tested": road_count.tested, "dropped": road_count.dropped, "beyond_map": road_count.beyond,
+            })),
             "interval": interval,
             "recorded_ego": recorded_ego,
             "recorded": recorded_labels,

@@ -2,7 +2,7 @@
 //! actions, the agent slots' rules) and the loop that asks a decoder for the frames.
 
 use crate::cli::GenerateArgs;
-use umgen::generate::{Control, FrameControl, GivenSegment, NextFrame};
+use umgen::generate::{Control, FrameControl, GivenSegment, NextFrame, RoadCount};
 
 /// What a rollout imposes on each frame: the control file, the recorded or forced ego actions, the agent
 /// slots' rules.
@@ -15,16 +15,19 @@ pub(super) struct Plan<'a> {
     /// The ego action's segment: a recorded one replaces the ego module's action.
     pub(super) action_segment: Option<usize>,
     pub(super) groups: &'a [umgen::generate::TokenGroups],
+    /// The road rule for entering vehicles (`--entering-on-road`).
+    pub(super) road: Option<&'a super::road::RoadCheck<'a>>,
 }
 
 impl Plan<'_> {
     /// Generates `--frames` frames onto every scene's `history` with `g` (fewer when `--time-limit` stops
-    /// it), a progress bar or a log line per frame.
+    /// it), a progress bar or a log line per frame; what the road rule did, if it ran.
     pub(super) fn roll_out(
         &self,
         g: &mut dyn NextFrame,
         history: &mut [Vec<Vec<u32>>],
-    ) -> anyhow::Result<()> {
+    ) -> anyhow::Result<RoadCount> {
+        let mut road = RoadCount::default();
         let (a, control) = (self.a, self.control);
         let total = history.len();
         let bar = crate::progress::bar(a.frames as u64, "frames")?;
@@ -79,7 +82,11 @@ impl Plan<'_> {
                 given,
             };
             let frame_start = std::time::Instant::now();
-            let next = g.next_frame(history, &fc)?;
+            let mut next = g.next_frame(history, &fc)?;
+            if let Some(rule) = self.road {
+                let placed: Vec<usize> = fc.tokens.iter().map(|&(p, _)| p).collect();
+                road += rule.apply(&mut next, history, &placed)?;
+            }
             for (h, f) in history.iter_mut().zip(next) {
                 h.push(f);
             }
@@ -95,6 +102,6 @@ impl Plan<'_> {
             }
         }
         bar.finish_and_clear();
-        Ok(())
+        Ok(road)
     }
 }

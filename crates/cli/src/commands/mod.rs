@@ -24,6 +24,7 @@ mod generate_plan;
 mod launch;
 mod layout;
 mod recorded;
+mod road;
 mod scenes;
 mod tokenize;
 mod tokenizer;
