@@ -236,6 +236,10 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         "{md}"
     );
     assert!(md.contains("| binned const. acc. mean |"), "{md}");
+    assert!(
+        md.contains("| second | share of the window | lane |") && md.contains("| vehicles | off the road |"),
+        "{md}"
+    );
     assert!(md.contains("| binned real-state const. acc. mean |"), "{md}");
     let singles: Vec<serde_json::Value> = ids
         .iter()
@@ -259,6 +263,13 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
         (&6.into(), &6.into()),
         "{map}"
     );
+    // Within the context's view: a context frame's cells are all in its own window, so there the IoU is
+    // the whole window's; the generated frames' windows lie partly or wholly in the context's.
+    let shown = &map["context"]["context_view"];
+    assert_eq!(shown["share"].as_f64(), Some(1.0), "{map}");
+    assert_eq!(shown["iou"], map["context"]["iou"], "{map}");
+    let share = map["seconds"][0]["context_view"]["share"].as_f64().unwrap();
+    assert!(share > 0.0 && share <= 1.0, "{map}");
     for layer in 0..6 {
         let alone: Vec<f64> = singles
             .iter()

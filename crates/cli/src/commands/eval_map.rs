@@ -17,6 +17,8 @@ use umgen::tokenizer_vq::IouCounter;
 use umgen_eval::horizon::second_of;
 use umgen_render::MapView;
 
+use super::eval_seen::{ContextView, Seen};
+
 /// Frames pooled: the counts and how many frames went in.
 #[derive(Default)]
 struct Pooled {
@@ -30,6 +32,8 @@ struct Pooled {
     entering_off: usize,
     /// Vehicles off the map that entered off it (in their sequence's frames seen so far).
     off_entered_off: usize,
+    /// The same frames within the context's view.
+    seen: Seen,
 }
 
 /// Per vehicle (`track_id`) of one sequence of frames, whether it was off the map in the frame it entered.
@@ -37,7 +41,7 @@ type Entered = HashMap<u64, bool>;
 
 impl Pooled {
     /// `{"frames", "iou": [per layer], "f1_within_1px": [per layer], "vehicles_off_map",
-    /// "entering_off_map", "off_map_entered_off"}`.
+    /// "entering_off_map", "off_map_entered_off", "context_view"}` ([`Seen::json`]).
     fn json(&self) -> serde_json::Value {
         let f1: Vec<Option<f64>> = self.iou.near().iter().map(|n| n.map(|n| n.f1)).collect();
         let share = |n: usize, of: usize| (of > 0).then(|| n as f64 / of as f64);
@@ -48,6 +52,7 @@ impl Pooled {
             "vehicles_off_map": share(self.vehicles_off, self.vehicles),
             "entering_off_map": share(self.entering_off, self.entering),
             "off_map_entered_off": share(self.off_entered_off, self.vehicles_off),
+            "context_view": self.seen.json(),
         })
     }
 
@@ -89,7 +94,7 @@ fn cells(r: &MapRaster) -> Vec<f32> {
 type MapCodes<'a> = (&'a dyn Modality, &'a Segment);
 
 /// Decodes the map codes of `row` (the other modalities are not decoded) and adds the map, against
-/// `network` rendered at the pose of `frame`, to `pooled`, with the vehicles of `frame` on it (entering
+/// `network` rendered at the pose of `frame` (also within `context`'s view), to `pooled`, with the vehicles of `frame` on it (entering
 /// ones against `before`, the frame before it, recorded in `entered`); false when the codes decode to no
 /// map raster.
 #[allow(clippy::too_many_arguments)]
@@ -97,7 +102,7 @@ fn add_frame(
     (map, seg): MapCodes<'_>,
     view: &MapView,
     row: &[u32],
-    network: &RoadNetwork,
+    (network, context): (&RoadNetwork, &ContextView),
     frame: &Frame,
     before: Option<&Frame>,
     pooled: &mut Pooled,
@@ -125,10 +130,22 @@ fn add_frame(
         shape(&rendered)
     );
     let [c, h, w] = shape(&rendered);
-    pooled.iou.add(c, [h, w], &cells(&decoded), &cells(&rendered));
+    let (decoded_cells, rendered_cells) = (cells(&decoded), cells(&rendered));
+    pooled.iou.add(c, [h, w], &decoded_cells, &rendered_cells);
     pooled.frames += 1;
-    let before = before.map(|b| &b.agents[..]);
     let channels = view.drivable_channels();
+    let pose = frame.ego.pose2();
+    pooled.seen.add(
+        context,
+        view,
+        &pose,
+        &decoded_cells,
+        &rendered_cells,
+        &rendered,
+        &channels,
+        frame,
+    );
+    let before = before.map(|b| &b.agents[..]);
     pooled.add_vehicles(view, &decoded, &channels, &frame.agents, before, entered);
     Ok(true)
 }
@@ -174,9 +191,11 @@ pub(super) fn map_consistency(
         let Some(network) = real.network.clone() else {
             continue;
         };
+        let shown = ContextView::new(&real.frames, view);
         let first = c * per;
         let add = |row: &[u32], f: &Frame, before, pooled: &mut Pooled, entered: &mut Entered| {
-            add_frame(map, view, row, &network, f, before, pooled, entered).map(|ok| usize::from(!ok))
+            add_frame(map, view, row, (&network, &shown), f, before, pooled, entered)
+                .map(|ok| usize::from(!ok))
         };
         // The context rows are the real frames' codes, the same in each of the context's scenes.
         let mut entered = Entered::new();

@@ -350,5 +350,35 @@ pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Resul
     for r in rows {
         line(md, r["second"].to_string(), r)?;
     }
+    writeln!(
+        md,
+        "\nWithin the context's view: of each frame's window, the cells some context frame's window showed (the \
+         real road network was in the model's input there; beyond them the generated ego has driven into ground \
+         the context never showed, and the model's roads are its own). The share of the windows' cells they are, \
+         each layer's IoU over them, and the vehicles whose centre lies there, with the share of them on no \
+         drivable cell of the real network's map.\n"
+    )?;
+    writeln!(
+        md,
+        "| second | share of the window | {} | vehicles | off the road |",
+        names.join(" | ")
+    )?;
+    writeln!(md, "|---|---|{}---|---|", "---|".repeat(names.len()))?;
+    let seen = |md: &mut String, label: String, r: &serde_json::Value| {
+        let v = &r["context_view"];
+        let ious: Vec<String> = (0..names.len()).map(|i| num(&v["iou"][i])).collect();
+        writeln!(
+            md,
+            "| {label} | {} | {} | {} | {} |",
+            num(&v["share"]),
+            ious.join(" | "),
+            v["vehicles"],
+            num(&v["vehicles_off_road"])
+        )
+    };
+    seen(md, "context".into(), &map["context"])?;
+    for r in rows {
+        seen(md, r["second"].to_string(), r)?;
+    }
     Ok(())
 }

@@ -17,6 +17,7 @@ mod eval_horizon;
 mod eval_map;
 mod eval_plot;
 mod eval_report;
+mod eval_seen;
 mod eval_truth;
 mod export;
 mod generate;
