@@ -3,7 +3,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{ok, umgen};
+use common::{eval_test_split, ok, umgen};
 
 use std::path::PathBuf;
 use umgen_tests::run_fixture::Fixture;
@@ -47,18 +47,7 @@ fn eval_pools_several_contexts_and_recorded_ego_isolates_the_agents() {
     };
     let run_gen = |out: &str, contexts: &[&str]| {
         let out = generate(out, contexts);
-        let dir = out.to_str().unwrap();
-        ok(umgen(&[
-            "eval",
-            "--generated",
-            dir,
-            "--reference",
-            sample,
-            "--split",
-            "test",
-            "--stride",
-            "50",
-        ]));
+        eval_test_split(&out, sample);
         out
     };
     let (one, many) = (format!("{sample}:rand-s3/v0:0:2"), format!("{sample}:test:2:2"));

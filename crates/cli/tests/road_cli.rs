@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{ok, umgen};
+use common::{eval_test_split, ok, umgen};
 
 use std::path::PathBuf;
 use umgen_tests::run_fixture::Fixture;
@@ -59,18 +59,7 @@ fn entering_vehicles_stay_on_their_frames_own_map() {
         }
         let log = ok(umgen(&args));
         assert_eq!(log.contains("road rule: emptied"), rule, "{log}");
-        let dir = out.to_str().unwrap();
-        ok(umgen(&[
-            "eval",
-            "--generated",
-            dir,
-            "--reference",
-            sample,
-            "--split",
-            "test",
-            "--stride",
-            "50",
-        ]));
+        eval_test_split(&out, sample);
         (json(out.join("meta.json")), json(out.join("eval/report.json")))
     };
     // Entering vehicles off the frame's own map, and entering vehicles, over the generated seconds.

@@ -15,6 +15,23 @@ pub fn umgen(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// `umgen eval` of the rollout in `generated` against the test split of the dataset `reference`, every
+/// 50th real frame; asserts success and returns the log.
+pub fn eval_test_split(generated: &Path, reference: &str) -> String {
+    let dir = generated.to_str().unwrap();
+    ok(umgen(&[
+        "eval",
+        "--generated",
+        dir,
+        "--reference",
+        reference,
+        "--split",
+        "test",
+        "--stride",
+        "50",
+    ]))
+}
+
 /// Bytes of a child's output as text.
 pub fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
