@@ -3,7 +3,8 @@
 //! off-road rates, the collisions that begin (and how many of them at speed into a standing agent), how
 //! far moving agents' headings are from their direction of motion, the speed and acceleration
 //! distributions, how fast agents are when they enter, how often they brake on the approach to a
-//! standing agent ([`crate::approach`]) and how soon standing agents drive off. [`SceneStats`] gathers them frame
+//! standing agent ([`crate::approach`]), how soon standing agents drive off and how vehicles leave the
+//! road ([`crate::leaving`]). [`SceneStats`] gathers them frame
 //! by frame, each frame with the one before it in its sequence (entries, exits and accelerations need
 //! both); [`SceneStats::summary`] reports them.
 
@@ -11,6 +12,7 @@ use crate::approach::{ApproachRule, Approaches, approaches};
 use crate::collision::{colliding, collision_onsets, overlapping_ego};
 use crate::counts::rate_95;
 use crate::l2::{global_position, global_velocity, median, quantile};
+use crate::leaving::{Leaving, LeavingCounts};
 use crate::offroad::Drivable;
 use serde::Serialize;
 use std::collections::{HashMap, HashSet};
@@ -74,6 +76,8 @@ pub struct SceneStats {
     accelerations: Vec<f64>,
     /// Speeds (m/s) of agents in the frame they entered.
     entry_speeds: Vec<f64>,
+    /// Vehicles on the drivable area in one frame and off it in the next.
+    leaving: Leaving,
 }
 
 /// Mean, 10th, 50th and 90th percentile of a distribution.
@@ -126,6 +130,8 @@ pub struct EventCounts {
     pub exits_per_s_95: Option<[f64; 2]>,
     /// 95 % interval of the collisions begun per second.
     pub onsets_per_s_95: Option<[f64; 2]>,
+    /// Vehicles leaving the road ([`crate::leaving`]); `None` without maps.
+    pub leaving_road: Option<LeavingCounts>,
 }
 
 impl EventCounts {
@@ -143,6 +149,7 @@ impl EventCounts {
             entries_per_s_95: rate(entries),
             exits_per_s_95: rate(exits),
             onsets_per_s_95: rate(onsets),
+            leaving_road: (s.ego_on_map > 0).then(|| s.leaving.counts(seconds)),
         }
     }
 }
@@ -250,6 +257,9 @@ impl SceneStats {
         if let Some(on) = ego_on {
             self.ego_on_map += 1;
             self.ego_off_road += usize::from(!on);
+        }
+        if let Some(d) = drivable {
+            self.leaving.add(frame, before, d);
         }
         if !agents.is_empty() {
             let (hit, n) = colliding(agents);

@@ -14,5 +14,6 @@ pub mod hint;
 pub mod horizon;
 pub mod kinematics;
 pub mod l2;
+pub mod leaving;
 pub mod mmd;
 pub mod offroad;

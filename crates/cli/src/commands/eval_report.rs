@@ -264,11 +264,14 @@ pub fn events_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fmt
          second's rate is off the real one only where the real rate (or the band a target puts around it) \
          lies outside the interval. Inside: the share of the entries (exits) whose position a step before \
          (after), at their velocity, lies in the agents' range of the frame before (after): agents that \
-         appear or vanish where they could have been seen, not across the range's edge.\n"
+         appear or vanish where they could have been seen, not across the range's edge. Leaving the road: \
+         vehicles on the drivable area in a frame and off it in the next, the share of them moving (above \
+         1 m/s) and, over the moving ones, the median of the largest turn of their heading over the 4 frames \
+         before (near 0: driven straight off the road).\n"
     )?;
     writeln!(
         md,
-        "| second | seconds counted | entries | entries/s | entries inside | exits | exits/s | exits inside | onsets | onsets/s |\n|---|---|---|---|---|---|---|---|---|---|"
+        "| second | seconds counted | entries | entries/s | entries inside | exits | exits/s | exits inside | onsets | onsets/s | leaving the road | leaving/s | of them moving | their turn ° |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     )?;
     let share = |c: &serde_json::Value, k: &str, of: &str| match (c[k].as_u64(), c[of].as_u64()) {
         (Some(n), Some(all)) if all > 0 => format!("{:.2}", n as f64 / all as f64),
@@ -286,15 +289,20 @@ pub fn events_markdown(md: &mut String, horizon: &serde_json::Value) -> std::fmt
     };
     let line = |md: &mut String, label: String, s: &serde_json::Value| {
         let c = &s["counts"];
+        let mut leaving = c["leaving_road"].clone();
+        leaving["seconds"] = c["seconds"].clone();
         writeln!(
             md,
-            "| {label} | {} | {} | {} | {} | {} | {} |",
+            "| {label} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             c["seconds"].as_f64().map_or("-".into(), |t| format!("{t:.1}")),
             rate(c, "entries", "entries_per_s_95"),
             share(c, "entries_inside", "entries"),
             rate(c, "exits", "exits_per_s_95"),
             share(c, "exits_inside", "exits"),
             rate(c, "onsets", "onsets_per_s_95"),
+            rate(&leaving, "vehicles", "per_s_95"),
+            share(&leaving, "moving", "vehicles"),
+            num(&leaving["turn_median_deg"]),
         )
     };
     line(md, "real".into(), &horizon["real"])?;

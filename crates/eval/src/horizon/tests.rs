@@ -93,6 +93,9 @@ fn entries_exits_collisions_angles_and_accelerations() {
     assert_eq!(r.vehicle_off_road_rate, Some(2.0 / 4.0));
     // Entering vehicles: agents 3 and 4 of frame 2, both off.
     assert_eq!(r.entering_off_road_rate, Some(1.0));
+    // None left the road: agent 2 was off it in both frames, 3 and 4 entered off it.
+    let leaving = r.counts.leaving_road.as_ref().map(|l| (l.vehicles, l.moving));
+    assert_eq!(leaving, Some((0, 0)));
     // Both egos stand at the origin, on the road; one moved to y = 50 is off it.
     assert_eq!(r.ego_off_road_rate, Some(0.0));
     assert_eq!(r.vehicle_off_road_ego_on_rate, r.vehicle_off_road_rate);
@@ -162,6 +165,7 @@ fn where_vehicles_enter() {
     blind.add(&f1, &[], 0.5, None);
     blind.add(&f2, std::slice::from_ref(&f1), 0.5, None);
     assert_eq!(blind.summary().entering_off_road_rate, None);
+    assert_eq!(blind.summary().counts.leaving_road, None, "no map");
     assert_eq!(blind.summary().ego_overlap_rate, None, "no ego box given");
     // Vehicle 1 stands on the ego (at the origin) in frame 1 and 7 m aside in frame 2.
     let mut ego = SceneStats::with_ego_box([5.0, 2.0]);
