@@ -144,6 +144,7 @@ fn add_frame(
         &rendered,
         &channels,
         frame,
+        before,
     );
     let before = before.map(|b| &b.agents[..]);
     pooled.add_vehicles(view, &decoded, &channels, &frame.agents, before, entered);

@@ -364,24 +364,27 @@ pub fn map_markdown(md: &mut String, map: &serde_json::Value) -> std::fmt::Resul
          real road network was in the model's input there; beyond them the generated ego has driven into ground \
          the context never showed, and the model's roads are its own). The share of the windows' cells they are, \
          each layer's IoU over them, and the vehicles whose centre lies there, with the share of them on no \
-         drivable cell of the real network's map.\n"
+         drivable cell of the real network's map; of the vehicles entering a frame, the share that enter \
+         within the view, and of those the share off the real road.\n"
     )?;
     writeln!(
         md,
-        "| second | share of the window | {} | vehicles | off the road |",
+        "| second | share of the window | {} | vehicles | off the road | entering within it | of those off the road |",
         names.join(" | ")
     )?;
-    writeln!(md, "|---|---|{}---|---|", "---|".repeat(names.len()))?;
+    writeln!(md, "|---|---|{}---|---|---|---|", "---|".repeat(names.len()))?;
     let seen = |md: &mut String, label: String, r: &serde_json::Value| {
         let v = &r["context_view"];
         let ious: Vec<String> = (0..names.len()).map(|i| num(&v["iou"][i])).collect();
         writeln!(
             md,
-            "| {label} | {} | {} | {} | {} |",
+            "| {label} | {} | {} | {} | {} | {} | {} |",
             num(&v["share"]),
             ious.join(" | "),
             v["vehicles"],
-            num(&v["vehicles_off_road"])
+            num(&v["vehicles_off_road"]),
+            num(&v["entering_inside"]),
+            num(&v["entering_off_road"])
         )
     };
     seen(md, "context".into(), &map["context"])?;

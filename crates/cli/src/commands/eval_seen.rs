@@ -48,6 +48,11 @@ pub(super) struct Seen {
     /// Vehicles whose centre lies within the view, and those of them on no drivable cell of the real map.
     vehicles: usize,
     vehicles_off: usize,
+    /// Vehicles entering a frame (absent from the one before) inside the raster; those of them within
+    /// the view, and of those, the ones off the real map's drivable cells.
+    entering: usize,
+    entering_inside: usize,
+    entering_inside_off: usize,
 }
 
 impl Seen {
@@ -65,6 +70,7 @@ impl Seen {
         rendered: &MapRaster,
         channels: &[usize],
         frame: &Frame,
+        before: Option<&Frame>,
     ) {
         let seen = context.cells(view, pose);
         let plane = seen.len().max(1);
@@ -86,19 +92,26 @@ impl Seen {
             .filter(|a| a.category == AgentCategory::Vehicle)
         {
             let p = [a.x, a.y];
-            if !context.holds(pose.to_parent(p)) {
+            let Some(on) = view.covers(rendered, channels, p) else {
                 continue;
+            };
+            let inside = context.holds(pose.to_parent(p));
+            if before.is_some_and(|b| !b.agents.iter().any(|o| o.track_id == a.track_id)) {
+                self.entering += 1;
+                self.entering_inside += usize::from(inside);
+                self.entering_inside_off += usize::from(inside && !on);
             }
-            if let Some(on) = view.covers(rendered, channels, p) {
+            if inside {
                 self.vehicles += 1;
                 self.vehicles_off += usize::from(!on);
             }
         }
     }
 
-    /// `{"share", "iou": [per layer], "vehicles", "vehicles_off_road"}`: the share of the windows' cells
-    /// within the context's view, the IoU there, and the vehicles there and the share of them off the
-    /// real network's drivable cells.
+    /// `{"share", "iou": [per layer], "vehicles", "vehicles_off_road", "entering_inside",
+    /// "entering_off_road"}`: the share of the windows' cells within the context's view, the IoU there,
+    /// the vehicles there and the share of them off the real network's drivable cells; of the vehicles
+    /// entering inside the raster, the share within the view, and of those the share off the real road.
     pub(super) fn json(&self) -> serde_json::Value {
         let share = |n: usize, of: usize| (of > 0).then(|| n as f64 / of as f64);
         serde_json::json!({
@@ -106,6 +119,8 @@ impl Seen {
             "iou": self.iou.iou(),
             "vehicles": self.vehicles,
             "vehicles_off_road": share(self.vehicles_off, self.vehicles),
+            "entering_inside": share(self.entering_inside, self.entering),
+            "entering_off_road": share(self.entering_inside_off, self.entering_inside),
         })
     }
 }
@@ -141,13 +156,17 @@ mod tests {
             layers: vec![MapLayer::Lane],
         };
         let context = ContextView::new(&[frame_at(0.0, Vec::new())], &view);
-        let car = |x: f64, y: f64| Agent {
+        let car = |id: u64, x: f64, y: f64| Agent {
+            track_id: id,
             category: AgentCategory::Vehicle,
             ..bev_box(x, y, 0.0, 4.0, 2.0)
         };
         // Behind the ego, within the view: one on the road, one beside it. Ahead, beyond it: beside the
         // road, not counted.
-        let frame = frame_at(100.0, vec![car(-50.0, 0.0), car(-50.0, 20.0), car(30.0, 20.0)]);
+        let frame = frame_at(
+            100.0,
+            vec![car(1, -50.0, 0.0), car(2, -50.0, 20.0), car(3, 30.0, 20.0)],
+        );
         let pose = frame.ego.pose2();
         let rendered = view.render(&network, &pose);
         let cells: Vec<f32> = rendered.data.iter().map(|&v| f32::from(v > 127)).collect();
@@ -159,8 +178,18 @@ mod tests {
             .collect();
         let mut seen = Seen::default();
         let channels = view.drivable_channels();
+        // The two behind the ego enter; the one ahead was there before.
+        let before = frame_at(99.0, vec![car(3, 30.0, 20.0)]);
         seen.add(
-            &context, &view, &pose, &decoded, &cells, &rendered, &channels, &frame,
+            &context,
+            &view,
+            &pose,
+            &decoded,
+            &cells,
+            &rendered,
+            &channels,
+            &frame,
+            Some(&before),
         );
         let j = seen.json();
         // Rows whose centre lies 36 m or more behind the ego (x ≤ 64 − 100): 14 of 64.
@@ -174,11 +203,34 @@ mod tests {
             (j["vehicles"].as_u64(), j["vehicles_off_road"].as_f64()),
             (Some(2), Some(0.5))
         );
+        let entering = (j["entering_inside"].as_f64(), j["entering_off_road"].as_f64());
+        assert_eq!(entering, (Some(1.0), Some(0.5)), "{j}");
         // The whole window, with the decoded map right: IoU 1 within the view.
         let mut whole = Seen::default();
         whole.add(
-            &context, &view, &pose, &cells, &cells, &rendered, &channels, &frame,
+            &context, &view, &pose, &cells, &cells, &rendered, &channels, &frame, None,
         );
         assert_eq!(whole.json()["iou"][0].as_f64(), Some(1.0));
+        assert!(
+            whole.json()["entering_inside"].is_null(),
+            "no frame before, no entries"
+        );
+        // Only the one ahead enters: none within the view.
+        let mut ahead = Seen::default();
+        let behind = frame_at(99.0, vec![car(1, -50.0, 0.0), car(2, -50.0, 20.0)]);
+        ahead.add(
+            &context,
+            &view,
+            &pose,
+            &cells,
+            &cells,
+            &rendered,
+            &channels,
+            &frame,
+            Some(&behind),
+        );
+        let j = ahead.json();
+        let entering = (j["entering_inside"].as_f64(), j["entering_off_road"].as_f64());
+        assert_eq!(entering, (Some(0.0), None), "{j}");
     }
 }
