@@ -23,14 +23,21 @@ pub struct GroupBoxes {
     pub whole_frame: bool,
 }
 
+/// How one value of a group is read: its index in the group, its bins' range and their count.
+pub(crate) type Field = (usize, f64, f64, u32);
+
+/// The value `field` holds in the group `tokens`: the centre of its bin; `None` where the token is not
+/// a value (pad, a category) or the group is too short.
+pub(crate) fn field_value(tokens: &[u32], (i, lo, hi, bins): Field) -> Option<f64> {
+    tokens
+        .get(i)
+        .filter(|id| **id < bins)
+        .map(|&id| lo + (f64::from(id) + 0.5) * (hi - lo) / f64::from(bins))
+}
+
 impl GroupBoxes {
     fn decode(&self, tokens: &[u32]) -> Option<Agent> {
-        let v = self.fields.map(|(i, lo, hi, bins)| {
-            tokens
-                .get(i)
-                .filter(|id| **id < bins)
-                .map(|&id| lo + (f64::from(id) + 0.5) * (hi - lo) / f64::from(bins))
-        });
+        let v = self.fields.map(|f| field_value(tokens, f));
         Some(bev_box(v[0]?, v[1]?, v[2]?, v[3]?, v[4]?))
     }
 }

@@ -9,6 +9,7 @@
 //! alike. The frame's later tokens (later slots, the camera) were drawn with the vehicle present; the
 //! next frame's history no longer holds it, and the slot is free to be filled again.
 
+use crate::boxes::{Field, field_value};
 use crate::error::{GenerateError, Result};
 use crate::rules::TokenGroups;
 
@@ -37,9 +38,6 @@ impl std::ops::AddAssign for RoadCount {
         self.beyond += o.beyond;
     }
 }
-
-/// How one value of a group is read: its index in the group and its bins' range and count.
-type Field = (usize, f64, f64, u32);
 
 /// The rule over one run of agent groups.
 #[derive(Debug, Clone, PartialEq)]
@@ -93,11 +91,6 @@ impl RoadRule {
     /// slot order; groups holding a position of `placed` (set by the caller) are left out.
     pub fn entering(&self, frame: &[u32], before: &[u32], placed: &[usize]) -> Vec<Entering> {
         let g = &self.groups;
-        let value = |ids: &[u32], (i, lo, hi, bins): Field| {
-            ids.get(i)
-                .filter(|&&id| id < bins)
-                .map(|&id| lo + (f64::from(id) + 0.5) * (hi - lo) / f64::from(bins))
-        };
         (0..g.count)
             .filter_map(|k| {
                 let first = g.first + k * g.size;
@@ -105,7 +98,7 @@ impl RoadRule {
                 let was = before.get(first..first + g.size)?;
                 let entered = was[0] == g.pad && now[g.size - 1] == self.vehicle;
                 let free = !placed.iter().any(|p| (first..first + g.size).contains(p));
-                let centre = [value(now, self.x)?, value(now, self.y)?];
+                let centre = [field_value(now, self.x)?, field_value(now, self.y)?];
                 (entered && free).then_some(Entering { first, centre })
             })
             .collect()
