@@ -6,6 +6,8 @@
 //! - [`Camera`] renders a pinhole front view: ground from the map geometry (road, sidewalks, markings,
 //!   zebra crossings), sky, and agents as shaded 3D boxes coloured by category.
 //! - [`Canvas`] is the scanline rasteriser both use (pixel-centre sampling, even-odd rule).
+//! - [`MapMemory`] holds what map rasters showed in cells fixed in the world, so that a rollout's map
+//!   reads the same ground the same way from every later pose.
 //!
 //! ```
 //! use umgen_render::MapView;
@@ -21,9 +23,11 @@
 mod camera;
 mod fill;
 mod map;
+mod memory;
 mod palette;
 
 pub use camera::Camera;
 pub use fill::Canvas;
 pub use map::MapView;
+pub use memory::{MapMemory, MemoryError};
 pub use palette::{Class, agent as agent_colour};
