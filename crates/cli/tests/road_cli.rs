@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{eval_test_split, ok, umgen};
+use common::{LOOSE_DRAW, eval_test_split, fixture_bundle, ok, umgen};
 
 use std::path::PathBuf;
 use umgen_tests::run_fixture::Fixture;
@@ -16,20 +16,11 @@ fn json(p: PathBuf) -> serde_json::Value {
 #[test]
 fn entering_vehicles_stay_on_their_frames_own_map() {
     let fx = Fixture::new().unwrap();
-    let cfg = fx.config("v", 2).unwrap();
     // More slots than the clips' nearest agents fill, so that the rollouts' agents can enter.
-    let text = std::fs::read_to_string(&cfg).unwrap();
-    assert!(text.contains("max_agents = 4"), "{text}");
-    std::fs::write(&cfg, text.replace("max_agents = 4", "max_agents = 16")).unwrap();
-    ok(umgen(&["train", "--config", cfg.to_str().unwrap()]));
-    let bundle = fx.dir.path().join("bundle");
-    ok(umgen(&[
-        "export",
-        "--checkpoint",
-        fx.run_dir("v").to_str().unwrap(),
-        "--out",
-        bundle.to_str().unwrap(),
-    ]));
+    let bundle = fixture_bundle(&fx, "v", |text| {
+        assert!(text.contains("max_agents = 4"), "{text}");
+        text.replace("max_agents = 4", "max_agents = 16")
+    });
     let sample = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data/sumo-sample");
     let sample = sample.to_str().unwrap();
     let contexts = format!("{sample}:test:8:2");
@@ -44,16 +35,11 @@ fn entering_vehicles_stay_on_their_frames_own_map() {
             &contexts,
             "--frames",
             "6",
-            "--seed",
-            "4",
-            // Every id and a flattened softmax: the barely trained model's agents come and go.
-            "--top-k",
-            "0",
-            "--temperature",
-            "1.5",
             "--out",
             out.to_str().unwrap(),
         ];
+        // The barely trained model's agents come and go.
+        args.extend(LOOSE_DRAW);
         if rule {
             args.push("--entering-on-road");
         }

@@ -112,6 +112,10 @@ pub struct GenerateArgs {
     /// the drivable layers of the map the frame's own codes decode to: the road rule (docs/control.md).
     #[arg(long)]
     pub entering_on_road: bool,
+    /// Hold each scene's map fixed in the world: ground the context or an earlier frame showed keeps
+    /// its map, and only new ground is drawn. Each frame is drawn twice (docs/control.md).
+    #[arg(long)]
+    pub map_memory: bool,
     /// Softmax temperature, every modality.
     #[arg(long, default_value_t = 1.0)]
     pub temperature: f64,

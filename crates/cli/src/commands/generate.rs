@@ -116,11 +116,25 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         groups: &groups,
         road: road.as_ref(),
     };
+    let mut hold = match a.map_memory {
+        true => Some(super::map_memory::MapHold::new(
+            &bundle,
+            &registry,
+            plan.action_segment,
+            &recorded.iter().map(|r| r.segment).collect::<Vec<_>>(),
+            &contexts,
+            &context_rows,
+            total,
+            context_of,
+            interval,
+        )?),
+        false => None,
+    };
     let mut history: Vec<Vec<Vec<u32>>> = (0..total)
         .map(|s| context_of(s).map_or_else(Vec::new, |c| context_rows[c].clone()))
         .collect();
     let started = std::time::Instant::now();
-    let ((new_tested, new_dropped), road_count) = if engine {
+    let ((new_tested, new_dropped), (road_count, first_draws)) = if engine {
         // The weights go to the engine's own buffers: the burn model that reads the bundle stays on the CPU.
         let cfg = bundle.config.backbone.for_inference();
         let model = Backbone::<burn::backend::Flex>::new(&cfg, &spec, &Default::default())?;
@@ -133,7 +147,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         };
         let mut e = super::engine::AnyEngine::new(device, &model.plain(), settings, a.precision)?;
         drop(model);
-        let road = plan.roll_out(&mut e, &mut history)?;
+        let road = plan.roll_out(&mut e, &mut history, hold.as_mut())?;
         (e.new_agents(), road)
     } else {
         crate::with_inference!(device, |I, dev| {
@@ -144,7 +158,7 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
                 .pass_frames(a.pass_frames)
                 .device_top_k(a.device_top_k.into())
                 .speculate(a.speculate);
-            let road = plan.roll_out(&mut g, &mut history)?;
+            let road = plan.roll_out(&mut g, &mut history, hold.as_mut())?;
             let (blocks, decided) = g.speculation();
             if blocks > 0 {
                 tracing::info!(
@@ -155,6 +169,17 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             (g.new_agents(), road)
         })
     };
+    // The first draws of held frames were drawn again: count the new agents of the frames kept.
+    let (new_tested, new_dropped) = (new_tested - first_draws.0, new_dropped - first_draws.1);
+    let held = hold.as_ref().map(|h| h.count());
+    if let Some(c) = held {
+        tracing::info!(
+            "map memory: {:.1} % of the generated frames' map held, {:.1} % of their map codes changed from \
+             the first draw",
+            100.0 * c.held as f64 / c.pixels.max(1) as f64,
+            100.0 * c.changed as f64 / c.codes.max(1) as f64
+        );
+    }
     if new_tested > 0 {
         tracing::info!(
             "new-agent rule ({rule}): dropped {new_dropped} of {new_tested} new agents (overlapping {}, or over \
@@ -251,6 +276,10 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             "new_agents": {"tested": new_tested, "dropped": new_dropped, "rule": rule},
             "entering_on_road": road.as_ref().map(|_| serde_json::json!({
                 "tested": road_count.tested, "dropped": road_count.dropped, "beyond_map": road_count.beyond,
+            })),
+            "map_memory": held.map(|c| serde_json::json!({
+                "frames": c.frames, "pixels": c.pixels, "held": c.held, "codes": c.codes,
+                "changed_from_first_draw": c.changed,
             })),
             "interval": interval,
             "recorded_ego": recorded_ego,

@@ -21,13 +21,17 @@ pub(super) struct Plan<'a> {
 
 impl Plan<'_> {
     /// Generates `--frames` frames onto every scene's `history` with `g` (fewer when `--time-limit` stops
-    /// it), a progress bar or a log line per frame; what the road rule did, if it ran.
+    /// it), a progress bar or a log line per frame, each frame drawn a second time on its held map where
+    /// `hold` holds the maps; what the road rule did, if it ran, and the new agents that `g` tested and
+    /// dropped in first draws (which its own count includes).
     pub(super) fn roll_out(
         &self,
         g: &mut dyn NextFrame,
         history: &mut [Vec<Vec<u32>>],
-    ) -> anyhow::Result<RoadCount> {
+        mut hold: Option<&mut super::map_memory::MapHold<'_>>,
+    ) -> anyhow::Result<(RoadCount, (u64, u64))> {
         let mut road = RoadCount::default();
+        let mut first_draws = (0, 0);
         let (a, control) = (self.a, self.control);
         let total = history.len();
         let bar = crate::progress::bar(a.frames as u64, "frames")?;
@@ -82,7 +86,18 @@ impl Plan<'_> {
                 given,
             };
             let frame_start = std::time::Instant::now();
+            let before = g.new_agents();
             let mut next = g.next_frame(history, &fc)?;
+            if let Some(h) = hold.as_deref_mut() {
+                let after = g.new_agents();
+                first_draws.0 += after.0 - before.0;
+                first_draws.1 += after.1 - before.1;
+                let held = h.hold(&next)?;
+                let mut second = fc.clone();
+                second.action = Some(held.action);
+                second.given.push(held.map);
+                next = g.next_frame(history, &second)?;
+            }
             if let Some(rule) = self.road {
                 let placed: Vec<usize> = fc.tokens.iter().map(|&(p, _)| p).collect();
                 road += rule.apply(&mut next, history, &placed)?;
@@ -102,6 +117,6 @@ impl Plan<'_> {
             }
         }
         bar.finish_and_clear();
-        Ok(road)
+        Ok((road, first_draws))
     }
 }

@@ -24,6 +24,7 @@ mod generate;
 mod generate_plan;
 mod launch;
 mod layout;
+mod map_memory;
 mod recorded;
 mod road;
 mod scenes;

@@ -44,6 +44,32 @@ pub fn ok(out: Output) -> String {
     err
 }
 
+/// `umgen generate` arguments that draw every id from a flattened softmax, seed 4: a barely trained
+/// model's frames then differ from one to the next.
+pub const LOOSE_DRAW: [&str; 6] = ["--seed", "4", "--top-k", "0", "--temperature", "1.5"];
+
+/// Trains the fixture's run `run` for 2 steps on its config as `edit` rewrites it, exports it into
+/// `<fixture>/bundle` and returns that directory.
+pub fn fixture_bundle(
+    fx: &umgen_tests::run_fixture::Fixture,
+    run: &str,
+    edit: impl FnOnce(String) -> String,
+) -> std::path::PathBuf {
+    let cfg = fx.config(run, 2).unwrap();
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    std::fs::write(&cfg, edit(text)).unwrap();
+    ok(umgen(&["train", "--config", cfg.to_str().unwrap()]));
+    let bundle = fx.dir.path().join("bundle");
+    ok(umgen(&[
+        "export",
+        "--checkpoint",
+        fx.run_dir(run).to_str().unwrap(),
+        "--out",
+        bundle.to_str().unwrap(),
+    ]));
+    bundle
+}
+
 /// A TCP port free right now (for rendezvous in tests).
 pub fn free_port() -> String {
     std::net::TcpListener::bind("127.0.0.1:0")
