@@ -1,11 +1,12 @@
 //! `umgen generate --map-memory` on a bundle of the tiny fixture and clips of the bundled SUMO sample:
 //! with the ego held still, every pixel of the generated maps is held and the map codes stay those of
 //! the first generated frame, where the same rollout without the memory draws its map anew each frame;
-//! a recorded map is refused by name.
+//! a recorded map is refused by name. `umgen eval` of the held rollout without its scenes.json decodes
+//! tokens.json to the same report.
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic, missing_docs)]
 
 mod common;
-use common::{LOOSE_DRAW, fixture_bundle, ok, umgen};
+use common::{LOOSE_DRAW, eval_test_split, fixture_bundle, ok, umgen};
 
 use std::path::{Path, PathBuf};
 use umgen_tests::run_fixture::Fixture;
@@ -103,6 +104,16 @@ fn a_standing_egos_held_map_stays_put() {
             assert_eq!(f, &frames[0], "scene {s}, generated frame {k}");
         }
     }
+    // `umgen eval` decodes tokens.json itself where scenes.json was not kept, to the same report.
+    eval_test_split(&held, sample.to_str().unwrap());
+    let report = json(held.join("eval/report.json"));
+    std::fs::remove_file(held.join("scenes.json")).unwrap();
+    let log = eval_test_split(&held, sample.to_str().unwrap());
+    assert!(
+        log.contains("no scenes.json; decoding the 4 scenes of tokens.json"),
+        "{log}"
+    );
+    assert_eq!(json(held.join("eval/report.json")), report);
     // A recorded map is the clip's, not the model's: nothing to hold.
     let refused = umgen(&[
         "generate",

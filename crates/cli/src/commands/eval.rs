@@ -5,7 +5,7 @@ use super::eval_truth::ground_truth;
 use crate::cli::EvalArgs;
 use anyhow::Context;
 use umgen::data::Dataset;
-use umgen::scene::{Agent, Frame, SceneClip};
+use umgen::scene::{Agent, Frame};
 use umgen_eval::collision::collision_rate;
 use umgen_eval::hint::HintUse;
 use umgen_eval::l2::{
@@ -72,18 +72,17 @@ fn model_agent_errors(
 
 /// Evaluates.
 pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
+    let output = super::scenes::open_output(&a.generated, a.bundle.as_deref(), kinds)?;
+    let scenes = super::scenes::generated_scenes(&a.generated, &output)?;
     let super::scenes::Output {
         meta,
         tokens,
         bundle,
         registry,
-    } = super::scenes::open_output(&a.generated, a.bundle.as_deref(), kinds)?;
+    } = output;
     // The agents' bins, for the baseline a token model could reach.
     let grid = AgentSlots::of(&bundle, &registry)?;
     let mut off_grid = 0usize;
-    let scenes: Vec<SceneClip> =
-        serde_json::from_value(super::scenes::read_json(&a.generated, "scenes.json")?)
-            .context("scenes.json")?;
     anyhow::ensure!(
         !scenes.is_empty(),
         "{}: no generated scenes",

@@ -84,6 +84,56 @@ pub fn decode_except(
     Ok((SceneClip::new("generated", interval, frames)?, malformed))
 }
 
+/// The decoded scenes of a `umgen generate` output directory `dir`: its `scenes.json`, or, where only
+/// its `tokens.json` and `meta.json` were kept, the tokens decoded as `generate` decodes them (each
+/// scene from the last frame of its context clip, read again from the dataset `meta.json` names, and
+/// on that clip's road network).
+pub fn generated_scenes(dir: &Path, out: &Output) -> anyhow::Result<Vec<SceneClip>> {
+    let written = dir.join("scenes.json");
+    if written.exists() {
+        return serde_json::from_value(read_json(dir, "scenes.json")?).context("scenes.json");
+    }
+    let rows: Vec<Vec<Vec<u32>>> =
+        serde_json::from_value(out.tokens["scenes"].clone()).context("tokens.json: scenes")?;
+    let n_context = out.tokens["context_frames"].as_u64().unwrap_or(0) as usize;
+    let context_of: Vec<Option<usize>> =
+        serde_json::from_value(out.tokens["context_of"].clone()).context("tokens.json: context_of")?;
+    let interval = out.meta["interval"].as_f64().context("meta.json: interval")?;
+    let contexts = out.meta["contexts"].as_array().context("meta.json: contexts")?;
+    let starts = contexts
+        .iter()
+        .map(|c| {
+            let data = c["data"].as_str().context("meta.json: contexts[].data")?;
+            let id = c["clip"].as_str().context("meta.json: contexts[].clip")?;
+            let ds = umgen::data::Dataset::open(Path::new(data))?;
+            let clip = ds.read_window(ds.find_clip(id)?, 0, n_context.max(1), 1)?;
+            let last = clip.frames.last().cloned().unwrap_or_default();
+            Ok((last, clip.network))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    tracing::info!(
+        "{}: no scenes.json; decoding the {} scenes of tokens.json",
+        dir.display(),
+        rows.len()
+    );
+    let rasters = [umgen::modality_map::KIND, umgen::modality_image::KIND];
+    let mut malformed = 0;
+    let mut scenes = Vec::with_capacity(rows.len());
+    for (s, r) in rows.iter().enumerate() {
+        let context = context_of.get(s).copied().flatten().and_then(|c| starts.get(c));
+        let start = context.map(|c| c.0.clone()).unwrap_or_default();
+        let generated = r.get(n_context..).unwrap_or_default();
+        let (mut clip, bad) = decode_except(&out.registry, generated, &start, interval, &rasters)?;
+        clip.network = context.and_then(|c| c.1.clone());
+        malformed += bad;
+        scenes.push(clip);
+    }
+    if malformed > 0 {
+        tracing::warn!("{malformed} malformed token group(s) were skipped while decoding");
+    }
+    Ok(scenes)
+}
+
 /// The map renderer of the bundle's map modality (raster size, extent, layers), if it has one.
 pub fn map_view(bundle: &Bundle) -> anyhow::Result<Option<umgen_render::MapView>> {
     Ok(bundle
