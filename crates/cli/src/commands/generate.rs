@@ -221,24 +221,25 @@ pub fn run(a: &GenerateArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
             "context_of": context_index, "scenes": scenes,
         }))?,
     )?;
-    let mut decoded = Vec::with_capacity(scenes.len());
-    let mut malformed = 0;
     // scenes.json and dataset/ hold no map or camera rasters: only scene 0, drawn into rollout.gif,
-    // runs their VQ decoders (most of the decoding time of a large batch).
-    let rasters = [umgen::modality_map::KIND, umgen::modality_image::KIND];
-    for (s, rows) in scenes.iter().enumerate() {
-        let context = context_of(s).map(|c| &contexts[c].clip);
-        let start = context.and_then(|c| c.frames.last().cloned()).unwrap_or_default();
-        let skip: &[&str] = if s == 0 { &[] } else { &rasters };
-        let (mut clip, bad) =
-            super::scenes::decode_except(&registry, &rows[n_context..], &start, interval, skip)?;
-        clip.network = context.and_then(|c| c.network.clone());
-        malformed += bad;
-        decoded.push(clip);
-    }
-    if malformed > 0 {
-        tracing::warn!("{malformed} malformed token group(s) were skipped while decoding");
-    }
+    // runs their VQ decoders.
+    let starts: Vec<super::scenes::Start> = contexts
+        .iter()
+        .map(|c| {
+            (
+                c.clip.frames.last().cloned().unwrap_or_default(),
+                c.clip.network.clone(),
+            )
+        })
+        .collect();
+    let decoded = super::scenes::decode_rollout(
+        &registry,
+        &scenes,
+        n_context,
+        interval,
+        (&context_index, &starts),
+        |s| if s == 0 { &[] } else { super::scenes::RASTERS },
+    )?;
     let light: Vec<SceneClip> = decoded
         .iter()
         .map(|c| {

@@ -8,13 +8,14 @@
 //! The ground the first draw added is remembered as drawn.
 
 use super::contexts::ContextClip;
+use super::frame_map::FrameMap;
 use anyhow::Context;
 use std::ops::Range;
 use umgen::Bundle;
 use umgen::generate::GivenSegment;
 use umgen::modality::{Modality, ModalityRegistry};
-use umgen::scene::{EgoPose, Frame, MapRaster, SceneClip};
-use umgen_render::{MapMemory, MapView};
+use umgen::scene::{EgoPose, Frame, SceneClip};
+use umgen_render::MapMemory;
 
 /// What the memory did over a rollout, for the log and `meta.json`.
 #[derive(Debug, Default, Clone, Copy, PartialEq)]
@@ -37,14 +38,10 @@ struct Scene {
 
 /// The memories of a rollout's scenes and what reads and writes their frames.
 pub(super) struct MapHold<'a> {
-    map: &'a dyn Modality,
+    map: FrameMap<'a>,
     ego: &'a dyn Modality,
-    /// The map segment's index and content positions.
-    map_segment: usize,
-    codes: Range<usize>,
     /// The ego action's content positions.
     action: Range<usize>,
-    view: MapView,
     interval: f64,
     scenes: Vec<Scene>,
     count: HeldCount,
@@ -72,18 +69,11 @@ impl<'a> MapHold<'a> {
         context_of: impl Fn(usize) -> Option<usize>,
         interval: f64,
     ) -> anyhow::Result<Self> {
-        let layout = registry.layout()?;
-        let (map, seg) = super::agents::modality_of_kind(registry, umgen::modality_map::KIND)?
-            .context("--map-memory holds the map, and this model has no map modality")?;
-        let map_segment = layout
-            .segments()
-            .iter()
-            .position(|s| s.modality == seg.modality)
-            .context("the map modality has no segment in the layout")?;
+        let map = FrameMap::new(bundle, registry, "--map-memory", "holds the map")?;
         anyhow::ensure!(
-            !recorded.contains(&map_segment),
+            !recorded.contains(&map.segment),
             "--map-memory holds the map the model draws; with `{}` recorded it draws none",
-            seg.modality
+            map.modality
         );
         let a = action_segment
             .context("--map-memory moves the map with the ego action, and this model has no ego action")?;
@@ -91,15 +81,11 @@ impl<'a> MapHold<'a> {
             .modalities()
             .get(a)
             .context("the ego action's segment has no modality")?;
-        let view = super::scenes::map_view(bundle)?
-            .context("--map-memory: the bundle's config has no map settings")?;
+        let view = map.view.clone();
         let mut hold = Self {
             map,
             ego: ego.as_ref(),
-            map_segment,
-            codes: seg.content(),
-            action: layout.segments()[a].content(),
-            view: view.clone(),
+            action: registry.layout()?.segments()[a].content(),
             interval,
             scenes: Vec::with_capacity(scenes),
             count: HeldCount::default(),
@@ -111,7 +97,8 @@ impl<'a> MapHold<'a> {
                 let clip = &contexts[c].clip;
                 for (t, frame) in clip.frames.iter().enumerate().rev() {
                     let raster = hold
-                        .decode_map(&context_rows[c][t])
+                        .map
+                        .decode(&context_rows[c][t])
                         .with_context(|| format!("context {} frame {t}", contexts[c].id))?;
                     memory.remember(&raster, &frame.ego.pose2())?;
                 }
@@ -125,27 +112,6 @@ impl<'a> MapHold<'a> {
     /// What the memories did so far.
     pub(super) fn count(&self) -> HeldCount {
         self.count
-    }
-
-    fn decode_map(&self, row: &[u32]) -> anyhow::Result<MapRaster> {
-        let codes = row.get(self.codes.clone()).with_context(|| {
-            format!(
-                "a frame of {} tokens has no map codes at {:?}",
-                row.len(),
-                self.codes
-            )
-        })?;
-        let mut f = Frame::default();
-        self.map.detokenize(codes, &mut f).context("decoding map codes")?;
-        let raster = f.map.context("the map codes decode to no raster")?;
-        anyhow::ensure!(
-            [raster.height, raster.width] == self.view.size,
-            "the map codes decode to a {}×{} raster, but the map modality's view is {:?}",
-            raster.height,
-            raster.width,
-            self.view.size
-        );
-        Ok(raster)
     }
 
     /// Moves each scene to the pose its first draw `first[s]` reaches, holds its map there, and
@@ -167,7 +133,7 @@ impl<'a> MapHold<'a> {
             self.ego
                 .detokenize(ids, &mut f)
                 .with_context(|| format!("scene {s}: decoding the ego action"))?;
-            let drawn = self.decode_map(row).with_context(|| format!("scene {s}"))?;
+            let drawn = self.map.decode(row).with_context(|| format!("scene {s}"))?;
             let scene = &mut self.scenes[s];
             scene.pose = scene.pose.advance(&f.action, self.interval);
             let pose = scene.pose.pose2();
@@ -184,10 +150,14 @@ impl<'a> MapHold<'a> {
             });
         }
         let clip = SceneClip::new("held", self.interval, frames)?;
-        let codes = self.map.tokenize_clip(&clip).context("encoding the held maps")?;
+        let codes = self
+            .map
+            .map
+            .tokenize_clip(&clip)
+            .context("encoding the held maps")?;
         for (row, c) in first.iter().zip(&codes) {
             self.count.codes += c.len() as u64;
-            self.count.changed += row[self.codes.clone()]
+            self.count.changed += row[self.map.codes.clone()]
                 .iter()
                 .zip(c)
                 .filter(|(a, b)| a != b)
@@ -196,7 +166,7 @@ impl<'a> MapHold<'a> {
         Ok(Held {
             action,
             map: GivenSegment {
-                segment: self.map_segment,
+                segment: self.map.segment,
                 ids: codes,
             },
         })

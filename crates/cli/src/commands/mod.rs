@@ -20,6 +20,7 @@ mod eval_report;
 mod eval_seen;
 mod eval_truth;
 mod export;
+mod frame_map;
 mod generate;
 mod generate_plan;
 mod launch;

@@ -2,19 +2,18 @@
 //! scene's map codes are decoded by the bundle's map modality only in frames where a vehicle enters, and
 //! its drivable layers (lanes, intersections, lane connectors) are read at the entering vehicles' centres.
 
+use super::frame_map::FrameMap;
 use anyhow::Context;
 use umgen::Bundle;
 use umgen::generate::{Area, RoadCount, RoadRule, TokenGroups};
-use umgen::modality::{Modality, ModalityRegistry};
-use umgen::scene::{Frame, MapRaster};
+use umgen::modality::ModalityRegistry;
+use umgen::scene::MapRaster;
 use umgen_render::MapView;
 
 /// The rule and what reads a frame's map.
 pub(super) struct RoadCheck<'a> {
     rule: RoadRule,
-    map: &'a dyn Modality,
-    codes: std::ops::Range<usize>,
-    view: MapView,
+    map: FrameMap<'a>,
     channels: Vec<usize>,
 }
 
@@ -40,23 +39,23 @@ impl<'a> RoadCheck<'a> {
         groups: &TokenGroups,
         vehicle: u32,
     ) -> anyhow::Result<Self> {
-        let (map, seg) = super::agents::modality_of_kind(registry, umgen::modality_map::KIND)?
-            .context("--entering-on-road reads the frame's own map, and this model has no map modality")?;
-        let view = super::scenes::map_view(bundle)?
-            .context("--entering-on-road: the bundle's config has no map settings")?;
-        let channels = view.drivable_channels();
+        let map = FrameMap::new(
+            bundle,
+            registry,
+            "--entering-on-road",
+            "reads the frame's own map",
+        )?;
+        let channels = map.view.drivable_channels();
         anyhow::ensure!(
             !channels.is_empty(),
             "--entering-on-road: the map modality `{}` draws none of the drivable layers (lane, \
              intersection, lane_connector); its layers are {:?}",
-            seg.modality,
-            view.layers.iter().map(|l| l.name()).collect::<Vec<_>>()
+            map.modality,
+            map.view.layers.iter().map(|l| l.name()).collect::<Vec<_>>()
         );
         Ok(Self {
             rule: RoadRule::new(groups.clone(), vehicle)?,
             map,
-            codes: seg.content(),
-            view,
             channels,
         })
     }
@@ -79,29 +78,9 @@ impl<'a> RoadCheck<'a> {
             if entering.is_empty() {
                 continue;
             }
-            let codes = frame.get(self.codes.clone()).with_context(|| {
-                format!(
-                    "scene {s}: a frame of {} tokens has no map codes at {:?}",
-                    frame.len(),
-                    self.codes
-                )
-            })?;
-            let mut decoded = Frame::default();
-            self.map
-                .detokenize(codes, &mut decoded)
-                .with_context(|| format!("scene {s}: decoding the frame's map codes"))?;
-            let raster = decoded
-                .map
-                .with_context(|| format!("scene {s}: the frame's map codes decode to no raster"))?;
-            anyhow::ensure!(
-                [raster.height, raster.width] == self.view.size,
-                "scene {s}: the map codes decode to a {}×{} raster, but the map modality's view is {:?}",
-                raster.height,
-                raster.width,
-                self.view.size
-            );
+            let raster = self.map.decode(frame).with_context(|| format!("scene {s}"))?;
             let area = OwnMap {
-                view: &self.view,
+                view: &self.map.view,
                 channels: &self.channels,
                 raster,
             };

@@ -2,10 +2,13 @@
 //! --generated`).
 
 use anyhow::Context;
+use std::collections::HashMap;
 use std::path::Path;
+use std::sync::Arc;
 use umgen::Bundle;
+use umgen::data::Dataset;
 use umgen::modality::ModalityRegistry;
-use umgen::scene::{Frame, SceneClip};
+use umgen::scene::{Frame, RoadNetwork, SceneClip};
 
 /// A JSON file of a `umgen generate` output directory.
 pub fn read_json(dir: &Path, name: &str) -> anyhow::Result<serde_json::Value> {
@@ -84,6 +87,41 @@ pub fn decode_except(
     Ok((SceneClip::new("generated", interval, frames)?, malformed))
 }
 
+/// The kinds of the raster modalities, whose VQ decoders take most of the decoding time of a large
+/// batch, and whose rasters `scenes.json` does not hold.
+pub const RASTERS: &[&str] = &[umgen::modality_map::KIND, umgen::modality_image::KIND];
+
+/// Where a scene's decoding starts: the last frame of its context clip and that clip's road network.
+pub type Start = (Frame, Option<Arc<RoadNetwork>>);
+
+/// Decodes each scene's generated rows, `scenes[s][n_context..]`, scene `s` from
+/// `starts[context_of[s]]` (from nothing without a context) and on its network, without the
+/// modalities of the kinds `skip(s)`; logs the malformed token groups skipped.
+pub fn decode_rollout<'k>(
+    registry: &ModalityRegistry,
+    scenes: &[Vec<Vec<u32>>],
+    n_context: usize,
+    interval: f64,
+    (context_of, starts): (&[Option<usize>], &[Start]),
+    skip: impl Fn(usize) -> &'k [&'k str],
+) -> anyhow::Result<Vec<SceneClip>> {
+    let mut malformed = 0;
+    let mut decoded = Vec::with_capacity(scenes.len());
+    for (s, rows) in scenes.iter().enumerate() {
+        let context = context_of.get(s).copied().flatten().and_then(|c| starts.get(c));
+        let start = context.map(|c| c.0.clone()).unwrap_or_default();
+        let generated = rows.get(n_context..).unwrap_or_default();
+        let (mut clip, bad) = decode_except(registry, generated, &start, interval, skip(s))?;
+        clip.network = context.and_then(|c| c.1.clone());
+        malformed += bad;
+        decoded.push(clip);
+    }
+    if malformed > 0 {
+        tracing::warn!("{malformed} malformed token group(s) were skipped while decoding");
+    }
+    Ok(decoded)
+}
+
 /// The decoded scenes of a `umgen generate` output directory `dir`: its `scenes.json`, or, where only
 /// its `tokens.json` and `meta.json` were kept, the tokens decoded as `generate` decodes them (each
 /// scene from the last frame of its context clip, read again from the dataset `meta.json` names, and
@@ -100,38 +138,32 @@ pub fn generated_scenes(dir: &Path, out: &Output) -> anyhow::Result<Vec<SceneCli
         serde_json::from_value(out.tokens["context_of"].clone()).context("tokens.json: context_of")?;
     let interval = out.meta["interval"].as_f64().context("meta.json: interval")?;
     let contexts = out.meta["contexts"].as_array().context("meta.json: contexts")?;
-    let starts = contexts
-        .iter()
-        .map(|c| {
-            let data = c["data"].as_str().context("meta.json: contexts[].data")?;
-            let id = c["clip"].as_str().context("meta.json: contexts[].clip")?;
-            let ds = umgen::data::Dataset::open(Path::new(data))?;
-            let clip = ds.read_window(ds.find_clip(id)?, 0, n_context.max(1), 1)?;
-            let last = clip.frames.last().cloned().unwrap_or_default();
-            Ok((last, clip.network))
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
+    // The contexts of a batch mostly come from one dataset: each is opened once.
+    let mut datasets: HashMap<&str, Dataset> = HashMap::new();
+    let mut starts = Vec::with_capacity(contexts.len());
+    for c in contexts {
+        let data = c["data"].as_str().context("meta.json: contexts[].data")?;
+        let id = c["clip"].as_str().context("meta.json: contexts[].clip")?;
+        let ds = match datasets.entry(data) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => e.insert(Dataset::open(Path::new(data))?),
+        };
+        let clip = ds.read_window(ds.find_clip(id)?, 0, n_context.max(1), 1)?;
+        starts.push((clip.frames.last().cloned().unwrap_or_default(), clip.network));
+    }
     tracing::info!(
         "{}: no scenes.json; decoding the {} scenes of tokens.json",
         dir.display(),
         rows.len()
     );
-    let rasters = [umgen::modality_map::KIND, umgen::modality_image::KIND];
-    let mut malformed = 0;
-    let mut scenes = Vec::with_capacity(rows.len());
-    for (s, r) in rows.iter().enumerate() {
-        let context = context_of.get(s).copied().flatten().and_then(|c| starts.get(c));
-        let start = context.map(|c| c.0.clone()).unwrap_or_default();
-        let generated = r.get(n_context..).unwrap_or_default();
-        let (mut clip, bad) = decode_except(&out.registry, generated, &start, interval, &rasters)?;
-        clip.network = context.and_then(|c| c.1.clone());
-        malformed += bad;
-        scenes.push(clip);
-    }
-    if malformed > 0 {
-        tracing::warn!("{malformed} malformed token group(s) were skipped while decoding");
-    }
-    Ok(scenes)
+    decode_rollout(
+        &out.registry,
+        &rows,
+        n_context,
+        interval,
+        (&context_of, &starts),
+        |_| RASTERS,
+    )
 }
 
 /// The map renderer of the bundle's map modality (raster size, extent, layers), if it has one.
