@@ -92,18 +92,19 @@ impl<B: Backend> CrossBlock<B> {
             kept_inputs: KeptInputs::F32,
             ..*k
         };
-        let x = x.clone()
-            + self.attn.forward(
-                layer_norm_operand(&self.ln_q, x, self.attn.precision, k),
-                layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision, &kc),
-                mask,
-                false,
-                k,
-            );
-        x.clone()
-            + self
-                .mlp
-                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision, k), k)
+        let x = self.attn.forward_onto(
+            Some(x.clone()),
+            layer_norm_operand(&self.ln_q, x, self.attn.precision, k),
+            layer_norm_operand(&self.ln_ctx, ctx, self.attn.precision, &kc),
+            mask,
+            false,
+            k,
+        );
+        self.mlp.forward_onto(
+            x.clone(),
+            layer_norm_operand(&self.ln2, x, self.mlp.precision, k),
+            k,
+        )
     }
 }
 

@@ -10,8 +10,8 @@ use burn::tensor::{Bool, FloatDType, Tensor};
 use umgen_ops::Kernels;
 use umgen_ops::format::float_format;
 use umgen_ops::heads::{merge_heads, split_heads};
-use umgen_ops::linear::{linear, linear_in, linear_with};
-use umgen_ops::mlp::gelu_mlp;
+use umgen_ops::linear::{linear, linear_in, linear_residual, linear_with};
+use umgen_ops::mlp::{gelu_mlp, gelu_mlp_onto};
 use umgen_ops::norm::layer_norm_operand;
 use umgen_ops::recompute::{LayerParts, recomputed_for};
 
@@ -39,6 +39,21 @@ impl<B: Backend> Mlp<B> {
     pub fn forward<const D: usize>(&self, x: Tensor<B, D>, k: &Kernels) -> Tensor<B, D> {
         let p = self.precision;
         self.drop.forward(gelu_mlp(&self.fc, &self.proj, x, p, k))
+    }
+
+    /// `residual + self.forward(x)`: without dropout, the second product's epilogue adds the residual
+    /// stream.
+    pub fn forward_onto<const D: usize>(
+        &self,
+        residual: Tensor<B, D>,
+        x: Tensor<B, D>,
+        k: &Kernels,
+    ) -> Tensor<B, D> {
+        if self.drop.prob == 0.0 {
+            gelu_mlp_onto(Some(residual), &self.fc, &self.proj, x, self.precision, k)
+        } else {
+            residual + self.forward(x, k)
+        }
     }
 }
 
@@ -77,6 +92,20 @@ impl<B: Backend> MultiHead<B> {
         causal: bool,
         k: &Kernels,
     ) -> Tensor<B, 3> {
+        self.forward_onto(None, x, ctx, mask, causal, k)
+    }
+
+    /// [`Self::forward`] added to `residual` `[b, lq, d]` where given (a pre-norm layer's residual stream):
+    /// on the training backends the output projection's epilogue adds it.
+    pub fn forward_onto(
+        &self,
+        residual: Option<Tensor<B, 3>>,
+        x: Tensor<B, 3>,
+        ctx: Tensor<B, 3>,
+        mask: Option<Tensor<B, 4, Bool>>,
+        causal: bool,
+        k: &Kernels,
+    ) -> Tensor<B, 3> {
         let p = self.precision;
         // The queries straight in the attention's format where one operation takes them (that operation
         // casts them otherwise, after the bias add's pass). Not the keys and values: the operation splits
@@ -90,7 +119,8 @@ impl<B: Backend> MultiHead<B> {
         };
         let q = split_heads(linear_in(&self.q, x, p, format, k), self.heads);
         let kv = linear(&self.kv, ctx, p, k);
-        self.output(umgen_ops::attention::attend_kv(q, kv, mask, causal, p, k), k)
+        let y = merge_heads(umgen_ops::attention::attend_kv(q, kv, mask, causal, p, k));
+        self.output_onto(residual, y, k)
     }
 
     /// Queries of `x` and keys and values of `ctx`, split into heads `[b, heads, l, dh]` (decoding: the
@@ -104,20 +134,31 @@ impl<B: Backend> MultiHead<B> {
 
     /// Heads merged, projected back to width d, dropout.
     fn output(&self, y: Tensor<B, 4>, k: &Kernels) -> Tensor<B, 3> {
-        self.output_merged(merge_heads(y), k)
+        self.output_onto(None, merge_heads(y), k)
     }
 
-    /// Merged heads `[b, l, d]` projected back to width d, dropout. The heads' gradient comes back in their
-    /// own format: bf16 where the flash2 kernels wrote them so, which their backward pass reads as it is.
-    fn output_merged(&self, y: Tensor<B, 3>, k: &Kernels) -> Tensor<B, 3> {
+    /// Merged heads `[b, l, d]` projected back to width d, dropout, added to `residual` where given
+    /// (without dropout, by the projection's epilogue). The heads' gradient comes back in their own format:
+    /// bf16 where the flash2 kernels wrote them so, which their backward pass reads as it is.
+    fn output_onto(&self, residual: Option<Tensor<B, 3>>, y: Tensor<B, 3>, k: &Kernels) -> Tensor<B, 3> {
         let dx = float_format(y.dtype());
-        self.drop
-            .forward(linear_with(&self.proj, y, self.precision, dx, k))
+        let p = self.precision;
+        match residual {
+            Some(r) if self.drop.prob == 0.0 => linear_residual(&self.proj, y, r, p, dx, k),
+            Some(r) => r + self.drop.forward(linear_with(&self.proj, y, p, dx, k)),
+            None => self.drop.forward(linear_with(&self.proj, y, p, dx, k)),
+        }
     }
 
     /// Attention over time of `x` `[b, t, n, d]` (each position over its own frames, `causal`) by `op`, the
     /// training backends' [`crate::temporal`] operation: the products run on the rows as they lie.
-    fn over_time(&self, x: Tensor<B, 4>, op: umgen_ops::temporal::OverTime<B>, k: &Kernels) -> Tensor<B, 4> {
+    fn over_time(
+        &self,
+        residual: Tensor<B, 4>,
+        x: Tensor<B, 4>,
+        op: umgen_ops::temporal::OverTime<B>,
+        k: &Kernels,
+    ) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
         let p = self.precision;
         // Cast once for both products (each would cast its own copy).
@@ -125,7 +166,8 @@ impl<B: Backend> MultiHead<B> {
         let q = linear(&self.q, rows.clone(), p, k).reshape([b, t, n, d]);
         let kv = linear(&self.kv, rows, p, k).reshape([b, t, n, 2 * d]);
         let y = op(q, kv, self.heads, true, p, k);
-        self.output_merged(y.reshape([b, t * n, d]), k)
+        let residual = Some(residual.reshape([b, t * n, d]));
+        self.output_onto(residual, y.reshape([b, t * n, d]), k)
             .reshape([b, t, n, d])
     }
 
@@ -247,11 +289,12 @@ impl<B: Backend> SelfBlock<B> {
         match umgen_ops::temporal::over_time_for::<B>() {
             Some(op) => {
                 let n1 = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision, k);
-                let x = x + self.attn.over_time(n1, op, k);
-                x.clone()
-                    + self
-                        .mlp
-                        .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision, k), k)
+                let x = self.attn.over_time(x, n1, op, k);
+                self.mlp.forward_onto(
+                    x.clone(),
+                    layer_norm_operand(&self.ln2, x, self.mlp.precision, k),
+                    k,
+                )
             }
             None => self
                 .forward_autodiff(x.swap_dims(1, 2).reshape([b * n, t, d]), true, k)
@@ -265,11 +308,12 @@ impl<B: Backend> SelfBlock<B> {
         // In the products' format once for the queries' and the keys' and values' products (each would
         // cast its own copy).
         let n = layer_norm_operand(&self.ln1, x.clone(), self.attn.precision, k);
-        let x = x + self.attn.forward(n.clone(), n, None, causal, k);
-        x.clone()
-            + self
-                .mlp
-                .forward(layer_norm_operand(&self.ln2, x, self.mlp.precision, k), k)
+        let x = self.attn.forward_onto(Some(x), n.clone(), n, None, causal, k);
+        self.mlp.forward_onto(
+            x.clone(),
+            layer_norm_operand(&self.ln2, x, self.mlp.precision, k),
+            k,
+        )
     }
 
     /// The causal layer on one new position `[m, 1, d]`, with the keys and values of the earlier ones in

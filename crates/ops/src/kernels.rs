@@ -81,6 +81,8 @@ pub struct Kernels {
     pub attention_backward: Flash2Backward,
     /// Where the host waits around side-stream work (`stream = "side"` only), [`SideSync`].
     pub side_sync: SideSync,
+    /// How the additions around the products and layer norms of a recomputed layer run, [`EpilogueKernel`].
+    pub epilogue: EpilogueKernel,
 }
 
 impl Default for Kernels {
@@ -108,6 +110,7 @@ impl Kernels {
         flash2_warps: 8,
         attention_backward: Flash2Backward::TwoPass,
         side_sync: SideSync::DEFAULT,
+        epilogue: EpilogueKernel::Fused,
     };
 
     /// The first choice no run can use, as (key under `[train.kernels]`, what is wrong with its value).
@@ -167,6 +170,20 @@ pub enum MatmulKernel {
     Cublas,
     /// burn's default kernel, through burn's own autodiff.
     Burn,
+}
+
+/// How the additions around the products and layer norms run (`train.kernels.epilogue`): a bias, the
+/// residual stream, or another product's result added to a product, and the residual stream's gradient
+/// added to a layer norm's input gradient.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum EpilogueKernel {
+    /// In the kernels that write the result: cuBLASLt's epilogue (with `matmul = "cublas"`), the layer
+    /// norm's backward kernel. The default.
+    #[default]
+    Fused,
+    /// As element-wise kernels of their own after the product or the norm (for comparing the two).
+    Apart,
 }
 
 /// Which kernels run the training attention on CUDA (`train.kernels.attention`).
@@ -319,6 +336,8 @@ mod tests {
             serde_json::from_str(r#"["two-pass", "one-pass"]"#).expect("both names");
         assert_eq!(parsed, [Flash2Backward::TwoPass, Flash2Backward::OnePass]);
         assert!(serde_json::from_str::<Flash2Backward>(r#""one_pass""#).is_err());
+        let parsed: Vec<EpilogueKernel> = serde_json::from_str(r#"["fused", "apart"]"#).expect("both names");
+        assert_eq!(parsed, [EpilogueKernel::Fused, EpilogueKernel::Apart]);
     }
 
     #[test]
@@ -335,7 +354,8 @@ mod tests {
                 d.stream,
                 d.launch_thread,
                 d.kept_inputs,
-                d.attention_backward
+                d.attention_backward,
+                d.epilogue
             ),
             (
                 MatmulKernel::default(),
@@ -347,7 +367,8 @@ mod tests {
                 KernelStream::default(),
                 LaunchThread::default(),
                 KeptInputs::default(),
-                Flash2Backward::default()
+                Flash2Backward::default(),
+                EpilogueKernel::default()
             )
         );
     }

@@ -1,6 +1,7 @@
 //! Linear layers in the products' format ([`crate::format`]): on the training backends the product runs on
 //! the named kernel ([`crate::matmul`]) as one `[m, k] × [k, n]` product over all leading dimensions, the
-//! bias added by [`crate::rows`] in the format the consumer reads.
+//! bias (and, in [`linear_residual`], the residual stream the layer joins) added by the product's epilogue
+//! (`matmul::biased`) in the format the consumer reads; a layer without a bias adds nothing.
 
 use crate::format::{Precision, operand, widen};
 use crate::kernels::Kernels;
@@ -26,7 +27,7 @@ pub(crate) fn product_rows<B: Backend, const D: usize>(
     (product(x.reshape([-1, inner as i32]), w, p, written, k), dims)
 }
 
-/// `layer.forward(x)` with the product in `p`'s format; the bias is added in f32 ([`crate::rows::add`]). Training on CUDA runs the
+/// `layer.forward(x)` with the product in `p`'s format, the bias added in f32. Training on CUDA runs the
 /// product on the named kernel (`matmul.rs`), as one `[m, k] × [k, n]` product over all leading dimensions.
 pub fn linear<B: Backend, const D: usize>(
     layer: &Linear<B>,
@@ -54,12 +55,12 @@ pub fn linear_in<B: Backend, const D: usize>(
         out: format,
         dx: FloatDType::F32,
     };
-    let (y, dims) = product_rows(product, x, layer.weight.val(), p, written, k);
-    let y = y.reshape(dims);
-    match &layer.bias {
-        Some(bias) => crate::rows::add_for(y, bias.val(), Some(p.operand_dtype())),
-        None => y,
+    // A layer with a bias takes it in the product's epilogue; one without is the product alone.
+    if let Some(y) = biased(layer, x.clone(), None, p, written, k) {
+        return y;
     }
+    let (y, dims) = product_rows(product, x, layer.weight.val(), p, written, k);
+    y.reshape(dims)
 }
 
 /// [`linear`] whose input's gradient is written in `dx` where the named kernel computes it: the MLP's
@@ -72,15 +73,19 @@ pub fn linear_with<B: Backend, const D: usize>(
     dx: FloatDType,
     k: &Kernels,
 ) -> Tensor<B, D> {
+    let written = Written {
+        out: FloatDType::F32,
+        dx,
+    };
+    if let Some(y) = biased(layer, x.clone(), None, p, written, k) {
+        return y;
+    }
     let w = layer.weight.val();
     let y = match (crate::matmul::named_for::<B>(k), p) {
+        // No bias (`biased` takes every layer that has one).
         (Some(product), _) => {
-            let written = Written {
-                out: FloatDType::F32,
-                dx,
-            };
             let (y, dims) = product_rows(product, x, w, p, written, k);
-            y.reshape(dims)
+            return y.reshape(dims);
         }
         // burn's layer adds the bias inside its product.
         (None, Precision::F32) => return layer.forward(x),
@@ -89,10 +94,54 @@ pub fn linear_with<B: Backend, const D: usize>(
             p,
         ),
     };
-    // The product's backward pass reads its gradient in the operands' format: the bias's sum writes that
-    // copy in the same pass (`rows::add_for`).
+    // Off the training backends `add_for` is burn's broadcast.
     match &layer.bias {
         Some(bias) => crate::rows::add_for(y, bias.val(), Some(p.operand_dtype())),
         None => y,
     }
+}
+
+/// `residual + layer.forward(x)` in f32, `x`'s gradient written in `dx` (as [`linear_with`]): on the
+/// training backends the bias and the residual stream are summed by the product's epilogue, where they
+/// were an element-wise pass of their own.
+pub fn linear_residual<B: Backend, const D: usize>(
+    layer: &Linear<B>,
+    x: Tensor<B, D>,
+    residual: Tensor<B, D>,
+    p: Precision,
+    dx: FloatDType,
+    k: &Kernels,
+) -> Tensor<B, D> {
+    let written = Written {
+        out: FloatDType::F32,
+        dx,
+    };
+    let residual = residual.cast(FloatDType::F32);
+    match biased(layer, x.clone(), Some(residual.clone()), p, written, k) {
+        Some(y) => y,
+        None => residual + linear_with(layer, x, p, dx, k),
+    }
+}
+
+/// `x · w + b (+ add)` as [`crate::matmul::biased_autodiff`]'s one operation over all leading dimensions,
+/// where the backend trains with the named products and the layer has a bias; `None` otherwise (nothing
+/// was computed).
+fn biased<B: Backend, const D: usize>(
+    layer: &Linear<B>,
+    x: Tensor<B, D>,
+    add: Option<Tensor<B, D>>,
+    p: Precision,
+    written: Written,
+    k: &Kernels,
+) -> Option<Tensor<B, D>> {
+    let op = crate::matmul::biased_for::<B>(k)?;
+    let bias = layer.bias.as_ref()?;
+    let w = layer.weight.val();
+    let mut dims = x.dims();
+    let inner = dims[D - 1];
+    dims[D - 1] = w.dims()[1];
+    let n = dims[D - 1] as i32;
+    let add = add.map(|a| a.reshape([-1, n]));
+    let y = op((x.reshape([-1, inner as i32]), w, bias.val()), add, p, written, k);
+    Some(y.reshape(dims))
 }

@@ -28,6 +28,7 @@ use crate::format::float;
 use crate::format::operand;
 use crate::kernels::Kernels;
 pub use crate::kernels::MatmulKernel;
+pub use biased::{BiasedFn, biased_autodiff, biased_for};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -39,8 +40,11 @@ use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{FloatDType, Tensor};
 
+mod biased;
 #[cfg(feature = "cuda")]
 mod cublas;
+#[cfg(feature = "cuda")]
+mod cublaslt;
 #[cfg(feature = "cuda")]
 mod cuda;
 #[cfg(feature = "cuda")]
@@ -56,6 +60,47 @@ pub trait NamedMatmul: Backend {
         out: FloatDType,
         k: &Kernels,
     ) -> FloatTensor<Self>;
+
+    /// `lhs · rhs + bias + add` in `out`: `bias` `[n]` added to every row and `add` `[m, n]` summed, in the
+    /// product's epilogue where the kernel has one (cuBLASLt on CUDA). By default [`epilogue_decomposed`]:
+    /// the product, then burn's additions.
+    fn named_matmul_epilogue(
+        lhs: FloatTensor<Self>,
+        rhs: FloatTensor<Self>,
+        (bias, add): (Option<FloatTensor<Self>>, Option<FloatTensor<Self>>),
+        out: FloatDType,
+        k: &Kernels,
+    ) -> FloatTensor<Self> {
+        epilogue_decomposed::<Self>(lhs, rhs, (bias, add), out, k)
+    }
+}
+
+/// [`NamedMatmul::named_matmul_epilogue`] as the product and burn's additions: a 16-bit result with a bias
+/// only is written in its format and the bias added in it (one pass over the half-width result); anything
+/// else is summed in f32 and then cast to `out`.
+pub fn epilogue_decomposed<B: NamedMatmul>(
+    lhs: FloatTensor<B>,
+    rhs: FloatTensor<B>,
+    (bias, add): (Option<FloatTensor<B>>, Option<FloatTensor<B>>),
+    out: FloatDType,
+    k: &Kernels,
+) -> FloatTensor<B> {
+    if add.is_none() && out != FloatDType::F32 {
+        let y = float::<B, 2>(B::named_matmul(lhs, rhs, out, k));
+        let y = match bias {
+            Some(b) => y + float::<B, 1>(b).cast(out).unsqueeze::<2>(),
+            None => y,
+        };
+        return y.into_primitive().tensor();
+    }
+    let mut y = float::<B, 2>(B::named_matmul(lhs, rhs, FloatDType::F32, k));
+    if let Some(b) = bias {
+        y = y + float::<B, 1>(b).cast(FloatDType::F32).unsqueeze::<2>();
+    }
+    if let Some(a) = add {
+        y = y + float::<B, 2>(a).cast(FloatDType::F32);
+    }
+    y.cast(out).into_primitive().tensor()
 }
 
 /// The CPU backend has one kernel: burn's product, cast to the result's format. It lets the CPU tests
@@ -133,6 +178,24 @@ pub(crate) fn product_in<B: NamedMatmul>(
     float(B::named_matmul(
         a.into_primitive().tensor(),
         b.into_primitive().tensor(),
+        out,
+        k,
+    ))
+}
+
+/// `a · b + bias + add` on `B`'s named kernel, in `out` ([`NamedMatmul::named_matmul_epilogue`]).
+pub(crate) fn product_epilogue<B: NamedMatmul>(
+    a: Tensor<B, 2>,
+    b: Tensor<B, 2>,
+    (bias, add): (Option<Tensor<B, 1>>, Option<Tensor<B, 2>>),
+    out: FloatDType,
+    k: &Kernels,
+) -> Tensor<B, 2> {
+    let prim = |t: Tensor<B, 2>| t.into_primitive().tensor();
+    float(B::named_matmul_epilogue(
+        prim(a),
+        prim(b),
+        (bias.map(|t| t.into_primitive().tensor()), add.map(prim)),
         out,
         k,
     ))

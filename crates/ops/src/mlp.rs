@@ -9,7 +9,7 @@ use crate::format::{Precision, float, float_format, operand};
 use crate::gelu::{FusedGelu, GeluKernel, linear_gelu, tracked};
 use crate::kernels::Kernels;
 use crate::linear::linear_with;
-use crate::matmul::{NamedMatmul, Written, product, product_in};
+use crate::matmul::{NamedMatmul, Written, product, product_epilogue, product_in};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -48,11 +48,25 @@ pub fn gelu_mlp<B: Backend, const D: usize>(
     p: Precision,
     k: &Kernels,
 ) -> Tensor<B, D> {
-    if let (Some(first), Some(op), Some(second), Some(bias)) = (
+    gelu_mlp_onto(None, fc, out, x, p, k)
+}
+
+/// [`gelu_mlp`] added to `residual` (f32, the output's shape) where given: with the fused bias + GELU the
+/// second product's epilogue adds its bias and the residual stream.
+pub fn gelu_mlp_onto<B: Backend, const D: usize>(
+    residual: Option<Tensor<B, D>>,
+    fc: &Linear<B>,
+    out: &Linear<B>,
+    x: Tensor<B, D>,
+    p: Precision,
+    k: &Kernels,
+) -> Tensor<B, D> {
+    if let (Some(first), Some(op), Some(second), Some(bias), Some(out_b)) = (
         crate::matmul::named_for::<B>(k),
         tracked::<B>(k),
         gelu_product_for::<B>(k),
         &fc.bias,
+        &out.bias,
     ) {
         let format = p.operand_dtype();
         let written = Written {
@@ -65,30 +79,45 @@ pub fn gelu_mlp<B: Backend, const D: usize>(
             out: FloatDType::F32,
             dx: format,
         };
-        let z = second(h, y, bias.val(), out.weight.val(), p, written, k);
         let mut dims_out = dims;
         dims_out[D - 1] = out.weight.dims()[1];
-        let z = z.reshape(dims_out);
-        // As `linear_with` adds it: the bias's sum writes the product's gradient in its operands' format.
-        return match &out.bias {
-            Some(b) => crate::rows::add_for(z, b.val(), Some(format)),
-            None => z,
-        };
+        let n = dims_out[D - 1] as i32;
+        let residual = residual.map(|r| r.cast(FloatDType::F32).reshape([-1, n]));
+        let z = second(
+            (h, y, bias.val()),
+            (out.weight.val(), out_b.val()),
+            residual,
+            p,
+            written,
+            k,
+        );
+        return z.reshape(dims_out);
     }
     let h = linear_gelu(fc, x, p, k);
     let dx = float_format(h.dtype());
-    linear_with(out, h, p, dx, k)
+    match residual {
+        Some(r) => crate::linear::linear_residual(out, h, r, p, dx, k),
+        None => linear_with(out, h, p, dx, k),
+    }
 }
 
 /// What both passes need: the named products and the bias + GELU passes.
 pub trait GeluProductBackend: NamedMatmul + FusedGelu {}
 impl<B: NamedMatmul + FusedGelu> GeluProductBackend for B {}
 
-/// `h · w` (`h = gelu(y + b)` `[rows, n]`, as the bias + GELU operation wrote it from `y` and `b`) on the
-/// named kernel, operands in `p`'s format, the result and `h`'s gradient in the `written` formats; the
-/// backward pass recomputes `h` from `y` and `b` instead of keeping it.
+/// `h · w + c (+ add)` (`h = gelu(y + b)` `[rows, n]`, as the bias + GELU operation wrote it from `y` and
+/// `b`; `c` the second layer's bias; `add` f32 rows of the result's shape, the residual stream) on the
+/// named kernel, the bias and the added rows in its epilogue, operands in `p`'s format, the result and
+/// `h`'s gradient in the `written` formats; the backward pass recomputes `h` from `y` and `b` instead of
+/// keeping it.
 pub type GeluProductFn<B> =
-    fn(Tensor<B, 2>, Tensor<B, 2>, Tensor<B, 1>, Tensor<B, 2>, Precision, Written, &Kernels) -> Tensor<B, 2>;
+    fn(Hidden<B>, Second<B>, Option<Tensor<B, 2>>, Precision, Written, &Kernels) -> Tensor<B, 2>;
+
+/// The hidden activation `h`, the first product `y` and the first bias `b` it was made of.
+pub type Hidden<B> = (Tensor<B, 2>, Tensor<B, 2>, Tensor<B, 1>);
+
+/// The second layer's weight and bias.
+pub type Second<B> = (Tensor<B, 2>, Tensor<B, 1>);
 
 /// The operation on `B` when `B` is a training backend and `k` asks for it (with the named products and
 /// the fused bias + GELU, whose passes it reuses); `None` otherwise.
@@ -109,8 +138,9 @@ fn on<B: Backend, I: GeluProductBackend>() -> Option<GeluProductFn<B>> {
     same(plain).or_else(|| same(balanced))
 }
 
+/// The backward pass: `N` = 3 parents (h, w, c), or 4 with the added rows.
 #[derive(Debug)]
-struct GeluProduct;
+struct GeluProduct<const N: usize>;
 
 /// The first product and the bias (`h`'s recipe), `w` in the products' format, that format, the input
 /// gradient's, the kernels.
@@ -123,52 +153,81 @@ type Kept<I> = (
     Kernels,
 );
 
-impl<I: GeluProductBackend> Backward<I, 2> for GeluProduct {
+impl<I: GeluProductBackend, const N: usize> Backward<I, N> for GeluProduct<N> {
     type State = Kept<I>;
 
-    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let [nh, nw] = ops.parents;
+    fn backward(self, ops: Ops<Self::State, N>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let ids = ops.parents.map(|p| p.map(|node| node.id));
         let (y, b, w, p, dx_format, k) = ops.state;
-        let dz = operand(float::<I, 2>(grads.consume::<I>(&ops.node)), p);
-        if let Some(node) = nh {
-            let dh = product_in(dz.clone(), float::<I, 2>(w).transpose(), dx_format, &k);
-            grads.register::<I>(node.id, dh.into_primitive().tensor());
+        let g = float::<I, 2>(grads.consume::<I>(&ops.node));
+        if let Some(Some(id)) = ids.get(3) {
+            grads.register::<I>(*id, g.clone().cast(FloatDType::F32).into_primitive().tensor());
         }
-        if let Some(node) = nw {
+        // The bias's sum and the products' operand in one pass (as `matmul::biased`).
+        let (dz, dc) = crate::rows::sum_cast(g, p.operand_dtype());
+        let dz = operand(dz, p);
+        if let Some(Some(id)) = ids.get(2) {
+            grads.register::<I>(*id, dc.into_primitive().tensor());
+        }
+        if let Some(Some(id)) = ids.first() {
+            let dh = product_in(dz.clone(), float::<I, 2>(w).transpose(), dx_format, &k);
+            grads.register::<I>(*id, dh.into_primitive().tensor());
+        }
+        if let Some(Some(id)) = ids.get(1) {
             RECOMPUTED.with(|n| n.set(n.get() + 1));
             let h = operand(I::bias_gelu_forward(float(y), float(b)), p);
             let dw = product(h.transpose(), dz, &k);
-            grads.register::<I>(node.id, dw.into_primitive().tensor());
+            grads.register::<I>(*id, dw.into_primitive().tensor());
         }
     }
 }
 
-/// [`GeluProductFn`] on `Autodiff<I, C>`: `h`'s node and `w`'s are the parents; `y` and `b` are only read.
+/// [`GeluProductFn`] on `Autodiff<I, C>`: the nodes of `h`, `w`, `c` (and the added rows) are the parents;
+/// `y` and `b` are only read.
 fn apply<I: GeluProductBackend, C: CheckpointStrategy>(
-    h: Tensor<Autodiff<I, C>, 2>,
-    y: Tensor<Autodiff<I, C>, 2>,
-    b: Tensor<Autodiff<I, C>, 1>,
-    w: Tensor<Autodiff<I, C>, 2>,
+    (h, y, b): Hidden<Autodiff<I, C>>,
+    (w, c): Second<Autodiff<I, C>>,
+    add: Option<Tensor<Autodiff<I, C>, 2>>,
     p: Precision,
     written: Written,
     k: &Kernels,
 ) -> Tensor<Autodiff<I, C>, 2> {
-    let (h, w) = (h.into_primitive().tensor(), w.into_primitive().tensor());
-    let prep = GeluProduct
-        .prepare::<C>([h.node.clone(), w.node.clone()])
-        .compute_bound()
-        .stateful();
+    let (h, w, c) = (
+        h.into_primitive().tensor(),
+        w.into_primitive().tensor(),
+        c.into_primitive().tensor(),
+    );
+    let add = add.map(|a| a.into_primitive().tensor());
     let wi = operand(float::<I, 2>(w.primitive), p);
-    let z = product_in(operand(float::<I, 2>(h.primitive), p), wi.clone(), written.out, k)
-        .into_primitive()
-        .tensor();
-    let z = match prep {
-        OpsKind::Tracked(prep) => {
-            let y = y.into_primitive().tensor().primitive;
-            let b = b.into_primitive().tensor().primitive;
-            prep.finish((y, b, wi.into_primitive().tensor(), p, written.dx, *k), z)
-        }
-        OpsKind::UnTracked(prep) => prep.finish(z),
+    let z = product_epilogue(
+        operand(float::<I, 2>(h.primitive), p),
+        wi.clone(),
+        (
+            Some(float(c.primitive)),
+            add.as_ref().map(|a| float(a.primitive.clone())),
+        ),
+        written.out,
+        k,
+    )
+    .into_primitive()
+    .tensor();
+    let state = || {
+        let y = y.into_primitive().tensor().primitive;
+        let b = b.into_primitive().tensor().primitive;
+        (y, b, wi.into_primitive().tensor(), p, written.dx, *k)
+    };
+    // The parents' node type is private to burn's autodiff: one arm per number of parents.
+    macro_rules! finish {
+        ($op:expr, $parents:expr) => {
+            match $op.prepare::<C>($parents).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => prep.finish(state(), z),
+                OpsKind::UnTracked(prep) => prep.finish(z),
+            }
+        };
+    }
+    let z = match add {
+        Some(a) => finish!(GeluProduct::<4>, [h.node, w.node, c.node, a.node]),
+        None => finish!(GeluProduct::<3>, [h.node, w.node, c.node]),
     };
     float(z)
 }

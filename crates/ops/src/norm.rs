@@ -84,17 +84,19 @@ pub trait FusedNorm: Backend {
     }
 
     /// The gradients of the input, the scale and the shift from the output's gradient `dy`, given the
-    /// forward pass's input (f32 or its kept copy), means and `1/σ`.
+    /// forward pass's input (f32 or its kept copy), means and `1/σ`. With `dres` (f32, the input's shape),
+    /// the input's gradient is that plus the norm's: what a pre-norm layer's residual stream brings to the
+    /// same input, added as the gradient is written (on CUDA in the same kernel).
     fn norm_backward(
         dy: Tensor<Self, 2>,
-        x: Tensor<Self, 2>,
-        mean: Tensor<Self, 1>,
-        rstd: Tensor<Self, 1>,
+        (x, mean, rstd): (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>),
         gamma: Tensor<Self, 1>,
+        dres: Option<Tensor<Self, 2>>,
         k: &Kernels,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
         let _ = k;
-        backward_decomposed(dy, x, mean, rstd, gamma)
+        let (dx, dgamma, dbeta) = backward_decomposed(dy, x, mean, rstd, gamma);
+        (plus(dx, dres), dgamma, dbeta)
     }
 }
 
@@ -144,6 +146,14 @@ pub fn backward_decomposed<B: Backend>(
     let g = dy * gamma.unsqueeze::<2>();
     let dx = (g.clone() - g.clone().mean_dim(1) - xhat.clone() * (g * xhat).mean_dim(1)) * rstd;
     (dx, dgamma, dbeta)
+}
+
+/// `dx`, plus `dres` where given.
+pub(crate) fn plus<B: Backend>(dx: Tensor<B, 2>, dres: Option<Tensor<B, 2>>) -> Tensor<B, 2> {
+    match dres {
+        Some(r) => dx + r.cast(FloatDType::F32),
+        None => dx,
+    }
 }
 
 /// The CPU backend computes the decomposition.
@@ -225,7 +235,8 @@ impl<I: FusedNorm> Backward<I, 3> for Norm {
         let dy = float::<I, 2>(grads.consume::<I>(&ops.node)).cast(FloatDType::F32);
         let ([x, mean, rstd, gamma], k) = ops.state;
         // The input as it was kept (`train.kernels.kept_inputs`): the passes read a bf16 copy as it is.
-        let (dx, dgamma, dbeta) = I::norm_backward(dy, float(x), float(mean), float(rstd), float(gamma), &k);
+        let kept = (float(x), float(mean), float(rstd));
+        let (dx, dgamma, dbeta) = I::norm_backward(dy, kept, float(gamma), None, &k);
         let [x_node, gamma_node, beta_node] = ops.parents;
         // Only for parents that ask (a frozen norm, an untracked input).
         if let Some(node) = x_node {

@@ -1,7 +1,8 @@
 //! `umgen-kernel-bench linear`: a linear layer's product, forward and both gradients, on the kernels training can
 //! use (`umgen_ops::matmul`: the named kernel, and cuBLAS on CUDA) against burn's own path on the same
-//! backend. Each path's output and gradients are compared with burn's f32 path, and each forward+backward
-//! pass is timed.
+//! backend, and on CUDA cuBLASLt's product with the bias and a residual stream added by its epilogue
+//! (`lt+b+r`; `lt16+b` writes bf16 with the bias), both taken off its result again. Each path's output and
+//! gradients are compared with burn's f32 path, and each forward+backward pass is timed.
 
 use crate::args::{BenchLinearArgs, PrecisionArg};
 use crate::attention::rel_err;
@@ -13,7 +14,7 @@ use std::io::Write;
 use std::time::Instant;
 use umgen::backbone::Precision;
 use umgen::ops::Kernels;
-use umgen::ops::matmul::{MatmulKernel, Written, named_for};
+use umgen::ops::matmul::{MatmulKernel, Written, biased_for, named_for};
 use umgen_cli::device::Device;
 
 /// A product under test: `x · w` on the autodiff backend `B`.
@@ -58,6 +59,8 @@ fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::D
         let x = Tensor::<B::InnerBackend, 2>::random([m, k], Distribution::Normal(0.0, 1.0), dev);
         let w = Tensor::random([k, n], Distribution::Normal(0.0, 1.0 / (k as f64).sqrt()), dev);
         let up = Tensor::random([m, n], Distribution::Normal(0.0, 1.0), dev);
+        let bias = Tensor::<B::InnerBackend, 1>::random([n], Distribution::Normal(0.0, 1.0), dev);
+        let add = Tensor::<B::InnerBackend, 2>::random([m, n], Distribution::Normal(0.0, 1.0), dev);
         let (reference, _) = pass::<B>(&|x, w| x.matmul(w), &x, &w, &up, 1)?;
         for &dtype in &a.dtypes {
             let p = Precision::from(dtype);
@@ -85,12 +88,32 @@ fn measure<B: AutodiffBackend>(a: &BenchLinearArgs, shapes: &[Shape], dev: &B::D
             let named_path = on(MatmulKernel::Named, Written::F32);
             let cublas_path = on(MatmulKernel::Cublas, Written::F32);
             let cublas_half = on(MatmulKernel::Cublas, half);
+            // With the bias and a residual stream added by cuBLASLt's epilogue (`matmul::biased`), taken off
+            // again after it so that the result compares with the plain product's.
+            let biased = biased_for::<B>(&Kernels::DEFAULT).context("no biased product")?;
+            let with_epilogue = |written: Written, residual: bool| {
+                let (bias, add) = (bias.clone(), add.clone());
+                move |x: Tensor<B, 2>, w: Tensor<B, 2>| {
+                    let b = Tensor::<B, 1>::from_inner(bias.clone());
+                    let a = residual.then(|| Tensor::<B, 2>::from_inner(add.clone()));
+                    let y = biased((x, w, b.clone()), a.clone(), p, written, &Kernels::DEFAULT);
+                    let y = y.cast(FloatDType::F32) - b.unsqueeze::<2>();
+                    match a {
+                        Some(a) => y - a,
+                        None => y,
+                    }
+                }
+            };
+            let epilogue_path = with_epilogue(Written::F32, true);
+            let epilogue_half = with_epilogue(half, false);
             let mut paths: Vec<(&str, Path<B>)> = vec![("burn", &burn_path), ("named", &named_path)];
             // On the CPU every named product is burn's; cuBLAS is a CUDA kernel.
             if a.device.starts_with("cuda") {
                 paths.push(("cublas", &cublas_path));
+                paths.push(("lt+b+r", &epilogue_path));
                 if dtype == PrecisionArg::Bf16 {
                     paths.push(("cub16", &cublas_half));
+                    paths.push(("lt16+b", &epilogue_half));
                 }
             }
             for (name, path) in paths {

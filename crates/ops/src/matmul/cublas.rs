@@ -72,7 +72,7 @@ impl Blas {
         &mut self,
         like: &Primitive,
         kernels: &Kernels,
-        gemm: impl FnOnce(sys::cublasHandle_t) -> Result<(), String>,
+        gemm: impl FnOnce(sys::cublasHandle_t, sys::cudaStream_t) -> Result<(), String>,
     ) -> Result<(), String> {
         let handle = self.handle;
         // `last_stream` is an API of the vendored cubecl-cuda (vendor/README.md); built against an
@@ -85,7 +85,7 @@ impl Blas {
                 return Err("no cubecl stream resolved on this thread".into());
             }
             self.use_stream(stream as sys::cudaStream_t)?;
-            return gemm(handle);
+            return gemm(handle, stream as sys::cudaStream_t);
         }
         if self.side.is_none() {
             self.side = Some(Side::new(like)?);
@@ -93,15 +93,17 @@ impl Blas {
         let stream = self.side.as_ref().ok_or("no side stream")?.stream().cu_stream();
         self.use_stream(stream as sys::cudaStream_t)?;
         let side = self.side.as_mut().ok_or("no side stream")?;
-        side.ordered((SideFamily::Cublas, kernels.side_sync), |_| gemm(handle))
+        side.ordered((SideFamily::Cublas, kernels.side_sync), |_| {
+            gemm(handle, stream as sys::cudaStream_t)
+        })
     }
 }
 
 /// How one operand enters `cublasGemmEx`: its pointer, whether cuBLAS transposes it, its leading dimension.
-struct Operand {
-    ptr: u64,
-    op: sys::cublasOperation_t,
-    ld: i32,
+pub(super) struct Operand {
+    pub ptr: u64,
+    pub op: sys::cublasOperation_t,
+    pub ld: i32,
 }
 
 /// The product's element types: cuBLAS's operand type and compute type for `dtype`.
@@ -120,7 +122,7 @@ fn types(dtype: DType) -> Result<(sys::cudaDataType, sys::cublasComputeType_t), 
 /// it as its `cols × rows` transpose: a row-major matrix (strides `[ld, 1]`) is that transpose as stored, a
 /// column-major one (strides `[1, ld]`) is transposed by cuBLAS. `None` when it is neither or cuBLAS would
 /// reject the leading dimension.
-fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(sys::cublasOperation_t, usize)> {
+pub(super) fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(sys::cublasOperation_t, usize)> {
     use sys::cublasOperation_t::{CUBLAS_OP_N, CUBLAS_OP_T};
     let [rows, cols] = shape;
     // A dimension of 1 leaves its stride free; give it the value that makes the layout valid.
@@ -135,7 +137,7 @@ fn layout(shape: [usize; 2], strides: [usize; 2]) -> Option<(sys::cublasOperatio
     }
 }
 
-fn int(what: &str, v: usize) -> Result<i32, String> {
+pub(super) fn int(what: &str, v: usize) -> Result<i32, String> {
     i32::try_from(v).map_err(|_| format!("{what} {v} exceeds cuBLAS's 32-bit sizes"))
 }
 
@@ -200,7 +202,7 @@ pub(super) fn launch(
         op: b_op,
         ld: ldb,
     };
-    let gemm = |handle| {
+    let gemm = |handle, _| {
         let (one, zero) = (1.0f32, 0.0f32);
         // SAFETY: the three pointers are live burn buffers holding the shapes and strides checked above,
         // and cubecl's stream waits for the product before anything queued later can free or reuse them;
@@ -232,6 +234,18 @@ pub(super) fn launch(
     };
     with_cached(&HANDLES, lhs, "cuBLAS", Blas::new, |blas| {
         blas.ordered(lhs, kernels, gemm)
+    })
+}
+
+/// Runs `work` with the stream a product runs on, ordered with cubecl's (module docs): cuBLASLt's products
+/// (`cublaslt.rs`) go where `cublasGemmEx`'s go.
+pub(super) fn on_stream(
+    like: &Primitive,
+    kernels: &Kernels,
+    work: impl FnOnce(sys::cudaStream_t) -> Result<(), String>,
+) -> Result<(), String> {
+    with_cached(&HANDLES, like, "cuBLAS", Blas::new, |blas| {
+        blas.ordered(like, kernels, |_, stream| work(stream))
     })
 }
 

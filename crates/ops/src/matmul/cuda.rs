@@ -8,14 +8,16 @@
 //! many times over on the training step's shapes (`umgen-kernel-bench matmul`, `docs/decisions/006-products-on-cublas-in-bf16.md`).
 
 use super::NamedMatmul;
-use crate::format::float_format;
-use crate::kernels::Kernels;
+use super::cublaslt::Epilogue;
+use crate::format::{float, float_format};
+use crate::kernels::{EpilogueKernel, Kernels};
 use crate::side::{Handles, Inner, Primitive};
 use burn::backend::Cuda;
 use burn::cubecl::cuda::CudaRuntime;
 use burn::tensor::ops::{FloatTensor, FloatTensorOps};
 use burn::tensor::{DType, FloatDType, Shape};
 use burn_cubecl::fusion::FusionCubeRuntime;
+use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::kernel::matmul::{MatmulStrategy, init_matmul_output, matmul};
 use burn_fusion::stream::{Operation, OperationStreams};
 use burn_ir::{CustomOpIr, OperationIr, OperationOutput, TensorIr};
@@ -57,6 +59,113 @@ impl NamedMatmul for Cuda {
             )
             .output()
     }
+
+    fn named_matmul_epilogue(
+        lhs: FloatTensor<Self>,
+        rhs: FloatTensor<Self>,
+        (bias, add): (Option<FloatTensor<Self>>, Option<FloatTensor<Self>>),
+        out: FloatDType,
+        kernels: &Kernels,
+    ) -> FloatTensor<Self> {
+        if kernels.matmul != super::MatmulKernel::Cublas || kernels.epilogue == EpilogueKernel::Apart {
+            return super::epilogue_decomposed::<Self>(lhs, rhs, (bias, add), out, kernels);
+        }
+        let client = lhs.client.clone();
+        let shape = Shape::new([lhs.shape[0], rhs.shape[1]]);
+        let out = TensorIr::uninit(client.create_empty_handle(), shape, DType::from(out));
+        let has = (bias.is_some(), add.is_some());
+        let inputs: Vec<_> = [Some(lhs), Some(rhs), bias, add].into_iter().flatten().collect();
+        let streams = OperationStreams::with_inputs(inputs.iter());
+        let irs: Vec<TensorIr> = inputs.into_iter().map(|t| t.into_ir()).collect();
+        let desc = CustomOpIr::new("umgen_named_matmul_epilogue", &irs, &[out]);
+        client
+            .register(
+                streams,
+                OperationIr::Custom(desc.clone()),
+                WithEpilogue {
+                    desc,
+                    has,
+                    kernels: *kernels,
+                },
+            )
+            .output()
+    }
+}
+
+/// [`NamedMatmul::named_matmul_epilogue`]'s operation as the fusion stream runs it.
+#[derive(Debug)]
+struct WithEpilogue {
+    desc: CustomOpIr,
+    /// Whether a bias and added rows follow the operands among the inputs.
+    has: (bool, bool),
+    kernels: Kernels,
+}
+
+impl Operation<FusionCubeRuntime<CudaRuntime>> for WithEpilogue {
+    fn execute(&self, handles: &mut Handles) {
+        let mut inputs = self
+            .desc
+            .inputs
+            .iter()
+            .map(|t| handles.get_float_tensor::<Inner>(t));
+        let mut next = || {
+            inputs
+                .next()
+                .unwrap_or_else(|| unreachable!("umgen_named_matmul_epilogue was described with its inputs"))
+        };
+        let (lhs, rhs) = (next(), next());
+        let bias = self.has.0.then(&mut next);
+        let add = self.has.1.then(&mut next);
+        let [o] = &self.desc.outputs[..] else {
+            unreachable!("umgen_named_matmul_epilogue was described with one output")
+        };
+        let y = run_epilogue(lhs, rhs, (bias, add), o.dtype, &self.kernels);
+        handles.register_float_tensor::<Inner>(&o.id, y);
+    }
+}
+
+/// `lhs · rhs + bias + add` in `dtype` on cuBLASLt, else (where it refuses, counted) the product and then
+/// the additions as element-wise kernels.
+fn run_epilogue(
+    lhs: Primitive,
+    rhs: Primitive,
+    (bias, add): (Option<Primitive>, Option<Primitive>),
+    dtype: DType,
+    kernels: &Kernels,
+) -> Primitive {
+    let format = float_format(dtype);
+    // In the result's format, as cuBLASLt reads them (a bf16 result's f32 bias rounded once).
+    let cast = |t: Primitive| match t.dtype == dtype {
+        true => t,
+        false => Inner::float_cast(t, format),
+    };
+    let bias = bias.map(|b| into_contiguous(cast(b)));
+    let add = add.map(cast);
+    let out = init_matmul_output(&lhs, &rhs, dtype);
+    let epilogue = Epilogue {
+        bias: bias.as_ref(),
+        add: add.as_ref(),
+    };
+    match crate::side::on_device_thread(&lhs, kernels.launch_thread, || {
+        super::cublaslt::launch(&lhs, &rhs, &out, epilogue, kernels)
+    }) {
+        Ok(()) => return out,
+        Err(why) => fell_back(
+            "cuBLASLt",
+            "the product and element-wise additions",
+            &lhs,
+            &rhs,
+            &why,
+        ),
+    }
+    let mut y = float::<Inner, 2>(run(lhs, rhs, DType::F32, kernels));
+    if let Some(b) = bias {
+        y = y + float::<Inner, 1>(b).cast(FloatDType::F32).unsqueeze::<2>();
+    }
+    if let Some(a) = add {
+        y = y + float::<Inner, 2>(a).cast(FloatDType::F32);
+    }
+    y.cast(format).into_primitive().tensor()
 }
 
 /// The operation as the fusion stream runs it.

@@ -10,12 +10,11 @@
 mod geometry;
 mod pointers;
 
-use super::{FusedNorm, NormKernel, Normed, backward_decomposed, fell_back, forward_decomposed};
+use super::{FusedNorm, NormKernel, Normed, backward_decomposed, fell_back, forward_decomposed, plus};
 use crate::format::float;
 use crate::kernels::{KernelStream, Kernels};
 use crate::side::{self, Handles, Inner, Primitive, empty_packed};
 use burn::backend::Cuda;
-use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, FloatDType, Tensor};
 use burn_ir::CustomOpIr;
 use geometry::{Sizes, WARPS, backward_warps, per_lane, results, source};
@@ -76,40 +75,42 @@ impl FusedNorm for Cuda {
 
     fn norm_backward(
         dy: Tensor<Self, 2>,
-        x: Tensor<Self, 2>,
-        mean: Tensor<Self, 1>,
-        rstd: Tensor<Self, 1>,
+        (x, mean, rstd): (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>),
         gamma: Tensor<Self, 1>,
+        dres: Option<Tensor<Self, 2>>,
         kernels: &Kernels,
     ) -> (Tensor<Self, 2>, Tensor<Self, 1>, Tensor<Self, 1>) {
         // The forward pass counted a refusal.
         if kernels.norm == NormKernel::Burn || refused(&x).is_some() {
-            return backward_decomposed(dy, x, mean, rstd, gamma);
+            let (dx, dgamma, dbeta) = backward_decomposed(dy, x, mean, rstd, gamma);
+            return (plus(dx, dres), dgamma, dbeta);
         }
         let [rows, d] = x.dims();
         let warps = backward_warps(rows);
-        let inputs = [
+        let residual = dres.is_some();
+        let mut inputs = vec![
             side::fused(dy),
             side::fused(x),
             side::fused(mean),
             side::fused(rstd),
             side::fused(gamma),
         ];
-        let [dx, dgamma, dbeta] =
-            register_backward(inputs, [vec![rows, d], vec![warps, d], vec![warps, d]], kernels);
+        inputs.extend(dres.map(|r| side::fused(r.cast(FloatDType::F32))));
+        let pass = Pass::Backward {
+            kernels: *kernels,
+            residual,
+        };
+        let shapes = vec![vec![rows, d], vec![warps, d], vec![warps, d]];
+        let mut results = side::register_many("umgen_norm_backward", inputs, shapes, pass).into_iter();
+        let mut next = || {
+            results
+                .next()
+                .unwrap_or_else(|| unreachable!("umgen_norm_backward was described with three outputs"))
+        };
+        let (dx, dgamma, dbeta) = (next(), next(), next());
         let sum = |t| crate::rows::sum(float::<Cuda, 2>(t));
         (float(dx), sum(dgamma), sum(dbeta))
     }
-}
-
-/// Registers the backward pass on the fusion stream: `inputs` in, f32 outputs of `shapes` out.
-fn register_backward<const I: usize, const O: usize>(
-    inputs: [FloatTensor<Cuda>; I],
-    shapes: [Vec<usize>; O],
-    kernels: &Kernels,
-) -> [FloatTensor<Cuda>; O] {
-    let pass = Pass::Backward { kernels: *kernels };
-    side::register("umgen_norm_backward", inputs, shapes, pass)
 }
 
 /// Which pass.
@@ -122,8 +123,9 @@ enum Pass {
         keep: Option<FloatDType>,
         kernels: Kernels,
     },
-    /// dy, x, mean, rstd, γ in; dx and the warps' column sums of dy · x̂ and dy out.
-    Backward { kernels: Kernels },
+    /// dy, x, mean, rstd, γ (and, with `residual`, the residual stream's gradient) in; dx (plus that
+    /// gradient) and the warps' column sums of dy · x̂ and dy out.
+    Backward { kernels: Kernels, residual: bool },
 }
 
 impl side::SidePass for Pass {
@@ -137,7 +139,7 @@ impl side::SidePass for Pass {
             } => {
                 let [x, gamma, beta] = side::contiguous_inputs(handles, desc);
                 let formats = Formats { eps, out, keep };
-                launch(&x, &gamma, Some(&beta), None, formats, &kernels).unwrap_or_else(|why| {
+                launch(&x, &gamma, Some(&beta), None, None, formats, &kernels).unwrap_or_else(|why| {
                     fell_back(&why);
                     let normed = forward_decomposed::<Inner>(
                         float(x),
@@ -155,10 +157,17 @@ impl side::SidePass for Pass {
                     results
                 })
             }
-            Pass::Backward { kernels } => {
-                let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5>(handles, desc);
+            Pass::Backward { kernels, residual } => {
+                let (dy, x, mean, rstd, gamma, dres) = if residual {
+                    let [dy, x, mean, rstd, gamma, dres] = side::contiguous_inputs::<6>(handles, desc);
+                    (dy, x, mean, rstd, gamma, Some(dres))
+                } else {
+                    let [dy, x, mean, rstd, gamma] = side::contiguous_inputs::<5>(handles, desc);
+                    (dy, x, mean, rstd, gamma, None)
+                };
                 let grads = Some([&dy, &mean, &rstd]);
-                launch(&x, &gamma, None, grads, Formats::BACKWARD, &kernels).unwrap_or_else(|why| {
+                let formats = Formats::BACKWARD;
+                launch(&x, &gamma, None, grads, dres.as_ref(), formats, &kernels).unwrap_or_else(|why| {
                     fell_back(&why);
                     let warps = backward_warps(x.meta.shape()[0]);
                     let (dx, dgamma, dbeta) = backward_decomposed::<Inner>(
@@ -170,6 +179,7 @@ impl side::SidePass for Pass {
                     );
                     // The registered shapes hold one row per warp.
                     let rows = |t| side::as_partial_sums(t, warps);
+                    let dx = plus(dx, dres.map(float));
                     vec![side::inner(dx), rows(dgamma), rows(dbeta)]
                 })
             }
@@ -196,8 +206,9 @@ impl Formats {
 
 /// Runs the forward pass on contiguous `x` `[rows, d]` (f32 or bf16), γ and β (`grads` `None`: y in
 /// `out`'s format, mean, rstd, and x in `keep`'s format where asked) or the backward pass (`grads` =
-/// `[dy, mean, rstd]`: dx and the warps' column sums), returning the results; an error says why it could
-/// not (no result was written that the caller keeps, so it may run the decomposition). On cubecl's stream
+/// `[dy, mean, rstd]`: dx, plus `dres` where given, and the warps' column sums), returning the results; an
+/// error says why it could not (no result was written that the caller keeps, so it may run the
+/// decomposition). On cubecl's stream
 /// the kernels are launched from this thread with their buffers bound ([`launch_bound`]); with
 /// `train.kernels.stream = "side"` their pointers are fetched and they are launched on cubecl's device
 /// thread ([`pointers::launch`]), on f32 only (a bf16 input widened and a kept copy cast around them).
@@ -206,12 +217,14 @@ fn launch(
     gamma: &Primitive,
     beta: Option<&Primitive>,
     grads: Option<[&Primitive; 3]>,
+    dres: Option<&Primitive>,
     formats: Formats,
     kernels: &Kernels,
 ) -> Result<Vec<Primitive>, String> {
     let mut operands = vec![gamma];
     operands.extend(beta);
     operands.extend(grads.into_iter().flatten());
+    operands.extend(dres);
     if let Some(t) = operands.iter().find(|t| t.dtype != DType::F32) {
         return Err(format!("{:?} operand (the layer-norm kernels take f32)", t.dtype));
     }
@@ -226,7 +239,7 @@ fn launch(
         eps: formats.eps,
     };
     if kernels.stream == KernelStream::Cubecl {
-        return launch_bound(x, gamma, beta, grads, (per, sizes), formats);
+        return launch_bound(x, gamma, beta, (grads, dres), (per, sizes), formats);
     }
     let x32 = side::inner(float::<Inner, 2>(x.clone()).cast(FloatDType::F32));
     let mut results = side::on_device_thread(x, kernels.launch_thread, || {
@@ -238,6 +251,10 @@ fn launch(
     }
     if let Some(keep) = formats.keep.filter(|_| grads.is_none()) {
         results.push(side::inner(float::<Inner, 2>(x.clone()).cast(keep)));
+    }
+    // The side stream's kernels add no residual gradient.
+    if let Some(r) = dres {
+        results[0] = side::inner(float::<Inner, 2>(results[0].clone()) + float(r.clone()));
     }
     Ok(results)
 }
@@ -257,7 +274,7 @@ fn launch_bound(
     x: &Primitive,
     gamma: &Primitive,
     beta: Option<&Primitive>,
-    grads: Option<[&Primitive; 3]>,
+    (grads, dres): (Option<[&Primitive; 3]>, Option<&Primitive>),
     (per, sizes): (usize, Sizes),
     Formats { out, keep, .. }: Formats,
 ) -> Result<Vec<Primitive>, String> {
@@ -283,9 +300,10 @@ fn launch_bound(
         (None, Some([dy, mean, rstd])) => {
             let warps = backward_warps(rows);
             let results = results(x, true, FloatDType::F32);
-            let inputs = [dy, x, mean, rstd, gamma];
-            let buffers = inputs.into_iter().chain(&results).map(bind).collect();
-            let entry = format!("umgen_norm_backward_bound_x{xs}_{per}");
+            let inputs = [dy, x, mean, rstd, gamma].into_iter().chain(dres);
+            let buffers = inputs.chain(&results).map(bind).collect();
+            let res = if dres.is_some() { "_res" } else { "" };
+            let entry = format!("umgen_norm_backward_bound_x{xs}{res}_{per}");
             (results, buffers, entry, warps / WARPS)
         }
         _ => return Err("a pass takes β (forward) or the gradients (backward)".into()),

@@ -20,7 +20,7 @@ use crate::kernels::Kernels;
 use crate::tiled::{MIN_TILED_KEYS, tiled_backward, tiled_forward};
 use burn::tensor::{FloatDType, Tensor, TensorPrimitive};
 pub use pieces::{LayerBackend, Lin, Mask, Norm};
-use pieces::{Stats, drop, linear, linear_grad, linear_in, norm, norm_grad, product_grad, unbiased};
+use pieces::{Stats, drop, linear_grad, linear_in, norm, norm_grad, product_grad, residual, unbiased};
 
 /// The parameters of `SelfBlock` or `CrossBlock`, in the order of the operation's parents and of
 /// [`WeightGrads`].
@@ -198,8 +198,7 @@ fn run<I: LayerBackend>(
         }
     };
     let merged = operand(merged, p);
-    // A kept bf16 input (the backward pass's recomputation) is widened inside the add's fused kernel.
-    let x1 = x.clone().cast(FloatDType::F32) + drop(&masks.attn, linear(merged.clone(), &w.proj, p, k));
+    let x1 = residual(x.clone(), &masks.attn, merged.clone(), &w.proj, p, k);
     let (n2, stats2, _) = norm(x1.clone(), &w.ln2, s.eps, p, None, k);
     let hidden = unbiased(n2.clone(), &w.fc, p, inner_product_dtype(p, k), k);
     let [b, len, _] = n2.dims();
@@ -233,7 +232,7 @@ pub fn forward<I: LayerBackend>(
     keep: Option<FloatDType>,
 ) -> (Tensor<I, 3>, Option<Tensor<I, 3>>) {
     let (x1, f) = run(w, s, masks, x, ctx, keep);
-    let y = x1 + drop(&masks.mlp, linear(f.act, &w.out, s.precision, &s.kernels));
+    let y = residual(x1, &masks.mlp, f.act, &w.out, s.precision, &s.kernels);
     (y, f.kept)
 }
 
@@ -252,12 +251,12 @@ pub fn backward<I: LayerBackend>(
     let d_out = drop(&masks.mlp, dy.clone());
     // The activation's gradient in its own format (bf16 with the bf16 presets), as `mlp::gelu_mlp` has it.
     let act_format = float_format(f.act.dtype());
-    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, p, act_format, k);
+    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, (p, act_format), None, k);
     let d_act = d_act.reshape(f.hidden.dims());
     let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone(), k);
-    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, p, FloatDType::F32, k);
-    let (dx1_norm, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2, k);
-    let dx1 = dy + dx1_norm;
+    let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, (p, FloatDType::F32), None, k);
+    // The residual stream's gradient added to the norm's by its kernel.
+    let (dx1, d_ln2_g, d_ln2_b) = norm_grad(f.x1, f.stats2, &w.ln2, dn2, Some(dy), k);
     let d_proj = drop(&masks.attn, dx1.clone());
     // The attention's output gradient in the output's own format: bf16 where flash2 wrote it so, which
     // its backward pass then reads without a cast.
@@ -265,7 +264,8 @@ pub fn backward<I: LayerBackend>(
         Attn::Rows([.., att, _]) => float_format(att.dtype()),
         Attn::OverTime(_) => FloatDType::F32,
     };
-    let (d_merged, d_proj_w, d_proj_b) = linear_grad(f.merged, &w.proj, d_proj, p, d_merged_format, k);
+    let (d_merged, d_proj_w, d_proj_b) =
+        linear_grad(f.merged, &w.proj, d_proj, (p, d_merged_format), None, k);
     let (dq, dkv) = match f.attn {
         Attn::Rows([q, k, v, att, lse]) => {
             let (dq, dkv) = attend_grad(q, k, v, att, lse, split_heads(d_merged, s.heads), s);
@@ -279,23 +279,23 @@ pub fn backward<I: LayerBackend>(
             (dq.reshape([b, t * n, d]), dkv.reshape([b, t * n, 2 * d]))
         }
     };
-    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, p, FloatDType::F32, k);
+    let (dn1_q, d_q_w, d_q_b) = linear_grad(f.n1.clone(), &w.q, dq, (p, FloatDType::F32), None, k);
     let one = |t: Tensor<I, 1>| t.into_primitive();
     let two = |t: Tensor<I, 2>| t.into_primitive();
     // The keys' and values' input: the normalised context of a cross-attention layer, else the queries'.
     let (d_kv_w, d_kv_b, dn1, dctx) = match (f.ctx, &w.ln_ctx) {
         (Some((c, stats, nc)), Some(ln)) => {
-            let (dnc, d_kv_w, d_kv_b) = linear_grad(nc, &w.kv, dkv, p, FloatDType::F32, k);
-            let (dctx, dg, db) = norm_grad(c, stats, ln, dnc, k);
+            let (dnc, d_kv_w, d_kv_b) = linear_grad(nc, &w.kv, dkv, (p, FloatDType::F32), None, k);
+            let (dctx, dg, db) = norm_grad(c, stats, ln, dnc, None, k);
             (d_kv_w, d_kv_b, dn1_q, Some((dctx, [one(dg), one(db)])))
         }
         _ => {
-            let (dn1_kv, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, p, FloatDType::F32, k);
-            (d_kv_w, d_kv_b, dn1_q + dn1_kv, None)
+            // The queries' part of the input's gradient summed by the second product's epilogue.
+            let (dn1, d_kv_w, d_kv_b) = linear_grad(f.n1, &w.kv, dkv, (p, FloatDType::F32), Some(dn1_q), k);
+            (d_kv_w, d_kv_b, dn1, None)
         }
     };
-    let (dx_norm, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1, k);
-    let dx = dx1 + dx_norm;
+    let (dx, d_ln1_g, d_ln1_b) = norm_grad(f.x, f.stats1, &w.ln1, dn1, Some(dx1), k);
     let (dctx, d_ln_ctx) = dctx.unzip();
     let grads = [one(d_ln1_g), one(d_ln1_b)]
         .into_iter()

@@ -81,9 +81,11 @@ DEV void norm_forward(const NormParams& p, const TX* xs, T* out, u16* keep) {
 
 // The backward pass: with x̂ = (x − mean) · rstd and g = dy · γ,
 // dx = rstd · (g − mean(g) − x̂ · mean(g · x̂)); each warp adds its rows' dy · x̂ and dy per column. The
-// input `xs` is f32 or the bf16 copy the forward pass kept (`TX`).
+// input `xs` is f32 or the bf16 copy the forward pass kept (`TX`). With `dres`, the gradient the residual
+// stream brings to the norm's input (`[rows, d]`, f32) is added to dx as it is written, which a pass of its
+// own would read and write again.
 template <int PER, typename TX>
-DEV void norm_backward(const NormParams& p, const TX* xs) {
+DEV void norm_backward(const NormParams& p, const TX* xs, const float* dres) {
     const int lane = lane_id(), d = p.d;
     const long long warp = block_x() * warps_per_block() + warp_id();
     const long long stride = blocks() * warps_per_block();
@@ -113,7 +115,10 @@ DEV void norm_backward(const NormParams& p, const TX* xs) {
 #pragma unroll
         for (int j = 0; j < PER; j++) {
             const int c = lane + 32 * j;
-            if (c < d) dx[c] = rstd * (g[j] - mg - xh[j] * mgx);
+            if (c < d) {
+                const float v = rstd * (g[j] - mg - xh[j] * mgx);
+                dx[c] = dres != nullptr ? v + dres[row * d + c] : v;
+            }
         }
     }
 #pragma unroll
@@ -129,7 +134,7 @@ DEV void norm_backward(const NormParams& p, const TX* xs) {
 // One kernel per pass and row capacity: d ≤ 128, 256, 384, 512, 768, 1024.
 #define NORM_KERNELS(PER)                                                          \
     KERNEL umgen_norm_forward_##PER(NormParams p) { norm_forward<PER>(p, p.x, p.y, nullptr); } \
-    KERNEL umgen_norm_backward_##PER(NormParams p) { norm_backward<PER>(p, p.x); }
+    KERNEL umgen_norm_backward_##PER(NormParams p) { norm_backward<PER>(p, p.x, nullptr); }
 
 // The sizes the bound entry points take after their buffers (`Sizes` in `norm/cuda.rs`, field for field).
 struct NormSizes {
@@ -149,13 +154,13 @@ struct NormSizes {
                                      nullptr, nullptr, nullptr, s.rows, s.d, s.eps},                          \
                           x, y, KEEP);                                                                        \
     }
-#define NORM_BACKWARD_BOUND(PER, NAME, TX)                                                                    \
+#define NORM_BACKWARD_BOUND(PER, NAME, TX, RES_PARAM, RES)                                                    \
     KERNEL umgen_norm_backward_bound_##NAME##_##PER(const float* dy, const TX* x, const float* mean,          \
-                                                    const float* rstd, const float* gamma, float* dx,         \
+                                                    const float* rstd, const float* gamma RES_PARAM, float* dx, \
                                                     float* dgamma, float* dbeta, NormSizes s) {               \
         norm_backward<PER>(NormParams{nullptr, gamma, nullptr, dy, mean, rstd, nullptr, nullptr, nullptr, dx, \
                                       dgamma, dbeta, s.rows, s.d, s.eps},                                     \
-                           x);                                                                                \
+                           x, RES);                                                                           \
     }
 #define NORM_COMMA ,
 #define NORM_BOUND_KERNELS(PER)                                                   \
@@ -164,8 +169,10 @@ struct NormSizes {
     NORM_FORWARD_BOUND(PER, x16_y32, u16, float, , nullptr)                       \
     NORM_FORWARD_BOUND(PER, x16_y16, u16, u16, , nullptr)                         \
     NORM_FORWARD_BOUND(PER, x32_y16_keep, float, u16, NORM_COMMA u16* keep, keep) \
-    NORM_BACKWARD_BOUND(PER, x32, float)                                          \
-    NORM_BACKWARD_BOUND(PER, x16, u16)
+    NORM_BACKWARD_BOUND(PER, x32, float, , nullptr)                               \
+    NORM_BACKWARD_BOUND(PER, x16, u16, , nullptr)                                 \
+    NORM_BACKWARD_BOUND(PER, x32_res, float, NORM_COMMA const float* dres, dres)  \
+    NORM_BACKWARD_BOUND(PER, x16_res, u16, NORM_COMMA const float* dres, dres)
 // One family only where `UMGEN_INSTANCE` says which (kernels launched on cubecl's stream, `side/cubecl_stream.rs`).
 #ifdef UMGEN_INSTANCE
 UMGEN_INSTANCE

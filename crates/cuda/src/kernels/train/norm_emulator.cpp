@@ -71,7 +71,7 @@ static bool run(const Case& c, std::mt19937& rng) {
     // the bf16 output is the f32 output rounded, to the bit, as the cast it replaces rounded it; the kept
     // copy is the input rounded; a bf16 input gives what the f32 kernels give on that input widened (the
     // cast back to f32 it replaces), forward and backward, to the bit.
-    double bf16_mismatch = 0, kept_mismatch = 0, x16_mismatch = 0;
+    double bf16_mismatch = 0, kept_mismatch = 0, x16_mismatch = 0, res_error = 0;
     if (c.per == 12 || c.per == 24) {
         const bool wide = c.per == 24;
         std::vector<u16> yb(n, 0xffff), kept(n, 0xffff);
@@ -101,6 +101,18 @@ static bool run(const Case& c, std::mt19937& rng) {
                   sizes);
         }, c.grid, c.warps);
         for (long long i = 0; i < n; i++) x16_mismatch += y16[i] != y32[i] || dx16[i] != dx32[i];
+        // With the residual stream's gradient added as dx is written: dx plus it.
+        std::vector<float> dres(n), dxr(n), dgr(warps * c.d), dbr(warps * c.d);
+        std::vector<double> want(n);
+        for (long long i = 0; i < n; i++) dres[i] = 0.5f - (float)((i * 7919) % 1000) / 1000.f;
+        for (long long i = 0; i < n; i++) want[i] = dx16[i] + dres[i];
+        auto bwd16r = wide ? umgen_norm_backward_bound_x16_res_24 : umgen_norm_backward_bound_x16_res_12;
+        run_grid([&] {
+            bwd16r(dy.data(), kept.data(), m16.data(), r16.data(), gamma.data(), dres.data(), dxr.data(), dgr.data(),
+                   dbr.data(), sizes);
+        }, c.grid, c.warps);
+        res_error = relative_error(dxr, want);
+        for (long long i = 0; i < warps * c.d; i++) res_error += dgr[i] != dg16[i] || dbr[i] != db16[i];
         for (long long r = 0; r < c.rows; r++) x16_mismatch += m16[r] != m32[r] || r16[r] != r32[r];
         for (long long i = 0; i < warps * c.d; i++) x16_mismatch += dg16[i] != dg32[i] || db16[i] != db32[i];
     }
@@ -110,9 +122,10 @@ static bool run(const Case& c, std::mt19937& rng) {
         for (int i = 0; i < c.d; i++) sdg[i] += dg[w * c.d + i], sdb[i] += db[w * c.d + i];
     const double errs[] = {relative_error(y, ry), relative_error(mean, rmean), relative_error(rstd, rrstd),
                            relative_error(dx, rdx), relative_error(sdg, rdg), relative_error(sdb, rdb),
-                           bf16_mismatch, kept_mismatch, x16_mismatch};
+                           bf16_mismatch, kept_mismatch, x16_mismatch, res_error};
     const char* const names[] = {"y", "mean", "rstd", "dx", "dgamma", "dbeta", "bf16 y unlike y rounded",
-                                 "kept copy unlike x rounded", "bf16-input passes unlike f32 ones on it"};
+                                 "kept copy unlike x rounded", "bf16-input passes unlike f32 ones on it",
+                                 "dx with the residual's gradient unlike dx plus it"};
     printf("rows %lld d %d per %d grid %d × %d warps:", c.rows, c.d, c.per, c.grid, c.warps);
     // f32 sums of up to a few hundred terms.
     return report(errs, names, 2e-5);
