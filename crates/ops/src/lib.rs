@@ -9,7 +9,8 @@
 //!
 //! - [`mod@format`]: the products' number format ([`Precision`]: f32, or bf16 operands with f32 master
 //!   weights) and the casts around it; [`linear`]: linear layers in it, on the named kernel ([`matmul`]:
-//!   cuBLAS or cubek) on CUDA, the bias added by [`rows`].
+//!   cuBLAS or cubek) on CUDA, the bias (and the residual stream a layer joins) added by the product's
+//!   epilogue (cuBLASLt on CUDA, `matmul::biased`); [`rows`]: column sums, and the bias add elsewhere.
 //! - [`attention`]: the training attention as one operation that keeps only its inputs, output and
 //!   log-sum-exp; its passes are [`flash`]'s kernels on CUDA (FlashAttention-2 in CUDA C, or cubecl
 //!   kernels) and [`tiled`]'s blocks elsewhere. [`temporal`]: the TAR's attention over time on the rows
