@@ -29,6 +29,7 @@ use crate::format::operand;
 use crate::kernels::Kernels;
 pub use crate::kernels::MatmulKernel;
 pub use biased::{BiasedFn, biased_autodiff, biased_for};
+pub(crate) use biased::{Weight, backward_biased};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -39,6 +40,20 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{FloatDType, Tensor};
+
+/// Finishes the custom autodiff operation `op` on checkpointing strategy `C` with its `parents`: the
+/// result `y`, tracked with `state` where any parent is. A macro because an operation whose number of
+/// parents varies (a linear layer with or without the residual it joins) names each arm's parents, and
+/// burn's node type is private to its autodiff crate.
+macro_rules! finish_op {
+    ($c:ty, $op:expr, $parents:expr, $state:expr, $y:expr) => {
+        match $op.prepare::<$c>($parents).compute_bound().stateful() {
+            burn::backend::autodiff::ops::OpsKind::Tracked(prep) => prep.finish($state, $y),
+            burn::backend::autodiff::ops::OpsKind::UnTracked(prep) => prep.finish($y),
+        }
+    };
+}
+pub(crate) use finish_op;
 
 mod biased;
 #[cfg(feature = "cuda")]
@@ -93,14 +108,25 @@ pub fn epilogue_decomposed<B: NamedMatmul>(
         };
         return y.into_primitive().tensor();
     }
-    let mut y = float::<B, 2>(B::named_matmul(lhs, rhs, FloatDType::F32, k));
+    let y = float::<B, 2>(B::named_matmul(lhs, rhs, FloatDType::F32, k));
+    added(y, (bias, add), out).into_primitive().tensor()
+}
+
+/// An f32 product `y` plus `bias` and `add`, summed in f32, then cast to `out`: an epilogue's additions as
+/// burn operations (on any backend: the CUDA fallback runs them on cubecl's).
+pub(crate) fn added<B: Backend>(
+    y: Tensor<B, 2>,
+    (bias, add): (Option<FloatTensor<B>>, Option<FloatTensor<B>>),
+    out: FloatDType,
+) -> Tensor<B, 2> {
+    let mut y = y;
     if let Some(b) = bias {
         y = y + float::<B, 1>(b).cast(FloatDType::F32).unsqueeze::<2>();
     }
     if let Some(a) = add {
         y = y + float::<B, 2>(a).cast(FloatDType::F32);
     }
-    y.cast(out).into_primitive().tensor()
+    y.cast(out)
 }
 
 /// The CPU backend has one kernel: burn's product, cast to the result's format. It lets the CPU tests

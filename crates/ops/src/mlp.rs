@@ -9,14 +9,14 @@ use crate::format::{Precision, float, float_format, operand};
 use crate::gelu::{FusedGelu, GeluKernel, linear_gelu, tracked};
 use crate::kernels::Kernels;
 use crate::linear::linear_with;
-use crate::matmul::{NamedMatmul, Written, product, product_epilogue, product_in};
+use crate::matmul::{NamedMatmul, Weight, Written, backward_biased, finish_op, product_epilogue};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
     BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
 };
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::nn::Linear;
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
@@ -142,43 +142,22 @@ fn on<B: Backend, I: GeluProductBackend>() -> Option<GeluProductFn<B>> {
 #[derive(Debug)]
 struct GeluProduct<const N: usize>;
 
-/// The first product and the bias (`h`'s recipe), `w` in the products' format, that format, the input
-/// gradient's, the kernels.
-type Kept<I> = (
-    FloatTensor<I>,
-    FloatTensor<I>,
-    FloatTensor<I>,
-    Precision,
-    FloatDType,
-    Kernels,
-);
+/// The first product and the bias (`h`'s recipe), and the second product's [`Weight`].
+type Kept<I> = (FloatTensor<I>, FloatTensor<I>, Weight<I>);
 
 impl<I: GeluProductBackend, const N: usize> Backward<I, N> for GeluProduct<N> {
     type State = Kept<I>;
 
     fn backward(self, ops: Ops<Self::State, N>, grads: &mut Gradients, _: &mut Checkpointer) {
         let ids = ops.parents.map(|p| p.map(|node| node.id));
-        let (y, b, w, p, dx_format, k) = ops.state;
-        let g = float::<I, 2>(grads.consume::<I>(&ops.node));
-        if let Some(Some(id)) = ids.get(3) {
-            grads.register::<I>(*id, g.clone().cast(FloatDType::F32).into_primitive().tensor());
-        }
-        // The bias's sum and the products' operand in one pass (as `matmul::biased`).
-        let (dz, dc) = crate::rows::sum_cast(g, p.operand_dtype());
-        let dz = operand(dz, p);
-        if let Some(Some(id)) = ids.get(2) {
-            grads.register::<I>(*id, dc.into_primitive().tensor());
-        }
-        if let Some(Some(id)) = ids.first() {
-            let dh = product_in(dz.clone(), float::<I, 2>(w).transpose(), dx_format, &k);
-            grads.register::<I>(*id, dh.into_primitive().tensor());
-        }
-        if let Some(Some(id)) = ids.get(1) {
+        let (y, b, weight) = ops.state;
+        let p = weight.1;
+        // The weight's gradient reads `h`, recomputed here instead of kept.
+        let recompute = || {
             RECOMPUTED.with(|n| n.set(n.get() + 1));
-            let h = operand(I::bias_gelu_forward(float(y), float(b)), p);
-            let dw = product(h.transpose(), dz, &k);
-            grads.register::<I>(*id, dw.into_primitive().tensor());
-        }
+            operand(I::bias_gelu_forward(float(y), float(b)), p)
+        };
+        backward_biased::<I>(&ids, grads.consume::<I>(&ops.node), weight, recompute, grads);
     }
 }
 
@@ -214,20 +193,11 @@ fn apply<I: GeluProductBackend, C: CheckpointStrategy>(
     let state = || {
         let y = y.into_primitive().tensor().primitive;
         let b = b.into_primitive().tensor().primitive;
-        (y, b, wi.into_primitive().tensor(), p, written.dx, *k)
+        (y, b, (wi.into_primitive().tensor(), p, written.dx, *k))
     };
-    // The parents' node type is private to burn's autodiff: one arm per number of parents.
-    macro_rules! finish {
-        ($op:expr, $parents:expr) => {
-            match $op.prepare::<C>($parents).compute_bound().stateful() {
-                OpsKind::Tracked(prep) => prep.finish(state(), z),
-                OpsKind::UnTracked(prep) => prep.finish(z),
-            }
-        };
-    }
     let z = match add {
-        Some(a) => finish!(GeluProduct::<4>, [h.node, w.node, c.node, a.node]),
-        None => finish!(GeluProduct::<3>, [h.node, w.node, c.node]),
+        Some(a) => finish_op!(C, GeluProduct::<4>, [h.node, w.node, c.node, a.node], state(), z),
+        None => finish_op!(C, GeluProduct::<3>, [h.node, w.node, c.node], state(), z),
     };
     float(z)
 }

@@ -18,7 +18,7 @@ use burn::backend::autodiff::checkpoint::strategy::{
     BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
 };
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{FloatDType, Tensor};
@@ -49,27 +49,35 @@ fn on<B: Backend, I: NamedMatmul>() -> Option<BiasedFn<B>> {
 #[derive(Debug)]
 struct Biased<const N: usize>;
 
-/// `x` and `w` in the products' format, that format, the input gradient's, the kernels.
-type State<B> = (FloatTensor<B>, FloatTensor<B>, Precision, FloatDType, Kernels);
+/// `x` in the products' format, and the [`Weight`].
+type State<B> = (FloatTensor<B>, Weight<B>);
+
+/// What a biased product's backward pass needs besides its input: the weight in the products' format,
+/// that format, the input gradient's, the kernels.
+pub(crate) type Weight<B> = (FloatTensor<B>, Precision, FloatDType, Kernels);
 
 impl<B: NamedMatmul, const N: usize> Backward<B, N> for Biased<N> {
     type State = State<B>;
 
     fn backward(self, ops: Ops<Self::State, N>, grads: &mut Gradients, _: &mut Checkpointer) {
         let ids = ops.parents.map(|p| p.map(|node| node.id));
-        backward::<B>(ids.as_slice(), ops.state, grads.consume::<B>(&ops.node), grads);
+        let (x, weight) = ops.state;
+        let g = grads.consume::<B>(&ops.node);
+        backward_biased::<B>(&ids, g, weight, || float(x), grads);
     }
 }
 
-/// Registers the gradients of the parents `ids` (x, w, b, and the added rows where there are four) from
-/// the result's gradient `g`.
-fn backward<B: NamedMatmul>(
+/// Registers the gradients of a biased product's parents `ids` (its input, its weight, its bias, and the
+/// added rows where there are four) from the result's gradient `g`. `input` gives the product's input in
+/// the products' format; it is called only where the weight asks for a gradient (the MLP's second product
+/// recomputes it there).
+pub(crate) fn backward_biased<B: NamedMatmul>(
     ids: &[Option<NodeId>],
-    state: State<B>,
     g: FloatTensor<B>,
+    (w, p, dx_format, k): Weight<B>,
+    input: impl FnOnce() -> Tensor<B, 2>,
     grads: &mut Gradients,
 ) {
-    let (x, w, p, dx_format, k) = state;
     let g = float::<B, 2>(g);
     if let Some(Some(id)) = ids.get(3) {
         grads.register::<B>(*id, g.clone().cast(FloatDType::F32).into_primitive().tensor());
@@ -85,7 +93,7 @@ fn backward<B: NamedMatmul>(
         grads.register::<B>(*id, dx.into_primitive().tensor());
     }
     if let Some(Some(id)) = ids.get(1) {
-        let dw = product(float::<B, 2>(x).transpose(), dy, &k);
+        let dw = product(input().transpose(), dy, &k);
         grads.register::<B>(*id, dw.into_primitive().tensor());
     }
 }
@@ -123,23 +131,11 @@ pub fn biased_autodiff<I: NamedMatmul, C: CheckpointStrategy>(
     .tensor();
     let state = (
         xi.into_primitive().tensor(),
-        wi.into_primitive().tensor(),
-        p,
-        written.dx,
-        *k,
+        (wi.into_primitive().tensor(), p, written.dx, *k),
     );
-    // The parents' node type is private to burn's autodiff: one arm per number of parents.
-    macro_rules! finish {
-        ($op:expr, $parents:expr) => {
-            match $op.prepare::<C>($parents).compute_bound().stateful() {
-                OpsKind::Tracked(prep) => prep.finish(state, y),
-                OpsKind::UnTracked(prep) => prep.finish(y),
-            }
-        };
-    }
     let out = match add {
-        Some(a) => finish!(Biased::<4>, [x.node, w.node, b.node, a.node]),
-        None => finish!(Biased::<3>, [x.node, w.node, b.node]),
+        Some(a) => finish_op!(C, Biased::<4>, [x.node, w.node, b.node, a.node], state, y),
+        None => finish_op!(C, Biased::<3>, [x.node, w.node, b.node], state, y),
     };
     float(out)
 }

@@ -158,14 +158,8 @@ fn run_epilogue(
             &why,
         ),
     }
-    let mut y = float::<Inner, 2>(run(lhs, rhs, DType::F32, kernels));
-    if let Some(b) = bias {
-        y = y + float::<Inner, 1>(b).cast(FloatDType::F32).unsqueeze::<2>();
-    }
-    if let Some(a) = add {
-        y = y + float::<Inner, 2>(a).cast(FloatDType::F32);
-    }
-    y.cast(format).into_primitive().tensor()
+    let y = float::<Inner, 2>(run(lhs, rhs, DType::F32, kernels));
+    super::added(y, (bias, add), format).into_primitive().tensor()
 }
 
 /// The operation as the fusion stream runs it.
