@@ -5,8 +5,8 @@ use burn::module::Module;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear};
 use burn::tensor::backend::Backend;
 use burn::tensor::{Bool, Tensor};
+use umgen_ops::layer::{LayerParts, cross_op_for};
 use umgen_ops::norm::layer_norm_operand;
-use umgen_ops::recompute::{LayerParts, recomputed_cross_for};
 use umgen_ops::{KeptInputs, Kernels};
 
 /// A pre-norm cross-attention layer: `x + attn(ln(x), ln(ctx))`, then `x + mlp(ln(x))`.
@@ -51,15 +51,15 @@ impl<B: Backend> CrossBlock<B> {
         )
     }
 
-    /// The layer's parts, for the recomputing operation.
-    fn recompute_parts(&self) -> LayerParts<'_, B> {
+    /// The layer's parts, for the layer's one operation.
+    fn op_parts(&self) -> LayerParts<'_, B> {
         layer_parts(&self.ln_q, Some(&self.ln_ctx), &self.attn, &self.ln2, &self.mlp)
     }
 
     /// Queries `x` `[b, lq, d]` over `ctx` `[b, lk, d]` with an optional mask (true = hidden), with the
-    /// kernels `k`. With recomputation on (`k.recompute`, `umgen_ops::recompute`) a training backend keeps
-    /// only `x` and `ctx` (which every layer of a stack shares) for the backward pass of a layer without a
-    /// mask.
+    /// kernels `k`. With recomputation on (`k.recompute`) or `k.layer = fused`, a training backend runs a
+    /// layer without a mask as one operation (`umgen_ops::layer`), which keeps only `x` and `ctx` (which
+    /// every layer of a stack shares) for the backward pass, or the activations it reads.
     pub fn forward(
         &self,
         x: Tensor<B, 3>,
@@ -68,9 +68,9 @@ impl<B: Backend> CrossBlock<B> {
         k: &Kernels,
     ) -> Tensor<B, 3> {
         if mask.is_none()
-            && let Some(layer) = recomputed_cross_for::<B>(k)
+            && let Some(layer) = cross_op_for::<B>(k)
         {
-            match layer(&self.recompute_parts(), x, ctx, k) {
+            match layer(&self.op_parts(), x, ctx, k) {
                 Ok(y) => return y,
                 Err((x, ctx)) => return self.forward_autodiff(x, ctx, None, k),
             }

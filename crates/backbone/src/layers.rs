@@ -10,10 +10,10 @@ use burn::tensor::{Bool, FloatDType, Tensor};
 use umgen_ops::Kernels;
 use umgen_ops::format::float_format;
 use umgen_ops::heads::{merge_heads, split_heads};
+use umgen_ops::layer::{LayerParts, layer_op_for};
 use umgen_ops::linear::{linear, linear_in, linear_residual, linear_with};
 use umgen_ops::mlp::{gelu_mlp, gelu_mlp_onto};
 use umgen_ops::norm::layer_norm_operand;
-use umgen_ops::recompute::{LayerParts, recomputed_for};
 
 /// `Linear(d → r·d), GELU, Linear(r·d → d)`, dropout on the output.
 #[derive(Module, Debug)]
@@ -258,9 +258,10 @@ impl<B: Backend> SelfBlock<B> {
     }
 
     /// Applies it to `[b, l, d]`; `causal` lets position `i` see positions `≤ i` only. With recomputation on
-    /// (`k.recompute`, `umgen_ops::recompute`) a training backend keeps only `x` for the backward pass.
+    /// (`k.recompute`) or `k.layer = fused`, a training backend runs it as one operation
+    /// (`umgen_ops::layer`), which keeps only `x` for the backward pass or the activations it reads.
     pub fn forward(&self, x: Tensor<B, 3>, causal: bool, k: &Kernels) -> Tensor<B, 3> {
-        match recomputed_for::<B>(k) {
+        match layer_op_for::<B>(k) {
             Some(layer) => layer(&self.parts(), x, causal, None, k)
                 .unwrap_or_else(|x| self.forward_autodiff(x, causal, k)),
             None => self.forward_autodiff(x, causal, k),
@@ -268,12 +269,12 @@ impl<B: Backend> SelfBlock<B> {
     }
 
     /// The causal layer over time of `x` `[b, t, n, d]`: each of the `n` positions attends over its own
-    /// `t` frames. Training backends run `umgen_ops::temporal`'s operation on the rows as they lie, recomputed
-    /// (`recompute.rs`) or not; the others group the frames of each position (`[b · n, t, d]`, a
-    /// transposition each way) for `forward_autodiff`.
+    /// `t` frames. Training backends run `umgen_ops::temporal`'s operation on the rows as they lie, inside
+    /// the layer's one operation (`umgen_ops::layer`) or not; the others group the frames of each
+    /// position (`[b · n, t, d]`, a transposition each way) for `forward_autodiff`.
     pub fn forward_over_time(&self, x: Tensor<B, 4>, k: &Kernels) -> Tensor<B, 4> {
         let [b, t, n, d] = x.dims();
-        match recomputed_for::<B>(k) {
+        match layer_op_for::<B>(k) {
             Some(layer) => match layer(&self.parts(), x.reshape([b, t * n, d]), true, Some((t, n)), k) {
                 Ok(y) => y.reshape([b, t, n, d]),
                 Err(x) => self.over_time_autodiff(x.reshape([b, t, n, d]), k),
@@ -332,13 +333,13 @@ impl<B: Backend> SelfBlock<B> {
 }
 
 impl<B: Backend> SelfBlock<B> {
-    /// The layer's parts, for the recomputing operation.
+    /// The layer's parts, for the layer's one operation.
     pub(crate) fn parts(&self) -> LayerParts<'_, B> {
         layer_parts(&self.ln1, None, &self.attn, &self.ln2, &self.mlp)
     }
 }
 
-/// The parts of a pre-norm layer for the recomputing operation: the attention's norm `ln1` (the queries'
+/// The parts of a pre-norm layer for the layer's one operation: the attention's norm `ln1` (the queries'
 /// in a cross-attention layer, whose context has `ln_ctx`), the attention, the MLP's norm and the MLP.
 pub(crate) fn layer_parts<'a, B: Backend>(
     ln1: &'a LayerNorm<B>,

@@ -19,8 +19,9 @@
 //!    CE(OAR) + CE(TAR) + CE(ego), reported per modality.
 //!
 //! The operations it calls (linear products in f32 or bf16, attention, layer norm, bias + GELU, embedding
-//! lookups, cross-entropy) and their kernels are `umgen-ops`'; with recomputation on, the self-attention
-//! layers keep only their inputs for the backward pass (`umgen_ops::recompute`).
+//! lookups, cross-entropy) and their kernels are `umgen-ops`'; with recomputation on (or `layer =
+//! "fused"`), each attention layer runs as one operation with a hand-written backward pass, which keeps
+//! only its inputs for the backward pass (or the activations it reads) (`umgen_ops::layer`).
 //!
 //! For generation, [`Backbone::oar_step`] decodes one position at a time over an [`OarCache`].
 

@@ -146,7 +146,7 @@ pub(crate) fn inner_product_dtype(p: Precision, k: &Kernels) -> FloatDType {
 
 /// The passes on a backend without autodiff, as [`linear_gelu`] runs them for `k.gelu`: the
 /// activation from the product `y` (without its bias, in [`inner_product_dtype`]).
-/// `recompute/math.rs`'s hand-written layer uses them.
+/// `layer/math.rs`'s hand-written layer uses them.
 pub(crate) fn inner_forward<I: FusedGelu>(y: Tensor<I, 2>, b: Tensor<I, 1>, k: &Kernels) -> Tensor<I, 2> {
     match k.gelu {
         GeluKernel::Fused => I::bias_gelu_forward(y, b),

@@ -3,13 +3,17 @@
 //!
 //! A choice changes how an operation is computed (which kernel, on which stream, from which thread, how
 //! much it keeps for the backward pass), never what it computes: two runs that differ only in these agree
-//! within the kernels' rounding. The CPU ignores every choice but `recompute` and `attention_block_mib`
-//! (its tiled attention's blocks); CUDA reads them all.
+//! within the kernels' rounding. The CPU ignores every choice but `recompute`, `layer`, `recompute_gelu` (in a layer run as one
+//! operation) and `attention_block_mib` (its tiled attention's blocks); CUDA reads them all.
 
-use burn::tensor::FloatDType;
 use serde::{Deserialize, Serialize};
 
+mod choices;
 mod side_sync;
+pub use choices::{
+    AdamWChoice, AttentionKernel, EpilogueKernel, Flash2Backward, GeluKernel, KeptInputs, KernelStream,
+    LaunchThread, LayerKernel, MatmulKernel, NormKernel, XentKernel,
+};
 pub use side_sync::{SideFamily, SideSync};
 
 /// Keys (or queries, for the key/value gradients) per step of a fused kernel's loop that the kernels
@@ -42,9 +46,12 @@ pub struct Kernels {
     /// a causal matrix's hidden half and launch more, smaller kernels.
     pub attention_block_mib: usize,
     /// Recompute each self-attention layer's activations in the backward pass instead of keeping them
-    /// (activation checkpointing, [`crate::recompute`]): the step keeps one activation per layer instead
-    /// of about twenty, for one more forward pass of those layers.
+    /// (activation checkpointing, [`crate::layer`]): the step keeps one activation per layer instead
+    /// of about twenty, for one more forward pass of those layers. Every layer then runs as one
+    /// operation, whatever `layer` says.
     pub recompute: bool,
+    /// How a training backend runs the attention layers whose activations it keeps, [`LayerKernel`].
+    pub layer: LayerKernel,
     /// The format the backward pass keeps the residual stream in where a layer norm is its only reader
     /// there (the inputs of recomputed layers, and of layer norms whose output feeds products): `operand`
     /// (the products' format, bf16 under the bf16 presets: half the memory of the f32 stream) or `f32`
@@ -81,7 +88,7 @@ pub struct Kernels {
     pub attention_backward: Flash2Backward,
     /// Where the host waits around side-stream work (`stream = "side"` only), [`SideSync`].
     pub side_sync: SideSync,
-    /// How the additions around the products and layer norms of a recomputed layer run, [`EpilogueKernel`].
+    /// How the additions around the products and layer norms run, [`EpilogueKernel`].
     pub epilogue: EpilogueKernel,
 }
 
@@ -99,6 +106,7 @@ impl Kernels {
         attention_step: DEFAULT_STEP,
         attention_block_mib: BLOCK_BYTES >> 20,
         recompute: false,
+        layer: LayerKernel::Burn,
         kept_inputs: KeptInputs::Operand,
         norm: NormKernel::Fused,
         recompute_gelu: true,
@@ -158,156 +166,6 @@ pub fn check_step(step: usize) -> Result<usize, String> {
     }
 }
 
-/// Which kernel runs the linear layers' products in training on CUDA (`train.kernels.matmul`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum MatmulKernel {
-    /// cubek's `specialized_tma_mma`, through [`crate::matmul::named_autodiff`].
-    Named,
-    /// cuBLAS's `cublasGemmEx`, through [`crate::matmul::named_autodiff`]; products it cannot take, or a machine without
-    /// libcublas, fall back to [`MatmulKernel::Named`] (counted in `fallbacks`).
-    #[default]
-    Cublas,
-    /// burn's default kernel, through burn's own autodiff.
-    Burn,
-}
-
-/// How the additions around the products and layer norms run (`train.kernels.epilogue`): a bias, the
-/// residual stream, or another product's result added to a product, and the residual stream's gradient
-/// added to a layer norm's input gradient.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum EpilogueKernel {
-    /// In the kernels that write the result: cuBLASLt's epilogue (with `matmul = "cublas"`), the layer
-    /// norm's backward kernel. The default.
-    #[default]
-    Fused,
-    /// As element-wise kernels of their own after the product or the norm (for comparing the two).
-    Apart,
-}
-
-/// Which kernels run the training attention on CUDA (`train.kernels.attention`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum AttentionKernel {
-    /// One fused cubecl kernel per pass (forward; key/value gradients; query gradients).
-    Fused,
-    /// The tiled passes in burn tensor operations (query blocks of `attention_block_mib`).
-    Tiled,
-    /// FlashAttention-2 in CUDA C (umgen-cuda's `kernels/flash2/flash2.cu`, NVRTC): products and softmax in registers; head
-    /// sizes 32 and 64 (others run [`AttentionKernel::Fused`]). The default: about 2× the fused kernels'
-    /// speed.
-    #[default]
-    Flash2,
-}
-
-/// How the flash2 kernels compute the attention's backward pass (`train.kernels.attention_backward`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Flash2Backward {
-    /// One kernel for the keys' and values' gradients, another for the queries', each recomputing the
-    /// probabilities and their gradients.
-    #[default]
-    TwoPass,
-    /// One kernel for all three: the key/value kernel adds each step's share of the queries' gradient into
-    /// an f32 accumulator, as FlashAttention-2's backward pass does (by the TMA unit's bulk reduction, as
-    /// FlashAttention-3 adds it). Head size 64 on
-    /// Hopper's `wgmma` (compute capability 9.0) only, on cubecl's stream; elsewhere the two-pass kernels
-    /// run (counted in the attention's fallbacks).
-    OnePass,
-}
-
-/// The format the backward pass keeps layer norms' inputs in (`train.kernels.kept_inputs`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum KeptInputs {
-    /// The products' format (bf16 under the bf16 presets): a layer norm's backward pass is the only reader
-    /// of its input, and what the norm feeds the products is rounded to that format anyway. The default.
-    #[default]
-    Operand,
-    /// f32, the residual stream's own format.
-    F32,
-}
-
-impl KeptInputs {
-    /// The format an input is kept in whose layer norm feeds products in `operand` (f32 where the norm's
-    /// output is f32: nothing rounds it).
-    pub fn format(self, operand: FloatDType) -> FloatDType {
-        match self {
-            Self::Operand => operand,
-            Self::F32 => FloatDType::F32,
-        }
-    }
-}
-
-/// What computes the training layer norms on CUDA (`train.kernels.norm`); the CPU always runs the decomposition.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum NormKernel {
-    /// One CUDA C kernel per pass (umgen-cuda's `kernels/train/norm.cu`). The default.
-    #[default]
-    Fused,
-    /// burn's decomposition (for comparing the kernels with it).
-    Burn,
-}
-
-/// What computes the MLPs' bias + GELU when training (`train.kernels.gelu`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum GeluKernel {
-    /// One operation per pass (`gelu::FusedGelu`: on CUDA one CUDA C kernel, umgen-cuda's `kernels/train/gelu.cu`). The default.
-    #[default]
-    Fused,
-    /// burn's bias add and GELU (for comparing the kernels with them).
-    Burn,
-}
-
-/// What computes the cross-entropy's passes over the logits when training on CUDA (`train.kernels.xent`); the
-/// CPU always runs burn's operations.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum XentKernel {
-    /// One CUDA C kernel per pass (umgen-cuda's `kernels/train/xent.cu`). The default.
-    #[default]
-    Fused,
-    /// burn's operations (for comparing the kernels with them).
-    Burn,
-}
-
-/// What steps AdamW when training on CUDA (`train.kernels.adamw`); the CPU always steps tensor by tensor.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum AdamWChoice {
-    /// One CUDA C kernel for all parameter tensors (umgen-cuda's `kernels/train/adamw.cu`). The default.
-    #[default]
-    Fused,
-    /// burn's AdamW, one chain of tensor operations per parameter tensor (for comparing the kernel with it).
-    Burn,
-}
-
-/// Where the CUDA C kernels and cuBLAS's products run (`train.kernels.stream`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum KernelStream {
-    /// cubecl's own stream, launched as cubecl kernels. The default.
-    #[default]
-    Cubecl,
-    /// A side stream per kernel family, ordered with cubecl's through device flags (for comparing the
-    /// two).
-    Side,
-}
-
-/// Which thread launches umgen's custom operations' work (`train.kernels.launch_thread`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum LaunchThread {
-    /// cubecl's device thread, one blocking call per operation. The default.
-    #[default]
-    Device,
-    /// The calling thread, a blocking call per device pointer (for comparing the two).
-    Caller,
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -338,6 +196,8 @@ mod tests {
         assert!(serde_json::from_str::<Flash2Backward>(r#""one_pass""#).is_err());
         let parsed: Vec<EpilogueKernel> = serde_json::from_str(r#"["fused", "apart"]"#).expect("both names");
         assert_eq!(parsed, [EpilogueKernel::Fused, EpilogueKernel::Apart]);
+        let parsed: Vec<LayerKernel> = serde_json::from_str(r#"["burn", "fused"]"#).expect("both names");
+        assert_eq!(parsed, [LayerKernel::Burn, LayerKernel::Fused]);
     }
 
     #[test]
@@ -355,7 +215,8 @@ mod tests {
                 d.launch_thread,
                 d.kept_inputs,
                 d.attention_backward,
-                d.epilogue
+                d.epilogue,
+                d.layer
             ),
             (
                 MatmulKernel::default(),
@@ -368,7 +229,8 @@ mod tests {
                 LaunchThread::default(),
                 KeptInputs::default(),
                 Flash2Backward::default(),
-                EpilogueKernel::default()
+                EpilogueKernel::default(),
+                LayerKernel::default()
             )
         );
     }

@@ -17,8 +17,8 @@
 //!   as they lie. [`heads`]: the head layout.
 //! - [`norm`] (layer norm), [`gelu`] (bias + GELU), [`lookup`] (embedding lookups and their gradient),
 //!   [`xent`] (cross-entropy from logits, with [`smoothing`]'s targets): one kernel per pass on CUDA.
-//! - [`recompute`]: a self-attention layer as one operation that keeps only its input and recomputes its
-//!   activations in the backward pass (activation checkpointing).
+//! - [`layer`]: a pre-norm attention layer as one operation with a hand-written backward pass, which
+//!   recomputes its activations (activation checkpointing) or reads the ones its forward pass kept.
 //! - [`ready`]: points in the forward pass where the backward pass has completed a block's gradients,
 //!   for data parallelism's overlapped all-reduce.
 //! - [`adamw`]: the optimizer's multi-tensor AdamW step and gradient norm on CUDA.
@@ -33,13 +33,13 @@ pub mod format;
 pub mod gelu;
 pub mod heads;
 pub mod kernels;
+pub mod layer;
 pub mod linear;
 pub mod lookup;
 pub mod matmul;
 pub mod mlp;
 pub mod norm;
 pub mod ready;
-pub mod recompute;
 pub mod rows;
 #[cfg(feature = "cuda")]
 mod side;

@@ -8,8 +8,8 @@
 //! burn's broadcast (so element-wise fusion around it is unchanged) and whose backward pass sums the rows
 //! with `sum`: rows in groups, then the groups (on CUDA one kernel each, umgen-cuda's `kernels/train/rows.cu`, whose blocks
 //! read whole row segments; burn's reductions of the groups gave each column one unit, 15–20 µs for a
-//! `[256, 384]` matrix). The layer norms' scales and shifts (`norm.rs`) and the recomputed layers
-//! (`recompute/math.rs`) use `sum` in their hand-written backward passes. Elsewhere (inference backends,
+//! `[256, 384]` matrix). The layer norms' scales and shifts (`norm.rs`) and the layers run as one operation
+//! (`layer/math.rs`) use `sum` in their hand-written backward passes. Elsewhere (inference backends,
 //! backends this workspace does not train on) [`add`] is burn's broadcast.
 
 #[cfg(feature = "cuda")]

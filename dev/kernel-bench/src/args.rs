@@ -59,7 +59,7 @@ pub struct TrainArgs {
     /// `train.kernels.attention=flash2,fused`), and each value's median step is printed: a comparison inside one
     /// process, free of the spread between processes. Only settings that leave the run the same alternate
     /// (`train.kernels.matmul`, `train.kernels.attention`, `train.kernels.attention_step`, `train.kernels.attention_block_mib`,
-    /// `train.kernels.recompute`, `train.kernels.kept_inputs`, `train.kernels.recompute_gelu`, `train.kernels.norm`, `train.kernels.gelu`, `train.kernels.xent`, `train.kernels.stream`, `train.kernels.adamw`,
+    /// `train.kernels.recompute`, `train.kernels.layer`, `train.kernels.kept_inputs`, `train.kernels.recompute_gelu`, `train.kernels.norm`, `train.kernels.gelu`, `train.kernels.xent`, `train.kernels.stream`, `train.kernels.adamw`,
     /// `train.kernels.launch_thread`, `train.kernels.epilogue`); `--warmup` must cover one step of each value.
     #[arg(long, value_name = "KEY=V1,V2")]
     pub alternate: Option<String>,

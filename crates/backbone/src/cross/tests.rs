@@ -1,5 +1,5 @@
-//! The cross-attention layer recomputed (`train.kernels.recompute`) against burn's autodiff of the same
-//! layer: output, the queries' and the context's gradients, every parameter's gradient, and a context
+//! The cross-attention layer as one operation, recomputed (`train.kernels.recompute`) or keeping its
+//! activations (`train.kernels.layer = "fused"`), against burn's autodiff of the same layer: output, the queries' and the context's gradients, every parameter's gradient, and a context
 //! shared by a stack of layers.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -97,6 +97,12 @@ const ON: Kernels = Kernels {
     ..Kernels::DEFAULT
 };
 
+/// The kernels with the layers as one operation that keeps their activations.
+const KEPT: Kernels = Kernels {
+    layer: umgen_ops::kernels::LayerKernel::Fused,
+    ..Kernels::DEFAULT
+};
+
 /// Each of `ours` against `theirs`: the largest relative error, and which output it is.
 fn worst(ours: Vec<Tensor<Flex, 1>>, theirs: Vec<Tensor<Flex, 1>>) -> (f32, usize) {
     assert_eq!(ours.len(), theirs.len());
@@ -108,27 +114,33 @@ fn worst(ours: Vec<Tensor<Flex, 1>>, theirs: Vec<Tensor<Flex, 1>>) -> (f32, usiz
         .fold((0.0, 0), |a, b| if b.0 > a.0 { b } else { a })
 }
 
-/// A stack of `layers` recomputed and through autodiff agree within `tol`, for 3 queries over `lk` keys:
-/// the output, the queries' and the context's gradients and all 16 parameters' of each layer.
+/// A stack of `layers` as one operation each (recomputed, then keeping their activations) and through
+/// autodiff agree within `tol`, for 3 queries over `lk` keys: the output, the queries' and the context's
+/// gradients and all 16 parameters' of each layer.
 fn check(layers: usize, lk: usize, tol: f32) {
     let case = Case::new(layers, lk);
-    let before = umgen_ops::recompute::layers_recomputed();
-    let ours = case.outputs(Precision::F32, &ON);
-    assert!(
-        umgen_ops::recompute::layers_recomputed() >= before + layers as u64,
-        "the recomputing operation ran"
-    );
     let theirs = case.outputs(Precision::F32, &Kernels::DEFAULT);
     assert_eq!(theirs.len(), 3 + 16 * layers);
-    let (e, i) = worst(ours, theirs);
-    assert!(
-        e < tol,
-        "output {i} (0 the layer's, 1 and 2 the inputs' gradients): relative error {e}, {layers} layer(s) over {lk} keys"
-    );
+    let counted = [
+        (ON, umgen_ops::layer::layers_recomputed as fn() -> u64),
+        (KEPT, umgen_ops::layer::layers_kept),
+    ];
+    for (k, count) in counted {
+        let before = count();
+        let ours = case.outputs(Precision::F32, &k);
+        assert!(count() >= before + layers as u64, "the operation ran");
+        let (e, i) = worst(ours, theirs.clone());
+        assert!(
+            e < tol,
+            "recompute {}: output {i} (0 the layer's, 1 and 2 the inputs' gradients): relative error {e}, \
+             {layers} layer(s) over {lk} keys",
+            k.recompute
+        );
+    }
 }
 
 #[test]
-fn recomputed_cross_layer_matches_autodiff_in_f32() {
+fn one_op_cross_layer_matches_autodiff_in_f32() {
     // 300 keys take the tiled attention on both paths.
     check(1, 300, 1e-4);
 }
@@ -139,24 +151,27 @@ fn a_shared_context_gathers_every_layers_gradient() {
     check(3, 300, 1e-4);
 }
 
-/// In bf16 both paths round, each its own way (the recomputed one writes the keys and values in bf16
-/// from the product, burn's path rounds them after the bias): the recomputed stack is no further from
-/// the f32 layer than burn's bf16 path is.
+/// In bf16 the paths round, each its own way (the one operation writes the keys and values in bf16
+/// from the product, burn's path rounds them after the bias): the stack as one operation a layer,
+/// recomputed or kept, is no further from the f32 layer than burn's bf16 path is.
 #[test]
-fn recomputed_cross_layer_in_bf16_is_as_close_to_f32_as_autodiff() {
+fn one_op_cross_layer_in_bf16_is_as_close_to_f32_as_autodiff() {
     let case = Case::new(2, 300);
     let exact = || case.outputs(Precision::F32, &Kernels::DEFAULT);
-    let (ours, i) = worst(case.outputs(Precision::Bf16, &ON), exact());
     let (theirs, j) = worst(case.outputs(Precision::Bf16, &Kernels::DEFAULT), exact());
-    assert!(
-        ours <= 1.5 * theirs && ours < 0.05,
-        "recomputed {ours} (output {i}) against burn's {theirs} (output {j})"
-    );
+    for k in [ON, KEPT] {
+        let (ours, i) = worst(case.outputs(Precision::Bf16, &k), exact());
+        assert!(
+            ours <= 1.5 * theirs && ours < 0.05,
+            "recompute {}: {ours} (output {i}) against burn's {theirs} (output {j})",
+            k.recompute
+        );
+    }
 }
 
 /// Fewer keys than the tiled attention takes: burn's decomposed attention on the autodiff path, the
-/// tiled blocks on the recomputed one, the same function.
+/// tiled blocks in the one operation, the same function.
 #[test]
-fn recomputed_cross_layer_matches_autodiff_over_few_keys() {
+fn one_op_cross_layer_matches_autodiff_over_few_keys() {
     check(1, 40, 1e-4);
 }

@@ -1,25 +1,49 @@
-//! The self-attention layer's training paths against each other: recomputed (`train.kernels.recompute`) against
-//! burn's autodiff of the same layer, and the attention over time on the rows as they lie against the
-//! transposed layer.
+//! The self-attention layer's training paths against each other: the layer as one operation, recomputed
+//! (`train.kernels.recompute`) or keeping its activations (`train.kernels.layer = "fused"`), against burn's
+//! autodiff of the same layer, and the attention over time on the rows as they lie against the transposed
+//! layer.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use super::*;
 use crate::testing::{A, normal, param_grads, rel, seeded};
 use burn::backend::Flex;
 use burn::tensor::Distribution;
+use umgen_ops::kernels::LayerKernel;
 
-/// `blk` applied through the recomputing operation, which must take it.
-fn recompute(
+/// How a layer runs in training.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Path {
+    /// One operation, recomputing its activations.
+    Recomputed,
+    /// One operation, keeping its activations.
+    Kept,
+    /// burn's autodiff of each operation.
+    Autodiff,
+}
+
+impl Path {
+    /// The kernels that take this path.
+    fn kernels(self) -> Kernels {
+        Kernels {
+            recompute: self == Path::Recomputed,
+            layer: match self {
+                Path::Kept => LayerKernel::Fused,
+                _ => LayerKernel::Burn,
+            },
+            ..Kernels::DEFAULT
+        }
+    }
+}
+
+/// `blk` applied through the layer's one operation with the kernels `on`, which must take it.
+fn one_op(
     blk: &SelfBlock<A>,
     x: Tensor<A, 3>,
     causal: bool,
     over_time: Option<(usize, usize)>,
+    on: Kernels,
 ) -> Tensor<A, 3> {
-    let on = Kernels {
-        recompute: true,
-        ..Kernels::DEFAULT
-    };
-    let layer = recomputed_for::<A>(&on).expect("the CPU's autodiff backend has the operation");
+    let layer = layer_op_for::<A>(&on).expect("the CPU's autodiff backend has the operation");
     layer(&blk.parts(), x, causal, over_time, &on).unwrap_or_else(|_| panic!("a layer with biases is taken"))
 }
 
@@ -77,68 +101,78 @@ fn worst((y1, dx1, dp1): Ran, (y0, dx0, dp0): Ran) -> (f32, usize) {
 }
 
 /// The layer's output and gradients over `len` rows (a TAR temporal layer on `t` frames of `n` with
-/// `over_time`), recomputed (`ours`) or through burn's autodiff, its products in `precision`. The weights
-/// and inputs are the same for every call.
+/// `over_time`) on `path`, its products in `precision`. The weights and inputs are the same for every
+/// call.
 fn outputs(
     len: usize,
     causal: bool,
     over_time: Option<(usize, usize)>,
     precision: Precision,
-    ours: bool,
+    path: Path,
 ) -> Ran {
     let blk = layer(32, 4, 0.0, precision);
     let x = normal([2, len, 32], 1, 1.0, 0.0);
     let r = normal([2, len, 32], 2, 1.0, 0.0);
-    run(&blk, &x, &r, |b, x| match (ours, over_time) {
-        (true, _) => recompute(b, x, causal, over_time),
-        (false, None) => b.forward_autodiff(x, causal, &Kernels::DEFAULT),
-        (false, Some((t, n))) => b
-            .over_time_autodiff(x.reshape([2, t, n, 32]), &Kernels::DEFAULT)
-            .reshape([2, t * n, 32]),
+    let k = path.kernels();
+    run(&blk, &x, &r, |b, x| match (path, over_time) {
+        (Path::Recomputed | Path::Kept, _) => one_op(b, x, causal, over_time, k),
+        (Path::Autodiff, None) => b.forward_autodiff(x, causal, &k),
+        (Path::Autodiff, Some((t, n))) => {
+            b.over_time_autodiff(x.reshape([2, t, n, 32]), &k)
+                .reshape([2, t * n, 32])
+        }
     })
 }
 
-/// In f32 both paths agree within 1e-4.
+/// In f32 the layer's one operation, recomputing and keeping, agrees with burn's autodiff within 1e-4.
 fn check(len: usize, causal: bool, over_time: Option<(usize, usize)>) {
-    let ours = outputs(len, causal, over_time, Precision::F32, true);
-    let (e, i) = worst(ours, outputs(len, causal, over_time, Precision::F32, false));
-    assert!(
-        e < 1e-4,
-        "output {i}: relative error {e}, len {len}, causal {causal}, {over_time:?}"
-    );
+    let theirs = || outputs(len, causal, over_time, Precision::F32, Path::Autodiff);
+    for path in [Path::Recomputed, Path::Kept] {
+        let ours = outputs(len, causal, over_time, Precision::F32, path);
+        let (e, i) = worst(ours, theirs());
+        assert!(
+            e < 1e-4,
+            "{path:?}, output {i}: relative error {e}, len {len}, causal {causal}, {over_time:?}"
+        );
+    }
 }
 
-/// In bf16 both paths round, each its own way: the recomputed layer is no further from the f32 layer than
-/// burn's path is (within 1.5×).
+/// In bf16 the paths round, each its own way: the layer's one operation, recomputing and keeping, is no
+/// further from the f32 layer than burn's path is (within 1.5×).
 fn check_bf16(len: usize, causal: bool, over_time: Option<(usize, usize)>, precision: Precision) {
-    let exact = || outputs(len, causal, over_time, Precision::F32, false);
-    let (ours, i) = worst(outputs(len, causal, over_time, precision, true), exact());
-    let (theirs, j) = worst(outputs(len, causal, over_time, precision, false), exact());
-    assert!(
-        ours <= 1.5 * theirs,
-        "recomputed {ours} (output {i}) against burn's {theirs} (output {j}), len {len}, causal {causal}, \
-         {over_time:?}, {precision:?}"
+    let exact = || outputs(len, causal, over_time, Precision::F32, Path::Autodiff);
+    let (theirs, j) = worst(
+        outputs(len, causal, over_time, precision, Path::Autodiff),
+        exact(),
     );
+    for path in [Path::Recomputed, Path::Kept] {
+        let (ours, i) = worst(outputs(len, causal, over_time, precision, path), exact());
+        assert!(
+            ours <= 1.5 * theirs,
+            "{path:?} {ours} (output {i}) against burn's {theirs} (output {j}), len {len}, causal {causal}, \
+             {over_time:?}, {precision:?}"
+        );
+    }
 }
 
 #[test]
-fn recomputed_layer_matches_autodiff_in_f32() {
+fn one_op_layer_matches_autodiff_in_f32() {
     // 300 positions take the tiled attention on both paths, 40 the decomposed one on burn's path.
     check(300, true, None);
     check(300, false, None);
     check(40, true, None);
 }
 
-/// A TAR temporal layer (`t` frames of `n` positions, each position over its own frames) recomputed against
+/// A TAR temporal layer (`t` frames of `n` positions, each position over its own frames) as one operation against
 /// the same layer through burn's autodiff and the attention-over-time operation.
 #[test]
-fn recomputed_layer_over_time_matches_autodiff() {
+fn one_op_layer_over_time_matches_autodiff() {
     check(35, true, Some((5, 7)));
     check_bf16(33, true, Some((3, 11)), Precision::Bf16);
 }
 
 #[test]
-fn recomputed_layer_in_bf16_is_as_close_to_f32_as_autodiff() {
+fn one_op_layer_in_bf16_is_as_close_to_f32_as_autodiff() {
     check_bf16(300, true, None, Precision::Bf16);
     check_bf16(300, false, None, Precision::Bf16Linear);
 }

@@ -5,10 +5,10 @@ mod ama;
 mod causality;
 mod decode;
 mod heads;
+mod layer_op;
 mod ordinal;
 mod precision;
 mod ready;
-mod recompute;
 
 use burn::module::Module;
 use burn::tensor::backend::Backend;

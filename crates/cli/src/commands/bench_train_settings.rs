@@ -86,12 +86,19 @@ pub(super) fn write(
         if tc.kernels.recompute {
             format!(
                 "on: {} layer passes (self-attention, and cross-attention without a mask) kept only their inputs",
-                umgen::ops::recompute::layers_recomputed()
+                umgen::ops::layer::layers_recomputed()
             )
         } else {
             "off".into()
         }
     )?;
+    if !tc.kernels.recompute && tc.kernels.layer == umgen::ops::kernels::LayerKernel::Fused {
+        writeln!(
+            out,
+            "layers        one operation each: {} layer passes kept their activations",
+            umgen::ops::layer::layers_kept()
+        )?;
+    }
     if world > 1 {
         writeln!(
             out,

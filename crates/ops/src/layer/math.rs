@@ -2,12 +2,16 @@
 //! self-attention layer, or a cross-attention layer whose keys and values come from a context of its own
 //! (`x + attn(ln1(x), ln_ctx(ctx))`, then the MLP).
 //!
-//! [`super`] keeps only a layer's inputs for the backward pass and recomputes the rest there. burn 0.21
-//! cannot run that recomputation under autodiff: a backward pass started inside another one deadlocks on
-//! the graph client's locks (`GraphMutexClient::backward` locks every graph when it cleans up, the outer
-//! one included). So the layer's gradients are derived here by hand, with the same kernels as the
-//! autodiff path (the named matmul, the fused or tiled attention, the MLP's bias + GELU) and the same casts for
-//! [`Precision::Bf16`], so that both paths give the same numbers to rounding.
+//! [`super`] runs a layer as one operation that keeps either its inputs alone, recomputing the rest in the
+//! backward pass, or the activations its backward pass reads ([`Keep`]). burn 0.21 cannot run a
+//! recomputation under autodiff: a backward pass started inside another one deadlocks on the graph
+//! client's locks (`GraphMutexClient::backward` locks every graph when it cleans up, the outer one
+//! included). So the layer's gradients are derived here by hand, with the same kernels as the autodiff
+//! path (the named matmul, the fused or tiled attention, the MLP's bias + GELU) and the same casts for
+//! [`Precision::Bf16`], so that both paths give the same numbers to rounding. Written out, the gradients
+//! that meet on one tensor are summed by the kernel that writes the second (the residual stream's by the
+//! norm's backward kernel, the normalised input's by the key-value product's epilogue), where burn's
+//! autodiff adds them in element-wise kernels of their own.
 
 mod pieces;
 
@@ -64,8 +68,11 @@ pub struct Masks<I: LayerBackend> {
     pub mlp: Mask<I>,
 }
 
-/// What the backward pass reads of the forward pass.
-struct Saved<I: LayerBackend> {
+/// What the backward pass reads of the forward pass: the activations a kept layer holds from its
+/// forward pass until its backward pass, or a recomputed layer's, recomputed there.
+#[derive(Debug, Clone)]
+pub struct Saved<I: LayerBackend> {
+    /// The input as the first norm's backward pass reads it: in the format `keep` names, else as given.
     x: Tensor<I, 3>,
     stats1: Stats<I>,
     n1: Tensor<I, 3>,
@@ -73,17 +80,39 @@ struct Saved<I: LayerBackend> {
     ctx: Option<(Tensor<I, 3>, Stats<I>, Tensor<I, 3>)>,
     attn: Attn<I>,
     merged: Tensor<I, 3>,
+    /// The residual stream after the attention, as the second norm's backward pass reads it (in the
+    /// format `keep` names where [`Keep::all`]).
     x1: Tensor<I, 3>,
     stats2: Stats<I>,
     n2: Tensor<I, 3>,
     /// The MLP's first product, without its bias (what the bias + GELU's backward pass reads).
     hidden: Tensor<I, 2>,
-    act: Tensor<I, 3>,
-    /// The input in the format asked for (`run`'s `keep`), written by the first norm.
-    kept: Option<Tensor<I, 3>>,
+    /// The MLP's activation; `None` where the backward pass recomputes it from `hidden`
+    /// (`train.kernels.recompute_gelu` in a kept layer).
+    act: Option<Tensor<I, 3>>,
+}
+
+/// What a forward pass keeps of the residual stream for the backward pass.
+#[derive(Debug, Clone, Copy)]
+pub struct Keep {
+    /// The format the norms' inputs are kept in where it is not theirs (`train.kernels.kept_inputs`),
+    /// written by the norms' kernels as they read them.
+    pub format: Option<FloatDType>,
+    /// Keep the second norm's input in that format too: the layer keeps its activations (the
+    /// recomputation writes it afresh).
+    pub all: bool,
+}
+
+impl Keep {
+    /// What the recomputation in the backward pass keeps: nothing beyond what it reads.
+    pub const NOTHING: Self = Self {
+        format: None,
+        all: false,
+    };
 }
 
 /// What the attention's backward pass reads.
+#[derive(Debug, Clone)]
 enum Attn<I: LayerBackend> {
     /// The rows over each other: queries, keys and values split into heads (in the attention's format), the
     /// output and the log-sum-exp.
@@ -142,22 +171,22 @@ fn attend_grad<I: LayerBackend>(
 }
 
 /// The layer for input `x` `[b, l, d]` (and a cross-attention layer's context `ctx` `[b, lk, d]`) up to its
-/// last product: the residual stream after the attention half, and what the backward pass reads (the
-/// MLP's activation among it). The backward pass needs nothing of the output product, so only [`forward`]
-/// runs it.
+/// last product: the residual stream after the attention half, the MLP's activation, and what the
+/// backward pass reads (`keep` says in which formats). The backward pass needs nothing of the output
+/// product, so only [`forward`] runs it.
 fn run<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
     masks: &Masks<I>,
     x: Tensor<I, 3>,
     ctx: Option<Tensor<I, 3>>,
-    keep: Option<FloatDType>,
-) -> (Tensor<I, 3>, Saved<I>) {
+    keep: Keep,
+) -> (Tensor<I, 3>, Tensor<I, 3>, Saved<I>) {
     let (p, k) = (s.precision, &s.kernels);
     // The normalised inputs and the merged attention output feed products only: in their format once here
     // (the norms write it), not cast by each product (the forward pass's two, the recomputation's two and
     // the weight gradients').
-    let (n1, stats1, kept) = norm(x.clone(), &w.ln1, s.eps, p, keep, k);
+    let (n1, stats1, kept) = norm(x.clone(), &w.ln1, s.eps, p, keep.format, k);
     // Over positions the queries, keys and values are the attention's operands: written in its format
     // (the attention over time reads f32).
     let qkv_format = match s.over_time {
@@ -199,41 +228,68 @@ fn run<I: LayerBackend>(
     };
     let merged = operand(merged, p);
     let x1 = residual(x.clone(), &masks.attn, merged.clone(), &w.proj, p, k);
-    let (n2, stats2, _) = norm(x1.clone(), &w.ln2, s.eps, p, None, k);
+    let keep2 = keep.format.filter(|_| keep.all);
+    let (n2, stats2, kept2) = norm(x1.clone(), &w.ln2, s.eps, p, keep2, k);
     let hidden = unbiased(n2.clone(), &w.fc, p, inner_product_dtype(p, k), k);
-    let [b, len, _] = n2.dims();
-    let act = inner_forward(hidden.clone(), w.fc.b.clone(), k).reshape([b, len, hidden.dims()[1]]);
+    let act = activation(&hidden, &w.fc, n2.dims(), k);
     let saved = Saved {
-        x,
+        x: kept.unwrap_or(x),
         stats1,
         n1,
         ctx,
         attn,
         merged,
-        x1: x1.clone(),
+        x1: kept2.unwrap_or_else(|| x1.clone()),
         stats2,
         n2,
         hidden,
-        act,
-        kept,
+        act: None,
     };
-    (x1, saved)
+    (x1, act, saved)
 }
 
-/// The layer's output for input `x` `[b, l, d]` (over the context `ctx` in a cross-attention layer) and,
-/// with `keep`, `x` in that format for the backward pass (written by the first norm's kernel as it reads
-/// `x`).
+/// The MLP's activation `gelu(hidden + b)` `[b, l, inner]` for its input's dims `[b, l, _]`.
+fn activation<I: LayerBackend>(
+    hidden: &Tensor<I, 2>,
+    fc: &Lin<I>,
+    [b, len, _]: [usize; 3],
+    k: &Kernels,
+) -> Tensor<I, 3> {
+    inner_forward(hidden.clone(), fc.b.clone(), k).reshape([b, len, hidden.dims()[1]])
+}
+
+/// The layer's output for input `x` `[b, l, d]` (over the context `ctx` in a cross-attention layer) and
+/// what its backward pass reads: with [`Keep::all`] every activation ([`gradients`] reads them), else
+/// the input alone (in `keep.format` where given, written by the first norm's kernel as it reads `x`),
+/// from which [`backward`] recomputes the rest.
 pub fn forward<I: LayerBackend>(
     w: &Weights<I>,
     s: Setting,
     masks: &Masks<I>,
     x: Tensor<I, 3>,
     ctx: Option<Tensor<I, 3>>,
-    keep: Option<FloatDType>,
-) -> (Tensor<I, 3>, Option<Tensor<I, 3>>) {
-    let (x1, f) = run(w, s, masks, x, ctx, keep);
-    let y = residual(x1, &masks.mlp, f.act, &w.out, s.precision, &s.kernels);
-    (y, f.kept)
+    keep: Keep,
+) -> (Tensor<I, 3>, Kept<I>) {
+    let (x1, act, mut f) = run(w, s, masks, x, ctx, keep);
+    if keep.all && !s.kernels.recompute_gelu {
+        f.act = Some(act.clone());
+    }
+    let y = residual(x1, &masks.mlp, act, &w.out, s.precision, &s.kernels);
+    let kept = if keep.all {
+        Kept::Activations(Box::new(f))
+    } else {
+        Kept::Input(f.x)
+    };
+    (y, kept)
+}
+
+/// What a layer's forward pass keeps for its backward pass.
+#[derive(Debug, Clone)]
+pub enum Kept<I: LayerBackend> {
+    /// The input alone (recomputation).
+    Input(Tensor<I, 3>),
+    /// Every activation the backward pass reads.
+    Activations(Box<Saved<I>>),
 }
 
 /// The gradients of the input, of a cross-attention layer's context and of every parameter from the
@@ -246,12 +302,28 @@ pub fn backward<I: LayerBackend>(
     (x, ctx): (Tensor<I, 3>, Option<Tensor<I, 3>>),
     dy: Tensor<I, 3>,
 ) -> (Tensor<I, 3>, Option<Tensor<I, 3>>, WeightGrads<I>) {
+    let (_, act, f) = run(w, s, masks, x, ctx, Keep::NOTHING);
+    let f = Saved { act: Some(act), ..f };
+    gradients(w, s, masks, f, dy)
+}
+
+/// The gradients of [`backward`] from the activations `f` of the forward pass (kept, or recomputed).
+pub fn gradients<I: LayerBackend>(
+    w: &Weights<I>,
+    s: Setting,
+    masks: &Masks<I>,
+    f: Saved<I>,
+    dy: Tensor<I, 3>,
+) -> (Tensor<I, 3>, Option<Tensor<I, 3>>, WeightGrads<I>) {
     let (p, k) = (s.precision, &s.kernels);
-    let (_, f) = run(w, s, masks, x, ctx, None);
     let d_out = drop(&masks.mlp, dy.clone());
+    let act = match f.act {
+        Some(a) => a,
+        None => activation(&f.hidden, &w.fc, f.n2.dims(), k),
+    };
     // The activation's gradient in its own format (bf16 with the bf16 presets), as `mlp::gelu_mlp` has it.
-    let act_format = float_format(f.act.dtype());
-    let (d_act, d_out_w, d_out_b) = linear_grad(f.act, &w.out, d_out, (p, act_format), None, k);
+    let act_format = float_format(act.dtype());
+    let (d_act, d_out_w, d_out_b) = linear_grad(act, &w.out, d_out, (p, act_format), None, k);
     let d_act = d_act.reshape(f.hidden.dims());
     let (d_hidden, d_fc_b) = inner_backward(d_act, f.hidden, w.fc.b.clone(), k);
     let (dn2, d_fc_w) = product_grad(f.n2, &w.fc, d_hidden, (p, FloatDType::F32), None, k);

@@ -2,8 +2,9 @@
 
 use super::*;
 use crate::format::Precision;
-use crate::kernels::{KeptInputs, Kernels};
+use crate::kernels::{KeptInputs, Kernels, LayerKernel};
 use burn::backend::Flex;
+use burn::module::Param;
 use burn::module::{Module, ModuleMapper, ModuleVisitor};
 use burn::nn::{LayerNormConfig, LinearConfig};
 use burn::tensor::module::attention;
@@ -105,10 +106,10 @@ fn run(
     (y.inner(), x.grad(&grads).unwrap(), param_grads(blk, &grads))
 }
 
-/// The operation against burn's autodiff of the layer written out with burn's attention, without dropout:
-/// outputs and all 14 gradients.
+/// The operation, recomputing and keeping, against burn's autodiff of the layer written out with burn's
+/// attention, without dropout: outputs and all 14 gradients.
 #[test]
-fn recomputed_layer_matches_burns_operations() {
+fn the_layer_op_matches_burns_operations() {
     let dev = Default::default();
     let blk = layer(16, 2);
     let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
@@ -129,16 +130,28 @@ fn recomputed_layer_matches_burns_operations() {
         x1 + p.out.forward(h)
     };
     let (y0, dx0, dp0) = run(&blk, &x, &r, reference);
-    let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
-        recomputed::<Flex, NoCheckpointing>(&b.parts(), x, true, None, &Kernels::default())
-            .expect("a layer with biases")
-    });
-    assert!(rel(y1, y0) < 1e-4, "output");
-    assert!(rel(dx1, dx0) < 1e-4, "input gradient");
-    assert_eq!(dp1.len(), 14);
-    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
-        let e = rel(a, b);
-        assert!(e < 1e-4, "parameter {i}: relative error {e}");
+    for recompute in [true, false] {
+        let k = Kernels {
+            recompute,
+            layer: LayerKernel::Fused,
+            ..Kernels::default()
+        };
+        let (y1, dx1, dp1) = run(&blk, &x, &r, |b, x| {
+            self_layer::<Flex, NoCheckpointing>(&b.parts(), x, true, None, &k).expect("a layer with biases")
+        });
+        assert!(rel(y1, y0.clone()) < 1e-4, "recompute {recompute}: output");
+        assert!(
+            rel(dx1, dx0.clone()) < 1e-4,
+            "recompute {recompute}: input gradient"
+        );
+        assert_eq!(dp1.len(), 14);
+        for (i, (a, b)) in dp1.into_iter().zip(dp0.clone()).enumerate() {
+            let e = rel(a, b);
+            assert!(
+                e < 1e-4,
+                "recompute {recompute}: parameter {i}: relative error {e}"
+            );
+        }
     }
 }
 
@@ -193,7 +206,7 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
         over_time: None,
         kernels: Kernels::default(),
     };
-    let (y1, _) = math::forward(&weights, setting, &masks, x.clone(), None, None);
+    let (y1, _) = math::forward(&weights, setting, &masks, x.clone(), None, Keep::NOTHING);
     let (dx1, dctx, dp1) = math::backward(&weights, setting, &masks, (x, None), r);
     assert!(dctx.is_none(), "a self-attention layer has no context");
     assert!(rel(y1, y0) < 1e-4);
@@ -216,9 +229,16 @@ fn the_operation_is_handed_out_for_training_backends_only_and_when_asked_for() {
         recompute: true,
         ..Kernels::DEFAULT
     };
-    assert!(recomputed_for::<A>(&on).is_some());
-    assert!(recomputed_for::<A>(&Kernels::DEFAULT).is_none(), "off by default");
-    assert!(recomputed_for::<Flex>(&on).is_none());
+    assert!(layer_op_for::<A>(&on).is_some());
+    assert!(layer_op_for::<A>(&Kernels::DEFAULT).is_none(), "off by default");
+    assert!(layer_op_for::<Flex>(&on).is_none());
+    let fused = Kernels {
+        layer: LayerKernel::Fused,
+        ..Kernels::DEFAULT
+    };
+    assert!(layer_op_for::<A>(&fused).is_some());
+    assert!(cross_op_for::<A>(&fused).is_some());
+    assert!(cross_op_for::<Flex>(&fused).is_none());
 }
 
 #[test]
@@ -226,7 +246,7 @@ fn a_layer_without_biases_is_handed_back() {
     let mut blk = layer(8, 2);
     blk.q.bias = None;
     let x = Tensor::<A, 3>::random([1, 4, 8], Distribution::Normal(0.0, 1.0), &Default::default());
-    let back = recomputed::<Flex, NoCheckpointing>(&blk.parts(), x.clone(), false, None, &Kernels::DEFAULT)
+    let back = self_layer::<Flex, NoCheckpointing>(&blk.parts(), x.clone(), false, None, &Kernels::DEFAULT)
         .expect_err("the operation takes layers with biases only");
     assert_eq!(back.into_data(), x.into_data());
 }
@@ -253,9 +273,10 @@ fn a_layer_under_bf16_products_keeps_its_input_rounded_to_bf16() {
             };
             let kernels = Kernels {
                 kept_inputs: input,
+                recompute: true,
                 ..Kernels::default()
             };
-            recomputed::<Flex, NoCheckpointing>(&parts, x, true, None, &kernels).expect("a layer with biases")
+            self_layer::<Flex, NoCheckpointing>(&parts, x, true, None, &kernels).expect("a layer with biases")
         }
     };
     let (y, dx, dp) = run(&blk, &x, &r, keeping(KeptInputs::Operand));
@@ -275,4 +296,125 @@ fn a_layer_under_bf16_products_keeps_its_input_rounded_to_bf16() {
         e > 0.0 && e < 2e-2,
         "input gradient against the f32-kept input: {e}"
     );
+}
+
+/// The layer keeping its activations (`layer = "fused"`) against the same layer recomputing them, with
+/// its inputs kept in f32 (so the recomputation reads exactly what the forward pass did): the same output
+/// and the same gradients bit for bit, in f32 and under bf16 products, whether it keeps the MLP's
+/// activation or recomputes it (`recompute_gelu`). Under `kept_inputs = "operand"` the kept layer reads
+/// the forward pass's own second norm input, which the recomputation cannot: the gradients differ.
+#[test]
+fn a_kept_layer_gives_the_recomputed_layers_gradients() {
+    let dev = Default::default();
+    let blk = layer(16, 2);
+    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let with = |precision, kernels: Kernels| {
+        move |b: &TestLayer<A>, x: Tensor<A, 3>| {
+            let parts = LayerParts {
+                precision,
+                ..b.parts()
+            };
+            self_layer::<Flex, NoCheckpointing>(&parts, x, true, None, &kernels).expect("a layer with biases")
+        }
+    };
+    let f32_kept = Kernels {
+        kept_inputs: KeptInputs::F32,
+        ..Kernels::DEFAULT
+    };
+    let recomputing = Kernels {
+        recompute: true,
+        ..f32_kept
+    };
+    for precision in [Precision::F32, Precision::Bf16Linear] {
+        let (y0, dx0, dp0) = run(&blk, &x, &r, with(precision, recomputing));
+        for recompute_gelu in [true, false] {
+            let keeping = Kernels {
+                layer: LayerKernel::Fused,
+                recompute_gelu,
+                ..f32_kept
+            };
+            let before = layers_kept();
+            let (y1, dx1, dp1) = run(&blk, &x, &r, with(precision, keeping));
+            assert!(layers_kept() > before, "the kept path ran");
+            let what = format!("{precision:?}, recompute_gelu {recompute_gelu}");
+            assert_eq!(y1.into_data(), y0.clone().into_data(), "{what}: output");
+            assert_eq!(dx1.into_data(), dx0.clone().into_data(), "{what}: input gradient");
+            for (i, (a, b)) in dp1.into_iter().zip(dp0.clone()).enumerate() {
+                assert_eq!(a.into_data(), b.into_data(), "{what}: parameter {i}");
+            }
+        }
+    }
+    let operand = |kernels: Kernels| with(Precision::Bf16Linear, kernels);
+    let (_, dx_rec, _) = run(
+        &blk,
+        &x,
+        &r,
+        operand(Kernels {
+            recompute: true,
+            ..Kernels::DEFAULT
+        }),
+    );
+    let (_, dx_kept, _) = run(
+        &blk,
+        &x,
+        &r,
+        operand(Kernels {
+            layer: LayerKernel::Fused,
+            ..Kernels::DEFAULT
+        }),
+    );
+    let e = rel(dx_kept, dx_rec);
+    assert!(e > 0.0 && e < 2e-2, "bf16-kept inputs: {e}");
+}
+
+/// With dropout the kept layer's backward pass applies its forward pass's masks: its gradients are those
+/// of the written-out passes recomputing from the same masks.
+#[test]
+fn a_kept_layer_reuses_its_dropout_masks() {
+    let dev = Default::default();
+    let blk = layer(16, 2);
+    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let mask = |seed| {
+        Flex::seed(&dev, seed);
+        Some((
+            x.random_like(Distribution::Bernoulli(0.7)).greater_elem(0.5),
+            1.0 / 0.7,
+        ))
+    };
+    let masks = Masks {
+        attn: mask(3),
+        mlp: mask(4),
+    };
+    let parts = blk.parts();
+    let (weights, _) = weights(&parts).unwrap();
+    let setting = Setting {
+        heads: 2,
+        causal: true,
+        precision: Precision::F32,
+        eps: crate::norm::LN_EPS,
+        over_time: None,
+        kernels: Kernels::default(),
+    };
+    let all = Keep {
+        format: None,
+        all: true,
+    };
+    let (y0, _) = math::forward(&weights, setting, &masks, x.clone(), None, Keep::NOTHING);
+    let (y1, kept) = math::forward(&weights, setting, &masks, x.clone(), None, all);
+    assert_eq!(y1.into_data(), y0.into_data());
+    let math::Kept::Activations(f) = kept else {
+        panic!("a layer keeping its activations keeps them");
+    };
+    let (dx0, _, dp0) = math::backward(&weights, setting, &masks, (x, None), r.clone());
+    let (dx1, _, dp1) = math::gradients(&weights, setting, &masks, *f, r);
+    assert_eq!(dx1.into_data(), dx0.into_data());
+    for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
+        let (a, b) = (
+            Tensor::<Flex, 1>::from_primitive(a),
+            Tensor::<Flex, 1>::from_primitive(b),
+        );
+        assert_eq!(a.into_data(), b.into_data(), "parameter {i}");
+    }
 }

@@ -1,26 +1,34 @@
-//! Activation checkpointing of the attention layers (`train.kernels.recompute`).
+//! A pre-norm attention layer as one autodiff operation whose backward pass is written out by hand
+//! (`layer/math.rs`), in one of two modes.
 //!
-//! A training step keeps about twenty activations of a layer's width for each layer's backward pass;
-//! `paper` (72 self-attention layers over 20 × 2,199 tokens of width 768) needs more than an H200 holds.
-//! With recomputation on, each self-attention layer ([`LayerParts`]: the OAR layers and both halves of every TAR block) runs as one
-//! custom autodiff operation that keeps only its input (and dropout masks, when dropout is on) and
-//! recomputes its activations in the backward pass, as PyTorch's `torch.utils.checkpoint` does for the
-//! reference. The cost is one more forward pass of those layers per step. The cross-attention layers
-//! without a mask (the ego module's layers over each frame's environment, [`recomputed_cross_for`]) do
-//! the same: each keeps its queries' input and the context every layer of the stack shares, where it
-//! would keep its own normalised context and keys and values (about 0.2 GiB a layer of `paper`).
+//! - **Recomputed** (`train.kernels.recompute`, activation checkpointing): a training step keeps about
+//!   twenty activations of a layer's width for each layer's backward pass; `paper` (72 self-attention
+//!   layers over 20 × 2,199 tokens of width 768) needs more than an H200 holds. Each self-attention layer
+//!   ([`LayerParts`]: the OAR layers and both halves of every TAR block) keeps only its input (and
+//!   dropout masks, when dropout is on) and recomputes its activations in the backward pass, as PyTorch's
+//!   `torch.utils.checkpoint` does for the reference. The cost is one more forward pass of those layers
+//!   per step. The cross-attention layers without a mask (the ego module's layers over each frame's
+//!   environment, [`cross_op_for`]) do the same: each keeps its queries' input and the context every
+//!   layer of the stack shares, where it would keep its own normalised context and keys and values (about
+//!   0.2 GiB a layer of `paper`).
+//! - **Kept** (`train.kernels.layer = "fused"` without recomputation): the operation keeps the
+//!   activations its backward pass reads, about what burn's autodiff of the layer's operations keeps,
+//!   and its backward pass reads them. Against burn's autodiff it sums the gradients that meet on one
+//!   tensor inside the kernels that write them and puts one node in the autodiff graph per layer instead
+//!   of about fifteen.
 //!
-//! The backward pass is written out by hand in `recompute/math.rs` (burn 0.21 cannot run autodiff inside
-//! a backward step; `math.rs` says why). Like the other training operations it exists for the autodiff backends this
+//! burn 0.21 cannot run autodiff inside a backward step (`math.rs` says why), hence the hand-written
+//! backward pass. Like the other training operations the operation exists for the autodiff backends this
 //! workspace trains on (CUDA, and the CPU's `Flex`, where the tests compare it with burn's autodiff);
-//! elsewhere, and while recomputation is off (the default), layers take burn's autodiff.
+//! elsewhere, and with `layer = "burn"` and recomputation off (the defaults), layers take burn's autodiff.
 
 mod math;
+mod params;
 
 use crate::dispatch::same;
 use crate::format::Precision;
 use crate::format::float;
-use crate::kernels::Kernels;
+use crate::kernels::{Kernels, LayerKernel};
 use burn::backend::Autodiff;
 use burn::backend::autodiff::NodeId;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -29,20 +37,27 @@ use burn::backend::autodiff::checkpoint::strategy::{
 };
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
-use burn::module::Param;
 use burn::nn::{LayerNorm, Linear};
 use burn::tensor::backend::Backend;
 use burn::tensor::ops::FloatTensor;
 use burn::tensor::{DType, Distribution, Tensor};
-use math::{LayerBackend, Lin, Mask, Masks, Norm, Setting, Weights};
+use math::{Keep, LayerBackend, Mask, Masks, Setting, Weights};
+use params::weights;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// Layers run by the recomputing operation so far (the bench prints it, tests check the path was taken).
-static RUN: AtomicU64 = AtomicU64::new(0);
+/// Layer passes run by the operation so far, recomputed and kept (the bench prints them, tests check the
+/// path was taken).
+static RECOMPUTED: AtomicU64 = AtomicU64::new(0);
+static KEPT: AtomicU64 = AtomicU64::new(0);
 
-/// How many layer passes the recomputing operation has run in this process.
+/// How many layer passes the operation has run in this process recomputing their activations.
 pub fn layers_recomputed() -> u64 {
-    RUN.load(Ordering::Relaxed)
+    RECOMPUTED.load(Ordering::Relaxed)
+}
+
+/// How many layer passes the operation has run in this process keeping their activations.
+pub fn layers_kept() -> u64 {
+    KEPT.load(Ordering::Relaxed)
 }
 
 /// The parts of a pre-norm self-attention layer (`x + proj(attn(ln1(x)))`, then `x + out(gelu(fc(ln2(x))))`),
@@ -92,10 +107,15 @@ pub type CrossFn<B> = fn(&LayerParts<'_, B>, Tensor<B, 3>, Tensor<B, 3>, &Kernel
 /// The layer's output, or its inputs handed back (`Err`).
 pub type CrossTaken<B> = Result<Tensor<B, 3>, (Tensor<B, 3>, Tensor<B, 3>)>;
 
-/// The recomputing layer as a function on `B`, when `k` turns recomputation on and `B` is an autodiff
-/// backend this workspace trains on; `None` otherwise.
-pub fn recomputed_for<B: Backend>(k: &Kernels) -> Option<LayerFn<B>> {
-    if !k.recompute {
+/// Whether `k` asks for the operation: recomputation, or `layer = "fused"`.
+fn asked(k: &Kernels) -> bool {
+    k.recompute || k.layer == LayerKernel::Fused
+}
+
+/// The layer as one operation on `B`, when `k` asks for it ([`asked`]) and `B` is an autodiff backend
+/// this workspace trains on; `None` otherwise.
+pub fn layer_op_for<B: Backend>(k: &Kernels) -> Option<LayerFn<B>> {
+    if !asked(k) {
         return None;
     }
     let found = on::<B, burn::backend::Flex>();
@@ -104,10 +124,9 @@ pub fn recomputed_for<B: Backend>(k: &Kernels) -> Option<LayerFn<B>> {
     found
 }
 
-/// The recomputing cross-attention layer as a function on `B`, under the same conditions as
-/// [`recomputed_for`].
-pub fn recomputed_cross_for<B: Backend>(k: &Kernels) -> Option<CrossFn<B>> {
-    if !k.recompute {
+/// The cross-attention layer as one operation on `B`, under the same conditions as [`layer_op_for`].
+pub fn cross_op_for<B: Backend>(k: &Kernels) -> Option<CrossFn<B>> {
+    if !asked(k) {
         return None;
     }
     let found = on_cross::<B, burn::backend::Flex>();
@@ -116,17 +135,17 @@ pub fn recomputed_cross_for<B: Backend>(k: &Kernels) -> Option<CrossFn<B>> {
     found
 }
 
-/// [`recomputed`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+/// [`self_layer`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
 fn on<B: Backend, I: LayerBackend>() -> Option<LayerFn<B>> {
-    let plain: LayerFn<Autodiff<I, NoCheckpointing>> = recomputed::<I, NoCheckpointing>;
-    let balanced: LayerFn<Autodiff<I, BalancedCheckpointing>> = recomputed::<I, BalancedCheckpointing>;
+    let plain: LayerFn<Autodiff<I, NoCheckpointing>> = self_layer::<I, NoCheckpointing>;
+    let balanced: LayerFn<Autodiff<I, BalancedCheckpointing>> = self_layer::<I, BalancedCheckpointing>;
     same(plain).or_else(|| same(balanced))
 }
 
-/// [`recomputed_cross`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
+/// [`cross_layer`] on `Autodiff<I, C>` (either checkpointing strategy), if that is `B`.
 fn on_cross<B: Backend, I: LayerBackend>() -> Option<CrossFn<B>> {
-    let plain: CrossFn<Autodiff<I, NoCheckpointing>> = recomputed_cross::<I, NoCheckpointing>;
-    let balanced: CrossFn<Autodiff<I, BalancedCheckpointing>> = recomputed_cross::<I, BalancedCheckpointing>;
+    let plain: CrossFn<Autodiff<I, NoCheckpointing>> = cross_layer::<I, NoCheckpointing>;
+    let balanced: CrossFn<Autodiff<I, BalancedCheckpointing>> = cross_layer::<I, BalancedCheckpointing>;
     same(plain).or_else(|| same(balanced))
 }
 
@@ -138,14 +157,14 @@ const PARENTS: usize = 15;
 const CROSS_PARENTS: usize = 18;
 
 #[derive(Debug)]
-struct Recompute;
+struct LayerOp;
 
 /// What the operation keeps for its backward pass: the input (in the format
-/// `train.kernels.kept_inputs` names), the parameters (handles to the tensors the
-/// model holds anyway), the settings and the dropout masks.
+/// `train.kernels.kept_inputs` names) or every activation the backward pass reads, the parameters
+/// (handles to the tensors the model holds anyway), the settings and the dropout masks.
 #[derive(Debug, Clone)]
 struct Kept<I: LayerBackend> {
-    x: Tensor<I, 3>,
+    kept: math::Kept<I>,
     weights: Weights<I>,
     setting: Setting,
     masks: Masks<I>,
@@ -159,9 +178,14 @@ impl<I: LayerBackend> Kept<I> {
         ctx: Option<Tensor<I, 3>>,
         dy: Tensor<I, 3>,
     ) -> (Tensor<I, 3>, Option<Tensor<I, 3>>, math::WeightGrads<I>) {
-        // The input as it was kept (`train.kernels.kept_inputs`): the norms' kernels read a bf16 copy as it
-        // is, and the residual add widens it inside its fused kernel.
-        math::backward(&self.weights, self.setting, &self.masks, (self.x, ctx), dy)
+        let (w, s, m) = (&self.weights, self.setting, &self.masks);
+        match self.kept {
+            // The input as it was kept (`train.kernels.kept_inputs`): the norms' kernels read a bf16 copy
+            // as it is, and the residual add widens it inside its fused kernel.
+            math::Kept::Input(x) => math::backward(w, s, m, (x, ctx), dy),
+            // The activations hold the context's own (a cross-attention layer's `ctx` is that tensor).
+            math::Kept::Activations(f) => math::gradients(w, s, m, *f, dy),
+        }
     }
 }
 
@@ -178,7 +202,7 @@ fn register<I: LayerBackend>(
     }
 }
 
-impl<I: LayerBackend> Backward<I, PARENTS> for Recompute {
+impl<I: LayerBackend> Backward<I, PARENTS> for LayerOp {
     type State = Kept<I>;
 
     fn backward(self, ops: Ops<Self::State, PARENTS>, grads: &mut Gradients, _: &mut Checkpointer) {
@@ -194,10 +218,10 @@ impl<I: LayerBackend> Backward<I, PARENTS> for Recompute {
 }
 
 #[derive(Debug)]
-struct RecomputeCross;
+struct CrossOp;
 
-impl<I: LayerBackend> Backward<I, CROSS_PARENTS> for RecomputeCross {
-    /// What [`Recompute`] keeps, and the context as the caller holds it (one tensor for every layer of
+impl<I: LayerBackend> Backward<I, CROSS_PARENTS> for CrossOp {
+    /// What [`LayerOp`] keeps, and the context as the caller holds it (one tensor for every layer of
     /// a stack, so not cast).
     type State = (Kept<I>, Tensor<I, 3>);
 
@@ -218,81 +242,9 @@ impl<I: LayerBackend> Backward<I, CROSS_PARENTS> for RecomputeCross {
     }
 }
 
-/// A parameter as the autodiff backend holds it (burn does not export its node type; the tensor carries it).
-type Node<I, C> = FloatTensor<Autodiff<I, C>>;
-
-/// A tracked parameter's value on the inner backend, and the parameter.
-fn split<I: LayerBackend, C: CheckpointStrategy, const D: usize>(
-    p: &Param<Tensor<Autodiff<I, C>, D>>,
-) -> (Tensor<I, D>, Node<I, C>) {
-    let t = p.val().into_primitive().tensor();
-    (float(t.primitive.clone()), t)
-}
-
-/// Tracked parameters in [`Weights`]' order.
-type Tracked<I, C> = Vec<Node<I, C>>;
-
-/// A weight and its bias (or scale and shift) as tracked tensors.
-type Two<I, C> = [Node<I, C>; 2];
-
-/// A layer norm's parameters on the inner backend and as tracked tensors; `None` without a shift.
-fn norm<I: LayerBackend, C: CheckpointStrategy>(
-    n: &LayerNorm<Autodiff<I, C>>,
-) -> Option<(Norm<I>, Two<I, C>)> {
-    let (gamma, ng) = split(&n.gamma);
-    let (beta, nb) = split(n.beta.as_ref()?);
-    Some((Norm { gamma, beta }, [ng, nb]))
-}
-
-/// A linear layer's parameters on the inner backend and as tracked tensors; `None` without a bias.
-fn lin<I: LayerBackend, C: CheckpointStrategy>(l: &Linear<Autodiff<I, C>>) -> Option<(Lin<I>, Two<I, C>)> {
-    let (w, nw) = split(&l.weight);
-    let (b, nb) = split(l.bias.as_ref()?);
-    Some((Lin { w, b }, [nw, nb]))
-}
-
-/// The layer's parameters on the inner backend and as tracked tensors, in [`Weights`]' order; `None` for a
-/// layer without biases.
-fn weights<I: LayerBackend, C: CheckpointStrategy>(
-    parts: &LayerParts<'_, Autodiff<I, C>>,
-) -> Option<(Weights<I>, Tracked<I, C>)> {
-    let (ln1, a) = norm(parts.ln1)?;
-    let (ln_ctx, ctx) = match parts.ln_ctx {
-        Some(n) => {
-            let (n, t) = norm(n)?;
-            (Some(n), Some(t))
-        }
-        None => (None, None),
-    };
-    let (q, b) = lin(parts.q)?;
-    let (kv, c) = lin(parts.kv)?;
-    let (proj, d) = lin(parts.proj)?;
-    let (ln2, e) = norm(parts.ln2)?;
-    let (fc, f) = lin(parts.fc)?;
-    let (out, g) = lin(parts.out)?;
-    let tracked = [Some(a), ctx, Some(b), Some(c), Some(d), Some(e), Some(f), Some(g)]
-        .into_iter()
-        .flatten()
-        .flatten()
-        .collect();
-    Some((
-        Weights {
-            ln1,
-            ln_ctx,
-            q,
-            kv,
-            proj,
-            ln2,
-            fc,
-            out,
-        },
-        tracked,
-    ))
-}
-
-/// The layer on `Autodiff<I, C>` as one operation that keeps only its input; `Err(x)` for a layer without
-/// biases (every layer the backbone builds has them) or with a context's norm.
-fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
+/// The layer on `Autodiff<I, C>` as one operation; `Err(x)` for a layer without biases (every layer the
+/// backbone builds has them) or with a context's norm.
+fn self_layer<I: LayerBackend, C: CheckpointStrategy>(
     parts: &LayerParts<'_, Autodiff<I, C>>,
     x: Tensor<Autodiff<I, C>, 3>,
     causal: bool,
@@ -307,24 +259,23 @@ fn recomputed<I: LayerBackend, C: CheckpointStrategy>(
         0 => x.node.clone(),
         i => tracked[i - 1].node.clone(),
     });
-    let (kept, y) = start(
-        parts,
-        weights,
-        float(x.primitive),
-        None,
-        (causal, over_time),
-        kernels,
-    );
-    let out = match Recompute.prepare::<C>(parents).compute_bound().stateful() {
-        OpsKind::Tracked(prep) => prep.finish(kept, y),
-        OpsKind::UnTracked(prep) => prep.finish(y),
+    let run = |backward| {
+        let shape = (causal, over_time);
+        start(parts, weights, float(x.primitive), None, shape, kernels, backward)
+    };
+    let out = match LayerOp.prepare::<C>(parents).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => {
+            let (kept, y) = run(true);
+            prep.finish(kept, y)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(run(false).1),
     };
     Ok(float(out))
 }
 
-/// The cross-attention layer on `Autodiff<I, C>` as one operation that keeps only its queries' input and
-/// the context; `Err((x, ctx))` for a layer without biases or without a context's norm.
-fn recomputed_cross<I: LayerBackend, C: CheckpointStrategy>(
+/// The cross-attention layer on `Autodiff<I, C>` as one operation; `Err((x, ctx))` for a layer without
+/// biases or without a context's norm.
+fn cross_layer<I: LayerBackend, C: CheckpointStrategy>(
     parts: &LayerParts<'_, Autodiff<I, C>>,
     x: Tensor<Autodiff<I, C>, 3>,
     ctx: Tensor<Autodiff<I, C>, 3>,
@@ -340,23 +291,31 @@ fn recomputed_cross<I: LayerBackend, C: CheckpointStrategy>(
         i => tracked[i - 2].node.clone(),
     });
     let ci = float::<I, 3>(ctx.primitive);
-    let (kept, y) = start(
-        parts,
-        weights,
-        float(x.primitive),
-        Some(ci.clone()),
-        (false, None),
-        kernels,
-    );
-    let out = match RecomputeCross.prepare::<C>(parents).compute_bound().stateful() {
-        OpsKind::Tracked(prep) => prep.finish((kept, ci), y),
-        OpsKind::UnTracked(prep) => prep.finish(y),
+    let run = |backward| {
+        let c = Some(ci.clone());
+        start(
+            parts,
+            weights,
+            float(x.primitive),
+            c,
+            (false, None),
+            kernels,
+            backward,
+        )
+    };
+    let out = match CrossOp.prepare::<C>(parents).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => {
+            let (kept, y) = run(true);
+            prep.finish((kept, ci), y)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(run(false).1),
     };
     Ok(float(out))
 }
 
 /// Both operations' forward pass on the inner backend, for input `x` (and a cross-attention layer's
-/// context `ctx`) with (`causal`, `over_time`): what the backward pass keeps, and the output.
+/// context `ctx`) with (`causal`, `over_time`): what the backward pass keeps (nothing it needs without
+/// a `backward` pass to come), and the output.
 fn start<I: LayerBackend, C: CheckpointStrategy>(
     parts: &LayerParts<'_, Autodiff<I, C>>,
     weights: Weights<I>,
@@ -364,6 +323,7 @@ fn start<I: LayerBackend, C: CheckpointStrategy>(
     ctx: Option<Tensor<I, 3>>,
     (causal, over_time): (bool, Option<(usize, usize)>),
     kernels: &Kernels,
+    backward: bool,
 ) -> (Kept<I>, FloatTensor<I>) {
     let setting = Setting {
         heads: parts.heads,
@@ -373,18 +333,22 @@ fn start<I: LayerBackend, C: CheckpointStrategy>(
         over_time,
         kernels: *kernels,
     };
-    RUN.fetch_add(1, Ordering::Relaxed);
+    let all = !kernels.recompute;
+    let counter = if all { &KEPT } else { &RECOMPUTED };
+    counter.fetch_add(1, Ordering::Relaxed);
     let masks = Masks {
         attn: draw_mask(&x, parts.attn_dropout),
         mlp: draw_mask(&x, parts.mlp_dropout),
     };
-    let keep = kernels.kept_inputs.format(parts.precision.operand_dtype());
-    let keep = (DType::from(keep) != x.dtype()).then_some(keep);
-    let (y, kept_x) = math::forward(&weights, setting, &masks, x.clone(), ctx, keep);
-    let kept_x = kept_x.unwrap_or(x);
+    let format = kernels.kept_inputs.format(parts.precision.operand_dtype());
+    let keep = Keep {
+        format: (backward && DType::from(format) != x.dtype()).then_some(format),
+        all: all && backward,
+    };
+    let (y, kept) = math::forward(&weights, setting, &masks, x, ctx, keep);
     let y = y.into_primitive().tensor();
     let kept = Kept {
-        x: kept_x,
+        kept,
         weights,
         setting,
         masks,
