@@ -249,6 +249,24 @@ fn export_writes_a_bundle_that_opens_and_refuses_damage() {
         assert!(report["mmd"][g].as_f64().is_some(), "{g}: {report}");
     }
     assert!(g4.join("eval/report.md").exists() && g4.join("eval/l2.png").exists());
+    // The targets: a rollout of the model's own ego on too few clips for the bar, and the collision
+    // target's verdict as the horizon's own rates give it.
+    let targets = report["targets"].as_array().unwrap();
+    assert_eq!(targets[0]["target"], "rollout", "{report}");
+    assert_eq!(targets[0]["met"], false, "one clip is fewer than 64");
+    let collision = targets.iter().find(|t| t["target"] == "collision rate").unwrap();
+    let rates = |side: &serde_json::Value| side["collision_rate"].as_f64();
+    let horizon = &report["horizon"];
+    let expected = match (rates(&horizon["real"]), rates(&horizon["whole"]["generated"])) {
+        (Some(r), Some(g)) => serde_json::json!(g <= 1.25 * r),
+        _ => serde_json::Value::Null,
+    };
+    assert_eq!(collision["met"], expected, "{collision}");
+    let md = std::fs::read_to_string(g4.join("eval/report.md")).unwrap();
+    assert!(
+        md.contains("## Against the targets") && md.contains("| collision rate |"),
+        "{md}"
+    );
 
     let json =
         |p: PathBuf| -> serde_json::Value { serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap() };

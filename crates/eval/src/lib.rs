@@ -5,7 +5,8 @@
 //! mean on it; and how a model uses the kinematic [`hint`] it is given. Over a rollout's [`horizon`], the
 //! same statistics for generated and real scenes: agents per frame, entries and exits, collisions, agents
 //! [`offroad`], heading against motion, speed and acceleration, and whether agents brake on their
-//! [`approach`] to a standing one; the 95 % intervals of rates taken from [`counts`] of events.
+//! [`approach`] to a standing one; the 95 % intervals of rates taken from [`counts`] of events. Each
+//! run [`targets`]: the bars the project holds long rollouts to, checked against what was measured.
 
 pub mod approach;
 pub mod collision;
@@ -17,3 +18,4 @@ pub mod l2;
 pub mod leaving;
 pub mod mmd;
 pub mod offroad;
+pub mod targets;

@@ -240,7 +240,7 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
     }
     let per = meta["scenes_per_context"].as_u64().unwrap_or(1) as usize;
     let extent = umgen::agent_segment(&registry, &bundle.config)?.map(|(_, _, c)| [c.x, c.y]);
-    let horizon =
+    let (horizon, rollout) =
         super::eval_horizon::horizon(&scenes, &contexts, per, &ds, &registry, split_clips, dt, extent)?;
     report["horizon"] = horizon;
     if let Some(view) = super::scenes::map_view(&bundle)? {
@@ -249,6 +249,13 @@ pub fn run(a: &EvalArgs, kinds: &crate::Kinds) -> anyhow::Result<()> {
         report["map"] = map.into();
     }
     report["recorded_ego"] = recorded_ego.into();
+    let run = super::eval_targets::Run {
+        contexts: contexts.len(),
+        seconds: scenes.iter().map(|s| s.frames.len()).min().unwrap_or(0) as f64 * dt,
+        recorded_ego,
+    };
+    let targets = super::eval_targets::targets(&run, rollout, &l2_rows, &report["map"]);
+    report["targets"] = serde_json::to_value(&targets)?;
     let mut mmd_mean = serde_json::Map::new();
     for g in Group::ALL {
         let v: Vec<f64> = mmd_rows

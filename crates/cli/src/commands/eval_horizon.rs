@@ -13,6 +13,7 @@ use umgen::modality::ModalityRegistry;
 use umgen::scene::{Agent, RoadNetwork, SceneClip};
 use umgen_eval::horizon::{SceneStats, second_of};
 use umgen_eval::offroad::Drivable;
+use umgen_eval::targets::Check;
 
 /// At most this many agents of each side enter an MMD (evenly spaced): its cost is the product of the two.
 const MMD_AGENTS: usize = 1500;
@@ -53,7 +54,8 @@ impl Maps<'_> {
 /// `s` continues `contexts[s / per]` of `ds` (none: scenes from scratch, whose maps are unknown), `dt`
 /// seconds a frame, against `real` (the clips of the reference split, read with their networks); entries
 /// and exits are told apart by whether they cross the agents' range (`extent`: x and y in the ego frame,
-/// the agent modality's), where the bundle has one.
+/// the agent modality's), where the bundle has one. With it, the rollout targets
+/// ([`umgen_eval::targets::rollout`]) checked against these statistics.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn horizon(
     scenes: &[SceneClip],
@@ -64,7 +66,7 @@ pub(super) fn horizon(
     real: Vec<SceneClip>,
     dt: f64,
     extent: Option<[[f64; 2]; 2]>,
-) -> anyhow::Result<serde_json::Value> {
+) -> anyhow::Result<(serde_json::Value, Vec<Check>)> {
     let mut maps = Maps {
         ds,
         by_network: HashMap::new(),
@@ -115,11 +117,12 @@ pub(super) fn horizon(
             whole_agents.extend(f.agents.iter());
         }
     }
-    let rows: Vec<serde_json::Value> = seconds
+    let summaries: Vec<_> = seconds.iter().map(|(stats, _)| stats.summary()).collect();
+    let rows: Vec<serde_json::Value> = summaries
         .iter()
+        .zip(&seconds)
         .enumerate()
-        .map(|(i, (stats, agents))| {
-            let summary = stats.summary();
+        .map(|(i, (summary, (_, agents)))| {
             serde_json::json!({
                 "second": i + 1,
                 "frames": summary.frames,
@@ -128,14 +131,16 @@ pub(super) fn horizon(
             })
         })
         .collect();
-    let whole = whole.summary();
-    Ok(serde_json::json!({
-        "real": real_stats.summary(),
+    let (whole, real) = (whole.summary(), real_stats.summary());
+    let checks = umgen_eval::targets::rollout(&real, &summaries, &whole);
+    let json = serde_json::json!({
+        "real": real,
         "seconds": rows,
         "whole": {
             "frames": whole.frames,
             "generated": whole,
             "mmd": mmd_groups(&spaced(&whole_agents), &spaced(&real_refs)),
         },
-    }))
+    });
+    Ok((json, checks))
 }

@@ -36,6 +36,7 @@ pub fn markdown(generated: &Path, report: &serde_json::Value, real_frames: usize
     for g in Group::ALL {
         writeln!(md, "| MMD {} | {} |", g.name(), num(&report["mmd"][g.name()]))?;
     }
+    super::eval_targets::targets_markdown(&mut md, &report["targets"])?;
     horizon_markdown(&mut md, &report["horizon"])?;
     events_markdown(&mut md, &report["horizon"])?;
     map_markdown(&mut md, &report["map"])?;

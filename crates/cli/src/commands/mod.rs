@@ -18,6 +18,7 @@ mod eval_map;
 mod eval_plot;
 mod eval_report;
 mod eval_seen;
+mod eval_targets;
 mod eval_truth;
 mod export;
 mod frame_map;
