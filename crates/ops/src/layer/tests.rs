@@ -106,14 +106,54 @@ fn run(
     (y.inner(), x.grad(&grads).unwrap(), param_grads(blk, &grads))
 }
 
-/// The operation, recomputing and keeping, against burn's autodiff of the layer written out with burn's
-/// attention, without dropout: outputs and all 14 gradients.
-#[test]
-fn the_layer_op_matches_burns_operations() {
+/// A layer of width 16 with 2 heads, an input `[2, 24, 16]` and the output's weights, drawn in that order
+/// after the layer's seed.
+fn case() -> (TestLayer<A>, Tensor<Flex, 3>, Tensor<Flex, 3>) {
     let dev = Default::default();
     let blk = layer(16, 2);
     let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
     let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    (blk, x, r)
+}
+
+/// Dropout keep-masks (keeping 0.7) of the attention's and the MLP's outputs shaped like `x`, drawn from
+/// `seeds`.
+fn masks(x: &Tensor<Flex, 3>, seeds: [u64; 2]) -> Masks<Flex> {
+    let mask = |seed| {
+        Flex::seed(&x.device(), seed);
+        let m = x.random_like(Distribution::Bernoulli(0.7)).greater_elem(0.5);
+        Some((m, 1.0 / 0.7))
+    };
+    Masks {
+        attn: mask(seeds[0]),
+        mlp: mask(seeds[1]),
+    }
+}
+
+/// The written-out passes' setting for [`case`]'s layer in f32.
+fn setting(causal: bool) -> Setting {
+    Setting {
+        heads: 2,
+        causal,
+        precision: Precision::F32,
+        eps: crate::norm::LN_EPS,
+        over_time: None,
+        kernels: Kernels::default(),
+    }
+}
+
+/// A parameter's gradient from the written-out passes, flattened.
+fn flat(g: TensorPrimitive<Flex>) -> Tensor<Flex, 1> {
+    let g = g.tensor();
+    let n = g.shape().num_elements();
+    Tensor::from_primitive(TensorPrimitive::Float(Flex::float_reshape(g, [n].into())))
+}
+
+/// The operation, recomputing and keeping, against burn's autodiff of the layer written out with burn's
+/// attention, without dropout: outputs and all 14 gradients.
+#[test]
+fn the_layer_op_matches_burns_operations() {
+    let (blk, x, r) = case();
     let reference = |b: &TestLayer<A>, x: Tensor<A, 3>| {
         let p = b.parts();
         let n = p.ln1.forward(x.clone());
@@ -159,19 +199,8 @@ fn the_layer_op_matches_burns_operations() {
 fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
     // The written-out passes with given masks against burn's autodiff of the same layer with the same
     // masks applied by hand.
-    let dev = Default::default();
-    let blk = layer(16, 2);
-    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
-    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
-    let mask = |seed| {
-        Flex::seed(&dev, seed);
-        let m = x.random_like(Distribution::Bernoulli(0.7)).greater_elem(0.5);
-        Some((m, 1.0 / 0.7))
-    };
-    let masks = Masks {
-        attn: mask(1),
-        mlp: mask(2),
-    };
+    let (blk, x, r) = case();
+    let masks = masks(&x, [1, 2]);
     let (attn_mask, mlp_mask) = (masks.attn.clone().unwrap().0, masks.mlp.clone().unwrap().0);
     let reference = |b: &TestLayer<A>, x: Tensor<A, 3>| {
         let p = b.parts();
@@ -198,14 +227,7 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
 
     let parts = blk.parts();
     let (weights, _) = weights(&parts).unwrap();
-    let setting = Setting {
-        heads: 2,
-        causal: false,
-        precision: Precision::F32,
-        eps: crate::norm::LN_EPS,
-        over_time: None,
-        kernels: Kernels::default(),
-    };
+    let setting = setting(false);
     let (y1, _) = math::forward(&weights, setting, &masks, x.clone(), None, Keep::NOTHING);
     let (dx1, dctx, dp1) = math::backward(&weights, setting, &masks, (x, None), r);
     assert!(dctx.is_none(), "a self-attention layer has no context");
@@ -213,10 +235,7 @@ fn dropout_masks_of_the_forward_pass_are_reused_by_the_backward_pass() {
     assert!(rel(dx1, dx0) < 1e-4);
     // Weights' order is the parameters' visiting order (ln1, attn q/kv/proj, ln2, mlp fc/proj).
     for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
-        let a = a.tensor();
-        let n = a.shape().num_elements();
-        let a = Tensor::<Flex, 1>::from_primitive(TensorPrimitive::Float(Flex::float_reshape(a, [n].into())));
-        let e = rel(a, b);
+        let e = rel(flat(a), b);
         assert!(e < 1e-4, "parameter {i}: relative error {e}");
     }
 }
@@ -305,10 +324,7 @@ fn a_layer_under_bf16_products_keeps_its_input_rounded_to_bf16() {
 /// the forward pass's own second norm input, which the recomputation cannot: the gradients differ.
 #[test]
 fn a_kept_layer_gives_the_recomputed_layers_gradients() {
-    let dev = Default::default();
-    let blk = layer(16, 2);
-    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
-    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
+    let (blk, x, r) = case();
     let with = |precision, kernels: Kernels| {
         move |b: &TestLayer<A>, x: Tensor<A, 3>| {
             let parts = LayerParts {
@@ -372,31 +388,11 @@ fn a_kept_layer_gives_the_recomputed_layers_gradients() {
 /// of the written-out passes recomputing from the same masks.
 #[test]
 fn a_kept_layer_reuses_its_dropout_masks() {
-    let dev = Default::default();
-    let blk = layer(16, 2);
-    let x = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
-    let r = Tensor::<Flex, 3>::random([2, 24, 16], Distribution::Normal(0.0, 1.0), &dev);
-    let mask = |seed| {
-        Flex::seed(&dev, seed);
-        Some((
-            x.random_like(Distribution::Bernoulli(0.7)).greater_elem(0.5),
-            1.0 / 0.7,
-        ))
-    };
-    let masks = Masks {
-        attn: mask(3),
-        mlp: mask(4),
-    };
+    let (blk, x, r) = case();
+    let masks = masks(&x, [3, 4]);
     let parts = blk.parts();
     let (weights, _) = weights(&parts).unwrap();
-    let setting = Setting {
-        heads: 2,
-        causal: true,
-        precision: Precision::F32,
-        eps: crate::norm::LN_EPS,
-        over_time: None,
-        kernels: Kernels::default(),
-    };
+    let setting = setting(true);
     let all = Keep {
         format: None,
         all: true,
@@ -411,10 +407,6 @@ fn a_kept_layer_reuses_its_dropout_masks() {
     let (dx1, _, dp1) = math::gradients(&weights, setting, &masks, *f, r);
     assert_eq!(dx1.into_data(), dx0.into_data());
     for (i, (a, b)) in dp1.into_iter().zip(dp0).enumerate() {
-        let (a, b) = (
-            Tensor::<Flex, 1>::from_primitive(a),
-            Tensor::<Flex, 1>::from_primitive(b),
-        );
-        assert_eq!(a.into_data(), b.into_data(), "parameter {i}");
+        assert_eq!(flat(a).into_data(), flat(b).into_data(), "parameter {i}");
     }
 }
