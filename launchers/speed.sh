@@ -22,13 +22,8 @@ here=$(cd "$(dirname "$0")" && pwd)
 # shellcheck source=/dev/null
 [ -f "$here/gpu-env.sh" ] && source "$here/gpu-env.sh" >/dev/null
 mkdir -p "$out"
-run() { # name command...
-    local name=$1 t0
-    shift
-    t0=$(date +%s)
-    timeout "$limit" "$@" >"$out/$name.txt" 2>&1
-    echo "== $name: exit $? after $(($(date +%s) - t0)) s" | tee -a "$out/summary.txt"
-}
+# shellcheck source=launchers/timed-runs.sh
+source "$here/timed-runs.sh"
 if [ -n "$torch_py" ]; then
     for p in small paper; do
         CUDA_VISIBLE_DEVICES=$gpu run "torch-$p" python3 "$torch_py" train --preset "$p" --device cuda

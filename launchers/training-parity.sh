@@ -28,13 +28,8 @@ timer="$here/../dev/kernel-bench/scripts/torch-time-step.py"
 # shellcheck source=/dev/null
 [ -f "$here/gpu-env.sh" ] && source "$here/gpu-env.sh" >/dev/null
 mkdir -p "$out"
-run() { # name command...
-    local name=$1 t0
-    shift
-    t0=$(date +%s)
-    timeout "$limit" "$@" >"$out/$name.txt" 2>&1
-    echo "== $name: exit $? after $(($(date +%s) - t0)) s" | tee -a "$out/summary.txt"
-}
+# shellcheck source=launchers/timed-runs.sh
+source "$here/timed-runs.sh"
 steps_of() { [ "$1" = paper ] && echo 3 || echo 20; }
 for p in $presets; do
     for mode in eager compiled; do
