@@ -45,8 +45,9 @@ use math::{Keep, LayerBackend, Mask, Masks, Setting, Weights};
 use params::weights;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// Layer passes run by the operation so far, recomputed and kept (the bench prints them, tests check the
-/// path was taken).
+/// Layer passes with a backward pass to come run by the operation so far, recomputed and kept (the bench
+/// prints them, tests check the path was taken); a pass that wants no gradients keeps nothing and counts in
+/// neither.
 static RECOMPUTED: AtomicU64 = AtomicU64::new(0);
 static KEPT: AtomicU64 = AtomicU64::new(0);
 
@@ -334,8 +335,10 @@ fn start<I: LayerBackend, C: CheckpointStrategy>(
         kernels: *kernels,
     };
     let all = !kernels.recompute;
-    let counter = if all { &KEPT } else { &RECOMPUTED };
-    counter.fetch_add(1, Ordering::Relaxed);
+    if backward {
+        let counter = if all { &KEPT } else { &RECOMPUTED };
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
     let masks = Masks {
         attn: draw_mask(&x, parts.attn_dropout),
         mlp: draw_mask(&x, parts.mlp_dropout),
