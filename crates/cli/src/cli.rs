@@ -142,7 +142,7 @@ pub enum DataCommand {
     /// Summarise a dataset: logs, clips, frames and per-modality statistics.
     Info(InfoArgs),
     /// How far kinematics alone predicts a split's agents: position errors of constant velocity, constant
-    /// acceleration and repeated displacement against the recorded states.
+    /// acceleration, repeated displacement and constant turn rate against the recorded states.
     Kinematics(KinematicsArgs),
 }
 

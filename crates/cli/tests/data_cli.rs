@@ -56,24 +56,27 @@ fn kinematics_of_the_held_out_split_and_its_errors() {
         "--horizons",
         "1,2",
     ]));
-    // Two horizons × three predictors, each over the same agents at a horizon.
+    // Two horizons × four predictors, each over the same agents at a horizon.
     let rows: Vec<Vec<&str>> = out
         .lines()
         .filter(|l| l.trim_start().starts_with(['0', '1']))
         .map(|l| l.split_whitespace().collect())
         .collect();
-    assert_eq!(rows.len(), 6, "{out}");
+    assert_eq!(rows.len(), 8, "{out}");
     let mean = |r: &[&str]| r[r.len() - 3].parse::<f64>().unwrap();
     let agents = |r: &[&str]| r[r.len() - 4].parse::<usize>().unwrap();
     assert!(
-        rows[..3]
+        rows[..4]
             .iter()
             .all(|r| agents(r) == agents(&rows[0]) && agents(r) > 1000),
         "{out}"
     );
     // On SUMO's steady traffic a constant velocity is within centimetres half a second ahead and
     // errors grow with the horizon.
-    assert!(mean(&rows[0]) < 0.2 && mean(&rows[3]) > mean(&rows[0]), "{out}");
+    assert!(mean(&rows[0]) < 0.2 && mean(&rows[4]) > mean(&rows[0]), "{out}");
+    // A second ahead, keeping the turn as well as the acceleration comes closer on the test split's bends
+    // than the acceleration alone (0.213 against 0.219 m).
+    assert!(mean(&rows[7]) <= mean(&rows[5]), "{out}");
     let e = umgen(&["data", "kinematics", "--data", data, "--split", "val"]);
     let msg = String::from_utf8_lossy(&e.stderr);
     assert!(

@@ -132,7 +132,7 @@ fn kinematics(a: &KinematicsArgs) -> anyhow::Result<()> {
         a.data.display(),
         a.split
     );
-    let mut errors: Vec<[Vec<f64>; 3]> = vec![Default::default(); a.horizons.len()];
+    let mut errors: Vec<[Vec<f64>; Predictor::ALL.len()]> = vec![Default::default(); a.horizons.len()];
     let bar = indicatif::ProgressBar::new(clips.len() as u64);
     for &i in &clips {
         let clip = ds.read_clip(i)?;
