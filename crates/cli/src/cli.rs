@@ -205,6 +205,9 @@ pub struct KinematicsArgs {
     /// Frames ahead, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "1,2,4")]
     pub horizons: Vec<usize>,
+    /// Only agents of this category (`vehicle`, `pedestrian` or `cyclist`); every agent by default.
+    #[arg(long)]
+    pub category: Option<String>,
 }
 
 /// Arguments of `umgen viz`.

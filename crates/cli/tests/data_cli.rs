@@ -77,6 +77,30 @@ fn kinematics_of_the_held_out_split_and_its_errors() {
     // A second ahead, keeping the turn as well as the acceleration comes closer on the test split's bends
     // than the acceleration alone (0.213 against 0.219 m).
     assert!(mean(&rows[7]) <= mean(&rows[5]), "{out}");
+    // Vehicles alone are some of the agents, not all, and an unknown category is refused by name.
+    let vehicles = ok(&umgen(&[
+        "data",
+        "kinematics",
+        "--data",
+        data,
+        "--horizons",
+        "1",
+        "--category",
+        "vehicle",
+    ]));
+    let first = vehicles
+        .lines()
+        .find(|l| l.trim_start().starts_with('0'))
+        .map(|l| l.split_whitespace().collect::<Vec<_>>())
+        .unwrap();
+    assert!(
+        vehicles.contains("vehicle position error")
+            && agents(&first) > 0
+            && agents(&first) < agents(&rows[0]),
+        "{vehicles}"
+    );
+    let e = umgen(&["data", "kinematics", "--data", data, "--category", "car"]);
+    assert!(!e.status.success() && String::from_utf8_lossy(&e.stderr).contains("unknown category `car`"));
     let e = umgen(&["data", "kinematics", "--data", data, "--split", "val"]);
     let msg = String::from_utf8_lossy(&e.stderr);
     assert!(

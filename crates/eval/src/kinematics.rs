@@ -4,7 +4,7 @@
 //! baseline is nearly exact and even the recorded acceleration adds little.
 
 use crate::l2::{global_position, global_velocity};
-use umgen_scene::{Agent, SceneClip};
+use umgen_scene::{Agent, AgentCategory, SceneClip};
 
 /// A predictor of an agent's global position from its last states.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -91,8 +91,12 @@ fn turning(p: [f64; 2], v0: [f64; 2], v: [f64; 2], dt: f64, t: f64) -> [f64; 2] 
 }
 
 /// Errors (m) of every predictor, in [`Predictor::ALL`] order, for each agent of each frame `t` of `clip`
-/// that is also recorded at `t − 1` and `t + h` (matched by track id).
-pub fn clip_errors(clip: &SceneClip, h: usize) -> [Vec<f64>; Predictor::ALL.len()] {
+/// that is also recorded at `t − 1` and `t + h` (matched by track id), of `category` only where given.
+pub fn clip_errors(
+    clip: &SceneClip,
+    h: usize,
+    category: Option<AgentCategory>,
+) -> [Vec<f64>; Predictor::ALL.len()] {
     let mut out: [Vec<f64>; Predictor::ALL.len()] = Default::default();
     let n = clip.frames.len();
     if h == 0 || n < h + 2 {
@@ -105,6 +109,9 @@ pub fn clip_errors(clip: &SceneClip, h: usize) -> [Vec<f64>; Predictor::ALL.len(
     };
     for t in 1..n - h {
         for a in &clip.frames[t].agents {
+            if category.is_some_and(|c| c != a.category) {
+                continue;
+            }
             let (Some(before), Some(now), Some((truth, _))) = (
                 state(t - 1, a.track_id),
                 state(t, a.track_id),
@@ -183,7 +190,7 @@ mod tests {
     #[test]
     fn each_predictor_is_exact_on_its_own_motion_and_off_by_the_known_amount_otherwise() {
         // Steady 8 m/s: every predictor exact, one error per frame that has a past and a future.
-        let e = clip_errors(&clip(6, 0.5, 1.0, 8.0, 0.0), 1);
+        let e = clip_errors(&clip(6, 0.5, 1.0, 8.0, 0.0), 1, None);
         assert!(
             e.iter().all(|v| v.len() == 4 && v.iter().all(|x| x.abs() < 1e-9)),
             "{e:?}"
@@ -191,21 +198,29 @@ mod tests {
         // Braking at 2 m/s²: constant acceleration exact; constant velocity off by a t²/2 = 0.25 m at one
         // step and 1 m at two; the repeated displacement lags by a whole step: a dt² = 0.5 m at one step.
         let c = clip(8, 0.5, 0.0, 10.0, -2.0);
-        let [cv, ca, rd, ct] = clip_errors(&c, 1);
+        let [cv, ca, rd, ct] = clip_errors(&c, 1, None);
         assert!(ca.iter().all(|x| x.abs() < 1e-9), "{ca:?}");
         assert!(ct.iter().all(|x| x.abs() < 1e-9), "{ct:?}");
         assert!(cv.iter().all(|x| (x - 0.25).abs() < 1e-9), "{cv:?}");
         assert!(rd.iter().all(|x| (x - 0.5).abs() < 1e-9), "{rd:?}");
-        let [cv2, ca2, _, _] = clip_errors(&c, 2);
+        let [cv2, ca2, _, _] = clip_errors(&c, 2, None);
         assert_eq!(cv2.len(), 5);
         assert!(cv2.iter().all(|x| (x - 1.0).abs() < 1e-9) && ca2.iter().all(|x| x.abs() < 1e-9));
         // Too short a clip for the horizon, or no horizon: nothing.
         assert!(
-            clip_errors(&clip(3, 0.5, 0.0, 1.0, 0.0), 2)
+            clip_errors(&clip(3, 0.5, 0.0, 1.0, 0.0), 2, None)
                 .iter()
                 .all(Vec::is_empty)
         );
-        assert!(clip_errors(&c, 0).iter().all(Vec::is_empty));
+        assert!(clip_errors(&c, 0, None).iter().all(Vec::is_empty));
+        // The clip's one agent is a vehicle: counted as one, not as a pedestrian.
+        let vehicles = clip_errors(&c, 1, Some(AgentCategory::Vehicle));
+        assert_eq!(vehicles[1].len(), ca.len());
+        assert!(
+            clip_errors(&c, 1, Some(AgentCategory::Pedestrian))
+                .iter()
+                .all(Vec::is_empty)
+        );
     }
 
     #[test]
@@ -220,7 +235,7 @@ mod tests {
             )
         });
         for h in [1, 4, 8] {
-            let [_, ca, _, ct] = clip_errors(&c, h);
+            let [_, ca, _, ct] = clip_errors(&c, h, None);
             assert!(ct.iter().all(|x| *x < 1e-4), "{h} ahead: {ct:?}");
             // Constant acceleration runs along the parabola: at 8 frames (4 s, a quarter turn) metres off.
             let k = (0.5 * h as f64).powi(2);
@@ -232,7 +247,7 @@ mod tests {
             let a = 0.4 * t;
             ([a.sin(), 1.0 - a.cos()], [0.4 * a.cos(), 0.4 * a.sin()])
         });
-        let [_, ca, _, ct] = clip_errors(&slow, 2);
+        let [_, ca, _, ct] = clip_errors(&slow, 2, None);
         assert_eq!(ca, ct);
         // Braking at 2 m/s² from 3 m/s stops after 1.5 s, 2.25 m on. From t = 0.5 s (2.5 m/s, 1.25 m gone)
         // three frames ahead (t = 2 s, half a second after the stop), constant acceleration has driven back
@@ -241,7 +256,7 @@ mod tests {
             let t = t.min(1.5);
             ([3.0 * t - t * t, 0.0], [3.0 - 2.0 * t, 0.0])
         });
-        let [_, ca, _, ct] = clip_errors(&c, 3);
+        let [_, ca, _, ct] = clip_errors(&c, 3, None);
         assert_eq!((ca.len(), ct.len()), (1, 1));
         assert!((ca[0] - 0.25).abs() < 1e-9, "{ca:?}");
         assert!(ct[0] < 1e-3, "{ct:?}");

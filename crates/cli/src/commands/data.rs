@@ -122,6 +122,17 @@ fn kinematics(a: &KinematicsArgs) -> anyhow::Result<()> {
         !a.horizons.is_empty() && a.horizons.iter().all(|&h| h > 0),
         "--horizons: frames ahead must be at least 1"
     );
+    let category = match a.category.as_deref() {
+        None => None,
+        Some(name) => Some(
+            umgen::scene::AgentCategory::ALL
+                .into_iter()
+                .find(|c| c.name() == name)
+                .ok_or_else(|| {
+                    anyhow::anyhow!("--category: unknown category `{name}` (vehicle, pedestrian or cyclist)")
+                })?,
+        ),
+    };
     let ds = Dataset::open(&a.data)?;
     let clips: Vec<usize> = (0..ds.clips().len())
         .filter(|&i| ds.clips()[i].split == a.split)
@@ -137,7 +148,7 @@ fn kinematics(a: &KinematicsArgs) -> anyhow::Result<()> {
     for &i in &clips {
         let clip = ds.read_clip(i)?;
         for (e, &h) in errors.iter_mut().zip(&a.horizons) {
-            for (all, one) in e.iter_mut().zip(clip_errors(&clip, h)) {
+            for (all, one) in e.iter_mut().zip(clip_errors(&clip, h, category)) {
                 all.extend(one);
             }
         }
@@ -148,10 +159,11 @@ fn kinematics(a: &KinematicsArgs) -> anyhow::Result<()> {
     let mut out = std::io::stdout().lock();
     writeln!(
         out,
-        "{}: split `{}`, {} clips; agent position error (m) against the recorded states",
+        "{}: split `{}`, {} clips; {} position error (m) against the recorded states",
         a.data.display(),
         a.split,
-        clips.len()
+        clips.len(),
+        category.map_or("agent", |c| c.name())
     )?;
     writeln!(
         out,
