@@ -53,9 +53,10 @@ impl Predictor {
         let ((p0, v0), (p, v)) = (before, now);
         let t = dt * h as f64;
         let k = h as f64;
-        let (s0, s) = (v0[0].hypot(v0[1]), v[0].hypot(v[1]));
-        if self == Predictor::ConstantTurn && s0.min(s) >= TURN_MIN_SPEED {
-            return turning(p, v0, v, dt, t);
+        if self == Predictor::ConstantTurn
+            && let Some(q) = turning(p, v0, v, dt, t)
+        {
+            return q;
         }
         std::array::from_fn(|i| match self {
             Predictor::ConstantVelocity => p[i] + v[i] * t,
@@ -68,10 +69,13 @@ impl Predictor {
 }
 
 /// Position `t` seconds after `p` for a velocity `v` whose direction turns and whose speed changes at the
-/// rates they did over the `dt` since the previous velocity `v0` (both faster than [`TURN_MIN_SPEED`]);
-/// the speed stops at zero rather than turning the agent around.
-fn turning(p: [f64; 2], v0: [f64; 2], v: [f64; 2], dt: f64, t: f64) -> [f64; 2] {
+/// rates they did over the `dt` since the previous velocity `v0`; the speed stops at zero rather than
+/// turning the agent around. `None` where either speed is under [`TURN_MIN_SPEED`].
+fn turning(p: [f64; 2], v0: [f64; 2], v: [f64; 2], dt: f64, t: f64) -> Option<[f64; 2]> {
     let (s0, s) = (v0[0].hypot(v0[1]), v[0].hypot(v[1]));
+    if s0.min(s) < TURN_MIN_SPEED {
+        return None;
+    }
     let heading = v[1].atan2(v[0]);
     // The turn since the previous frame, wrapped to (−π, π].
     let turn = (heading - v0[1].atan2(v0[0]) + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
@@ -87,7 +91,7 @@ fn turning(p: [f64; 2], v0: [f64; 2], v: [f64; 2], dt: f64, t: f64) -> [f64; 2] 
         q[0] += speed * angle.cos() * h;
         q[1] += speed * angle.sin() * h;
     }
-    q
+    Some(q)
 }
 
 /// Errors (m) of every predictor, in [`Predictor::ALL`] order, for each agent of each frame `t` of `clip`
