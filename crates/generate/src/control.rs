@@ -113,7 +113,7 @@ impl Control {
                 )));
             }
             if let Some(c) = &a.category
-                && !["vehicle", "pedestrian", "cyclist"].contains(&c.as_str())
+                && umgen_scene::AgentCategory::from_name(c).is_none()
             {
                 return Err(GenerateError::Settings(format!(
                     "agent[{i}].category = {c:?}: expected vehicle, pedestrian or cyclist"

@@ -32,6 +32,11 @@ impl AgentCategory {
         }
     }
 
+    /// The category whose [`AgentCategory::name`] is `name`; `None` for any other string.
+    pub fn from_name(name: &str) -> Option<AgentCategory> {
+        AgentCategory::ALL.into_iter().find(|c| c.name() == name)
+    }
+
     /// Position in [`AgentCategory::ALL`].
     pub fn index(self) -> usize {
         match self {
@@ -139,6 +144,9 @@ mod tests {
             assert_eq!(s, format!("\"{}\"", c.name()));
             assert_eq!(serde_json::from_str::<AgentCategory>(&s).unwrap(), c);
             assert_eq!(AgentCategory::ALL[c.index()], c);
+            assert_eq!(AgentCategory::from_name(c.name()), Some(c));
         }
+        assert_eq!(AgentCategory::from_name("Vehicle"), None);
+        assert_eq!(AgentCategory::from_name("bus"), None);
     }
 }

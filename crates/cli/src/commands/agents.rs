@@ -109,11 +109,12 @@ impl AgentSlots {
                 }
                 out.push((base + f, id));
             }
-            let category = match a.category.as_deref().unwrap_or("vehicle") {
-                "pedestrian" => AgentCategory::Pedestrian,
-                "cyclist" => AgentCategory::Cyclist,
-                _ => AgentCategory::Vehicle,
-            };
+            // `Control::validate` refused unknown names (`umgen generate` validates first); no name is a vehicle.
+            let category = a
+                .category
+                .as_deref()
+                .and_then(AgentCategory::from_name)
+                .unwrap_or(AgentCategory::Vehicle);
             out.push((base + ATTRIBUTES - 1, self.cfg.category_id(category)));
             below.extend((0..ATTRIBUTES - 1).map(|f| (base + f, self.cfg.bins)));
         }

@@ -124,14 +124,9 @@ fn kinematics(a: &KinematicsArgs) -> anyhow::Result<()> {
     );
     let category = match a.category.as_deref() {
         None => None,
-        Some(name) => Some(
-            umgen::scene::AgentCategory::ALL
-                .into_iter()
-                .find(|c| c.name() == name)
-                .ok_or_else(|| {
-                    anyhow::anyhow!("--category: unknown category `{name}` (vehicle, pedestrian or cyclist)")
-                })?,
-        ),
+        Some(name) => Some(umgen::scene::AgentCategory::from_name(name).ok_or_else(|| {
+            anyhow::anyhow!("--category: unknown category `{name}` (vehicle, pedestrian or cyclist)")
+        })?),
     };
     let ds = Dataset::open(&a.data)?;
     let clips: Vec<usize> = (0..ds.clips().len())
